@@ -1,0 +1,80 @@
+"""Agent-steps per second of the digit-floor actor phase: batched torch vs the NumPy reference.
+
+    python benchmarks/bench_floor.py [--steps 5000] [--runs 1 10 100] [--device cpu]
+
+Both sides run the same algorithm (§3.2–3.5, SARSA(0) on the default floor) in one invocation;
+agent-steps/s = environment steps summed over runs / wall time of the step loop. Prints a
+table and writes benchmarks/results.json.
+"""
+import argparse
+import json
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from hydra import compose, initialize_config_dir
+from torch.utils.tensorboard import SummaryWriter
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.numpy_reference import run_numpy_reference  # noqa: E402
+from ferl.data import MnistEmbedded  # noqa: E402
+from ferl.run_dir import RunDir, StopRequest  # noqa: E402
+from ferl.trainers.digit_floor import FloorTraining  # noqa: E402
+
+
+def torch_actor_phase(runs: int, steps: int, device: str) -> float:
+    """Agent-steps/s of FloorTraining.train (the actor phase only, as in summary.json)."""
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose("config", overrides=[f"n_runs={runs}", f"trainer.steps={steps}", "trainer.test_per_class=1",
+                                           f"trainer.log_every={steps}", f"trainer.checkpoint_every={steps}",
+                                           "experiment=ch3_floor"])
+    cfg.name = "bench"
+    with tempfile.TemporaryDirectory() as tmp:
+        run = RunDir(tmp)
+        run.save_checkpoint = lambda state: None  # time the arithmetic, not the disk
+        job = FloorTraining(cfg, run, torch.device(device))
+        state = job.fresh_state()
+        with SummaryWriter(run.tb) as writer, StopRequest() as stop:
+            start = time.perf_counter()
+            job.train(state, writer, stop)
+            if device == "cuda":
+                torch.cuda.synchronize()
+            return runs * steps / (time.perf_counter() - start)
+
+
+def numpy_reference(steps: int) -> float:
+    split = MnistEmbedded().load()
+    images = {c: split.train_images[split.train_labels == c].numpy() for c in range(10)}
+    return run_numpy_reference(images, steps=steps, seed=0, init_std=0.1)["steps_per_s"]
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--steps", type=int, default=5000)
+    parser.add_argument("--runs", type=int, nargs="+", default=[1, 10, 100])
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results.json"))
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    reference = numpy_reference(args.steps)
+    rows = [{"runs": r, "agent_steps_per_s": torch_actor_phase(r, args.steps, args.device)} for r in args.runs]
+    print(f"digit floor actor phase, {args.steps} steps, device={args.device}, torch threads={args.threads}")
+    print(f"NumPy per-step reference (1 run): {reference:10.0f} agent-steps/s")
+    print(f"{'runs':>6} {'agent-steps/s':>14} {'× NumPy':>8}")
+    for row in rows:
+        row["speedup_vs_numpy"] = row["agent_steps_per_s"] / reference
+        print(f"{row['runs']:>6} {row['agent_steps_per_s']:>14.0f} {row['speedup_vs_numpy']:>8.1f}")
+    result = {"machine": platform.processor() or platform.machine(), "cpus": torch.get_num_threads(),
+              "device": args.device, "steps": args.steps, "numpy_reference_steps_per_s": reference, "torch": rows}
+    Path(args.out).write_text(json.dumps(result, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,162 @@
+"""FERL actor: an RBM whose negative free energy approximates Q(s, a) (§3.2).
+
+Visible layer = state nodes s and action nodes a, hidden layer h (Fig. 4.1a).
+
+* Q(s, a) ≈ −F(s, a), F the unit-temperature free energy (Eq. 3.1 and §2.1.5)
+* clamped action selection: softmax π(a|s) ∝ exp(−β F(s, a)) over all action codes (Eq. 3.11)
+* alternating-Gibbs action sampling (end of §3.2) as an option
+* TD errors SARSA(0), Q(0), expected SARSA (§3.2, with Q = −F):
+      δ = r − γ F(s', a') + F(s, a)
+* online update θ ← θ + α δ (−∂F/∂θ), Eqs. (3.5–3.10)
+
+All parameters carry the run dimension first, ``W_sh`` (R, S, H); states are (R, B, S) with
+B = 1 in the online step loop and B = many for test images.
+"""
+import math
+
+import torch
+from torch import nn
+
+from ferl import rbm
+
+TD_RULES = ("sarsa", "q", "expected_sarsa")
+ACTION_CODES = ("onehot", "binary")
+ACTION_SELECTIONS = ("clamp", "gibbs")
+
+
+def action_code_table(n_actions: int, code: str) -> torch.Tensor:
+    """Rows are the action-node configurations of every admissible action.
+
+    ``onehot``: one node per action (the dissertation's constraint, §3.2 end).
+    ``binary``: ⌈log2 n⌉ factored binary nodes, action i ↔ the bits of i.
+    """
+    if code == "onehot":
+        return torch.eye(n_actions)
+    n_bits = max(1, math.ceil(math.log2(n_actions)))
+    bits = (torch.arange(n_actions).unsqueeze(1) >> torch.arange(n_bits - 1, -1, -1)) & 1
+    return bits.float()
+
+
+def sample_categorical(probs: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+    """One draw per row of probs (..., n) by inverting the CDF at uniforms u (..., 1)."""
+    index = (probs.cumsum(-1) < u).sum(-1)
+    return index.clamp_(max=probs.shape[-1] - 1)
+
+
+class FERLActor(nn.Module):
+    def __init__(self, n_runs: int, n_state: int, n_actions: int, n_hidden: int, td_rule: str,
+                 gamma: float, lr, beta, lr_edge_norm: bool = True, init_std: float = 0.01,
+                 action_code: str = "onehot", action_selection: str = "clamp",
+                 gibbs_sweeps: int = 20, seed: int = 0):
+        super().__init__()
+        self.td_rule, self.gamma = td_rule, gamma
+        self.lr_schedule, self.beta_schedule, self.lr_edge_norm = lr, beta, lr_edge_norm
+        self.action_selection, self.gibbs_sweeps = action_selection, gibbs_sweeps
+        codes = action_code_table(n_actions, action_code)
+        n_bits = codes.shape[1]
+        self.onehot = action_code == "onehot"
+        self.register_buffer("codes", codes)
+        # Each run is initialised from its own seed, so run r does not depend on n_runs.
+        gens = [torch.Generator().manual_seed(seed + r) for r in range(n_runs)]
+        self.register_buffer("W_sh", torch.stack([torch.randn(n_state, n_hidden, generator=g) for g in gens]) * init_std)
+        self.register_buffer("W_ah", torch.stack([torch.randn(n_bits, n_hidden, generator=g) for g in gens]) * init_std)
+        self.register_buffer("b_s", torch.zeros(n_runs, n_state))
+        self.register_buffer("b_a", torch.zeros(n_runs, n_bits))
+        self.register_buffer("b_h", torch.zeros(n_runs, n_hidden))
+
+    @property
+    def n_edges(self) -> int:
+        """Connections of the network (state + action nodes) × hidden nodes (§3.5)."""
+        return (self.W_sh.shape[1] + self.W_ah.shape[1]) * self.W_sh.shape[2]
+
+    def learning_rate(self, progress: float) -> float:
+        """α of Eq. (3.10), divided by √(number of edges) when lr_edge_norm (§3.5)."""
+        alpha = self.lr_schedule(progress)
+        return alpha / math.sqrt(self.n_edges) if self.lr_edge_norm else alpha
+
+    def inverse_temperature(self, progress: float) -> float:
+        return self.beta_schedule(progress)
+
+    def evaluate(self, s: torch.Tensor):
+        """Free energies of every action and the hidden inputs: s (R, B, S) or shared (B, S) →
+        F (R, B, nA), x (R, B, nA, H) with ĥ = σ(x) (Eq. 3.1c)."""
+        x = rbm.hidden_input(s, self.W_sh, self.b_h).unsqueeze(2) + self.action_input(self.W_ah).unsqueeze(1)
+        visible = rbm.visible_term(s, self.b_s).unsqueeze(-1) + self.action_input(self.b_a.unsqueeze(-1)).transpose(1, 2)
+        return rbm.free_energy_from_input(visible, x), x
+
+    def action_input(self, weights: torch.Tensor) -> torch.Tensor:
+        """codes @ weights, (R, nA, ·): what every admissible action feeds the hidden layer.
+        One-hot codes are the identity, so the product is skipped on the hot path."""
+        return weights if self.onehot else self.codes @ weights
+
+    def policy(self, F: torch.Tensor, beta: float) -> torch.Tensor:
+        """Softmax action-selection probabilities, Eq. (3.11)."""
+        return torch.softmax(-beta * F, dim=-1)
+
+    def select(self, s: torch.Tensor, F: torch.Tensor, beta: float, generator: torch.Generator,
+               uniform: torch.Tensor = None) -> torch.Tensor:
+        """An action index per (run, state): clamped softmax (Eq. 3.11) or alternating Gibbs.
+
+        ``uniform`` (R, B, 1) may carry pre-drawn U(0, 1) numbers for the clamped softmax.
+        """
+        if self.action_selection == "gibbs":
+            return self.gibbs_actions(s, beta, generator)
+        if uniform is None:
+            uniform = torch.rand(F.shape[:-1] + (1,), generator=generator, device=F.device, dtype=F.dtype)
+        return sample_categorical(self.policy(F, beta), uniform)
+
+    def gibbs_actions(self, s: torch.Tensor, beta: float, generator: torch.Generator) -> torch.Tensor:
+        """Alternating Gibbs sampling with s clamped (end of §3.2): h ~ P(h|s,a), a ~ P(a|h).
+
+        Both conditionals at inverse temperature β, so the chain's stationary law is
+        P(a|s) ∝ exp(−β F_β(s, a)). P(a|h) ∝ exp(β aᵀ(W_ah h + b_a)) over the admissible codes:
+        for ``binary`` codes this factorises into independent action nodes; for ``onehot`` it
+        is the softmax unit that enforces one active action node.
+        """
+        x_s = rbm.hidden_input(s, self.W_sh, self.b_h)
+        n_actions = self.codes.shape[0]
+        a = torch.randint(n_actions, x_s.shape[:2], generator=generator, device=s.device)
+        for _ in range(self.gibbs_sweeps):
+            x = x_s + torch.bmm(self.codes[a], self.W_ah)
+            h = torch.bernoulli(torch.sigmoid(beta * x), generator=generator)
+            action_field = torch.bmm(h, self.W_ah.transpose(1, 2)) + self.b_a.unsqueeze(1)
+            probs = torch.softmax(beta * action_field @ self.codes.T, -1)
+            a = sample_categorical(probs, torch.rand(a.shape + (1,), generator=generator, device=s.device, dtype=probs.dtype))
+        return a
+
+    def td_error(self, reward, F_sa, F_next, a_next, beta: float, terminal=None) -> torch.Tensor:
+        """δ = r − γ F_next + F(s, a) with F_next by the TD rule (§3.2); 0 bootstrap at terminals."""
+        if self.td_rule == "sarsa":
+            F_boot = F_next.gather(-1, a_next.unsqueeze(-1)).squeeze(-1)
+        elif self.td_rule == "q":
+            F_boot = F_next.min(-1).values
+        else:
+            F_boot = (self.policy(F_next, beta) * F_next).sum(-1)
+        if terminal is not None:
+            F_boot = F_boot * (~terminal)
+        return reward - self.gamma * F_boot + F_sa
+
+    @torch.no_grad()
+    def update(self, s, a, x_sa, delta, lr) -> None:
+        """θ ← θ + α δ (−∂F/∂θ) in place, Eq. (3.10a–e), summed over the B axis.
+
+        s (R, B, S), a (R, B) action indices, x_sa (R, B, H) hidden inputs at (s, a), delta (R, B);
+        lr a float or a 0-d tensor (so a compiled step does not recompile as α decays).
+        """
+        step = lr * delta  # α δ
+        g = step.unsqueeze(-1) * torch.sigmoid(x_sa)  # α δ ĥ
+        if s.shape[1] == 1:  # online step: broadcast outer products beat batched matmuls
+            self.W_sh.addcmul_(s.transpose(1, 2), g)
+            self.b_s.addcmul_(step, s.squeeze(1))
+        else:
+            self.W_sh.baddbmm_(s.transpose(1, 2), g)
+            self.b_s.add_(torch.bmm(step.unsqueeze(1), s).squeeze(1))
+        self.b_h.add_(g.sum(1))
+        if self.onehot:  # the action node of a is the only active one: update row a only
+            rows = (a + torch.arange(0, a.shape[0] * self.W_ah.shape[1], self.W_ah.shape[1], device=a.device).unsqueeze(1)).flatten()
+            self.W_ah.view(-1, self.W_ah.shape[2]).index_add_(0, rows, g.flatten(0, 1))
+            self.b_a.view(-1).index_add_(0, rows, step.flatten())
+        else:
+            code = self.codes[a]
+            self.W_ah.baddbmm_(code.transpose(1, 2), g)
+            self.b_a.add_(torch.bmm(step.unsqueeze(1), code).squeeze(1))

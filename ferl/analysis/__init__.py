@@ -1,0 +1,7 @@
+"""Analysis of finished runs: numbers, figures and claim-vs-measurement reports.
+
+`coding` holds the pure computations of §3.5 (Eq. 3.12, the Gram-matrix distance,
+pairwise mutual information), `floor_figures` draws the chapter-3 figures,
+`floor` turns one digit-floor run directory into its `analysis/` folder and
+`report` holds the dissertation's claims as data and writes `report.md`.
+"""

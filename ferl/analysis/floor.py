@@ -1,0 +1,346 @@
+"""One digit-floor run (chapter 3) → its figures, data files and judged claims.
+
+`FloorRun` loads the records of docs/records.md plus `summary.json` and derives
+what the figures and claims share: greedy accuracy (Fig. 3.6), median firing
+rates and their clustering (Eq. 3.12, Figs. 3.11/3.13) and the pixel–label
+mutual information (Fig. 3.12). `analyze` writes the numbers into the run's
+`analysis/` folder and returns the figures and claims for the report.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from ferl.analysis import coding
+from ferl.analysis import floor_figures as figs
+from ferl.analysis.report import FLOOR_CLAIMS, PERCEPTUAL_PAIRS, RunAnalysis, evaluate
+
+TASK = "digit_floor"
+WINDOW = 100           # moving-average window of Fig. 3.4
+MAX_CURVE_POINTS = 2000
+MI_BINS = 2            # see coding.pairwise_mutual_information
+LINKAGE = "average"
+PHASES = ("before", "after")
+NOISE_CLASS = "N"
+
+
+def _load_npz(path: Path) -> dict[str, np.ndarray]:
+    with np.load(path, allow_pickle=False) as data:
+        return {key: data[key] for key in data.files}
+
+
+@dataclass
+class FloorRun:
+    run_dir: Path
+    summary: dict
+    train: dict[str, np.ndarray]
+    test: dict[str, np.ndarray]
+    weights: dict[str, np.ndarray]
+
+    @classmethod
+    def load(cls, run_dir: Path) -> FloorRun:
+        records = run_dir / "records"
+        return cls(run_dir, json.loads((run_dir / "summary.json").read_text()),
+                   _load_npz(records / "floor_train.npz"), _load_npz(records / "floor_test.npz"),
+                   _load_npz(records / "weights.npz"))
+
+    # ---- layout of the floor and the test ----
+    @cached_property
+    def classes(self) -> list[str]:
+        return [str(c) for c in self.test["classes"]]
+
+    @cached_property
+    def digit_classes(self) -> list[str]:
+        return [c for c in self.classes if c != NOISE_CLASS]
+
+    @cached_property
+    def optimal_action(self) -> np.ndarray:
+        return self.test["optimal_action"].astype(np.int64)
+
+    @cached_property
+    def action_names(self) -> list[str]:
+        return [str(a) for a in self.test["action_names"]]
+
+    @property
+    def arrangement(self) -> np.ndarray:
+        return self.test["arrangement"].astype(str)
+
+    @property
+    def noise_levels(self) -> np.ndarray:
+        return self.test["noise_levels"].astype(np.float64)
+
+    @property
+    def probe_noise(self) -> float:
+        return float(self.test["probe_noise"])
+
+    @property
+    def probe_level(self) -> int:
+        """Index of the test noise level at which the probes were taken."""
+        return int(np.argmin(np.abs(self.noise_levels - self.probe_noise)))
+
+    @property
+    def n_runs(self) -> int:
+        return self.train["rewards"].shape[0]
+
+    @property
+    def chance(self) -> float:
+        return 1.0 / len(self.action_names)
+
+    @property
+    def optimal_reward(self) -> float:
+        return float(self.summary["optimal"]["reward_per_step"])
+
+    @property
+    def has_optimal_actions(self) -> bool:
+        return bool((self.optimal_action >= 0).any())
+
+    @cached_property
+    def reward_free(self) -> bool:
+        """No reward was ever delivered: the "without reward" condition of §3.5.3."""
+        return not self.train["rewards"].any()
+
+    # ---- behaviour (Figs. 3.4, 3.6) ----
+    @cached_property
+    def accuracy(self) -> dict[str, np.ndarray]:
+        return {p: coding.greedy_accuracy(self.test[f"greedy_counts_{p}"], self.optimal_action)
+                for p in PHASES}
+
+    # ---- population coding (Figs. 3.10–3.13) ----
+    @cached_property
+    def mfr(self) -> dict[str, np.ndarray]:
+        """(R, C, H) median firing rates of Eq. (3.12) per run."""
+        return {p: np.stack([coding.median_firing_rates(h) for h in self.test[f"hidden_{p}"]])
+                for p in PHASES}
+
+    @cached_property
+    def mfr_linkages(self) -> list[np.ndarray]:
+        """Clustering of the after-training MFR distance D, one per run."""
+        return [coding.linkage_from_distance(coding.gram_distance(m)[1], LINKAGE)
+                for m in self.mfr["after"]]
+
+    @cached_property
+    def same_action_pairs(self) -> list[tuple[int, int]]:
+        return coding.same_action_pairs(self.classes, self.optimal_action)
+
+    def cluster_hits(self, i: int, j: int) -> list[bool]:
+        """Per run: are classes i and j merged directly in the MFR dendrogram?"""
+        return [coding.pair_forms_cluster(z, i, j) for z in self.mfr_linkages]
+
+    def median_activation(self, phase: str) -> np.ndarray:
+        """(R, C, H) median of the marginal activation (§3.5.3, fn. 6)."""
+        return np.median(self.test[f"hidden_marginal_{phase}"], axis=2)
+
+    def selectivity(self, phase: str) -> np.ndarray:
+        """(R,) how much the median activation differs between classes, mean over units."""
+        return self.median_activation(phase).std(axis=1).mean(axis=1)
+
+    # ---- statistics of the images (Fig. 3.12) ----
+    @cached_property
+    def mutual_information(self) -> np.ndarray:
+        return coding.pairwise_mutual_information(self.test["clean_images"], bins=MI_BINS)
+
+    @cached_property
+    def mi_linkage(self) -> np.ndarray | None:
+        """Clustering of the digits (noise class excluded, as in Fig. 3.12) by MI."""
+        if len(self.digit_classes) < 2:
+            return None
+        idx = [self.classes.index(c) for c in self.digit_classes]
+        return coding.linkage_from_distance(self.mutual_information[np.ix_(idx, idx)], LINKAGE)
+
+    def mi_pair_clusters(self, a: str, b: str) -> bool:
+        return coding.pair_forms_cluster(self.mi_linkage, self.digit_classes.index(a),
+                                         self.digit_classes.index(b))
+
+    @cached_property
+    def outlier_class(self) -> int | None:
+        """Class of Fig. 3.7: "1" when it has an optimal action, else the first that has."""
+        if "1" in self.classes and self.optimal_action[self.classes.index("1")] >= 0:
+            return self.classes.index("1")
+        candidates = np.flatnonzero(self.optimal_action >= 0)
+        return int(candidates[0]) if candidates.size else None
+
+
+# ---- data files ------------------------------------------------------------
+
+def _write_csv(path: Path, header: Sequence[str], rows) -> None:
+    with path.open("w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(header)
+        writer.writerows(rows)
+
+
+def _fmt(x) -> str:
+    return f"{x:.6g}"
+
+
+def _run_columns(n_runs: int) -> list[str]:
+    return [f"run_{r}" for r in range(n_runs)]
+
+
+def _reward_curve(run: FloorRun) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    rewards = run.train["rewards"]
+    window = min(WINDOW, rewards.shape[1])
+    ma = coding.moving_average(rewards, window)
+    stride = max(1, ma.shape[1] // MAX_CURVE_POINTS)  # plotting every step adds nothing visible
+    keep = np.arange(0, ma.shape[1], stride)
+    return keep + window, ma[:, keep].mean(axis=0), ma[:, keep].std(axis=0), window
+
+
+def write_tables(run: FloorRun, out: Path) -> list[str]:
+    """Write the numbers behind the figures; return the file names."""
+    written = []
+
+    def table(name: str, header, rows) -> None:
+        _write_csv(out / name, header, rows)
+        written.append(name)
+
+    steps, mean, std, window = _reward_curve(run)
+    table("reward_moving_average.csv", ["step", f"mean_ma{window}", f"sd_ma{window}"],
+          [(int(s), _fmt(m), _fmt(d)) for s, m, d in zip(steps, mean, std)])
+
+    runs = _run_columns(run.n_runs)
+    table("greedy_accuracy.csv", ["phase", "test_noise", "mean", "sem", *runs],
+          [(p, _fmt(x), _fmt(acc[:, l].mean()), _fmt(sem[l]), *map(_fmt, acc[:, l]))
+           for p, acc in run.accuracy.items() for sem in [coding.sem_over_runs(acc)]
+           for l, x in enumerate(run.noise_levels)])
+
+    table("greedy_counts_probe_noise.csv",
+          ["phase", "class", "action", "optimal", "mean", "sd", *runs],
+          [(p, name, act, int(run.optimal_action[c] == a),
+            _fmt(counts[:, c, a].mean()), _fmt(counts[:, c, a].std()), *counts[:, c, a].tolist())
+           for p in PHASES
+           for counts in [run.test[f"greedy_counts_{p}"][:, run.probe_level]]
+           for c, name in enumerate(run.classes) for a, act in enumerate(run.action_names)])
+
+    if run.outlier_class is not None:
+        c = run.outlier_class
+        a = run.optimal_action[c]
+        probs = {p: run.test[f"probs_{p}"][0, c, :, a] for p in PHASES}
+        table("outlier_probs_run0.csv", ["class", "image", "p_optimal_before", "p_optimal_after"],
+              [(run.classes[c], k, _fmt(b), _fmt(f))
+               for k, (b, f) in enumerate(zip(probs["before"], probs["after"]))])
+
+    units = [f"h{k + 1}" for k in range(run.mfr["after"].shape[2])]
+    for p in PHASES:
+        table(f"median_activation_{p}_run0.csv", ["class", *units],
+              [(name, *map(_fmt, row))
+               for name, row in zip(run.classes, run.median_activation(p)[0])])
+    for r, mfr in enumerate(run.mfr["after"]):
+        table(f"mfr_run{r}.csv", ["class", *units],
+              [(name, *map(_fmt, row)) for name, row in zip(run.classes, mfr)])
+    _, distance = coding.gram_distance(run.mfr["after"][0])
+    table("mfr_distance_run0.csv", ["class", *run.classes],
+          [(name, *map(_fmt, row)) for name, row in zip(run.classes, distance)])
+    table("mutual_information.csv", ["class", *run.classes],
+          [(name, *map(_fmt, row)) for name, row in zip(run.classes, run.mutual_information)])
+
+    (out / "pair_clusters.json").write_text(json.dumps(_pair_clusters(run), indent=2) + "\n")
+    written.append("pair_clusters.json")
+    return written
+
+
+def _pair_clusters(run: FloorRun) -> dict:
+    def entry(i: int, j: int) -> dict:
+        hits = run.cluster_hits(i, j)
+        return {"pair": [run.classes[i], run.classes[j]], "runs_forming_cluster": sum(hits),
+                "n_runs": len(hits), "per_run": hits}
+
+    perceptual = [(run.classes.index(a), run.classes.index(b)) for a, b in PERCEPTUAL_PAIRS
+                  if a in run.classes and b in run.classes]
+    return {
+        "linkage": LINKAGE,
+        "same_action_pairs": [dict(entry(i, j), action=run.action_names[run.optimal_action[i]])
+                              for i, j in run.same_action_pairs],
+        "perceptual_pairs": [entry(i, j) for i, j in perceptual],
+    }
+
+
+# ---- figures ---------------------------------------------------------------
+
+def make_figures(run: FloorRun, n_outlier_images: int = 40) -> dict[str, tuple]:
+    """name → (Figure, caption) for every chapter-3 figure this run's records support."""
+    out = {}
+    steps, mean, std, window = _reward_curve(run)
+    out["fig3_4_reward"] = (figs.reward_curve(steps, mean, std, run.optimal_reward, window,
+                                              run.n_runs),
+                            "Fig. 3.4: moving average of the reward, mean ± s.d. over runs")
+    out["fig3_5_weights"] = (figs.weight_images(run.weights["W_sh_before"][0],
+                                                run.weights["W_sh_after"][0]),
+                             "Fig. 3.5: observation→hidden weights before/after training (run 0)")
+    noise = f"{100 * run.probe_noise:g} %"
+    for panel, p in zip("ab", PHASES):
+        counts = run.test[f"greedy_counts_{p}"][:, run.probe_level]
+        title = f"Fig. 3.6({panel}): greedy actions of the test images, {p} training\n" \
+                f"(train noise {noise}, test noise {noise})"
+        out[f"fig3_6{panel}_greedy_{p}"] = (
+            figs.greedy_count_grid(counts, run.classes, run.arrangement, run.optimal_action,
+                                   run.action_names, title),
+            f"Fig. 3.6({panel}): greedy-action counts per class {p} training")
+    if run.has_optimal_actions:
+        out["fig3_6_accuracy_vs_noise"] = (
+            figs.accuracy_vs_noise(run.noise_levels, run.accuracy["before"],
+                                   run.accuracy["after"], run.probe_noise, run.chance),
+            "Fig. 3.6(c)/(d): greedy accuracy vs test noise, before/after training")
+    if run.outlier_class is not None:
+        c = run.outlier_class
+        a = run.optimal_action[c]
+        out["fig3_7_outlier"] = (
+            figs.outlier_images(run.test["probe_images"][c].astype(np.float32),
+                                run.test["probs_before"][0, c, :, a],
+                                run.test["probs_after"][0, c, :, a],
+                                run.classes[c], run.action_names[a], n_outlier_images),
+            f'Fig. 3.7: test images of "{run.classes[c]}" sorted by P(optimal action)')
+    out["fig3_10_median_activation"] = (
+        figs.median_activation(run.median_activation("before")[0],
+                               run.median_activation("after")[0], run.classes),
+        "Fig. 3.10: median hidden activation per class (run 0)")
+    what = f"{run.summary.get('experiment', '')}, {run.mfr['after'].shape[2]} hidden nodes"
+    out["fig3_11_dendrogram_run0"] = (
+        figs.mfr_dendrogram(run.mfr_linkages[0], run.classes,
+                            f"Fig. 3.11/3.13: clustered MFRs after training\n(run 0; {what})"),
+        "Figs. 3.11/3.13: MFR dendrogram after training, run 0")
+    out["fig3_11_dendrogram_all_runs"] = (
+        figs.mfr_dendrogram_grid(run.mfr_linkages, run.classes,
+                                 f"Fig. 3.11/3.13: clustered MFRs after training, every run\n"
+                                 f"({what})"),
+        "Figs. 3.11/3.13: MFR dendrograms after training, every run")
+    if run.mi_linkage is not None:
+        out["fig3_12_mutual_information"] = (
+            figs.mi_dendrogram(run.mi_linkage, run.digit_classes, MI_BINS),
+            'Fig. 3.12: digits clustered by pairwise mutual information ("N" excluded)')
+    return out
+
+
+def _header(run: FloorRun) -> list[tuple[str, str]]:
+    rewards = run.train["rewards"]
+    n_images = run.test["probs_after"].shape[2]
+    return [
+        ("run directory", f"`{run.run_dir}`"),
+        ("experiment", str(run.summary.get("experiment", "?"))),
+        ("seeds", str(run.summary.get("seeds", "?"))),
+        ("runs × training steps", f"{rewards.shape[0]} × {rewards.shape[1]}"),
+        ("floor patch", " / ".join(" ".join(row) for row in run.arrangement)),
+        ("optimal actions", ", ".join(f"{c} {run.action_names[a] if a >= 0 else 'goal'}"
+                                      for c, a in zip(run.classes, run.optimal_action))),
+        ("reward", "none delivered (reward-free condition)" if run.reward_free
+         else f"optimum {run.optimal_reward:g} per step"),
+        ("training / probe noise", f"{100 * run.probe_noise:g} %"),
+        ("test images per class", str(n_images)),
+        ("clustering", f"{LINKAGE} linkage; mutual information with {MI_BINS} intensity bins"),
+    ]
+
+
+def analyze(run_dir: Path, out: Path) -> RunAnalysis:
+    """Analyze one digit-floor run; data files go to `out`, figures are returned."""
+    run = FloorRun.load(run_dir)
+    experiment = run.summary.get("experiment", run_dir.name)
+    return RunAnalysis(title=f"Digit floor (chapter 3): {experiment}",
+                       header=_header(run), figures=make_figures(run),
+                       data_files=write_tables(run, out), results=evaluate(FLOOR_CLAIMS, run))

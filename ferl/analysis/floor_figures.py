@@ -1,0 +1,228 @@
+"""Figures of chapter 3 (digit floor, Figs. 3.4–3.13), drawn from run records.
+
+Every function takes plain arrays and returns a `matplotlib.figure.Figure`
+built without pyplot (so no global figure state; rendered by the Agg canvas
+when saved). The numbers come from `ferl.analysis.coding`.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+from matplotlib.figure import Figure
+from matplotlib.patches import Patch
+from scipy.cluster.hierarchy import dendrogram
+
+from ferl.analysis.coding import sem_over_runs
+
+SIDE = 28  # MNIST tiles are 28 × 28 pixels (§3.4)
+OPTIMAL_COLOR, OTHER_COLOR, GOAL_COLOR = "tab:orange", "tab:blue", "lightgray"
+PHASE_COLOR = {"before": "tab:gray", "after": "tab:red"}
+
+
+def _mosaic(tiles: np.ndarray, ncols: int, pad_x: int = 2, pad_y: int = 2) -> np.ndarray:
+    """(k, 28, 28) tiles → one 2-D image, row-major, NaN in the gaps."""
+    nrows = -(-len(tiles) // ncols)
+    out = np.full((nrows * (SIDE + pad_y), ncols * (SIDE + pad_x)), np.nan)
+    for k, tile in enumerate(tiles):
+        r, c = divmod(k, ncols)
+        out[r * (SIDE + pad_y) + pad_y:(r + 1) * (SIDE + pad_y),
+            c * (SIDE + pad_x):c * (SIDE + pad_x) + SIDE] = tile
+    return out
+
+
+def _no_ticks(ax) -> None:
+    ax.set_xticks([])
+    ax.set_yticks([])
+
+
+def reward_curve(steps: np.ndarray, mean: np.ndarray, std: np.ndarray,
+                 optimum: float | None, window: int, n_runs: int) -> Figure:
+    """Fig. 3.4: moving average of the reward, mean ± 1 s.d. over runs."""
+    fig = Figure(figsize=(7, 4), layout="constrained")
+    ax = fig.add_subplot()
+    ax.plot(steps, mean, color="tab:blue", label=f"mean over {n_runs} runs")
+    ax.fill_between(steps, mean - std, mean + std, color="tab:blue", alpha=0.25,
+                    label="±1 s.d. over runs")
+    if optimum is not None:
+        ax.axhline(optimum, color="k", ls="--", label=f"optimum ({optimum:g} per step)")
+    ax.set_xlabel("training step")
+    ax.set_ylabel(f"reward per step ({window}-step moving average)")
+    ax.set_title(f"Fig. 3.4: moving average of the immediate reward over {window} steps")
+    ax.legend(loc="lower right")
+    return fig
+
+
+def weight_images(w_before: np.ndarray, w_after: np.ndarray, ncols: int = 10) -> Figure:
+    """Fig. 3.5: observation→hidden weights (784, H) as 28×28 images, before over after."""
+    n_hidden = w_before.shape[1]
+    ncols = min(ncols, n_hidden)
+    fig = Figure(figsize=(1.0 * ncols + 1, 2.2 * -(-n_hidden // ncols) + 1), layout="constrained")
+    axes = fig.subplots(2, 1)
+    for ax, w, phase in zip(axes, (w_before, w_after), ("before", "after")):
+        tiles = w.T.reshape(n_hidden, SIDE, SIDE)
+        # Each unit is scaled to its own max |w| so that untrained (small) weights stay visible.
+        scale = np.abs(tiles).max(axis=(1, 2), keepdims=True)
+        tiles = tiles / np.where(scale > 0, scale, 1.0)
+        im = ax.imshow(_mosaic(tiles, ncols), cmap="gray", vmin=-1, vmax=1)
+        _no_ticks(ax)
+        ax.set_title(f"{phase} training: hidden units 1–{n_hidden} (row-major)")
+    fig.colorbar(im, ax=list(axes), shrink=0.6, label="weight / max |weight| of the unit")
+    fig.suptitle("Fig. 3.5: connection weights from observations\nto hidden nodes (run 0)")
+    return fig
+
+
+def greedy_count_grid(counts: np.ndarray, classes: Sequence[str], arrangement: np.ndarray,
+                      optimal_action: Sequence[int], action_names: Sequence[str],
+                      title: str) -> Figure:
+    """Fig. 3.6 (a)/(b): greedy-action counts per class, laid out as the 3×3 patch.
+
+    `counts` is (R, C, nA); bars are the mean over runs with ±1 s.d. error bars,
+    dots the individual runs; the optimal action's bar is highlighted.
+    """
+    n_runs, _, n_actions = counts.shape
+    index = {c: k for k, c in enumerate(classes)}
+    fig = Figure(figsize=(8, 7), layout="constrained")
+    axes = fig.subplots(*arrangement.shape, sharey=True)
+    x = np.arange(n_actions)
+    jitter = np.linspace(-0.2, 0.2, n_runs) if n_runs > 1 else np.zeros(1)
+    for ax, name in zip(axes.flat, arrangement.flat):
+        if name not in index:
+            ax.set_axis_off()
+            continue
+        c = index[name]
+        colors = [GOAL_COLOR if optimal_action[c] < 0 else
+                  OPTIMAL_COLOR if a == optimal_action[c] else OTHER_COLOR for a in x]
+        ax.bar(x, counts[:, c].mean(axis=0), yerr=counts[:, c].std(axis=0),
+               color=colors, capsize=2)
+        ax.plot(x[None, :] + jitter[:, None], counts[:, c], "k.", ms=2)
+        ax.set_xticks(x, action_names)
+        ax.set_title(f'"{name}"' + (" (goal)" if optimal_action[c] < 0 else ""))
+    for ax in axes[:, 0]:
+        ax.set_ylabel("count (test images)")
+    for ax in axes[-1]:
+        ax.set_xlabel("greedy action")
+    fig.legend(handles=[Patch(color=OPTIMAL_COLOR, label="optimal action"),
+                        Patch(color=OTHER_COLOR, label="other actions"),
+                        Patch(color=GOAL_COLOR, label="goal tile (no optimal action)")],
+               loc="outside lower center", ncols=3,
+               title=f"bars: mean over {n_runs} runs ± 1 s.d.; dots: single runs")
+    fig.suptitle(title)
+    return fig
+
+
+def accuracy_vs_noise(noise_levels: np.ndarray, acc_before: np.ndarray, acc_after: np.ndarray,
+                      train_noise: float, chance: float) -> Figure:
+    """Fig. 3.6 (c)/(d) as a curve: greedy accuracy vs test noise, mean ± s.e.m. over runs."""
+    fig = Figure(figsize=(6.5, 4), layout="constrained")
+    ax = fig.add_subplot()
+    for phase, acc in (("before", acc_before), ("after", acc_after)):
+        ax.errorbar(100 * noise_levels, acc.mean(axis=0), yerr=sem_over_runs(acc), marker="o",
+                    capsize=3,
+                    color=PHASE_COLOR[phase], label=f"{phase} training")
+    ax.axhline(chance, color="k", ls=":", label=f"chance (1/{round(1 / chance)})")
+    ax.axvline(100 * train_noise, color="tab:green", ls="--",
+               label=f"training noise ({100 * train_noise:g} %)")
+    ax.set_xlabel("test noise level (% of pixels replaced by white noise)")
+    ax.set_ylabel("fraction of test images with optimal greedy action")
+    ax.set_ylim(-0.02, 1.02)
+    ax.set_title(f"Fig. 3.6: greedy accuracy vs test noise (mean ± s.e.m., {len(acc_after)} runs)")
+    ax.legend(loc="upper right", fontsize="small")
+    return fig
+
+
+def _sorted_probe_panel(ax, images: np.ndarray, prob: np.ndarray, n_show: int,
+                        ncols: int, title: str) -> None:
+    """n_show images spanning the whole sorted range of P(optimal), probability on top."""
+    order = np.argsort(prob, kind="stable")
+    spread = np.linspace(0, len(order) - 1, min(n_show, len(order))).round().astype(int)
+    picks = order[np.unique(spread)]
+    pad_y = 9  # room for the printed probability
+    ax.imshow(_mosaic(images[picks].reshape(-1, SIDE, SIDE), ncols, pad_y=pad_y),
+              cmap="gray_r", vmin=0, vmax=1)
+    for k, i in enumerate(picks):
+        r, c = divmod(k, ncols)
+        ax.text(c * (SIDE + 2) + SIDE / 2, r * (SIDE + pad_y) + pad_y - 1, f"{prob[i]:.2f}",
+                ha="center", va="bottom", fontsize=6)
+    _no_ticks(ax)
+    ax.set_title(title)
+
+
+def outlier_images(images: np.ndarray, prob_before: np.ndarray, prob_after: np.ndarray,
+                   class_name: str, action_name: str, n_show: int = 40,
+                   ncols: int = 10) -> Figure:
+    """Fig. 3.7: test images sorted by P(optimal action | z), before and after training."""
+    nrows = -(-min(n_show, len(images)) // ncols)
+    fig = Figure(figsize=(ncols * 0.7 + 0.5, 2 * nrows * 0.85 + 1.2), layout="constrained")
+    axes = fig.subplots(2, 1)
+    for ax, prob, phase in zip(axes, (prob_before, prob_after), ("(a) before", "(b) after")):
+        _sorted_probe_panel(ax, images, prob, n_show, ncols,
+                            f"{phase} training: P(a = '{action_name}' | z), ascending row-major")
+    fig.suptitle(f'Fig. 3.7: outlier detection, test images of "{class_name}" (run 0)\n'
+                 f"{min(n_show, len(images))} of {len(images)} spanning the sorted order")
+    return fig
+
+
+def median_activation(med_before: np.ndarray, med_after: np.ndarray,
+                      classes: Sequence[str]) -> Figure:
+    """Fig. 3.10: median hidden activation (footnote 6) per class, before and after."""
+    fig = Figure(figsize=(10, 0.3 * len(classes) + 2), layout="constrained")
+    axes = fig.subplots(1, 2, sharey=True)
+    for ax, med, phase in zip(axes, (med_before, med_after), ("before", "after")):
+        im = ax.imshow(med, cmap="viridis", vmin=0, vmax=1, aspect="auto")
+        ax.set_yticks(range(len(classes)), [f'"{c}"' for c in classes])
+        ax.set_xticks(range(med.shape[1]), range(1, med.shape[1] + 1), fontsize="small")
+        ax.set_xlabel("hidden unit k")
+        ax.set_title(f"{phase} training")
+    axes[0].set_ylabel("tile class")
+    fig.colorbar(im, ax=list(axes), label="median activation Σ_a P(h_k=1|z,a)P(a|z)")
+    fig.suptitle("Fig. 3.10: median activation of hidden nodes over the test images (run 0)")
+    return fig
+
+
+def _dendrogram(ax, linkage_matrix: np.ndarray, labels: Sequence[str]) -> None:
+    dendrogram(linkage_matrix, labels=[f'"{c}"' for c in labels], ax=ax,
+               color_threshold=0, above_threshold_color="k")
+
+
+def mfr_dendrogram(linkage_matrix: np.ndarray, labels: Sequence[str], title: str) -> Figure:
+    """Figs. 3.11/3.13: hierarchical clustering of the MFR distance D of one run."""
+    fig = Figure(figsize=(6, 4), layout="constrained")
+    ax = fig.add_subplot()
+    _dendrogram(ax, linkage_matrix, labels)
+    ax.set_xlabel("tile class")
+    ax.set_ylabel("distance D = 2 − 2 cos(MFR_i, MFR_j)")
+    ax.set_title(title)
+    return fig
+
+
+def mfr_dendrogram_grid(linkages: Sequence[np.ndarray], labels: Sequence[str],
+                        title: str, ncols: int = 5) -> Figure:
+    """Figs. 3.11/3.13 for every run: one small dendrogram per run."""
+    ncols = min(ncols, len(linkages))
+    nrows = -(-len(linkages) // ncols)
+    fig = Figure(figsize=(3 * ncols, 2.6 * nrows), layout="constrained")
+    axes = np.atleast_1d(fig.subplots(nrows, ncols, squeeze=False)).ravel()
+    for r, ax in enumerate(axes):
+        if r >= len(linkages):
+            ax.set_axis_off()
+            continue
+        _dendrogram(ax, linkages[r], labels)
+        ax.set_title(f"run {r}", fontsize="small")
+        ax.tick_params(labelsize="x-small")
+    for ax in axes[::ncols]:
+        ax.set_ylabel("distance D")
+    fig.suptitle(title)
+    return fig
+
+
+def mi_dendrogram(linkage_matrix: np.ndarray, labels: Sequence[str], bins: int) -> Figure:
+    """Fig. 3.12: classes clustered by pairwise pixel–label mutual information."""
+    fig = Figure(figsize=(6, 4), layout="constrained")
+    ax = fig.add_subplot()
+    _dendrogram(ax, linkage_matrix, labels)
+    ax.set_xlabel("digit class (clean test images)")
+    ax.set_ylabel(f"mean pixel mutual information I(Z_i; C) (nats, {bins} bins)")
+    ax.set_title("Fig. 3.12: digits clustered by pairwise mutual information")
+    return fig

@@ -1,0 +1,325 @@
+"""Dissertation claims as data, judged against a run, and the markdown reports.
+
+A `Claim` pairs a statement of the dissertation (with its section/figure) with
+a function measuring the corresponding quantity on a loaded run and a threshold
+rule turning that measurement into "held", "partly" or "not held".
+`FLOOR_CLAIMS` covers chapter 3 (§3.5.1–§3.5.3); a run only gets the claims its
+data speaks to (a measure returns None otherwise).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Callable, Sequence
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
+    from ferl.analysis.floor import FloorRun
+
+HELD, PARTLY, NOT_HELD = "held", "partly", "not held"
+VERDICTS = (HELD, PARTLY, NOT_HELD)
+
+# Thresholds of the verdict rules (fractions unless stated).
+NEAR_OPTIMAL = (0.8, 0.5)        # reward/step ÷ optimum
+MOST_IMAGES = (0.8, 0.5)         # greedy accuracy
+CHANCE_TOLERANCE = (0.1, 0.2)    # |accuracy − 1/|A||
+SATISFACTORY = 0.9               # accuracy ÷ accuracy at the training noise
+OUTLIER_GAIN = (0.2, 0.05)       # rise of the median P(optimal | "1")
+SELECTIVITY_GAIN = (2.0, 1.0)    # class selectivity after ÷ before
+PAIR_RUNS = 0.6                  # share of runs in which a pair must cluster
+LOW_ACTIVATION = 0.1             # median activation counted as "very low"
+
+
+@dataclass(frozen=True)
+class Measured:
+    value: Any   # what the rule judges
+    text: str    # what the report prints
+
+
+@dataclass(frozen=True)
+class Claim:
+    text: str
+    source: str
+    measure: Callable[[Any], Measured | None]  # None: the run has no data for this claim
+    rule: Callable[[Any], str]
+
+
+@dataclass(frozen=True)
+class ClaimResult:
+    claim: Claim
+    measured: Measured
+    verdict: str
+
+
+@dataclass
+class RunAnalysis:
+    """What a task's analysis hands to the writer: figures, data files, judged claims."""
+    title: str
+    header: list[tuple[str, str]]
+    figures: dict[str, tuple[Figure, str]] = field(default_factory=dict)  # name → (fig, caption)
+    data_files: list[str] = field(default_factory=list)
+    results: list[ClaimResult] = field(default_factory=list)
+
+
+def evaluate(claims: Sequence[Claim], run: Any) -> list[ClaimResult]:
+    """Judge every claim the run's data speaks to."""
+    results = []
+    for claim in claims:
+        measured = claim.measure(run)
+        if measured is not None:
+            results.append(ClaimResult(claim, measured, claim.rule(measured.value)))
+    return results
+
+
+def at_least(held: float, partly: float) -> Callable[[float], str]:
+    return lambda v: HELD if v >= held else PARTLY if v >= partly else NOT_HELD
+
+
+def at_most(held: float, partly: float) -> Callable[[float], str]:
+    return lambda v: HELD if v <= held else PARTLY if v <= partly else NOT_HELD
+
+
+def all_or_some(flags: Sequence[bool]) -> str:
+    return HELD if all(flags) else PARTLY if any(flags) else NOT_HELD
+
+
+def _mean_sd(values: np.ndarray) -> str:
+    return f"{np.mean(values):.3g} ± {np.std(values):.2g} (mean ± s.d., {len(values)} runs)"
+
+
+# ---- chapter 3: digit floor -------------------------------------------------
+
+def _near_optimal(run: FloorRun) -> Measured | None:
+    if run.reward_free:
+        return None
+    per_seed = np.asarray(run.summary["metrics"]["reward_per_step_last10pct"], dtype=float)
+    ratio = per_seed.mean() / run.optimal_reward
+    return Measured(ratio, f"{_mean_sd(per_seed)} reward/step = {ratio:.2f} × optimum "
+                           f"{run.optimal_reward:g}")
+
+
+def _accuracy_at_training_noise(phase: str) -> Callable[[FloorRun], Measured | None]:
+    def measure(run: FloorRun) -> Measured | None:
+        if run.reward_free or not run.has_optimal_actions:
+            return None
+        acc = run.accuracy[phase][:, run.probe_level]
+        text = f"greedy accuracy {_mean_sd(acc)} at {100 * run.probe_noise:g} % test noise"
+        if phase == "before":
+            return Measured(abs(acc.mean() - run.chance),
+                            f"{text}; chance {run.chance:.2f}")
+        return Measured(acc.mean(), text)
+    return measure
+
+
+def _noise_tolerance(train_noise: float, last_ok: float,
+                     first_bad: float) -> Callable[[FloorRun], Measured | None]:
+    def measure(run: FloorRun) -> Measured | None:
+        levels = run.noise_levels
+        if (run.reward_free or not run.has_optimal_actions
+                or not np.isclose(run.probe_noise, train_noise)
+                or not np.isclose(levels, first_bad).any()):
+            return None
+        acc = np.nanmean(run.accuracy["after"], axis=0)
+        reference = acc[run.probe_level]
+        ok = acc[(levels <= last_ok + 1e-9)].min() >= SATISFACTORY * reference
+        bad = acc[np.isclose(levels, first_bad)][0] < SATISFACTORY * reference
+        shown = "; ".join(f"{100 * x:g} %: {a:.2f}" for x, a in zip(levels, acc))
+        return Measured((ok, bad), f"mean greedy accuracy after training by test noise — {shown} "
+                                   f"(satisfactory: ≥ {SATISFACTORY:g} × {reference:.2f})")
+    return measure
+
+
+def _robust_then_deteriorates(value: tuple[bool, bool]) -> str:
+    return {2: HELD, 1: PARTLY, 0: NOT_HELD}[sum(value)]
+
+
+def _outlier_detection(run: FloorRun) -> Measured | None:
+    if run.reward_free or "1" not in run.classes:
+        return None
+    c = run.classes.index("1")
+    a = run.optimal_action[c]
+    if a < 0:
+        return None
+    med = {phase: np.median(run.test[f"probs_{phase}"][:, c, :, a], axis=1)
+           for phase in ("before", "after")}
+    gain = float(np.mean(med["after"] - med["before"]))
+    return Measured(gain, f'median P(\'{run.action_names[a]}\' | "1") over test images: '
+                          f"before {_mean_sd(med['before'])}, after {_mean_sd(med['after'])}")
+
+
+def _class_selectivity(run: FloorRun) -> Measured | None:
+    if run.reward_free:
+        return None
+    sel = {phase: run.selectivity(phase).mean() for phase in ("before", "after")}
+    ratio = sel["after"] / sel["before"] if sel["before"] > 0 else np.inf
+    return Measured(ratio, f"s.d. over classes of the median activation, mean over units and "
+                           f"runs: before {sel['before']:.3f}, after {sel['after']:.3f} "
+                           f"(ratio {ratio:.2f})")
+
+
+def _pairs_cluster(pairs_of: Callable[[FloorRun], list[tuple[int, int]]],
+                   with_reward: bool) -> Callable[[FloorRun], Measured | None]:
+    def measure(run: FloorRun) -> Measured | None:
+        pairs = pairs_of(run)
+        if run.reward_free == with_reward or not pairs:
+            return None
+        hits = [run.cluster_hits(i, j) for i, j in pairs]
+        text = "; ".join(f'("{run.classes[i]}", "{run.classes[j]}"): {sum(h)}/{len(h)} runs'
+                         for (i, j), h in zip(pairs, hits))
+        return Measured([np.mean(h) >= PAIR_RUNS for h in hits],
+                        f"runs in which the pair is merged directly in the MFR dendrogram: {text}")
+    return measure
+
+
+def _named_pairs(names: Sequence[tuple[str, str]]) -> Callable[[FloorRun], list[tuple[int, int]]]:
+    def pairs_of(run: FloorRun) -> list[tuple[int, int]]:
+        return [(run.classes.index(a), run.classes.index(b)) for a, b in names
+                if a in run.classes and b in run.classes]
+    return pairs_of
+
+
+PERCEPTUAL_PAIRS = (("1", "7"), ("3", "8"))
+
+
+def _low_activation(run: FloorRun) -> Measured | None:
+    if not run.reward_free:
+        return None
+    level = {phase: float(np.median(run.test[f"hidden_marginal_{phase}"], axis=2).mean())
+             for phase in ("before", "after")}
+    verdict_value = (level["after"] <= LOW_ACTIVATION, level["after"] < level["before"])
+    return Measured(verdict_value, f"median activation, mean over classes, units and runs: "
+                                   f"before {level['before']:.3f}, after {level['after']:.3f}")
+
+
+def _low_rule(value: tuple[bool, bool]) -> str:
+    very_low, lower = value
+    return HELD if very_low else PARTLY if lower else NOT_HELD
+
+
+def _mi_pairs(run: FloorRun) -> Measured | None:
+    pairs = _named_pairs(PERCEPTUAL_PAIRS)(run)
+    if not pairs or run.mi_linkage is None:
+        return None
+    labels = run.digit_classes
+    flags = [run.mi_pair_clusters(run.classes[i], run.classes[j]) for i, j in pairs]
+    text = "; ".join(f'("{run.classes[i]}", "{run.classes[j]}"): {"merged" if f else "not merged"}'
+                     for (i, j), f in zip(pairs, flags))
+    return Measured(flags, f"MI dendrogram of {len(labels)} digit classes — {text}")
+
+
+def _noise_class_mi(run: FloorRun) -> Measured | None:
+    if "N" not in run.classes or len(run.digit_classes) < 2:
+        return None
+    mi, n = run.mutual_information, run.classes.index("N")
+    digits = [run.classes.index(c) for c in run.digit_classes]
+    with_noise = mi[n, digits]
+    among_digits = mi[np.ix_(digits, digits)][np.triu_indices(len(digits), 1)]
+    value = (with_noise.min() > among_digits.max(), with_noise.mean() > among_digits.mean())
+    return Measured(value, f'MI (nats) of "N" with digits: {with_noise.min():.3f}–'
+                           f"{with_noise.max():.3f}; among digits: {among_digits.min():.3f}–"
+                           f"{among_digits.max():.3f}")
+
+
+def _every_or_on_average(value: tuple[bool, bool]) -> str:
+    every, on_average = value
+    return HELD if every else PARTLY if on_average else NOT_HELD
+
+
+FLOOR_CLAIMS: list[Claim] = [
+    Claim("Despite the observation noise the agent performs at a nearly optimal level "
+          "at the end of training (upper bound 8 reward/step).",
+          "§3.5.1, Fig. 3.4, fn. 4", _near_optimal, at_least(*NEAR_OPTIMAL)),
+    Claim("After training, most held-out test images at the training noise level make "
+          "the optimal action greedy, for every digit.",
+          "§3.5.1, Fig. 3.6(b)", _accuracy_at_training_noise("after"), at_least(*MOST_IMAGES)),
+    Claim("Before training the agent has no behavioural tendency for a certain digit "
+          "(greedy accuracy at chance).",
+          "§3.5.1, Fig. 3.6(a)", _accuracy_at_training_noise("before"),
+          at_most(*CHANCE_TOLERANCE)),
+    Claim("Trained at 12.5 % noise, the agent performs satisfactorily up to 37.5 % test "
+          "noise and deteriorates from 50 %.",
+          "§3.5.1, fn. 5, Fig. 3.6(c)", _noise_tolerance(0.125, 0.375, 0.5),
+          _robust_then_deteriorates),
+    Claim("Trained at 50 % noise, the agent performs satisfactorily up to 62.5 % test "
+          "noise and deteriorates at 75 %.",
+          "§3.5.1, Fig. 3.6(d)", _noise_tolerance(0.5, 0.625, 0.75), _robust_then_deteriorates),
+    Claim('Outlier detection: after training, typical "1"s make the optimal action '
+          "(south) clearly more probable than before training.",
+          "§3.5.2, Fig. 3.7", _outlier_detection, at_least(*OUTLIER_GAIN)),
+    Claim("Before training hidden nodes show no preference for particular digits "
+          "(vertical bands); after training their activation patterns differ between digits.",
+          "§3.5.3, Fig. 3.10(a)–(c)", _class_selectivity, at_least(*SELECTIVITY_GAIN)),
+    Claim("Pairs of tiles with the same optimal action form their own clusters of the "
+          "median firing rates.",
+          "§3.5.3, Figs. 3.11(a)/(b), 3.13",
+          _pairs_cluster(lambda run: run.same_action_pairs, with_reward=True), all_or_some),
+    Claim("Without reward, the activation of all hidden nodes becomes very low.",
+          "§3.5.3, Fig. 3.10(d)", _low_activation, _low_rule),
+    Claim('Without reward, perceptually similar "1" and "7", and "3" and "8", are grouped '
+          "together.",
+          "§3.5.3, Fig. 3.11(c)",
+          _pairs_cluster(_named_pairs(PERCEPTUAL_PAIRS), with_reward=False), all_or_some),
+    Claim('Clustering the digits by pixel–label mutual information groups "1" with "7" '
+          'and "3" with "8", as in Fig. 3.11(c).',
+          "§3.5.3, Fig. 3.12", _mi_pairs, all_or_some),
+    Claim('The noise tile "N" has a much higher mutual information with every digit than '
+          "the digits have with each other.",
+          "§3.5.3, Fig. 3.12", _noise_class_mi, _every_or_on_average),
+]
+
+
+# ---- markdown ---------------------------------------------------------------
+
+def _cell(text: str) -> str:
+    return text.replace("|", "\\|").replace("\n", " ")
+
+
+def claims_table(results: Sequence[ClaimResult]) -> list[str]:
+    if not results:
+        return ["No dissertation claim is addressed by this run's data."]
+    lines = ["| claim | source | measured | verdict |", "| --- | --- | --- | --- |"]
+    lines += [f"| {_cell(r.claim.text)} | {_cell(r.claim.source)} | {_cell(r.measured.text)} "
+              f"| **{r.verdict}** |" for r in results]
+    return lines
+
+
+def write_run_report(path: Path, analysis: RunAnalysis) -> None:
+    """`analysis/report.md` of one run: header, claims table, figure and data links."""
+    lines = [f"# {analysis.title}", ""]
+    lines += [f"- **{key}**: {value}" for key, value in analysis.header]
+    lines += ["", "## Claims", ""] + claims_table(analysis.results)
+    lines += ["", "## Figures", ""]
+    lines += [f"- [{name}.png]({name}.png) — {caption}"
+              for name, (_, caption) in analysis.figures.items()]
+    lines += ["", "## Data", ""] + [f"- [{name}]({name})" for name in analysis.data_files]
+    path.write_text("\n".join(lines) + "\n")
+
+
+@dataclass
+class RunOutcome:
+    """One line of a sweep report."""
+    run_dir: Path
+    experiment: str
+    task: str
+    status: str                       # "analyzed", "skipped: …" or "failed: …"
+    verdicts: dict[str, int] = field(default_factory=dict)
+
+
+def write_sweep_report(path: Path, sweep_dir: Path, outcomes: Sequence[RunOutcome]) -> None:
+    """Top-level `analysis/report.md` of a sweep: one row per run, linking its report."""
+    lines = [f"# Analysis of sweep `{sweep_dir}`", "",
+             "| run | experiment | task | status | held | partly | not held |",
+             "| --- | --- | --- | --- | --- | --- | --- |"]
+    for o in outcomes:
+        name = os.path.relpath(o.run_dir, sweep_dir)
+        if o.status == "analyzed":
+            link = os.path.relpath(o.run_dir / "analysis" / "report.md", path.parent)
+            name = f"[{name}]({link})"
+        counts = " | ".join(str(o.verdicts.get(v, "")) for v in VERDICTS)
+        lines.append(f"| {name} | {o.experiment} | {o.task} | {_cell(o.status)} | {counts} |")
+    path.write_text("\n".join(lines) + "\n")

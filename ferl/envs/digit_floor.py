@@ -1,0 +1,205 @@
+"""The digit-floor task (§3.4), batched over runs.
+
+A floor is an L×L torus of 3×3 patches (Fig. 3.1); every tile shows its own training image
+of its class, and the observation is that image with a fraction ``noise`` of its 784 pixels
+replaced by uniform white noise, drawn afresh at every step (Fig. 3.2). Actions N E S W move
+one tile. Rewards (§3.4, R_0): +10 for a move into the goal (the patch centre, "4"), +4 for a
+move along the patch boundary in the rewarded direction (CW 0→1→2→5→8→7→6→3→0, or CCW),
+−2 otherwise; the ``none`` condition delivers no reward (§3.5.3, Fig. 3.10d). After entering
+the goal the agent is moved to a uniformly random non-goal tile (P⁰ of §3.4).
+
+The dynamics are position tables over tiles (next tile, reward), so a step is a few gathers.
+"""
+import numpy as np
+import torch
+
+from ferl.data import MnistSplit, pixel_noise
+from ferl.random_blocks import Blocks, steps_per_block
+
+ACTIONS = ("N", "E", "S", "W")
+MOVES = ((-1, 0), (0, 1), (1, 0), (0, -1))
+GOAL = 4  # the patch centre (Fig. 3.3)
+CW_CYCLE = (0, 1, 2, 5, 8, 7, 6, 3)
+REWARD_CONDITIONS = ("cw", "ccw", "none")
+NOISE_CLASS = "N"
+
+
+def patch_move(p: int, action: int):
+    """In-patch position after a move, or None when the move leaves the patch."""
+    r, c = divmod(p, 3)
+    r, c = r + MOVES[action][0], c + MOVES[action][1]
+    return 3 * r + c if 0 <= r < 3 and 0 <= c < 3 else None
+
+
+def patch_rewards(condition: str, goal: float = 10.0, boundary: float = 4.0, other: float = -2.0) -> np.ndarray:
+    """Reward of every (in-patch position, action), shape (9, 4), from the definition of §3.4."""
+    if condition == "none":
+        return np.zeros((9, 4))
+    cycle = CW_CYCLE if condition == "cw" else CW_CYCLE[::-1]
+    successor = {cycle[i]: cycle[(i + 1) % len(cycle)] for i in range(len(cycle))}
+    table = np.full((9, 4), other)
+    for p in range(9):
+        for a in range(4):
+            q = patch_move(p, a)
+            if q == GOAL:
+                table[p, a] = goal
+            elif q is not None and successor.get(p) == q:
+                table[p, a] = boundary
+    return table
+
+
+def patch_transitions() -> np.ndarray:
+    """P[p, a, q]: in-patch dynamics on the periodic floor, goal → uniform non-goal restart."""
+    P = np.zeros((9, 4, 9))
+    non_goal = [q for q in range(9) if q != GOAL]
+    for p in range(9):
+        for a in range(4):
+            r, c = divmod(p, 3)
+            q = 3 * ((r + MOVES[a][0]) % 3) + (c + MOVES[a][1]) % 3
+            if q == GOAL:
+                P[p, a, non_goal] = 1.0 / len(non_goal)
+            else:
+                P[p, a, q] = 1.0
+    return P
+
+
+def optimal_policy(rewards: np.ndarray, gamma: float = 0.9, tol: float = 1e-9):
+    """Optimal actions by value iteration on the 9 patch positions (Figs. 3.3, 3.9) and the
+    long-run reward per step of that policy (the stationary distribution of its chain).
+
+    Returns (mask (9, 4) of optimal actions, action (9,) with −1 where not unique or goal, rate).
+    """
+    P = patch_transitions()
+    V = np.zeros(9)
+    for _ in range(10_000):
+        Q = rewards + gamma * P @ V
+        V_new = Q.max(1)
+        if np.abs(V_new - V).max() < tol:
+            break
+        V = V_new
+    mask = Q >= Q.max(1, keepdims=True) - 1e-6
+    mask[GOAL] = True  # the agent never acts from the goal: every action counts as optimal
+    action = np.where(mask.sum(1) == 1, mask.argmax(1), -1)
+    action[GOAL] = -1
+    greedy = mask.argmax(1)
+    chain = P[np.arange(9), greedy]
+    evals, evecs = np.linalg.eig(chain.T)
+    stationary = np.real(evecs[:, np.argmin(np.abs(evals - 1))])
+    stationary /= stationary.sum()
+    rate = float(stationary @ rewards[np.arange(9), greedy])
+    return mask, action, rate
+
+
+class DigitFloor:
+    """``n_runs`` digit floors (one per run) stepped together; positions are tile indices."""
+
+    n_actions = len(ACTIONS)
+    observation_size = 784
+
+    def __init__(self, n_runs: int, data: MnistSplit, generator: torch.Generator,
+                 arrangement=(("0", "1", "2"), ("3", "4", "5"), ("6", "7", "8")), patches: int = 4,
+                 noise: float = 0.125, reward_condition: str = "cw", goal_reward: float = 10.0,
+                 boundary_reward: float = 4.0, other_reward: float = -2.0, noise_tile=None,
+                 device="cpu"):
+        self.n_runs, self.noise, self.generator, self.device = n_runs, noise, generator, torch.device(device)
+        self.reward_condition = reward_condition
+        layout = [str(c) for row in arrangement for c in row]
+        if noise_tile is not None:
+            layout = [NOISE_CLASS if c == str(noise_tile) else c for c in layout]
+        self.layout = layout  # class label of every in-patch position
+        self.arrangement = np.array(layout).reshape(3, 3)
+        self.classes = sorted(set(layout), key=lambda c: (c == NOISE_CLASS, c))
+
+        rewards = patch_rewards(reward_condition, goal_reward, boundary_reward, other_reward)
+        self.optimal_mask, self.optimal_action, self.optimal_reward_rate = optimal_policy(rewards)
+        where = [layout.index(c) for c in self.classes]
+        self.class_optimal_mask, self.class_optimal_action = self.optimal_mask[where], self.optimal_action[where]
+
+        side = 3 * patches
+        rows, cols = np.divmod(np.arange(side * side), side)
+        position = 3 * (rows % 3) + cols % 3  # in-patch position of every tile
+        next_tile = np.stack([((rows + dr) % side) * side + (cols + dc) % side for dr, dc in MOVES], 1)
+        as_tensor = lambda x, dtype: torch.as_tensor(x, dtype=dtype, device=self.device)  # noqa: E731
+        self.tile_position = as_tensor(position, torch.long)
+        # (tile, action) tables flattened to tile·4 + action: one index_select per lookup
+        self.next_tile = as_tensor(next_tile.reshape(-1), torch.long)
+        self.tile_reward = as_tensor(rewards[position].reshape(-1), torch.float32)
+        self.lands_in_goal = as_tensor((position == GOAL)[next_tile].reshape(-1), torch.bool)
+        self.non_goal_tiles = as_tensor(np.flatnonzero(position != GOAL), torch.long)
+        self._build_floor(data, position)
+        self.n_noisy = round(noise * self.observation_size)
+        self.noise_blocks = Blocks(self._draw_noise, steps_per_block(n_runs * (2 * self.n_noisy + 1)))
+        self.tile = self._random_non_goal()
+
+    def _draw_noise(self, steps: int):
+        """Noisy-pixel positions and values plus transport targets for ``steps`` future steps."""
+        idx, values = pixel_noise(steps * self.n_runs, self.observation_size, self.noise, self.generator)
+        shape = (steps, self.n_runs, self.n_noisy)
+        transport = self.non_goal_tiles[torch.randint(len(self.non_goal_tiles), (steps, self.n_runs),
+                                                      generator=self.generator, device=self.device)]
+        return idx.view(shape), values.view(shape), transport
+
+    def _build_floor(self, data: MnistSplit, position: np.ndarray) -> None:
+        """Give every tile of every run its own image of its class (without replacement while the
+        class has enough training images); noise tiles get independent pure-noise images."""
+        bank = [data.train_images.to(self.device)]
+        tile_image = torch.empty(self.n_runs, len(position), dtype=torch.long, device=self.device)
+        for label in self.classes:
+            tiles = torch.as_tensor(np.flatnonzero(np.array(self.layout)[position] == label), device=self.device)
+            if label == NOISE_CLASS:
+                offset = sum(len(b) for b in bank)
+                bank.append(torch.rand(self.n_runs * len(tiles), self.observation_size,
+                                       generator=self.generator, device=self.device))
+                ids = offset + torch.arange(self.n_runs * len(tiles), device=self.device).view(self.n_runs, -1)
+            else:
+                pool = torch.nonzero(data.train_labels.to(self.device) == int(label)).squeeze(1)
+                if len(pool) == 0:
+                    raise ValueError(f"env.arrangement: no training image of class {label}")
+                if len(pool) >= len(tiles):
+                    keys = torch.rand(self.n_runs, len(pool), generator=self.generator, device=self.device)
+                    pick = keys.argsort(1)[:, : len(tiles)]
+                else:
+                    pick = torch.randint(len(pool), (self.n_runs, len(tiles)), generator=self.generator, device=self.device)
+                ids = pool[pick]
+            tile_image[:, tiles] = ids
+        self.bank = torch.cat(bank)
+        self.tile_image = tile_image
+
+    def _random_non_goal(self) -> torch.Tensor:
+        k = torch.randint(len(self.non_goal_tiles), (self.n_runs,), generator=self.generator, device=self.device)
+        return self.non_goal_tiles[k]
+
+    def _observe(self, idx, values) -> torch.Tensor:
+        """The current tile's image with its noisy pixels replaced: (R, 784)."""
+        image = self.bank.index_select(0, self.tile_image.gather(1, self.tile.unsqueeze(1)).squeeze(1))
+        return image.scatter_(1, idx, values) if self.n_noisy else image
+
+    def observe(self) -> torch.Tensor:
+        """The current tile's image with fresh pixel noise (§3.4, Fig. 3.2)."""
+        idx, values, _ = self.noise_blocks.next()
+        return self._observe(idx, values)
+
+    def reset(self) -> torch.Tensor:
+        self.tile = self._random_non_goal()
+        return self.observe()
+
+    def step(self, action: torch.Tensor):
+        """Move every run by its action (R,); returns (observation (R, 784), reward (R,))."""
+        idx, values, transport = self.noise_blocks.next()
+        move = self.tile * self.n_actions + action
+        reward = self.tile_reward.index_select(0, move)
+        moved = self.next_tile.index_select(0, move)
+        self.tile = torch.where(self.lands_in_goal.index_select(0, move), transport, moved)
+        return self._observe(idx, values), reward
+
+    def tile_classes(self) -> list:
+        """Class label of every run's current tile (for tests and rendering, not the hot path)."""
+        return [self.layout[p] for p in self.tile_position[self.tile].tolist()]
+
+    def state_dict(self) -> dict:
+        return {"tile": self.tile, "tile_image": self.tile_image, "bank": self.bank,
+                "noise_blocks": self.noise_blocks.state_dict()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.tile, self.tile_image, self.bank = (state[k].to(self.device) for k in ("tile", "tile_image", "bank"))
+        self.noise_blocks.load_state_dict(state["noise_blocks"], self.device)

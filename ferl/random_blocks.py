@@ -1,0 +1,55 @@
+"""Random numbers for many future steps drawn in one go.
+
+A training step needs a few random numbers per run; drawing them with one small RNG call
+each costs more than the arithmetic of the step. Here they are drawn ``block`` steps at a
+time from the run batch's generator and handed out step by step; the stream is a pure
+function of the generator state, so results stay reproducible and resumable.
+"""
+import torch
+
+
+def random_subsets(rows: int, n: int, k: int, generator: torch.Generator) -> torch.Tensor:
+    """Uniformly random k-subsets of range(n), one per row: (rows, k) indices.
+
+    Floyd's algorithm (Bentley & Floyd 1987): for j = n−k … n−1 draw t uniform in [0, j] and
+    take t, or j if t was already taken. Exact, k random numbers per row, vectorised over rows.
+    """
+    device = generator.device
+    u = torch.rand(rows, k, generator=generator, device=device, dtype=torch.float64)
+    bounds = torch.arange(n - k, n, device=device)
+    candidates = (u * (bounds + 1)).long().minimum(bounds).T.contiguous()  # t for every j, (k, rows)
+    taken = torch.zeros(rows * n, dtype=torch.bool, device=device)  # flat (row, position) table
+    base = torch.arange(rows, device=device) * n
+    chosen = torch.empty(k, rows, dtype=torch.long, device=device)
+    for i, j in enumerate(bounds.tolist()):
+        t = candidates[i]
+        pick = torch.where(taken[base + t], j, t)
+        taken[base + pick] = True
+        chosen[i] = pick
+    return chosen.T
+
+
+class Blocks:
+    """Hands out per-step slices of tensors that ``draw(steps)`` makes for ``steps`` steps at once."""
+
+    def __init__(self, draw, steps_per_block: int):
+        self.draw, self.steps_per_block = draw, steps_per_block
+        self.buffers, self.cursor = None, steps_per_block
+
+    def next(self):
+        if self.cursor == self.steps_per_block:
+            self.buffers, self.cursor = self.draw(self.steps_per_block), 0
+        self.cursor += 1
+        return tuple(b[self.cursor - 1] for b in self.buffers)
+
+    def state_dict(self) -> dict:
+        return {"buffers": self.buffers, "cursor": self.cursor}
+
+    def load_state_dict(self, state: dict, device) -> None:
+        self.cursor = state["cursor"]
+        self.buffers = None if state["buffers"] is None else tuple(b.to(device) for b in state["buffers"])
+
+
+def steps_per_block(numbers_per_step: int, budget: int = 1 << 18) -> int:
+    """How many steps of random numbers fit a block of about ``budget`` numbers."""
+    return max(1, budget // max(1, numbers_per_step))

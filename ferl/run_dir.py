@@ -1,0 +1,82 @@
+"""The run directory of CONTRACT §2: tb/, summary.json, checkpoints/, records/.
+
+Every file is written atomically (temporary file + rename), so an interruption never
+leaves a half-written checkpoint or summary behind.
+"""
+import json
+import os
+import signal
+import tempfile
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import torch
+
+CHECKPOINT = "last.pt"
+
+
+@contextmanager
+def atomic_path(path: Path):
+    """Yield a temporary path beside ``path``; rename it over ``path`` on success."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    os.chmod(tmp, 0o644)  # mkstemp creates 0600; results are meant to be shared
+    try:
+        yield Path(tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+
+
+class RunDir:
+    def __init__(self, path):
+        self.path = Path(path)
+        for sub in ("tb", "checkpoints", "records"):
+            (self.path / sub).mkdir(parents=True, exist_ok=True)
+
+    @property
+    def tb(self) -> Path:
+        return self.path / "tb"
+
+    def save_records(self, name: str, **arrays) -> None:
+        with atomic_path(self.path / "records" / f"{name}.npz") as tmp:
+            with open(tmp, "wb") as f:
+                np.savez_compressed(f, **arrays)
+
+    def save_checkpoint(self, state: dict) -> None:
+        with atomic_path(self.path / "checkpoints" / CHECKPOINT) as tmp:
+            torch.save(state, tmp)
+
+    def load_checkpoint(self):
+        path = self.path / "checkpoints" / CHECKPOINT
+        return torch.load(path, map_location="cpu", weights_only=False) if path.exists() else None
+
+    def write_summary(self, summary: dict) -> None:
+        with atomic_path(self.path / "summary.json") as tmp:
+            tmp.write_text(json.dumps(summary, indent=2) + "\n")
+
+
+class StopRequest:
+    """Turns SIGINT / SIGTERM into a flag that the step loop polls between steps, so the run
+    can write a consistent checkpoint before it exits (CONTRACT §2, interruption)."""
+
+    def __init__(self):
+        self.signal = None
+
+    def __enter__(self):
+        self._previous = {s: signal.signal(s, self._handle) for s in (signal.SIGINT, signal.SIGTERM)}
+        return self
+
+    def _handle(self, signum, frame):
+        self.signal = signum
+
+    def __exit__(self, *exc):
+        for s, handler in self._previous.items():
+            signal.signal(s, handler)
+
+    @property
+    def requested(self) -> bool:
+        return self.signal is not None

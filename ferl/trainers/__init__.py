@@ -1,0 +1,1 @@
+"""Training procedures, one per task; ``train.py`` dispatches on ``cfg.task``."""

@@ -1,0 +1,195 @@
+"""Chapter 3: the FERL actor on the digit floor (§3.5), all runs of the batch at once.
+
+    test phase (before) → online SARSA(0) / Q(0) / expected-SARSA training → test phase (after)
+
+One training step for every run:  observe s' → F(s', ·) for all actions → sample a' (Eq. 3.11)
+→ δ = r − γ F(s', a') + F(s, a) → θ ← θ + α δ (−∂F/∂θ) (Eq. 3.10).  F(s', a') and its hidden
+inputs are kept for the next step, so no free energy is computed twice.
+"""
+import time
+
+import numpy as np
+import torch
+from hydra.utils import instantiate
+from omegaconf import OmegaConf
+from torch.utils.tensorboard import SummaryWriter
+from tqdm import tqdm
+
+from ferl.evaluation import evaluate_floor, floor_test_images, greedy_accuracy
+from ferl.random_blocks import Blocks, steps_per_block
+from ferl.run_dir import RunDir, StopRequest
+
+
+def pick(x: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+    """Entries of the chosen actions on the online path: x (R, 1, nA, ...) at a (R, 1) → (R, 1, ...)."""
+    flat = x.reshape(-1, *x.shape[3:]) if x.dim() > 3 else x.reshape(-1)
+    index = a.squeeze(1) + torch.arange(0, flat.shape[0], x.shape[2], device=a.device)
+    return flat.index_select(0, index).unsqueeze(1)
+
+
+def weight_images(W: torch.Tensor) -> torch.Tensor:
+    """Run 0's state→hidden weights as H images (H, 1, 28, 28) scaled to [0, 1] (Fig. 3.5)."""
+    w = W[0].T.reshape(-1, 1, 28, 28)
+    lo, hi = w.amin((1, 2, 3), keepdim=True), w.amax((1, 2, 3), keepdim=True)
+    return (w - lo) / (hi - lo + 1e-12)
+
+
+class FloorTraining:
+    """Everything one digit-floor run batch needs, built from the composed config."""
+
+    def __init__(self, cfg, run: RunDir, device: torch.device):
+        self.cfg, self.run, self.device = cfg, run, device
+        self.R, self.T = cfg.n_runs, cfg.trainer.steps
+        self.generator = torch.Generator(device).manual_seed(cfg.seed)
+        self.data = instantiate(cfg.data).load()
+        self.env = instantiate(cfg.env, n_runs=self.R, data=self.data, generator=self.generator, device=device)
+        self.actor = instantiate(cfg.actor, n_runs=self.R, n_state=self.env.observation_size,
+                                 n_actions=self.env.n_actions, seed=cfg.seed).to(device)
+        self.test_images = floor_test_images(self.env.classes, self.data, cfg.trainer.test_per_class, self.generator)
+        self.action_uniforms = Blocks(
+            lambda steps: (torch.rand(steps, self.R, 1, 1, generator=self.generator, device=device),),
+            steps_per_block(self.R))
+
+    def test_phase(self) -> dict:
+        t = self.cfg.trainer
+        return evaluate_floor(self.actor, self.test_images, t.test_noise_levels, self.cfg.env.noise,
+                              self.actor.inverse_temperature(1.0), self.generator)
+
+    def fresh_state(self) -> dict:
+        """State at step 0: test responses before training, initial weights, first action."""
+        before = self.test_phase()
+        s = self.env.reset().unsqueeze(1)
+        F, x = self.actor.evaluate(s)
+        a = self.actor.select(s, F, self.actor.inverse_temperature(0.0), self.generator, *self.action_uniforms.next())
+        return {"step": 0, "before": before, "W_sh_before": self.actor.W_sh.cpu().clone(),
+                "s": s, "a": a, "F_sa": pick(F, a), "x_sa": pick(x, a),
+                "rewards": torch.zeros(self.T, self.R, device=self.device),
+                "td_errors": torch.zeros(self.T, self.R, device=self.device), "actor_time": 0.0}
+
+    def checkpoint(self, state: dict) -> None:
+        self.run.save_checkpoint({**state, "actor": self.actor.state_dict(), "env": self.env.state_dict(),
+                                  "action_uniforms": self.action_uniforms.state_dict(),
+                                  "generator": self.generator.get_state()})
+
+    def restore(self, saved: dict) -> dict:
+        self.actor.load_state_dict(saved.pop("actor"))
+        self.env.load_state_dict(saved.pop("env"))
+        self.action_uniforms.load_state_dict(saved.pop("action_uniforms"), self.device)
+        self.generator.set_state(saved.pop("generator"))
+        return {k: v.to(self.device) if torch.is_tensor(v) and k != "W_sh_before" else v for k, v in saved.items()}
+
+    def train(self, state: dict, writer: SummaryWriter, stop: StopRequest) -> dict:
+        """The online TD loop of §3.2 from state["step"] to T; returns the final state."""
+        actor, env, gen, T = self.actor, self.env, self.generator, self.T
+        t_cfg = self.cfg.trainer
+        s, a, F_sa, x_sa = state["s"], state["a"], state["F_sa"], state["x_sa"]
+        rewards, td_errors = state["rewards"], state["td_errors"]
+        bar = tqdm(total=T, initial=state["step"], desc="actor", unit="step", mininterval=1.0, dynamic_ncols=True)
+        started = time.perf_counter()
+        for t in range(state["step"], T):
+            progress = t / T
+            lr, beta = actor.learning_rate(progress), actor.inverse_temperature(progress)
+            obs, r = env.step(a.squeeze(1))
+            s_next = obs.unsqueeze(1)
+            F_next, x_next = actor.evaluate(s_next)
+            a_next = actor.select(s_next, F_next, beta, gen, *self.action_uniforms.next())
+            delta = actor.td_error(r.unsqueeze(1), F_sa, F_next, a_next, beta)
+            actor.update(s, a, x_sa, delta, lr)
+            rewards[t], td_errors[t] = r, delta.squeeze(1)
+            s, a, F_sa, x_sa = s_next, a_next, pick(F_next, a_next), pick(x_next, a_next)
+
+            done = t + 1
+            if done % t_cfg.log_every == 0 or done == T:
+                self.log_progress(writer, rewards, td_errors, done, lr, beta)
+                bar.update(done - bar.n)
+            if done % t_cfg.checkpoint_every == 0 or stop.requested or done == T:
+                state.update(step=done, s=s, a=a, F_sa=F_sa, x_sa=x_sa,
+                             actor_time=state["actor_time"] + time.perf_counter() - started)
+                started = time.perf_counter()
+                self.checkpoint(state)
+                if stop.requested:
+                    bar.close()
+                    raise SystemExit(128 + stop.signal)
+        bar.close()
+        return state
+
+    def log_progress(self, writer, rewards, td_errors, done, lr, beta) -> None:
+        """Fig. 3.4's 100-step moving average (mean and spread over runs), TD error, α, β."""
+        window = rewards[max(0, done - 100):done].mean(0)
+        recent_td = td_errors[max(0, done - self.cfg.trainer.log_every):done].abs().mean()
+        for name, value in {"reward_ma100/mean": window.mean(), "reward_ma100/std": window.std(correction=0),
+                            "reward_ma100/min": window.min(), "reward_ma100/max": window.max(),
+                            "td_error_abs": recent_td}.items():
+            writer.add_scalar(f"train/{name}", value.item(), done)
+        writer.add_scalar("schedule/learning_rate", lr, done)
+        writer.add_scalar("schedule/beta", beta, done)
+
+    def records_and_summary(self, state: dict, after: dict, wall_time: float) -> dict:
+        env, before = self.env, state["before"]
+        rewards = state["rewards"].T.cpu().numpy()
+        self.run.save_records("floor_train", rewards=rewards, td_errors=state["td_errors"].T.cpu().numpy())
+        self.run.save_records("weights", W_sh_before=state["W_sh_before"].numpy(), W_sh_after=self.actor.W_sh.cpu().numpy())
+        self.run.save_records(
+            "floor_test", noise_levels=np.asarray(self.cfg.trainer.test_noise_levels, dtype=np.float64),
+            classes=np.array(env.classes), optimal_action=env.class_optimal_action.astype(np.int64),
+            action_names=np.array(["N", "E", "S", "W"]), arrangement=env.arrangement,
+            probe_noise=np.float64(self.cfg.env.noise), beta=np.float64(self.actor.inverse_temperature(1.0)),
+            clean_images=self.test_images.cpu().numpy().astype(np.float16),
+            probe_images=after["probe_images"],
+            **{f"{key}_{phase}": result[key] for phase, result in (("before", before), ("after", after))
+               for key in ("greedy_counts", "probs", "hidden", "hidden_marginal")})
+        levels = [f"{x:g}" for x in self.cfg.trainer.test_noise_levels]
+        acc_after = greedy_accuracy(after["greedy_counts"], env.class_optimal_mask)
+        acc_before = greedy_accuracy(before["greedy_counts"], env.class_optimal_mask)
+        last = max(1, self.T // 10)
+        return {
+            "reward_per_step_last10pct": rewards[:, -last:].mean(1).tolist(),
+            "greedy_accuracy": {lvl: acc_after[:, i].tolist() for i, lvl in enumerate(levels)},
+            "greedy_accuracy_before": {lvl: acc_before[:, i].tolist() for i, lvl in enumerate(levels)},
+        }
+
+
+def train_digit_floor(cfg, run: RunDir, device: torch.device) -> dict:
+    """Run the whole chapter-3 procedure; returns the summary.json dict."""
+    wall_start = time.perf_counter()
+    job = FloorTraining(cfg, run, device)
+    saved = run.load_checkpoint() if cfg.resume else None
+    state = job.restore(saved) if saved else job.fresh_state()
+    with SummaryWriter(run.tb) as writer:
+        if state["step"] == 0:
+            writer.add_images("weights/W_sh_before", weight_images(job.actor.W_sh), 0)
+        with StopRequest() as stop:
+            state = job.train(state, writer, stop)
+        after = job.test_phase()
+        metrics = job.records_and_summary(state, after, time.perf_counter() - wall_start)
+        writer.add_images("weights/W_sh_after", weight_images(job.actor.W_sh), job.T)
+        for name in ("W_sh", "W_ah", "b_h"):
+            writer.add_histogram(f"weights/{name}", getattr(job.actor, name), job.T)
+        optimal = {"reward_per_step": job.env.optimal_reward_rate}
+        headline = {"reward_per_step_last10pct": float(np.mean(metrics["reward_per_step_last10pct"])),
+                    **{f"greedy_accuracy/{k}": float(np.mean(v)) for k, v in metrics["greedy_accuracy"].items()}}
+        writer.add_hparams(hparams(cfg), {f"hparam/{k}": v for k, v in headline.items()}, run_name=".")
+    agent_steps = job.T * job.R
+    return {
+        "experiment": cfg.name, "task": "digit_floor",
+        "seeds": [cfg.seed + r for r in range(job.R)],
+        "metrics": metrics, "optimal": optimal,
+        "wall_time_s": time.perf_counter() - wall_start,
+        "agent_steps_per_s": agent_steps / max(state["actor_time"], 1e-9),
+    }
+
+
+def hparams(cfg) -> dict:
+    """Flat scalar view of the config for TensorBoard's HParams tab."""
+    flat = {}
+
+    def walk(node, prefix):
+        for key, value in node.items():
+            name = f"{prefix}{key}"
+            if isinstance(value, dict):
+                walk(value, name + ".")
+            elif isinstance(value, (int, float, str, bool)):
+                flat[name] = value
+
+    walk(OmegaConf.to_container(cfg, resolve=True), "")
+    return flat

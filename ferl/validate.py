@@ -1,0 +1,144 @@
+"""Config checks run before any work (CONTRACT §6): one line naming the key and what is allowed.
+
+Rules are data: (key, test, what is allowed). A rule applies when its key is in the
+composed config, so each task's groups bring only their own keys.
+"""
+from numbers import Integral, Real
+
+import torch
+from omegaconf import DictConfig, ListConfig, OmegaConf
+from omegaconf.errors import MissingMandatoryValue
+
+from ferl.actor import ACTION_CODES, ACTION_SELECTIONS, TD_RULES
+from ferl.data import DataError
+from ferl.envs.digit_floor import REWARD_CONDITIONS
+
+
+class ConfigError(ValueError):
+    """A config that cannot work; str(e) is the one line shown to the user."""
+
+
+def _int(x):
+    return isinstance(x, Integral) and not isinstance(x, bool)
+
+
+def _num(x):
+    return isinstance(x, Real) and not isinstance(x, bool)
+
+
+def positive_int(x):
+    return _int(x) and x > 0
+
+
+def non_negative_int(x):
+    return _int(x) and x >= 0
+
+
+def unit_interval(x):
+    return _num(x) and 0.0 <= x <= 1.0
+
+
+def discount(x):
+    return _num(x) and 0.0 <= x < 1.0
+
+
+def non_negative(x):
+    return _num(x) and x >= 0
+
+
+def positive(x):
+    return _num(x) and x > 0
+
+
+def one_of(*allowed):
+    return lambda x: x in allowed
+
+
+def noise_levels(x):
+    return isinstance(x, list) and len(x) > 0 and all(unit_interval(v) for v in x)
+
+
+def arrangement(x):
+    labels = [str(c) for row in x for c in row] if isinstance(x, list) and all(isinstance(r, list) for r in x) else []
+    return len(x) == 3 and all(len(r) == 3 for r in x) and len(set(labels)) == 9 and \
+        all(c in {str(d) for d in range(10)} for c in labels)
+
+
+RULES = [
+    ("seed", non_negative_int, "an integer ≥ 0"),
+    ("n_runs", positive_int, "an integer ≥ 1"),
+    ("device", one_of("auto", "cpu", "cuda"), "auto, cpu or cuda"),
+    ("resume", one_of(True, False), "true or false"),
+    ("cpu_threads", positive_int, "an integer ≥ 1"),
+    ("task", one_of("digit_floor"), "digit_floor"),
+    ("env.noise", unit_interval, "a fraction of pixels in [0, 1]"),
+    ("env.reward_condition", one_of(*REWARD_CONDITIONS), "cw, ccw or none (§3.5.3)"),
+    ("env.patches", positive_int, "an integer ≥ 1 (patches per side of the torus)"),
+    ("env.arrangement", arrangement, "a 3×3 list of 9 distinct digit classes 0–9"),
+    ("env.noise_tile", lambda x: x is None or str(x) in {str(d) for d in range(10)}, "null or a digit class of the arrangement"),
+    ("actor.n_hidden", positive_int, "an integer ≥ 1"),
+    ("actor.td_rule", one_of(*TD_RULES), ", ".join(TD_RULES)),
+    ("actor.gamma", discount, "a discount factor in [0, 1)"),
+    ("actor.init_std", non_negative, "a standard deviation ≥ 0"),
+    ("actor.action_code", one_of(*ACTION_CODES), ", ".join(ACTION_CODES)),
+    ("actor.action_selection", one_of(*ACTION_SELECTIONS), ", ".join(ACTION_SELECTIONS)),
+    ("actor.gibbs_sweeps", positive_int, "an integer ≥ 1"),
+    ("actor.lr.start", positive, "a learning rate > 0"),
+    ("actor.lr.end", positive, "a learning rate > 0"),
+    ("actor.beta.start", non_negative, "an inverse temperature ≥ 0"),
+    ("actor.beta.end", non_negative, "an inverse temperature ≥ 0"),
+    ("trainer.steps", positive_int, "an integer ≥ 1"),
+    ("trainer.log_every", positive_int, "an integer ≥ 1"),
+    ("trainer.checkpoint_every", positive_int, "an integer ≥ 1"),
+    ("trainer.test_per_class", positive_int, "an integer ≥ 1"),
+    ("trainer.test_noise_levels", noise_levels, "a non-empty list of noise levels in [0, 1]"),
+    ("data.test_per_class", lambda x: _int(x) and 1 <= x <= 499, "an integer in [1, 499] (500 images per class)"),
+]
+
+_ABSENT = object()
+
+
+def validate(cfg: DictConfig) -> None:
+    """Raise ConfigError for the first rule the config breaks, then check cross-key facts."""
+    for key, test, allowed in RULES:
+        try:
+            value = OmegaConf.select(cfg, key, default=_ABSENT, throw_on_missing=True)
+        except MissingMandatoryValue:
+            raise ConfigError(f"{key} is required: {allowed}") from None
+        if value is _ABSENT:
+            continue
+        plain = OmegaConf.to_container(value, resolve=True) if isinstance(value, (DictConfig, ListConfig)) else value
+        if not test(plain):
+            raise ConfigError(f"{key}={plain!r} is not allowed: expected {allowed}")
+    if cfg.device == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("device=cuda but no CUDA device is available: use device=auto or device=cpu")
+    check_cross_keys(cfg)
+    check_data(cfg)
+
+
+def check_cross_keys(cfg) -> None:
+    env = cfg.get("env", {})
+    if env.get("noise_tile") is not None:
+        labels = {str(c) for row in env.arrangement for c in row}
+        if str(env.noise_tile) not in labels:
+            raise ConfigError(f"env.noise_tile={env.noise_tile!r} is not allowed: expected a class of env.arrangement {sorted(labels)}")
+        if str(env.noise_tile) == str(env.arrangement[1][1]):
+            raise ConfigError("env.noise_tile is not allowed to be the goal (the centre of env.arrangement)")
+    trainer, data = cfg.get("trainer", {}), cfg.get("data", {})
+    if "test_per_class" in trainer and "test_per_class" in data and trainer.test_per_class > data.test_per_class:
+        raise ConfigError(f"trainer.test_per_class={trainer.test_per_class} is not allowed: at most "
+                          f"data.test_per_class={data.test_per_class} held-out images per class exist")
+
+
+def check_data(cfg) -> None:
+    data = cfg.get("data")
+    if data is None or "root" not in data.keys():
+        return
+    if OmegaConf.is_missing(data, "root"):
+        raise ConfigError("data.root is required with data=mnist_idx: a folder holding the MNIST IDX files")
+    from ferl.data import MnistIDX
+
+    try:
+        MnistIDX(data.root).check()
+    except DataError as e:
+        raise ConfigError(str(e)) from None

@@ -1,0 +1,124 @@
+"""FERL actor: Eq. (3.1) free energies, Eq. (3.5–3.10) updates vs autograd, Eq. (3.11) policy,
+TD rules of §3.2 and alternating-Gibbs action sampling."""
+import itertools
+
+import pytest
+import torch
+
+from ferl import rbm
+from ferl.actor import FERLActor, action_code_table, sample_categorical
+from ferl.schedules import Constant
+
+
+def make_actor(R=3, S=6, A=4, H=5, code="onehot", td_rule="sarsa", init_std=0.5, **kw):
+    actor = FERLActor(R, S, A, H, td_rule=td_rule, gamma=0.9, lr=Constant(0.1), beta=Constant(1.0),
+                      init_std=init_std, action_code=code, seed=3, **kw).double()
+    g = torch.Generator().manual_seed(1)
+    for name in ("b_s", "b_a", "b_h"):  # non-zero biases so every term is exercised
+        getattr(actor, name).copy_(torch.randn(getattr(actor, name).shape, generator=g, dtype=torch.float64) * 0.3)
+    return actor
+
+
+@pytest.mark.parametrize("code", ["onehot", "binary"])
+def test_free_energy_of_every_action_matches_rbm_on_visible_vector(code):
+    """F(s, a) equals the RBM free energy of the concatenated visible vector v = (s, a)."""
+    actor = make_actor(code=code)
+    s = torch.rand(3, 2, 6, dtype=torch.float64)
+    F, x = actor.evaluate(s)
+    for a, code_row in enumerate(actor.codes):
+        v = torch.cat([s, code_row.expand(3, 2, -1)], -1)
+        W = torch.cat([actor.W_sh, actor.W_ah], 1)
+        b_v = torch.cat([actor.b_s, actor.b_a], 1)
+        torch.testing.assert_close(F[:, :, a], rbm.free_energy(v, W, b_v, actor.b_h))
+        torch.testing.assert_close(torch.sigmoid(x[:, :, a]), rbm.hidden_expectation(v, W, actor.b_h))
+
+
+def test_binary_codes_enumerate_all_bit_patterns():
+    codes = action_code_table(4, "binary")
+    assert codes.shape == (4, 2)
+    assert {tuple(r) for r in codes.tolist()} == set(itertools.product([0.0, 1.0], repeat=2))
+
+
+@pytest.mark.parametrize("code", ["onehot", "binary"])
+def test_update_is_minus_lr_delta_grad_free_energy(code):
+    """Eq. (3.10): Δθ = α δ (−∂F(s,a)/∂θ), checked against torch.autograd for every parameter."""
+    actor = make_actor(code=code)
+    s = torch.rand(3, 1, 6, dtype=torch.float64)
+    a = torch.tensor([[0], [3], [2]])
+    delta = torch.tensor([[1.5], [-0.7], [0.2]], dtype=torch.float64)
+    params = {n: getattr(actor, n).clone().requires_grad_(True) for n in ("W_sh", "W_ah", "b_s", "b_a", "b_h")}
+    codes = actor.codes[a]
+    v = torch.cat([s, codes], -1)
+    F = rbm.free_energy(v, torch.cat([params["W_sh"], params["W_ah"]], 1),
+                        torch.cat([params["b_s"], params["b_a"]], 1), params["b_h"])
+    # Σ_r δ_r F_r: its gradient wrt run r's parameters is δ_r ∂F_r/∂θ_r
+    (F * delta).sum().backward()
+    _, x = actor.evaluate(s)
+    x_sa = x[torch.arange(3), 0, a[:, 0]].unsqueeze(1)
+    before = {n: p.detach().clone() for n, p in params.items()}
+    actor.update(s, a, x_sa, delta, lr=0.05)
+    for name, p in params.items():
+        torch.testing.assert_close(getattr(actor, name) - before[name], -0.05 * p.grad, msg=name)
+
+
+def test_policy_is_softmax_of_negative_free_energy():
+    actor = make_actor()
+    F = torch.tensor([[[1.0, 2.0, -1.0, 0.5]]], dtype=torch.float64)
+    beta = 1.7
+    direct = torch.exp(-beta * F) / torch.exp(-beta * F).sum(-1, keepdim=True)
+    torch.testing.assert_close(actor.policy(F, beta), direct)
+    assert torch.allclose(actor.policy(F, 0.0), torch.full_like(F, 0.25))
+
+
+def test_sample_categorical_frequencies():
+    g = torch.Generator().manual_seed(0)
+    probs = torch.tensor([0.1, 0.2, 0.3, 0.4]).expand(200_000, 4)
+    u = torch.rand(200_000, 1, generator=g)
+    freq = torch.bincount(sample_categorical(probs, u), minlength=4).double() / 200_000
+    torch.testing.assert_close(freq, torch.tensor([0.1, 0.2, 0.3, 0.4], dtype=torch.float64), atol=4e-3, rtol=0)
+
+
+@pytest.mark.parametrize("rule", ["sarsa", "q", "expected_sarsa"])
+def test_td_errors(rule):
+    actor = make_actor(td_rule=rule)
+    r = torch.tensor([[1.0], [-2.0], [0.0]], dtype=torch.float64)
+    F_sa = torch.tensor([[-3.0], [0.5], [2.0]], dtype=torch.float64)
+    F_next = torch.tensor([[[-1.0, -4.0, 0.0, 2.0]], [[0.3, 0.1, 0.2, 0.0]], [[5.0, 1.0, 1.0, 1.0]]], dtype=torch.float64)
+    a_next = torch.tensor([[0], [1], [3]])
+    beta = 0.8
+    if rule == "sarsa":
+        boot = torch.tensor([[-1.0], [0.1], [1.0]], dtype=torch.float64)
+    elif rule == "q":  # max_a Q = −min_a F
+        boot = torch.tensor([[-4.0], [0.0], [1.0]], dtype=torch.float64)
+    else:
+        w = torch.exp(-beta * F_next)
+        boot = ((w / w.sum(-1, keepdim=True)) * F_next).sum(-1)
+    expected = r - 0.9 * boot + F_sa
+    torch.testing.assert_close(actor.td_error(r, F_sa, F_next, a_next, beta), expected)
+    terminal = torch.tensor([[True], [False], [True]])
+    expected_t = r - 0.9 * boot * (~terminal) + F_sa
+    torch.testing.assert_close(actor.td_error(r, F_sa, F_next, a_next, beta, terminal), expected_t)
+
+
+@pytest.mark.parametrize("code", ["onehot", "binary"])
+def test_gibbs_sampling_reaches_free_energy_softmax(code):
+    """The Gibbs chain's action law is exp(−β F_β(s,a)) normalised; β F_β(s, a) equals the unit-
+    temperature free energy of the same RBM with all parameters scaled by β (§2.1.5)."""
+    R, beta = 4000, 1.5
+    actor = FERLActor(R, 3, 4, 3, td_rule="sarsa", gamma=0.9, lr=Constant(0.1), beta=Constant(beta),
+                      init_std=0.0, action_code=code, action_selection="gibbs", gibbs_sweeps=30, seed=0).double()
+    g = torch.Generator().manual_seed(0)
+    # every run gets the same parameters so the R chains are R samples of one distribution
+    shared = {n: torch.randn(getattr(actor, n).shape[1:], generator=g, dtype=torch.float64) for n in
+              ("W_sh", "W_ah", "b_s", "b_a", "b_h")}
+    for n, p in shared.items():
+        getattr(actor, n).copy_(p.expand_as(getattr(actor, n)))
+    s = torch.tensor([1.0, 0.0, 1.0], dtype=torch.float64).expand(R, 1, 3).contiguous()
+    a = actor.select(s, None, beta, g)
+    freq = torch.bincount(a.flatten(), minlength=4).double() / R
+    scaled = make_actor(R=1, S=3, A=4, H=3, code=code)
+    for n, p in shared.items():
+        getattr(scaled, n).copy_(beta * p.unsqueeze(0))
+    F_scaled, _ = scaled.evaluate(s[:1])
+    target = torch.softmax(-F_scaled[0, 0], -1)
+    torch.testing.assert_close(freq, target, atol=0.03, rtol=0)

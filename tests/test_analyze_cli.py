@@ -1,0 +1,115 @@
+"""analyze.py end to end on synthetic digit-floor runs (docs/records.md, CONTRACT.md §4)."""
+
+import hashlib
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from synthetic_runs import make_floor_run
+
+REPO = Path(__file__).resolve().parents[1]
+FIGURES = ["fig3_4_reward", "fig3_5_weights", "fig3_6a_greedy_before", "fig3_6b_greedy_after",
+           "fig3_6_accuracy_vs_noise", "fig3_7_outlier", "fig3_10_median_activation",
+           "fig3_11_dendrogram_run0", "fig3_11_dendrogram_all_runs",
+           "fig3_12_mutual_information"]
+DATA = ["greedy_accuracy.csv", "mfr_run0.csv", "mfr_run1.csv", "pair_clusters.json",
+        "mutual_information.csv", "reward_moving_average.csv", "claims.json"]
+
+
+def analyze(*dirs: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(REPO / "analyze.py"), *map(str, dirs)],
+                          cwd=REPO, capture_output=True, text=True, timeout=120)
+
+
+def snapshot(run_dir: Path, skip=("analysis", "tb")) -> dict[str, tuple[str, int]]:
+    """Content hash and mtime of every file outside the given top-level folders."""
+    return {str(p.relative_to(run_dir)): (hashlib.sha256(p.read_bytes()).hexdigest(),
+                                         p.stat().st_mtime_ns)
+            for p in sorted(run_dir.rglob("*"))
+            if p.is_file() and p.relative_to(run_dir).parts[0] not in skip}
+
+
+def event_files(run_dir: Path) -> list[Path]:
+    return sorted((run_dir / "tb").glob("events.out.tfevents.*"))
+
+
+@pytest.fixture(scope="module")
+def analyzed_run(tmp_path_factory):
+    run_dir = make_floor_run(tmp_path_factory.mktemp("single") / "run")
+    before = snapshot(run_dir)
+    result = analyze(run_dir)
+    return run_dir, before, result
+
+
+def test_single_run_writes_figures_data_and_report(analyzed_run):
+    run_dir, _, result = analyzed_run
+    assert result.returncode == 0, result.stderr
+    out = run_dir / "analysis"
+    for name in FIGURES:
+        assert (out / f"{name}.png").stat().st_size > 1000, name
+    for name in DATA:
+        assert (out / name).is_file(), name
+    report = (out / "report.md").read_text()
+    claim_rows = [line for line in report.splitlines()
+                  if line.startswith("| ") and line.rstrip().endswith("** |")]
+    assert claim_rows, report
+    for name in FIGURES:
+        assert f"]({name}.png)" in report
+    assert event_files(run_dir)
+
+
+def test_single_run_results_reflect_the_synthetic_truth(analyzed_run):
+    run_dir, _, _ = analyzed_run
+    # The synthetic hidden activations cluster by optimal action in every run.
+    pairs = json.loads((run_dir / "analysis" / "pair_clusters.json").read_text())
+    found = {tuple(p["pair"]): p["runs_forming_cluster"] for p in pairs["same_action_pairs"]}
+    assert found == {("0", "3"): 2, ("1", "2"): 2, ("5", "8"): 2, ("6", "7"): 2}
+    claims = {c["source"]: c["verdict"]
+              for c in json.loads((run_dir / "analysis" / "claims.json").read_text())}
+    assert claims["§3.5.3, Figs. 3.11(a)/(b), 3.13"] == "held"
+    assert claims["§3.5.1, Fig. 3.6(b)"] == "held"
+    assert not any("without reward" in c["claim"].lower() for c in
+                   json.loads((run_dir / "analysis" / "claims.json").read_text()))
+
+
+def test_rerun_overwrites_only_analysis_and_appends_to_tb(analyzed_run):
+    run_dir, before, _ = analyzed_run
+    stale = run_dir / "analysis" / "stale.txt"
+    stale.write_text("left over from an older analysis")
+    n_events = len(event_files(run_dir))
+
+    result = analyze(run_dir)
+    assert result.returncode == 0, result.stderr
+    assert not stale.exists()
+    assert (run_dir / "analysis" / "report.md").is_file()
+    assert len(event_files(run_dir)) > n_events
+    assert snapshot(run_dir) == before
+
+
+def test_sweep_analyzes_every_run_and_links_them(tmp_path):
+    sweep = tmp_path / "sweep"
+    runs = [make_floor_run(sweep / "0", seed=1),
+            make_floor_run(sweep / "nested" / "1", classes=[*"01234N678"], reward=False, seed=2)]
+    other = sweep / "tmaze_run"
+    other.mkdir()
+    (other / "summary.json").write_text(json.dumps({"task": "tmaze", "experiment": "t"}))
+
+    result = analyze(sweep)
+    assert result.returncode == 0, result.stderr
+    top = (sweep / "analysis" / "report.md").read_text()
+    for run in runs:
+        assert (run / "analysis" / "report.md").is_file()
+        assert (run / "analysis" / "fig3_12_mutual_information.png").is_file()
+        assert f"]({Path('..', run.relative_to(sweep), 'analysis', 'report.md')})" in top
+    assert "skipped" in top and not (other / "analysis").exists()
+    assert "Without reward" in (runs[1] / "analysis" / "report.md").read_text()
+
+
+def test_missing_directory_is_one_line_error(tmp_path):
+    result = analyze(tmp_path / "does_not_exist")
+    assert result.returncode == 2
+    assert len(result.stderr.strip().splitlines()) == 1
+    assert "does_not_exist" in result.stderr

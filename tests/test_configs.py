@@ -1,0 +1,59 @@
+"""Every experiment config composes, validates and instantiates its modules."""
+import pytest
+import torch
+from hydra.core.hydra_config import HydraConfig
+from hydra.utils import instantiate
+from omegaconf import OmegaConf
+
+from conftest import EXPERIMENTS
+from ferl.data import MnistSplit
+from ferl.validate import ConfigError, validate
+from test_digit_floor import tiny_split
+
+
+def test_contract_experiments_exist():
+    assert {"ch3_floor", "ch3_coding_cw", "ch3_coding_ccw", "ch3_coding_noreward"} <= set(EXPERIMENTS)
+
+
+@pytest.mark.parametrize("name", EXPERIMENTS)
+def test_experiment_composes_validates_and_instantiates(compose_cfg, name):
+    cfg = compose_cfg([f"experiment={name}", "n_runs=2"])
+    HydraConfig.instance().set_config(cfg)
+    assert cfg.name == name
+    validate(cfg)
+    split: MnistSplit = tiny_split()
+    env = instantiate(cfg.env, n_runs=2, data=split, generator=torch.Generator().manual_seed(0))
+    actor = instantiate(cfg.actor, n_runs=2, n_state=env.observation_size, n_actions=env.n_actions, seed=0)
+    assert actor.W_sh.shape == (2, 784, cfg.actor.n_hidden)
+    assert env.optimal_reward_rate == pytest.approx({"none": 0.0}.get(cfg.env.reward_condition, 8.0))
+    assert isinstance(instantiate(cfg.data), object)
+
+
+def test_dissertation_parameters(compose_cfg):
+    """§3.5: α 0.1 → 0.01 exponentially, divided by √edges; β 0 → 2 linearly; γ = 0.9."""
+    cfg = compose_cfg(["experiment=ch3_floor"])
+    actor = instantiate(cfg.actor, n_runs=1, n_state=784, n_actions=4, seed=0)
+    edges = (784 + 4) * 20
+    assert actor.learning_rate(0.0) == pytest.approx(0.1 / edges ** 0.5)
+    assert actor.learning_rate(1.0) == pytest.approx(0.01 / edges ** 0.5)
+    assert actor.learning_rate(0.5) == pytest.approx((0.1 * 0.01) ** 0.5 / edges ** 0.5)
+    assert actor.inverse_temperature(0.0) == 0 and actor.inverse_temperature(1.0) == 2
+    assert actor.inverse_temperature(0.25) == pytest.approx(0.5)
+    assert cfg.actor.gamma == 0.9 and cfg.trainer.steps == 100_000 and cfg.n_runs == 10
+
+
+@pytest.mark.parametrize("override,key", [
+    ("env.noise=1.5", "env.noise"), ("env.noise=-0.1", "env.noise"),
+    ("actor.n_hidden=0", "actor.n_hidden"), ("actor.n_hidden=-3", "actor.n_hidden"),
+    ("actor.td_rule=td_lambda", "actor.td_rule"), ("n_runs=0", "n_runs"),
+    ("env.reward_condition=up", "env.reward_condition"), ("trainer.steps=0", "trainer.steps"),
+    ("device=tpu", "device"), ("actor.gamma=1.0", "actor.gamma"),
+    ("env.noise_tile='4'", "env.noise_tile"), ("env.patches=0", "env.patches"),
+    ("data=mnist_idx", "data.root"), ("data=mnist_idx data.root=/nonexistent", "data.root"),
+])
+def test_bad_values_name_their_key(compose_cfg, override, key):
+    cfg = compose_cfg(override.split())
+    HydraConfig.instance().set_config(cfg)
+    with pytest.raises(ConfigError) as e:
+        validate(cfg)
+    assert key in str(e.value) and "\n" not in str(e.value)
