@@ -27,6 +27,7 @@ WINDOW = 100           # moving-average window of Fig. 3.4
 MAX_CURVE_POINTS = 2000
 MI_BINS = 2            # see coding.pairwise_mutual_information
 LINKAGE = "average"
+INCLUDE_GOAL_IN_CLUSTERING = False  # see FloorRun.cluster_classes
 PHASES = ("before", "after")
 NOISE_CLASS = "N"
 
@@ -120,18 +121,41 @@ class FloorRun:
                 for p in PHASES}
 
     @cached_property
+    def cluster_classes(self) -> list[str]:
+        """Classes clustered by median firing rate: every tile class but the goal, which the
+        agent never observes (it is moved away on entering it, §3.4). With the goal left out,
+        the four same-action pairs of §3.5.3 partition the eight classes exactly."""
+        goal = str(self.arrangement[1, 1])
+        return [c for c in self.classes if c != goal or INCLUDE_GOAL_IN_CLUSTERING]
+
+    @cached_property
     def mfr_linkages(self) -> list[np.ndarray]:
-        """Clustering of the after-training MFR distance D, one per run."""
-        return [coding.linkage_from_distance(coding.gram_distance(m)[1], LINKAGE)
-                for m in self.mfr["after"]]
+        """Clustering of the after-training MFR distance D (Eq. 3.12) of the cluster classes, per run."""
+        return self.linkages("hidden")
+
+    @cached_property
+    def _linkage_cache(self) -> dict:
+        return {}
+
+    def linkages(self, source: str) -> list[np.ndarray]:
+        """Per-run average-linkage trees of D = g1ᵀ + 1gᵀ − 2G over the cluster classes, from the
+        median over test images of ``hidden`` (Eq. 3.12: actions marginalised with a uniform prior)
+        or ``hidden_marginal`` (§3.5.3 fn. 6: actions weighted by the policy P(a|z))."""
+        if source not in self._linkage_cache:
+            idx = [self.classes.index(c) for c in self.cluster_classes]
+            self._linkage_cache[source] = [
+                coding.linkage_from_distance(coding.gram_distance(coding.median_firing_rates(h[idx]))[1], LINKAGE)
+                for h in self.test[f"{source}_after"]]
+        return self._linkage_cache[source]
 
     @cached_property
     def same_action_pairs(self) -> list[tuple[int, int]]:
         return coding.same_action_pairs(self.classes, self.optimal_action)
 
-    def cluster_hits(self, i: int, j: int) -> list[bool]:
-        """Per run: are classes i and j merged directly in the MFR dendrogram?"""
-        return [coding.pair_forms_cluster(z, i, j) for z in self.mfr_linkages]
+    def cluster_hits(self, i: int, j: int, source: str = "hidden") -> list[bool]:
+        """Per run: are classes i and j (indices into classes) merged directly in the dendrogram?"""
+        a, b = (self.cluster_classes.index(self.classes[k]) for k in (i, j))
+        return [coding.pair_forms_cluster(z, a, b) for z in self.linkages(source)]
 
     def median_activation(self, phase: str) -> np.ndarray:
         """(R, C, H) median of the marginal activation (§3.5.3, fn. 6)."""
@@ -249,13 +273,16 @@ def write_tables(run: FloorRun, out: Path) -> list[str]:
 def _pair_clusters(run: FloorRun) -> dict:
     def entry(i: int, j: int) -> dict:
         hits = run.cluster_hits(i, j)
+        marginal = run.cluster_hits(i, j, "hidden_marginal")
         return {"pair": [run.classes[i], run.classes[j]], "runs_forming_cluster": sum(hits),
-                "n_runs": len(hits), "per_run": hits}
+                "n_runs": len(hits), "per_run": hits,
+                "runs_forming_cluster_fn6_activation": sum(marginal), "per_run_fn6_activation": marginal}
 
     perceptual = [(run.classes.index(a), run.classes.index(b)) for a, b in PERCEPTUAL_PAIRS
                   if a in run.classes and b in run.classes]
     return {
         "linkage": LINKAGE,
+        "clustered_classes": run.cluster_classes,
         "same_action_pairs": [dict(entry(i, j), action=run.action_names[run.optimal_action[i]])
                               for i, j in run.same_action_pairs],
         "perceptual_pairs": [entry(i, j) for i, j in perceptual],
@@ -303,11 +330,11 @@ def make_figures(run: FloorRun, n_outlier_images: int = 40) -> dict[str, tuple]:
         "Fig. 3.10: median hidden activation per class (run 0)")
     what = f"{run.summary.get('experiment', '')}, {run.mfr['after'].shape[2]} hidden nodes"
     out["fig3_11_dendrogram_run0"] = (
-        figs.mfr_dendrogram(run.mfr_linkages[0], run.classes,
+        figs.mfr_dendrogram(run.mfr_linkages[0], run.cluster_classes,
                             f"Fig. 3.11/3.13: clustered MFRs after training\n(run 0; {what})"),
         "Figs. 3.11/3.13: MFR dendrogram after training, run 0")
     out["fig3_11_dendrogram_all_runs"] = (
-        figs.mfr_dendrogram_grid(run.mfr_linkages, run.classes,
+        figs.mfr_dendrogram_grid(run.mfr_linkages, run.cluster_classes,
                                  f"Fig. 3.11/3.13: clustered MFRs after training, every run\n"
                                  f"({what})"),
         "Figs. 3.11/3.13: MFR dendrograms after training, every run")

@@ -162,17 +162,21 @@ def _class_selectivity(run: FloorRun) -> Measured | None:
                            f"(ratio {ratio:.2f})")
 
 
-def _pairs_cluster(pairs_of: Callable[[FloorRun], list[tuple[int, int]]],
-                   with_reward: bool) -> Callable[[FloorRun], Measured | None]:
+SOURCES = {"hidden": "MFR dendrogram (Eq. 3.12)",
+           "hidden_marginal": "dendrogram of the policy-weighted activation of fn. 6"}
+
+
+def _pairs_cluster(pairs_of: Callable[[FloorRun], list[tuple[int, int]]], with_reward: bool,
+                   source: str = "hidden") -> Callable[[FloorRun], Measured | None]:
     def measure(run: FloorRun) -> Measured | None:
         pairs = pairs_of(run)
         if run.reward_free == with_reward or not pairs:
             return None
-        hits = [run.cluster_hits(i, j) for i, j in pairs]
+        hits = [run.cluster_hits(i, j, source) for i, j in pairs]
         text = "; ".join(f'("{run.classes[i]}", "{run.classes[j]}"): {sum(h)}/{len(h)} runs'
                          for (i, j), h in zip(pairs, hits))
         return Measured([np.mean(h) >= PAIR_RUNS for h in hits],
-                        f"runs in which the pair is merged directly in the MFR dendrogram: {text}")
+                        f"runs in which the pair is merged directly in the {SOURCES[source]}: {text}")
     return measure
 
 
@@ -258,6 +262,11 @@ FLOOR_CLAIMS: list[Claim] = [
           "median firing rates.",
           "§3.5.3, Figs. 3.11(a)/(b), 3.13",
           _pairs_cluster(lambda run: run.same_action_pairs, with_reward=True), all_or_some),
+    Claim("Pairs of tiles with the same optimal action form their own clusters of the hidden "
+          "activation defined in fn. 6 (actions weighted by the policy instead of uniformly).",
+          "§3.5.3 fn. 6, Figs. 3.10–3.11",
+          _pairs_cluster(lambda run: run.same_action_pairs, with_reward=True, source="hidden_marginal"),
+          all_or_some),
     Claim("Without reward, the activation of all hidden nodes becomes very low.",
           "§3.5.3, Fig. 3.10(d)", _low_activation, _low_rule),
     Claim('Without reward, perceptually similar "1" and "7", and "3" and "8", are grouped '
