@@ -15,8 +15,11 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet -e '.[dev]'
 	touch $(STAMP)
 
+# The default experiment (ch3_floor), then its figures and report.
 run: $(STAMP)
-	$(PY) train.py
+	@dir=outputs/ch3_floor/$$(date +%Y-%m-%d_%H-%M-%S); \
+	$(PY) train.py hydra.run.dir=$$dir && $(PY) analyze.py $$dir && \
+	echo "  figures:     $$dir/analysis/ (claims: $$dir/analysis/report.md)"
 
 test: $(STAMP)
 	$(PY) -m pytest -n 2 -q
