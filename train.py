@@ -90,7 +90,7 @@ def main(cfg: DictConfig) -> None:
           f"({summary['agent_steps_per_s']:.0f} agent-steps/s)\n"
           f"  summary:     {run_path / 'summary.json'}\n"
           f"  TensorBoard: tensorboard --logdir {run.tb}\n"
-          f"  figures:     python analyze.py {run_path}")
+          f"  analysis:    python analyze.py {run_path}")
 
 
 if __name__ == "__main__":
