@@ -23,8 +23,8 @@ PROG = "analyze.py"
 
 def _analyzers() -> dict:
     """task → analyze(run_dir, out_dir) -> RunAnalysis; imported only when needed."""
-    from ferl.analysis import floor
-    return {floor.TASK: floor.analyze}
+    from ferl.analysis import floor, tmaze
+    return {floor.TASK: floor.analyze, tmaze.TASK: tmaze.analyze}
 
 
 def _publish_figures(figures: dict, out: Path, tb_dir: Path) -> None:

@@ -17,9 +17,10 @@ from omegaconf import DictConfig
 
 from ferl.run_dir import RunDir
 from ferl.trainers.digit_floor import train_digit_floor
+from ferl.trainers.tmaze import train_tmaze
 from ferl.validate import ConfigError, validate
 
-TRAINERS = {"digit_floor": train_digit_floor}
+TRAINERS = {"digit_floor": train_digit_floor, "tmaze": train_tmaze}
 HYDRA_OWN = {".hydra", "train.log"}  # what Hydra writes into a run directory before main()
 
 

@@ -70,12 +70,25 @@ RULES = [
     ("device", one_of("auto", "cpu", "cuda"), "auto, cpu or cuda"),
     ("resume", one_of(True, False), "true or false"),
     ("cpu_threads", positive_int, "an integer ≥ 1"),
-    ("task", one_of("digit_floor"), "digit_floor"),
+    ("task", one_of("digit_floor", "tmaze"), "digit_floor or tmaze"),
     ("env.noise", unit_interval, "a fraction of pixels in [0, 1]"),
     ("env.reward_condition", one_of(*REWARD_CONDITIONS), "cw, ccw or none (§3.5.3)"),
     ("env.patches", positive_int, "an integer ≥ 1 (patches per side of the torus)"),
     ("env.arrangement", arrangement, "a 3×3 list of 9 distinct digit classes 0–9"),
     ("env.noise_tile", lambda x: x is None or str(x) in {str(d) for d in range(10)}, "null or a digit class of the arrangement"),
+    ("env.corridor_length", lambda x: _int(x) and x >= 2, "an integer ≥ 2 (T_min: start, corridor cells, junction)"),
+    ("env.max_steps", positive_int, "an integer ≥ 1 (T_max)"),
+    ("env.matching", one_of(True, False), "true or false"),
+    ("env.digit_classes", lambda x: isinstance(x, dict) and all(_int(v) and 0 <= v <= 9 for v in x.values()),
+     "a map observation name → digit class 0–9"),
+    ("env.image_index", non_negative_int, "an integer ≥ 0"),
+    ("env.binarize_threshold", unit_interval, "a threshold in [0, 1]"),
+    ("predictor.n_memory", positive_int, "an integer ≥ 1"),
+    ("predictor.reward_output", one_of("bits", "linear", "none"), "bits, linear or none"),
+    ("predictor.lr", positive, "a learning rate > 0"),
+    ("predictor.init_std", non_negative, "a standard deviation ≥ 0"),
+    *[(f"predictor.{k}", non_negative, "a number ≥ 0") for k in ("c_y", "c_a", "rho_y", "rho_r")],
+    *[(f"predictor.{k}", positive, "a gain > 0") for k in ("beta_m", "beta_y", "beta_r")],
     ("actor.n_hidden", positive_int, "an integer ≥ 1"),
     ("actor.td_rule", one_of(*TD_RULES), ", ".join(TD_RULES)),
     ("actor.gamma", discount, "a discount factor in [0, 1)"),
@@ -83,6 +96,7 @@ RULES = [
     ("actor.action_code", one_of(*ACTION_CODES), ", ".join(ACTION_CODES)),
     ("actor.action_selection", one_of(*ACTION_SELECTIONS), ", ".join(ACTION_SELECTIONS)),
     ("actor.gibbs_sweeps", positive_int, "an integer ≥ 1"),
+    ("actor.lr.value", positive, "a learning rate > 0"),
     ("actor.lr.start", positive, "a learning rate > 0"),
     ("actor.lr.end", positive, "a learning rate > 0"),
     ("actor.beta.start", non_negative, "an inverse temperature ≥ 0"),
@@ -92,6 +106,15 @@ RULES = [
     ("trainer.checkpoint_every", positive_int, "an integer ≥ 1"),
     ("trainer.test_per_class", positive_int, "an integer ≥ 1"),
     ("trainer.test_noise_levels", noise_levels, "a non-empty list of noise levels in [0, 1]"),
+    ("trainer.n_sample", positive_int, "an integer ≥ 1 (N_sample episodes)"),
+    ("trainer.collect_batch", positive_int, "an integer ≥ 1"),
+    ("trainer.train_fraction", lambda x: _num(x) and 0 < x < 1, "a fraction in (0, 1)"),
+    ("trainer.l_training", positive_int, "an integer ≥ 1 (L_training)"),
+    ("trainer.n_epoch", non_negative_int, "an integer ≥ 0 (N_epoch)"),
+    ("trainer.error_every", positive_int, "an integer ≥ 1"),
+    ("trainer.n_episodes", positive_int, "an integer ≥ 1 (N episodes)"),
+    ("trainer.td_sample_every", positive_int, "an integer ≥ 1"),
+    ("trainer.final_window", positive_int, "an integer ≥ 1"),
     ("data.test_per_class", lambda x: _int(x) and 1 <= x <= 499, "an integer in [1, 499] (500 images per class)"),
 ]
 
@@ -117,6 +140,9 @@ def validate(cfg: DictConfig) -> None:
 
 
 def check_cross_keys(cfg) -> None:
+    if cfg.get("task") == "tmaze" and cfg.get("resume"):
+        raise ConfigError("resume=true is not supported for task=tmaze yet: its checkpoint is written "
+                          "when the run ends (phase-aware checkpoints are issue 7/7)")
     env = cfg.get("env", {})
     if env.get("noise_tile") is not None:
         labels = {str(c) for row in env.arrangement for c in row}
@@ -124,6 +150,19 @@ def check_cross_keys(cfg) -> None:
             raise ConfigError(f"env.noise_tile={env.noise_tile!r} is not allowed: expected a class of env.arrangement {sorted(labels)}")
         if str(env.noise_tile) == str(env.arrangement[1][1]):
             raise ConfigError("env.noise_tile is not allowed to be the goal (the centre of env.arrangement)")
+    if "corridor_length" in env and env.max_steps < env.corridor_length:
+        raise ConfigError(f"env.max_steps={env.max_steps} is not allowed: T_max must be ≥ "
+                          f"env.corridor_length={env.corridor_length} (T_min)")
+    if "digit_classes" in env:
+        from ferl.envs.digit_tmaze import observation_names
+
+        names = observation_names(env.matching)
+        unknown = sorted(set(env.digit_classes) - set(names))
+        if unknown:
+            raise ConfigError(f"env.digit_classes.{unknown[0]} is not allowed: observations are {', '.join(names)}")
+        missing = [n for n in names if n not in env.digit_classes]
+        if missing:
+            raise ConfigError(f"env.digit_classes.{missing[0]} is required: every observation needs a digit class")
     trainer, data = cfg.get("trainer", {}), cfg.get("data", {})
     if "test_per_class" in trainer and "test_per_class" in data and trainer.test_per_class > data.test_per_class:
         raise ConfigError(f"trainer.test_per_class={trainer.test_per_class} is not allowed: at most "

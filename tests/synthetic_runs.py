@@ -1,9 +1,10 @@
-"""Synthetic digit-floor run directories following docs/records.md, for analysis tests.
+"""Synthetic run directories following docs/records.md, for analysis tests.
 
-The records are built so that the answers are known: after training the greedy
-action is the optimal one for most test images, hidden activations cluster by
-optimal action (so every same-action pair forms its own cluster), and the image
-templates of "7" and "8" are near copies of "1" and "3" (low mutual information).
+The records are built so that the answers are known. Digit floor (`make_floor_run`):
+after training the greedy action is the optimal one for most test images, hidden
+activations cluster by optimal action (so every same-action pair forms its own
+cluster), and the image templates of "7" and "8" are near copies of "1" and "3"
+(low mutual information). T-maze (`make_tmaze_run`): see its docstring.
 """
 
 from __future__ import annotations
@@ -139,5 +140,145 @@ def make_floor_run(run_dir: Path, *, n_runs: int = 2, steps: int = 500, n_images
     (run_dir / ".hydra" / "config.yaml").write_text(f"experiment: {experiment}\nseed: {seed}\n")
     (run_dir / "checkpoints").mkdir()
     (run_dir / "checkpoints" / "last.pt").write_bytes(b"synthetic checkpoint")
+    (run_dir / "tb").mkdir()
+    return run_dir
+
+
+# ---- T-mazes (chapter 4) ---------------------------------------------------------
+
+TMAZE_OPTIMAL_STEPS, TMAZE_MAX_STEPS, TMAZE_GAMMA = 3, 10, 0.95
+TMAZE_OPTIMAL_RETURN = -0.1 - 0.1 * TMAZE_GAMMA + 5 * TMAZE_GAMMA ** 2  # 4.3175 (CONTRACT §7)
+N_OBS = 7
+
+
+def _tmaze_episode(rng, success: bool) -> tuple[int, float, float, bool]:
+    """(steps, discounted return, terminal reward, correct goal) of one synthetic episode."""
+    if success:
+        return TMAZE_OPTIMAL_STEPS, TMAZE_OPTIMAL_RETURN, 5.0, True
+    steps = int(rng.integers(TMAZE_OPTIMAL_STEPS, TMAZE_MAX_STEPS + 1))
+    terminal = -0.1 if steps == TMAZE_MAX_STEPS else -5.0  # cut off, or the wrong goal
+    ret = sum(-0.1 * TMAZE_GAMMA ** t for t in range(steps - 1))
+    ret += terminal * TMAZE_GAMMA ** (steps - 1)
+    return steps, ret, terminal, False
+
+
+def _prediction_errors(rng, n_runs, epochs, lengths, scale: float) -> np.ndarray:
+    """Eq. (4.8)-like errors: t = 0 stays high (random signal), later steps fall fast."""
+    err = np.full((n_runs, len(epochs), len(lengths), TMAZE_MAX_STEPS + 1), np.nan, np.float32)
+    decay = 0.05 + 0.95 * np.exp(-np.asarray(epochs) / 4.0)
+    for k, T in enumerate(lengths):
+        longer = 1.2 if T > TMAZE_OPTIMAL_STEPS + 4 else 1.0
+        err[:, :, k, 0] = 1.0
+        err[:, :, k, 1:T + 1] = 2.0 * scale * longer * decay[None, :, None]
+    return err + rng.uniform(0, 0.01, err.shape).astype(np.float32)
+
+
+def make_tmaze_run(run_dir: Path, *, n_runs: int = 2, n_episodes: int = 600,
+                   matching: bool = True, hidden: str = "separable",
+                   memory_keys: tuple[str, ...] = ("memory",),
+                   predictors: tuple[str, ...] = ("joint",),
+                   steps_to_goal: bool = True, n_memory: int = 6, n_hidden: int = 5,
+                   seed: int = 0, experiment: str | None = None) -> Path:
+    """Write a synthetic T-maze run (docs/records.md, "T-mazes") into `run_dir` and return it.
+
+    The truth: every run becomes optimal by 60 % of the episodes and its TD error decays
+    ~100-fold; memories encode the initial signal from the start; the actor's hidden
+    activations at the junction are unstructured in the first half of the episodes and
+    one prototype per condition (plus small noise) in the second half — unless `hidden`
+    is "shuffled", which permutes them across each run's visits (a null control).
+    """
+    rng = np.random.default_rng(seed)
+    experiment = experiment or f"table4_1_{'matching' if matching else 'regular'}_synthetic"
+    records = run_dir / "records"
+    records.mkdir(parents=True)
+
+    lengths = np.arange(TMAZE_OPTIMAL_STEPS, TMAZE_MAX_STEPS + 1)
+    epochs = np.arange(0, 41, 2)
+    predictor = {}
+    for name in predictors:
+        predictor |= {f"{name}_lengths": lengths, f"{name}_epochs": epochs,
+                      f"{name}_error_train": _prediction_errors(rng, n_runs, epochs, lengths, 1.0),
+                      f"{name}_error_test": _prediction_errors(rng, n_runs, epochs, lengths, 1.1)}
+    np.savez(records / "predictor.npz", **predictor)
+
+    n_conditions = 4 if matching else 2
+    condition = rng.integers(0, n_conditions, (n_runs, n_episodes))
+    success = rng.random((n_runs, n_episodes)) < np.clip(np.linspace(0.2, 1.6, n_episodes), 0, 1)
+    steps, ret, terminal, correct = (np.array(x) for x in zip(*[
+        _tmaze_episode(rng, s) for s in success.ravel()]))
+    shape = (n_runs, n_episodes)
+    td_abs = 2.0 * np.exp(-5.0 * np.arange(n_episodes) / n_episodes) + rng.uniform(0, 0.01, shape)
+    sampled = np.arange(0, n_episodes, 50)
+    td_sampled = np.full((n_runs, len(sampled), TMAZE_MAX_STEPS), np.nan, np.float32)
+    for r in range(n_runs):
+        for i, k in enumerate(sampled):
+            n = steps.reshape(shape)[r, k]
+            td_sampled[r, i, :n] = rng.normal(0, td_abs[r, k], n)
+    episodes = dict(discounted_return=ret.reshape(shape).astype(np.float32),
+                    steps=steps.reshape(shape).astype(np.int64),
+                    terminal_reward=terminal.reshape(shape).astype(np.float32),
+                    correct_goal=correct.reshape(shape).astype(bool),
+                    td_abs_mean=td_abs.astype(np.float32), condition=condition,
+                    td_sampled=td_sampled, td_sampled_episodes=sampled,
+                    gamma=np.float64(TMAZE_GAMMA), optimal_return=np.float64(TMAZE_OPTIMAL_RETURN),
+                    optimal_steps=np.float64(TMAZE_OPTIMAL_STEPS))
+    np.savez(records / "episodes.npz", **episodes)
+
+    # One junction visit per episode at t = 2; long failed episodes come back once more.
+    run_idx, episode_idx = np.indices(shape).reshape(2, -1)
+    again = episodes["steps"].ravel() >= 6
+    run_idx = np.concatenate([run_idx, run_idx[again]])
+    episode_idx = np.concatenate([episode_idx, episode_idx[again]])
+    step = np.concatenate([np.full(shape, 2).ravel(), np.full(again.sum(), 3)])
+    cond = condition[run_idx, episode_idx]
+    initial = cond // 2 if matching else cond
+    junction_signal = cond % 2 if matching else np.full_like(cond, -1)
+    n_visits = len(cond)
+
+    def noisy(protos: np.ndarray, labels: np.ndarray, sd: float) -> np.ndarray:
+        noise = rng.normal(0, sd, (n_visits, protos.shape[2]))
+        return np.clip(protos[run_idx, labels] + noise, 0, 1)
+
+    junction = {"run": run_idx, "episode": episode_idx, "step": step, "condition": cond,
+                "initial_signal": initial, "junction_signal": junction_signal}
+    if steps_to_goal:
+        junction["steps_to_goal"] = episodes["steps"][run_idx, episode_idx]
+    for key in memory_keys:
+        junction[key] = noisy(rng.uniform(0.1, 0.9, (n_runs, 2, n_memory)), initial, 0.03)
+    obs = np.zeros((n_visits, N_OBS))
+    obs[:, 2] = 1.0                                   # position bit: the T-junction
+    if matching:
+        obs[np.arange(n_visits), 5 + junction_signal] = 1.0
+    junction["state"] = np.concatenate([obs, junction[memory_keys[0]]], axis=1)
+    late = episode_idx >= n_episodes // 2
+    acts = np.where(late[:, None],
+                    noisy(rng.uniform(0, 1, (n_runs, n_conditions, n_hidden)), cond, 0.05),
+                    rng.uniform(0, 1, (n_visits, n_hidden)))
+    if hidden == "shuffled":
+        for r in range(n_runs):
+            mine = np.flatnonzero(run_idx == r)
+            acts[mine] = acts[rng.permutation(mine)]
+    junction["hidden"] = acts
+    np.savez(records / "junction.npz",
+             **{k: v.astype(np.float16) if v.dtype.kind == "f" else v.astype(np.int64)
+                for k, v in junction.items()})
+
+    last = slice(-200, None)
+    final_return = episodes["discounted_return"][:, last].mean(1)
+    final_correct = episodes["correct_goal"][:, last].mean(1)
+    summary = {
+        "experiment": experiment, "task": "tmaze", "seeds": list(range(seed, seed + n_runs)),
+        "metrics": {
+            "final_discounted_return": final_return.tolist(),
+            "final_steps_to_goal": episodes["steps"][:, last].mean(1).tolist(),
+            "final_correct_goal_rate": final_correct.tolist(),
+            "solved": ((final_return >= 0.95 * TMAZE_OPTIMAL_RETURN)
+                       & (final_correct >= 0.95)).astype(int).tolist(),
+        },
+        "optimal": {"discounted_return": TMAZE_OPTIMAL_RETURN,
+                    "steps_to_goal": TMAZE_OPTIMAL_STEPS},
+        "wall_time_s": 1.0, "agent_steps_per_s": 1000.0,
+    }
+    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     (run_dir / "tb").mkdir()
     return run_dir

@@ -93,9 +93,9 @@ def test_sweep_analyzes_every_run_and_links_them(tmp_path):
     sweep = tmp_path / "sweep"
     runs = [make_floor_run(sweep / "0", seed=1),
             make_floor_run(sweep / "nested" / "1", classes=[*"01234N678"], reward=False, seed=2)]
-    other = sweep / "tmaze_run"
+    other = sweep / "other_task_run"
     other.mkdir()
-    (other / "summary.json").write_text(json.dumps({"task": "tmaze", "experiment": "t"}))
+    (other / "summary.json").write_text(json.dumps({"task": "no_such_task", "experiment": "t"}))
 
     result = analyze(sweep)
     assert result.returncode == 0, result.stderr

@@ -12,7 +12,8 @@ from test_digit_floor import tiny_split
 
 
 def test_contract_experiments_exist():
-    assert {"ch3_floor", "ch3_coding_cw", "ch3_coding_ccw", "ch3_coding_noreward"} <= set(EXPERIMENTS)
+    assert {"ch3_floor", "ch3_coding_cw", "ch3_coding_ccw", "ch3_coding_noreward",
+            "table4_1_regular", "table4_1_matching", "table4_2_digit"} <= set(EXPERIMENTS)
 
 
 @pytest.mark.parametrize("name", EXPERIMENTS)
@@ -22,11 +23,30 @@ def test_experiment_composes_validates_and_instantiates(compose_cfg, name):
     assert cfg.name == name
     validate(cfg)
     split: MnistSplit = tiny_split()
-    env = instantiate(cfg.env, n_runs=2, data=split, generator=torch.Generator().manual_seed(0))
-    actor = instantiate(cfg.actor, n_runs=2, n_state=env.observation_size, n_actions=env.n_actions, seed=0)
-    assert actor.W_sh.shape == (2, 784, cfg.actor.n_hidden)
-    assert env.optimal_reward_rate == pytest.approx({"none": 0.0}.get(cfg.env.reward_condition, 8.0))
-    assert isinstance(instantiate(cfg.data), object)
+    needs_data = cfg.task == "digit_floor" or "digit_classes" in cfg.env
+    env = instantiate(cfg.env, n_runs=2, generator=torch.Generator().manual_seed(0),
+                      **({"data": split} if needs_data else {}))
+    n_state = env.observation_size
+    if cfg.task == "tmaze":
+        predictor = instantiate(cfg.predictor, n_runs=2, n_obs=env.observation_size, n_actions=4, seed=0)
+        assert predictor.W_mm.shape == (2, cfg.predictor.n_memory, cfg.predictor.n_memory)
+        n_state += cfg.predictor.n_memory
+        assert env.optimal_discounted_return(cfg.actor.gamma) == pytest.approx(4.3175)
+    else:
+        assert env.optimal_reward_rate == pytest.approx({"none": 0.0}.get(cfg.env.reward_condition, 8.0))
+    actor = instantiate(cfg.actor, n_runs=2, n_state=n_state, n_actions=env.n_actions, seed=0)
+    assert actor.W_sh.shape == (2, n_state, cfg.actor.n_hidden)
+
+
+def test_table_4_1_and_4_2_parameters(compose_cfg):
+    cfg = compose_cfg(["experiment=table4_1_matching"])
+    assert (cfg.env.corridor_length, cfg.env.max_steps, cfg.env.matching) == (3, 10, True)
+    p, a, t = cfg.predictor, cfg.actor, cfg.trainer
+    assert (p.n_memory, p.n_reward, p.rho_y, p.rho_r, p.c_y, p.c_a, p.beta_m, p.beta_y, p.lr) == (20, 4, 1, 4, 1, 1, 1, 1, 0.05)
+    assert (a.n_hidden, a.lr.value, a.beta.start, a.beta.end, a.gamma) == (20, 0.05, 0, 10, 0.95)
+    assert (t.n_sample, t.l_training, t.n_epoch, t.n_episodes) == (2000, 5, 400, 10000)
+    digit = compose_cfg(["experiment=table4_2_digit"])
+    assert digit.predictor.c_y == pytest.approx(7 / 784, abs=1e-4) and digit.env.matching
 
 
 def test_dissertation_parameters(compose_cfg):
@@ -50,6 +70,14 @@ def test_dissertation_parameters(compose_cfg):
     ("device=tpu", "device"), ("actor.gamma=1.0", "actor.gamma"),
     ("env.noise_tile='4'", "env.noise_tile"), ("env.patches=0", "env.patches"),
     ("data=mnist_idx", "data.root"), ("data=mnist_idx data.root=/nonexistent", "data.root"),
+    ("experiment=table4_1_regular env.corridor_length=0", "env.corridor_length"),
+    ("experiment=table4_1_regular env.corridor_length=5 env.max_steps=4", "env.max_steps"),
+    ("experiment=table4_2_digit env.digit_classes.start_0=11", "env.digit_classes"),
+    ("experiment=table4_2_digit +env.digit_classes.elsewhere=3", "env.digit_classes.elsewhere"),
+    ("experiment=table4_2_digit ~env.digit_classes.corridor", "env.digit_classes.corridor"),
+    ("experiment=table4_1_matching predictor.n_memory=0", "predictor.n_memory"),
+    ("experiment=table4_1_matching trainer.train_fraction=1.0", "trainer.train_fraction"),
+    ("experiment=table4_1_matching resume=true", "resume"),
 ])
 def test_bad_values_name_their_key(compose_cfg, override, key):
     cfg = compose_cfg(override.split())

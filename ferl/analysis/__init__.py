@@ -2,6 +2,7 @@
 
 `coding` holds the pure computations of §3.5 (Eq. 3.12, the Gram-matrix distance,
 pairwise mutual information), `floor_figures` draws the chapter-3 figures,
-`floor` turns one digit-floor run directory into its `analysis/` folder and
+`floor` turns one digit-floor run directory into its `analysis/` folder,
+`tmaze` and `tmaze_figures` do the same for the T-mazes of chapter 4, and
 `report` holds the dissertation's claims as data and writes `report.md`.
 """

@@ -3,8 +3,9 @@
 A `Claim` pairs a statement of the dissertation (with its section/figure) with
 a function measuring the corresponding quantity on a loaded run and a threshold
 rule turning that measurement into "held", "partly" or "not held".
-`FLOOR_CLAIMS` covers chapter 3 (§3.5.1–§3.5.3); a run only gets the claims its
-data speaks to (a measure returns None otherwise).
+`FLOOR_CLAIMS` covers chapter 3 (§3.5.1–§3.5.3), `TMAZE_CLAIMS` chapter 4
+(§4.3.1–§4.3.3); a run only gets the claims its data speaks to (a measure
+returns None otherwise).
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
     from ferl.analysis.floor import FloorRun
+    from ferl.analysis.tmaze import TMazeRun
 
 HELD, PARTLY, NOT_HELD = "held", "partly", "not held"
 VERDICTS = (HELD, PARTLY, NOT_HELD)
@@ -279,6 +281,225 @@ FLOOR_CLAIMS: list[Claim] = [
     Claim('The noise tile "N" has a much higher mutual information with every digit than '
           "the digits have with each other.",
           "§3.5.3, Fig. 3.12", _noise_class_mi, _every_or_on_average),
+]
+
+
+# ---- chapter 4: T-mazes -----------------------------------------------------
+
+SOLVED_RUNS = (1.0, 0.8)     # share of runs `solved` (summary.json): all / at least 8 in 10
+STEPS_RATIO = (1.05, 1.25)   # final steps to the goal ÷ optimum, mean over runs
+CORRECT_GOAL = (0.95, 0.8)   # final correct-goal rate of the worst run
+TD_DECREASE = (0.1, 0.5)     # last ÷ first 200-episode mean |δ| of the worst run ("to ~0")
+ERROR_DROP = 0.5             # final ÷ initial prediction error, training data
+EARLY_EPOCHS = 0.1           # "rapidly": within the first 10 % of the epochs …
+EARLY_SHARE = 0.5            # … at least half of the drop has happened
+GENERALISATION = 1.5         # final error: test ÷ train and longer ÷ trained lengths
+SEPARATED = (0.5, 0.25)      # silhouette of the labels on PC1–3, mean over runs
+MOST_VARIANCE = (0.8, 0.6)   # explained-variance share of the leading PCs, last phase
+ABOVE_CHANCE = (0.6, 0.55)   # final correct-goal rate, mean over runs (chance 0.5)
+
+
+def _variant_is(variant: str) -> Callable[[TMazeRun], bool]:
+    """Chapter-4 claims are about the one-predictor model on one T-maze variant."""
+    return lambda run: run.chapter4 and run.variant == variant
+
+
+def _solved(applies: Callable[[TMazeRun], bool]) -> Callable[[TMazeRun], Measured | None]:
+    def measure(run: TMazeRun) -> Measured | None:
+        if not applies(run):
+            return None
+        solved = run.metric("solved")
+        return Measured(solved.mean(), f"{int(solved.sum())}/{len(solved)} runs solved "
+                                       f"(summary.json); final discounted return "
+                                       f"{_mean_sd(run.metric('final_discounted_return'))}, "
+                                       f"optimum {run.optimal_return:.4f}")
+    return measure
+
+
+def _optimal_steps(applies: Callable[[TMazeRun], bool]) -> Callable[[TMazeRun], Measured | None]:
+    def measure(run: TMazeRun) -> Measured | None:
+        if not applies(run):
+            return None
+        steps = run.metric("final_steps_to_goal")
+        ratio = steps.mean() / run.optimal_steps
+        return Measured(ratio, f"final steps to the goal {_mean_sd(steps)} = {ratio:.2f} × "
+                               f"optimum {run.optimal_steps:g}")
+    return measure
+
+
+def _correct_goal(applies: Callable[[TMazeRun], bool]) -> Callable[[TMazeRun], Measured | None]:
+    def measure(run: TMazeRun) -> Measured | None:
+        if not applies(run):
+            return None
+        rate = run.metric("final_correct_goal_rate")
+        return Measured(rate.min(), f"final correct-goal rate {_mean_sd(rate)}, worst run "
+                                    f"{rate.min():.3f}")
+    return measure
+
+
+def _td_decreases(applies: Callable[[TMazeRun], bool]) -> Callable[[TMazeRun], Measured | None]:
+    def measure(run: TMazeRun) -> Measured | None:
+        if not applies(run):
+            return None
+        first, last = run.window_mean("td_abs_mean", True), run.window_mean("td_abs_mean", False)
+        ratio = last / np.where(first > 0, first, np.nan)
+        # A run whose |δ| is not finite (diverged) did not decrease its TD error.
+        broken = ~np.isfinite(ratio)
+        worst = np.inf if broken.any() else float(ratio.max())
+        ok = ~broken
+        text = (f"mean |δ| over the first 200 episodes {_mean_sd(first[ok])}, over the last 200 "
+                f"{_mean_sd(last[ok])}; " if ok.any() else "")
+        text += (f"{int(broken.sum())} of {len(ratio)} runs with non-finite |δ| (diverged)"
+                 if broken.any() else f"last ÷ first in the worst run {worst:.3f}")
+        return Measured(worst, text)
+    return measure
+
+
+def _predictor_learns(applies: Callable[[TMazeRun], bool]) -> Callable[[TMazeRun], Measured | None]:
+    def measure(run: TMazeRun) -> Measured | None:
+        if not applies(run):
+            return None
+        e = run.error_trend("joint", EARLY_EPOCHS)
+        checks = {"drop": e["final"] <= ERROR_DROP * e["initial"],
+                  "test": e["test"] <= GENERALISATION * e["final"]}
+        # Judged only where logged: epochs early in training, lengths beyond the trained ones.
+        if np.isfinite(e["early_share"]):
+            checks["rapid"] = e["early_share"] >= EARLY_SHARE
+        if np.isfinite(e["longer"]):
+            checks["longer"] = e["longer"] <= GENERALISATION * e["test"]
+        early = (f"{100 * e['early_share']:.0f} % of the drop" if "rapid" in checks
+                 else "no epoch logged")
+        text = (f"Eq. (4.8) error, t ≥ 1, trained lengths T ≤ {run.trained_max('joint')}: "
+                f"{e['initial']:.3f} → {e['final']:.3f} (train); {early} within the first "
+                f"{100 * EARLY_EPOCHS:g} % of the epochs; final test {e['test']:.3f}, test on "
+                f"longer T {e['longer']:.3f}; criteria met: "
+                + ", ".join(f"{k} {'yes' if v else 'no'}" for k, v in checks.items()))
+        return Measured(checks, text)
+    return measure
+
+
+def _learns_and_generalises(checks: dict[str, bool]) -> str:
+    return HELD if all(checks.values()) else PARTLY if checks["drop"] else NOT_HELD
+
+
+def _phase_means(run: TMazeRun, layer: str, labels: str) -> tuple[np.ndarray, str] | None:
+    """(first, last) silhouette, mean over runs, and a note on the runs where it is undefined
+    (no finite visit in the phase, or one label only). Those count as 0, no separation: the
+    claim is about every run. None when it is undefined everywhere (no data)."""
+    s = run.separation[layer, labels]
+    undefined = np.isnan(s).sum(axis=1)
+    if undefined.min() == run.n_runs:
+        return None
+    note = "" if not undefined.any() else (
+        f" ({undefined[0]} / {undefined[1]} of {run.n_runs} runs undefined in the first / last "
+        "phase, counted as 0)")
+    return np.nan_to_num(s, nan=0.0).mean(axis=1), note
+
+
+def _memory_keeps_signal(run: TMazeRun) -> Measured | None:
+    if not (run.chapter4 and run.matching and run.memory_layers):
+        return None
+    kept = {layer: _phase_means(run, layer, "initial_signal") for layer in run.memory_layers}
+    kept = {layer: v for layer, v in kept.items() if v is not None}
+    if not kept:
+        return None
+    # Kept = separated in both phases; any memory layer may keep it (two in chapter 5).
+    best = max(means.min() for means, _ in kept.values())
+    text = "; ".join(f"`{layer}`: first {means[0]:.2f}, last {means[1]:.2f}{note}"
+                     for layer, (means, note) in kept.items())
+    return Measured(best, f"silhouette of the initial signal on PC1–3 of the memory at the "
+                          f"junction, mean over runs — {text}")
+
+
+def _conditions_separate(layer: str) -> Callable[[TMazeRun], Measured | None]:
+    def measure(run: TMazeRun) -> Measured | None:
+        if not (_variant_is("matching")(run) and layer in run.layers):
+            return None
+        found = _phase_means(run, layer, "condition")
+        if found is None:
+            return None
+        (first, last), note = found
+        return Measured((last, first), f"silhouette of the 4 conditions on PC1–3 of `{layer}`, "
+                                       f"mean over runs: first {run.phase_episodes} episodes "
+                                       f"{first:.2f}, last {run.phase_episodes} {last:.2f}{note}")
+    return measure
+
+
+def _separated_in_both(value: tuple[float, float]) -> str:
+    return at_least(*SEPARATED)(min(value))
+
+
+def _separates_more(value: tuple[float, float]) -> str:
+    last, first = value
+    level = at_least(*SEPARATED)(last)
+    return level if last > first or level == NOT_HELD else PARTLY
+
+
+def _leading_variance(layer: str, n_pcs: int) -> Callable[[TMazeRun], Measured | None]:
+    def measure(run: TMazeRun) -> Measured | None:
+        if not (_variant_is("matching")(run) and layer in run.layers):
+            return None
+        share = run.explained(layer, "last")[:, :n_pcs].sum(axis=1)
+        if not share.size:
+            return None
+        return Measured(share.mean(), f"variance of `{layer}` on PC1–{n_pcs}, last "
+                                      f"{run.phase_episodes} episodes: {_mean_sd(share)}")
+    return measure
+
+
+def _digit_correct_goal(run: TMazeRun) -> Measured | None:
+    if not _variant_is("digit matching")(run):
+        return None
+    rate, solved = run.metric("final_correct_goal_rate"), run.metric("solved")
+    ret = run.metric("final_discounted_return")
+    return Measured(rate.mean(), f"final correct-goal rate {_mean_sd(rate)} (chance 0.5); "
+                                 f"{int(solved.sum())}/{len(solved)} runs solved; final "
+                                 f"discounted return {_mean_sd(ret)}, optimum "
+                                 f"{run.optimal_return:.4f}")
+
+
+_REGULAR, _MATCHING = _variant_is("regular"), _variant_is("matching")
+
+TMAZE_CLAIMS: list[Claim] = [
+    Claim("The regular T-maze is solved optimally in all 10 runs.",
+          "§4.3.1, Fig. 4.6", _solved(_REGULAR), at_least(*SOLVED_RUNS)),
+    Claim("The agent learns to reach the goal in the optimal number of steps (3).",
+          "§4.3.1, Fig. 4.7(a)", _optimal_steps(_REGULAR), at_most(*STEPS_RATIO)),
+    Claim("The agent learns to reach the correct goal (terminal reward +5) in all 10 runs.",
+          "§4.3.1, Fig. 4.7(b)", _correct_goal(_REGULAR), at_least(*CORRECT_GOAL)),
+    Claim("The TD error decreases over the episodes in all runs.",
+          "§4.3.1, Fig. 4.8(a)", _td_decreases(_REGULAR), at_most(*TD_DECREASE)),
+    Claim("The predictor's error decreases rapidly in the first epochs and generalises to "
+          "the test set and to longer, untrained sequences.",
+          "§4.3.1, Fig. 4.5", _predictor_learns(_REGULAR), _learns_and_generalises),
+    Claim("The matching T-maze is solved optimally in all 10 runs.",
+          "§4.3.2, Fig. 4.11", _solved(_MATCHING), at_least(*SOLVED_RUNS)),
+    Claim("The agent reaches the goal in the optimal number of steps (3).",
+          "§4.3.2, Fig. 4.12(a)", _optimal_steps(_MATCHING), at_most(*STEPS_RATIO)),
+    Claim("The agent reaches the correct goal (terminal reward +5) in all runs.",
+          "§4.3.2, Fig. 4.12(b)", _correct_goal(_MATCHING), at_least(*CORRECT_GOAL)),
+    Claim("The TD error decreases to zero in all runs.",
+          "§4.3.2, Fig. 4.13(a)", _td_decreases(_MATCHING), at_most(*TD_DECREASE)),
+    Claim("Predictable observations and rewards are well estimated after training; the "
+          "learning generalises to the test set and to longer sequences.",
+          "§4.3.2, Fig. 4.10", _predictor_learns(_MATCHING), _learns_and_generalises),
+    Claim("The initial signal is kept in the predictor's memory at the T-junction, in the "
+          "first and in the last 1000 episodes.",
+          "§4.3.2, Fig. 4.14; §4.3.3", _memory_keeps_signal, at_least(*SEPARATED)),
+    Claim("The four conditions are separately represented in the actor's state nodes.",
+          "§4.3.2, Fig. 4.15", _conditions_separate("state"), _separated_in_both),
+    Claim("Most of the variability of the actor's state nodes is captured by the first two "
+          "principal components.",
+          "§4.3.2, Fig. 4.16", _leading_variance("state", 2), at_least(*MOST_VARIANCE)),
+    Claim("The four conditions separate in the actor's hidden nodes in the last 1000 "
+          "episodes, more than in the first 1000.",
+          "§4.3.2, Figs. 4.17–4.19", _conditions_separate("hidden"), _separates_more),
+    Claim("Most of the variability of the actor's hidden nodes is captured by the first three "
+          "principal components.",
+          "§4.3.2, Fig. 4.19(a)", _leading_variance("hidden", 3), at_least(*MOST_VARIANCE)),
+    Claim("Digit matching T-maze: performance stays suboptimal, but the agent chooses the "
+          "correct goal more often than chance.",
+          "§4.3.3, Fig. 4.21", _digit_correct_goal, at_least(*ABOVE_CHANCE)),
 ]
 
 

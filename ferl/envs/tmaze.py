@@ -1,0 +1,191 @@
+"""Regular and matching T-mazes (§4.3.1, §4.3.2; Bakker 2002), batched over runs.
+
+A vertical corridor of T_min cells (start at the bottom, index 0; the T-junction at the top,
+index T_min − 1) ends in a left and a right goal, so the shortest path takes T_min actions.
+Actions N E S W; E/W enter the goals from the junction and bump a wall elsewhere. Rewards:
+±5 at the rewarded / other goal (the episode terminates), −1 for a wall bump (no move), −0.1
+otherwise; the episode is cut off after T_max actions. Regular maze: a signal s0 shown at the
+start, s0 = 1 rewards the right goal. Matching maze: s0 at the start and s1 at the junction,
+s0 = s1 rewards the right goal (§4.3.2).
+
+Observations are ids into ``observation_table``: 7 bits (5 position + 2 signal, Fig. 4.3), or
+one fixed image per observation (the digit matching T-maze, §4.3.3). The dynamics are
+(position, action) tables, so a step is a few gathers.
+"""
+import numpy as np
+import torch
+
+ACTIONS = ("N", "E", "S", "W")
+N, E, S, W = range(4)
+POSITION_BITS = ("start", "corridor", "junction", "goal_left", "goal_right")
+STATE_KEYS = ("position", "t", "done", "initial_signal", "junction_signal")
+
+
+def observation_names(matching: bool) -> tuple:
+    """Every distinct observation of the maze (the corridor one is never seen when T_min = 2)."""
+    junction = ("junction_0", "junction_1") if matching else ("junction",)
+    return ("start_0", "start_1", "corridor", *junction, "goal_left", "goal_right")
+
+
+def observation_bits(name: str) -> np.ndarray:
+    """The 7-bit code of an observation: its position bit, plus bit 5 + v for a shown signal v."""
+    place, _, signal = name.rpartition("_") if name[-1].isdigit() else (name, "", "")
+    bits = np.zeros(len(POSITION_BITS) + 2, dtype=np.float32)
+    bits[POSITION_BITS.index(place)] = 1.0
+    if signal:
+        bits[len(POSITION_BITS) + int(signal)] = 1.0
+    return bits
+
+
+def maze_tables(corridor_length: int, goal: float, wall: float, step: float):
+    """Next position and reward of every (position, action, rewarded side) from the definition.
+
+    Positions 0 … T_min − 1 run up the corridor, T_min / T_min + 1 are the left / right goal;
+    goal rows (never acted from) stay put. Returns next (P, 4) and reward (P, 4, 2), side 0 = left.
+    """
+    junction, left, right = corridor_length - 1, corridor_length, corridor_length + 1
+    nxt = np.tile(np.arange(corridor_length + 2)[:, None], (1, 4))
+    reward = np.full((corridor_length + 2, 4, 2), float(wall))
+    for p in range(corridor_length):
+        moves = {N: p + 1 if p < junction else None, S: p - 1 if p > 0 else None,
+                 E: right if p == junction else None, W: left if p == junction else None}
+        for a, q in moves.items():
+            if q is None:
+                continue
+            nxt[p, a] = q
+            reward[p, a] = step if q < left else [goal if q - left == side else -goal for side in (0, 1)]
+    return nxt, reward
+
+
+def optimal_return(corridor_length: int, max_steps: int, gamma: float, goal: float, wall: float,
+                   step: float) -> float:
+    """Optimal discounted return from the start with the state fully observed (the upper bound
+    R_0 of Figs. 4.6, 4.11), by finite-horizon value iteration over the T_max actions."""
+    nxt, reward = maze_tables(corridor_length, goal, wall, step)
+    terminal = nxt >= corridor_length  # a goal entry ends the episode
+    V = np.zeros((corridor_length + 2, 2))  # value with k actions left, per rewarded side
+    for _ in range(max_steps):
+        V = (reward + gamma * np.where(terminal[..., None], 0.0, V[nxt])).max(1)
+    return float(V[0].mean())
+
+
+class TMaze:
+    """``n_runs`` T-mazes stepped together; ``done`` runs stay frozen until ``reset``."""
+
+    n_actions = len(ACTIONS)
+
+    def __init__(self, n_runs: int, generator: torch.Generator, corridor_length: int = 3,
+                 max_steps: int = 10, matching: bool = False, goal_reward: float = 5.0,
+                 wall_reward: float = -1.0, step_reward: float = -0.1, images=None, device="cpu"):
+        if corridor_length < 2:
+            raise ValueError(f"env.corridor_length must be an integer ≥ 2, got {corridor_length}")
+        if max_steps < corridor_length:
+            raise ValueError(f"env.max_steps must be ≥ env.corridor_length ({corridor_length}), got {max_steps}")
+        self.n_runs, self.generator, self.device = n_runs, generator, torch.device(device)
+        self.corridor_length, self.max_steps, self.matching = corridor_length, max_steps, matching
+        self.optimal_steps = corridor_length
+        self.rewards = (goal_reward, wall_reward, step_reward)
+        self.reward_values = tuple(sorted({-goal_reward, goal_reward, wall_reward, step_reward}))
+        self._reward_values = torch.tensor(self.reward_values, dtype=torch.float32, device=self.device)
+
+        self.observation_names = observation_names(matching)
+        if images is None:
+            table = torch.as_tensor(np.stack([observation_bits(n) for n in self.observation_names]))
+        else:
+            missing = [n for n in self.observation_names if n not in images]
+            if missing:
+                raise ValueError(f"images: no image for observation(s) {missing}")
+            table = torch.stack([torch.as_tensor(images[n], dtype=torch.float32).reshape(-1)
+                                 for n in self.observation_names])
+        self.observation_table = table.to(self.device)
+        self.observation_size = self.observation_table.shape[1]
+
+        nxt, reward = maze_tables(corridor_length, *self.rewards)
+        # flattened tables: (position, action) → position·4 + action, times 2 + rewarded side
+        self.next_position = torch.as_tensor(nxt.reshape(-1), dtype=torch.long, device=self.device)
+        self.move_reward = torch.as_tensor(reward.reshape(-1), dtype=torch.float32, device=self.device)
+        self.observation_id_table = torch.as_tensor(self._observation_ids().reshape(-1), device=self.device)
+        self.reset()
+
+    def _observation_ids(self) -> np.ndarray:
+        """Observation id of every (position, s0, s1), shape (P, 2, 2)."""
+        ids = {n: i for i, n in enumerate(self.observation_names)}
+        junction = self.corridor_length - 1
+        table = np.full((self.corridor_length + 2, 2, 2), ids["corridor"], dtype=np.int64)
+        for s0 in (0, 1):
+            for s1 in (0, 1):
+                table[0, s0, s1] = ids[f"start_{s0}"]
+                table[junction, s0, s1] = ids[f"junction_{s1}" if self.matching else "junction"]
+        table[junction + 1], table[junction + 2] = ids["goal_left"], ids["goal_right"]
+        return table
+
+    def _signal(self) -> torch.Tensor:
+        return torch.randint(2, (self.n_runs,), generator=self.generator, device=self.device)
+
+    @property
+    def obs_id(self) -> torch.Tensor:
+        signals = 2 * self.initial_signal + self.junction_signal.clamp(min=0)
+        return self.observation_id_table.index_select(0, 4 * self.position + signals)
+
+    @property
+    def condition(self) -> torch.Tensor:
+        """Task condition: s0 (regular) or 2·s0 + s1 (matching)."""
+        return 2 * self.initial_signal + self.junction_signal if self.matching else self.initial_signal
+
+    @property
+    def rewarded_side(self) -> torch.Tensor:
+        """0 = left, 1 = right goal rewarded."""
+        return (self.initial_signal == self.junction_signal).long() if self.matching else self.initial_signal
+
+    @property
+    def rewarded_goal(self) -> torch.Tensor:
+        return self.corridor_length + self.rewarded_side
+
+    @property
+    def at_junction(self) -> torch.Tensor:
+        return self.position == self.corridor_length - 1
+
+    @property
+    def correct(self) -> torch.Tensor:
+        """The episode ended in the rewarded goal (valid once ``done``)."""
+        return self.position == self.rewarded_goal
+
+    def observe(self) -> torch.Tensor:
+        return self.observation_table.index_select(0, self.obs_id)
+
+    def reset(self) -> torch.Tensor:
+        """Start a new episode in every run with fresh signals."""
+        zeros = torch.zeros(self.n_runs, dtype=torch.long, device=self.device)
+        self.position, self.t = zeros, zeros.clone()
+        self.done = torch.zeros(self.n_runs, dtype=torch.bool, device=self.device)
+        self.initial_signal = self._signal()
+        self.junction_signal = self._signal() if self.matching else torch.full_like(zeros, -1)
+        return self.observe()
+
+    def step(self, action: torch.Tensor):
+        """Move every live run by its action (R,); returns (obs, reward, terminated, truncated)."""
+        live = ~self.done
+        move = 4 * self.position + action
+        moved = self.next_position.index_select(0, move)
+        reward = self.move_reward.index_select(0, 2 * move + self.rewarded_side)
+        reward = torch.where(live, reward, torch.zeros_like(reward))
+        self.position = torch.where(live, moved, self.position)
+        self.t = self.t + live
+        terminated = live & (self.position >= self.corridor_length)
+        truncated = live & ~terminated & (self.t >= self.max_steps)
+        self.done = self.done | terminated | truncated
+        return self.observe(), reward, terminated, truncated
+
+    def reward_code(self, reward: torch.Tensor) -> torch.Tensor:
+        """One bit per reward value (§4.2 fn. 1), (R, 4); all zero for a reward of 0 (done runs)."""
+        return (reward.unsqueeze(1) == self._reward_values).float()
+
+    def optimal_discounted_return(self, gamma: float) -> float:
+        return optimal_return(self.corridor_length, self.max_steps, gamma, *self.rewards)
+
+    def state_dict(self) -> dict:
+        return {k: getattr(self, k).clone() for k in STATE_KEYS}
+
+    def load_state_dict(self, state: dict) -> None:
+        for k in STATE_KEYS:
+            setattr(self, k, state[k].to(self.device))

@@ -1,0 +1,83 @@
+"""Episode data for the predictors (§4.3.1 "Training procedure", Algorithm 1).
+
+N_sample random-policy episodes per run are collected, balanced to an equal number of
+episodes per step-length T = T_min … T_max, and split 80 / 20 into training and test data.
+Only lengths T_min … T_min + L_training − 1 are trained on; the longer ones measure how the
+predictor generalises (Fig. 4.5, right-hand columns).
+
+Episodes are stored padded: obs (R, N, T_max+1) observation ids, actions (R, N, T_max),
+rewards (R, N, T_max), lengths (R, N) — the same N for every run, so training batches over runs.
+"""
+from dataclasses import dataclass
+
+import torch
+
+
+@dataclass
+class Episodes:
+    obs: torch.Tensor       # (R, N, Tmax+1) observation ids y_0 … y_T
+    actions: torch.Tensor   # (R, N, Tmax) action indices a_0 … a_{T−1}
+    rewards: torch.Tensor   # (R, N, Tmax) rewards r_1 … r_T
+    lengths: torch.Tensor   # (R, N) T, number of actions
+
+    def select(self, index: torch.Tensor) -> "Episodes":
+        """Per-run subset: index (R, n) into the episode axis."""
+        def take(x):
+            shape = index.shape + x.shape[2:]
+            return x.gather(1, index.view(*index.shape, *([1] * (x.dim() - 2))).expand(shape))
+        return Episodes(take(self.obs), take(self.actions), take(self.rewards), take(self.lengths))
+
+
+@torch.no_grad()
+def collect_random_episodes(env, n_episodes_per_run: int, n_runs: int, generator) -> Episodes:
+    """Random-policy episodes from ``env``, a T-maze batched over n_runs × k copies: every
+    reset starts k episodes of each run at once. Returns n_episodes_per_run per run."""
+    copies = env.n_runs // n_runs
+    rounds = -(-n_episodes_per_run // copies)
+    T = env.max_steps
+    chunks = []
+    for _ in range(rounds):
+        env.reset()
+        obs = torch.full((env.n_runs, T + 1), -1, dtype=torch.long, device=env.device)
+        actions = torch.zeros(env.n_runs, T, dtype=torch.long, device=env.device)
+        rewards = torch.zeros(env.n_runs, T, device=env.device)
+        obs[:, 0] = env.obs_id
+        for t in range(T):
+            a = torch.randint(4, (env.n_runs,), generator=generator, device=env.device)
+            active = ~env.done
+            _, r, _, _ = env.step(a)
+            actions[:, t] = torch.where(active, a, 0)
+            rewards[:, t] = r
+            obs[:, t + 1] = torch.where(active, env.obs_id, -1)
+        chunks.append((obs, actions, rewards, env.t.clone()))
+    stack = [torch.stack([c[i] for c in chunks], 1).view(n_runs, copies * rounds, *chunks[0][i].shape[1:])
+             for i in range(4)]
+    episodes = Episodes(*stack)
+    keep = torch.arange(n_episodes_per_run, device=env.device).expand(n_runs, -1)
+    return episodes.select(keep)
+
+
+def balance_and_split(episodes: Episodes, t_min: int, t_max: int, train_fraction: float, generator):
+    """Equal numbers of episodes per step-length and an 80/20 split within every length.
+
+    n per length = the smallest count of any length T_min … T_max in any run, so every run
+    keeps the same number (padded batching over runs needs it). Returns (train, test) Episodes,
+    each ordered by length, and the per-length counts (n_train, n_test).
+    """
+    lengths = episodes.lengths
+    R, N = lengths.shape
+    counts = torch.stack([(lengths == T).sum(1) for T in range(t_min, t_max + 1)])  # (nT, R)
+    n = int(counts.min())
+    if n < 2:
+        raise ValueError(f"trainer.n_sample: too few random episodes of some length in [{t_min}, {t_max}] "
+                         f"to balance (smallest count {n}); collect more")
+    n_train = max(1, round(train_fraction * n))
+    train_idx, test_idx = [], []
+    for T in range(t_min, t_max + 1):
+        # random keys, −inf for other lengths: the n largest are n random episodes of length T
+        keys = torch.rand(R, N, generator=generator, device=lengths.device).masked_fill(lengths != T, -1.0)
+        pick = keys.topk(n, dim=1).indices
+        train_idx.append(pick[:, :n_train])
+        test_idx.append(pick[:, n_train:])
+    return (episodes.select(torch.cat(train_idx, 1)), episodes.select(torch.cat(test_idx, 1)),
+            (n_train, n - n_train))

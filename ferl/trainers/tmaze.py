@@ -1,0 +1,241 @@
+"""Chapters 4–5: predictor–actor agents on the T-maze POMDPs (Algorithm 1; Algorithm 2 in ch. 5).
+
+    collect N_sample random episodes → balance and split (§4.3.1)
+    → train the Elman predictor by BPTT in pattern mode (Eqs. 4.1–4.6), logging Eq. 4.7–4.8 errors
+    → freeze it and train the FERL actor on the state (y_t, m_t) by SARSA(0) for N episodes
+
+All runs of the batch play their episodes in lockstep: episode k of every run starts together,
+runs whose episode has ended wait (their TD errors are masked) until the slowest has finished.
+"""
+import time
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from hydra.utils import instantiate
+from torch.utils.tensorboard import SummaryWriter
+from tqdm import tqdm
+
+from ferl.run_dir import RunDir, StopRequest
+from ferl.sequences import Episodes, balance_and_split, collect_random_episodes
+from ferl.trainers.digit_floor import hparams, pick
+
+
+def moving_average(x: np.ndarray, window: int = 200) -> np.ndarray:
+    """Trailing mean over the last ``window`` entries along the last axis (Figs. 4.6–4.8)."""
+    c = np.cumsum(np.insert(x, 0, 0.0, axis=-1), axis=-1)
+    n = np.minimum(np.arange(1, x.shape[-1] + 1), window)
+    return (c[..., 1:] - c[..., np.maximum(0, np.arange(1, x.shape[-1] + 1) - window)]) / n
+
+
+class TMazeTraining:
+    def __init__(self, cfg, run: RunDir, device: torch.device):
+        self.cfg, self.run, self.device = cfg, run, device
+        self.R = cfg.n_runs
+        self.generator = torch.Generator(device).manual_seed(cfg.seed)
+        self.data = instantiate(cfg.data).load() if cfg.env.get("digit_classes") else None
+        self.env = self.make_env(self.R)
+        self.predictor = instantiate(cfg.predictor, n_runs=self.R, n_obs=self.env.observation_size,
+                                     n_actions=self.env.n_actions, seed=cfg.seed).to(device)
+        n_state = self.env.observation_size + cfg.predictor.n_memory
+        self.actor = instantiate(cfg.actor, n_runs=self.R, n_state=n_state, n_actions=self.env.n_actions,
+                                 seed=cfg.seed + 100_000).to(device)
+        self.gamma = cfg.actor.gamma
+
+    def make_env(self, n_runs: int):
+        extra = {"data": self.data} if self.data is not None else {}
+        return instantiate(self.cfg.env, n_runs=n_runs, generator=self.generator, device=self.device, **extra)
+
+    # ---- predictor data and training --------------------------------------------------------
+    def observations(self, ids: torch.Tensor) -> torch.Tensor:
+        """Observation vectors of observation ids (padding −1 → zeros)."""
+        table = torch.cat([self.env.observation_table, torch.zeros(1, self.env.observation_size, device=self.device)])
+        return table[ids.clamp(min=-1) % table.shape[0]] if ids.numel() else table[:0]
+
+    def tensors(self, ep: Episodes):
+        """Episodes → predictor inputs y (R,B,T+1,Y), a (R,B,T,A), r targets (R,B,T+1,·), lengths."""
+        y = self.observations(ep.obs.masked_fill(ep.obs < 0, -1))
+        a = F.one_hot(ep.actions, self.env.n_actions).float()
+        return y, a, self.predictor.reward_targets(self.env, ep.rewards), ep.lengths
+
+    def collect(self) -> dict:
+        t = self.cfg.trainer
+        copies = max(1, min(t.n_sample, t.collect_batch // self.R))
+        env = self.make_env(self.R * copies)
+        episodes = collect_random_episodes(env, t.n_sample, self.R, self.generator)
+        train, test, (n_train, n_test) = balance_and_split(
+            episodes, self.env.optimal_steps, self.cfg.env.max_steps, t.train_fraction, self.generator)
+        return {"train": train, "test": test, "n_train": n_train, "n_test": n_test}
+
+    def prediction_errors(self, ep: Episodes) -> np.ndarray:
+        """(R, nT, Tmax+1) Eq. (4.7): mean over the sequences of each length of Eq. (4.8) per step."""
+        y, a, r, lengths = self.tensors(ep)
+        with torch.no_grad():
+            err = self.predictor.abs_errors(y, a, r, lengths)  # (R, B, Tmax+1), NaN on padding
+        lengths_all = range(self.env.optimal_steps, self.cfg.env.max_steps + 1)
+        out = [torch.nanmean(torch.where((lengths == T).unsqueeze(-1), err, torch.nan), dim=1) for T in lengths_all]
+        return torch.stack(out, 1).cpu().numpy().astype(np.float32)
+
+    def train_predictor(self, data: dict, writer: SummaryWriter) -> dict:
+        t = self.cfg.trainer
+        train = data["train"]
+        trainable = train.lengths <= self.env.optimal_steps + t.l_training - 1
+        # the training set proper: lengths T_min … T_min + L_training − 1, same count in every run
+        idx = torch.nonzero(trainable[0]).squeeze(1).expand(self.R, -1) if bool((trainable == trainable[0]).all()) \
+            else trainable.float().argsort(1, descending=True)[:, : int(trainable.sum(1).min())]
+        fit = train.select(idx)
+        y, a, r, lengths = self.tensors(fit)
+        errors = {"train": [self.prediction_errors(train)], "test": [self.prediction_errors(data["test"])]}
+        epochs = [0]
+        for epoch in tqdm(range(1, t.n_epoch + 1), desc="predictor", unit="epoch", mininterval=1.0):
+            order = torch.rand(self.R, y.shape[1], generator=self.generator, device=self.device).argsort(1)
+            self.predictor.train_epoch(y, a, r, lengths, order)
+            if epoch % t.error_every == 0 or epoch == t.n_epoch:
+                epochs.append(epoch)
+                for split in ("train", "test"):
+                    errors[split].append(self.prediction_errors(data[split]))
+                    writer.add_scalar(f"predictor/error_{split}", float(np.nanmean(errors[split][-1])), epoch)
+                for T, value in zip(range(self.env.optimal_steps, self.cfg.env.max_steps + 1),
+                                    np.nanmean(errors["test"][-1], axis=(0, 2))):
+                    writer.add_scalar(f"predictor/error_test_T{T}", float(value), epoch)
+        lengths_all = np.arange(self.env.optimal_steps, self.cfg.env.max_steps + 1)
+        return {"joint_lengths": lengths_all, "joint_epochs": np.asarray(epochs),
+                **{f"joint_error_{s}": np.stack(errors[s], 1) for s in ("train", "test")}}
+
+    # ---- actor phase ----------------------------------------------------------------------------
+    def train_actor(self, writer: SummaryWriter, stop: StopRequest) -> dict:
+        cfg, env, actor, predictor, R = self.cfg, self.env, self.actor, self.predictor, self.R
+        N, T_max = cfg.trainer.n_episodes, cfg.env.max_steps
+        records = {k: np.zeros((R, N), dtype=dt) for k, dt in (
+            ("discounted_return", np.float32), ("steps", np.int64), ("terminal_reward", np.float32),
+            ("correct_goal", bool), ("td_abs_mean", np.float32), ("condition", np.int64))}
+        sampled = list(range(0, N, cfg.trainer.td_sample_every))
+        td_sampled = np.full((R, len(sampled), T_max), np.nan, dtype=np.float32)
+        junction = []
+        active_time = 0.0
+        agent_steps = 0
+        bar = tqdm(range(N), desc="actor", unit="episode", mininterval=1.0)
+        for k in bar:
+            started = time.perf_counter()
+            progress = k / N
+            lr, beta = actor.learning_rate(progress), actor.inverse_temperature(progress)
+            y = env.reset()
+            m, _ = predictor.initial()
+            s = torch.cat([y, m], 1).unsqueeze(1)
+            F_all, x = actor.evaluate(s)
+            a = actor.select(s, F_all, beta, self.generator)
+            F_sa, x_sa = pick(F_all, a), pick(x, a)
+            ret = torch.zeros(R, device=self.device)
+            td_sum = torch.zeros(R, device=self.device)
+            last_r = torch.zeros(R, device=self.device)
+            td_steps = []
+            for t in range(T_max):
+                active = ~env.done
+                if env.at_junction.any():
+                    junction.append(self.junction_record(k, t, m, s, x_sa, active))
+                y_next, r, terminated, _ = env.step(a.squeeze(1))
+                with torch.no_grad():
+                    m_next, _, _ = predictor.step(m, y, F.one_hot(a.squeeze(1), env.n_actions).float())
+                s_next = torch.cat([y_next, m_next], 1).unsqueeze(1)
+                F_next, x_next = actor.evaluate(s_next)
+                a_next = actor.select(s_next, F_next, beta, self.generator)
+                boot_off = terminated | ~active
+                delta = actor.td_error(r.unsqueeze(1), F_sa, F_next, a_next, beta, boot_off.unsqueeze(1))
+                delta = delta * active.unsqueeze(1)
+                actor.update(s, a, x_sa, delta, lr)
+                ret += active * (self.gamma ** t) * r
+                td_sum += delta.squeeze(1).abs()
+                last_r = torch.where(active, r, last_r)
+                td_steps.append(torch.where(active, delta.squeeze(1), torch.nan))
+                agent_steps += int(active.sum())
+                y, m, s, a = y_next, m_next, s_next, a_next
+                F_sa, x_sa = pick(F_next, a_next), pick(x_next, a_next)
+                if bool(env.done.all()):
+                    break
+            active_time += time.perf_counter() - started
+            steps = env.t.cpu().numpy()
+            records["discounted_return"][:, k] = ret.cpu().numpy()
+            records["steps"][:, k] = steps
+            records["terminal_reward"][:, k] = last_r.cpu().numpy()
+            records["correct_goal"][:, k] = env.correct.cpu().numpy()
+            records["td_abs_mean"][:, k] = td_sum.cpu().numpy() / np.maximum(steps, 1)
+            records["condition"][:, k] = env.condition.cpu().numpy()
+            if k % cfg.trainer.td_sample_every == 0:
+                td = torch.stack(td_steps, 1).cpu().numpy()
+                td_sampled[:, k // cfg.trainer.td_sample_every, : td.shape[1]] = td
+            if (k + 1) % cfg.trainer.log_every == 0:
+                self.log_episodes(writer, records, k + 1, lr, beta)
+            if stop.requested:
+                raise SystemExit(128 + stop.signal)
+        bar.close()
+        junction_arrays = self.stack_junction(junction)
+        if junction_arrays:
+            junction_arrays["steps_to_goal"] = records["steps"][junction_arrays["run"], junction_arrays["episode"]]
+        episodes = {**records, "td_sampled": td_sampled, "td_sampled_episodes": np.asarray(sampled),
+                    "gamma": np.float64(self.gamma), "optimal_return": np.float64(self.optimal_return),
+                    "optimal_steps": np.float64(env.optimal_steps)}
+        return {"episodes": episodes, "junction": junction_arrays, "actor_time": active_time,
+                "agent_steps": agent_steps}
+
+    @property
+    def optimal_return(self) -> float:
+        return self.env.optimal_discounted_return(self.gamma)
+
+    def junction_record(self, k, t, m, s, x_sa, active) -> dict:
+        """Activations at the T-junction after the action there was selected (Figs. 4.14–4.19)."""
+        env = self.env
+        where = (env.at_junction & active).nonzero().squeeze(1)
+        return {"run": where.cpu(), "episode": torch.full_like(where, k).cpu(), "step": torch.full_like(where, t).cpu(),
+                "condition": env.condition[where].cpu(), "initial_signal": env.initial_signal[where].cpu(),
+                "junction_signal": env.junction_signal[where].cpu(),
+                "memory": m[where].half().cpu(), "state": s[where, 0].half().cpu(),
+                "hidden": torch.sigmoid(x_sa[where, 0]).half().cpu()}
+
+    def stack_junction(self, junction: list) -> dict:
+        if not junction:
+            return {}
+        out = {key: torch.cat([j[key] for j in junction]).numpy() for key in junction[0]}
+        return out
+
+    def log_episodes(self, writer, records, done: int, lr: float, beta: float) -> None:
+        """200-episode moving averages, mean over runs (Figs. 4.6–4.8, 4.11–4.13)."""
+        window = slice(max(0, done - 200), done)
+        for name in ("discounted_return", "steps", "terminal_reward", "td_abs_mean", "correct_goal"):
+            writer.add_scalar(f"actor/{name}_ma200", float(records[name][:, window].mean()), done)
+        writer.add_scalar("schedule/learning_rate", lr, done)
+        writer.add_scalar("schedule/beta", beta, done)
+
+
+def train_tmaze(cfg, run: RunDir, device: torch.device) -> dict:
+    """Algorithm 1 phase by phase; returns the summary.json dict."""
+    wall_start = time.perf_counter()
+    job = TMazeTraining(cfg, run, device)
+    with SummaryWriter(run.tb) as writer, StopRequest() as stop:
+        data = job.collect()
+        predictor_records = job.train_predictor(data, writer)
+        run.save_records("predictor", **predictor_records)
+        actor = job.train_actor(writer, stop)
+        run.save_records("episodes", **actor["episodes"])
+        run.save_records("junction", **actor["junction"])
+        run.save_checkpoint({"predictor": job.predictor.state_dict(), "actor": job.actor.state_dict(),
+                             "generator": job.generator.get_state()})
+        metrics = final_metrics(actor["episodes"], job.optimal_return, cfg.trainer.final_window)
+        writer.add_hparams(hparams(cfg), {f"hparam/{k}": float(np.mean(v)) for k, v in metrics.items()}, run_name=".")
+    return {
+        "experiment": cfg.name, "task": "tmaze",
+        "seeds": [cfg.seed + r for r in range(job.R)],
+        "metrics": metrics,
+        "optimal": {"discounted_return": job.optimal_return, "steps_to_goal": job.env.optimal_steps},
+        "wall_time_s": time.perf_counter() - wall_start,
+        "agent_steps_per_s": actor["agent_steps"] / max(actor["actor_time"], 1e-9),
+    }
+
+
+def final_metrics(episodes: dict, optimal_return: float, window: int) -> dict:
+    """CONTRACT §2 T-maze metrics over the last ``window`` (200) episodes, one value per run."""
+    last = slice(-window, None)
+    ret = episodes["discounted_return"][:, last].mean(1)
+    correct = episodes["correct_goal"][:, last].mean(1)
+    solved = (ret >= 0.95 * optimal_return) & (correct >= 0.95)
+    return {"final_discounted_return": ret.tolist(), "final_steps_to_goal": episodes["steps"][:, last].mean(1).tolist(),
+            "final_correct_goal_rate": correct.tolist(), "solved": solved.astype(int).tolist()}
