@@ -52,11 +52,12 @@ def test_digit_tmaze_runs(tmp_path):
     assert junction["state"].shape[1] == 784 + 20
 
 
-def test_reduced_scale_matching_tmaze_beats_chance(tmp_path):
-    """3 runs, a tenth of the actor episodes: the correct goal must be chosen clearly more often
-    than the 0.5 a memoryless agent gets."""
-    result = run_train("experiment=table4_1_matching", "n_runs=3", "trainer.n_epoch=60", "trainer.n_episodes=2500",
+def test_reduced_scale_regular_tmaze_is_learnt(tmp_path):
+    """3 runs, 40 predictor epochs, a fifth of the actor episodes: the memory-dependent choice at
+    the junction is learnt (a memoryless agent gets 0.5 correct; random walkers take ~7 steps)."""
+    result = run_train("experiment=table4_1_regular", "n_runs=3", "trainer.n_epoch=40", "trainer.n_episodes=2000",
                        f"hydra.run.dir={tmp_path / 'learn'}")
     assert result.returncode == 0, result.stderr[-2000:]
-    s = json.loads((tmp_path / "learn" / "summary.json").read_text())
-    assert np.mean(s["metrics"]["final_correct_goal_rate"]) > 0.75, s["metrics"]
+    m = json.loads((tmp_path / "learn" / "summary.json").read_text())["metrics"]
+    assert min(m["final_correct_goal_rate"]) > 0.9, m
+    assert max(m["final_steps_to_goal"]) < 3.5, m
