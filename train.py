@@ -85,7 +85,11 @@ def main(cfg: DictConfig) -> None:
         sys.exit(2)
     torch.set_num_threads(cfg.cpu_threads)
     run = RunDir(run_path)
-    summary = TRAINERS[cfg.task](cfg, run, resolve_device(cfg.device))
+    try:
+        summary = TRAINERS[cfg.task](cfg, run, resolve_device(cfg.device))
+    except ConfigError as e:  # a setting that only shows itself once data exist
+        print(f"ferl: error: {e}", file=sys.stderr)
+        sys.exit(2)
     run.write_summary(summary)
     print(f"ferl: {cfg.name} done in {summary['wall_time_s']:.1f} s "
           f"({summary['agent_steps_per_s']:.0f} agent-steps/s)\n"

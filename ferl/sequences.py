@@ -12,6 +12,8 @@ from dataclasses import dataclass
 
 import torch
 
+from ferl.validate import ConfigError
+
 
 @dataclass
 class Episodes:
@@ -69,7 +71,7 @@ def balance_and_split(episodes: Episodes, t_min: int, t_max: int, train_fraction
     counts = torch.stack([(lengths == T).sum(1) for T in range(t_min, t_max + 1)])  # (nT, R)
     n = int(counts.min())
     if n < 2:
-        raise ValueError(f"trainer.n_sample: too few random episodes of some length in [{t_min}, {t_max}] "
+        raise ConfigError(f"trainer.n_sample: too few random episodes of some length in [{t_min}, {t_max}] "
                          f"to balance (smallest count {n}); collect more")
     n_train = max(1, round(train_fraction * n))
     train_idx, test_idx = [], []
