@@ -48,13 +48,13 @@ class TMazeTraining:
 
     # ---- predictor data and training --------------------------------------------------------
     def observations(self, ids: torch.Tensor) -> torch.Tensor:
-        """Observation vectors of observation ids (padding −1 → zeros)."""
+        """Observation vectors of observation ids; the padding id −1 picks the appended zero row."""
         table = torch.cat([self.env.observation_table, torch.zeros(1, self.env.observation_size, device=self.device)])
-        return table[ids.clamp(min=-1) % table.shape[0]] if ids.numel() else table[:0]
+        return table[ids]
 
     def tensors(self, ep: Episodes):
         """Episodes → predictor inputs y (R,B,T+1,Y), a (R,B,T,A), r targets (R,B,T+1,·), lengths."""
-        y = self.observations(ep.obs.masked_fill(ep.obs < 0, -1))
+        y = self.observations(ep.obs)
         a = F.one_hot(ep.actions, self.env.n_actions).float()
         return y, a, self.predictor.reward_targets(self.env, ep.rewards), ep.lengths
 
@@ -79,11 +79,10 @@ class TMazeTraining:
     def train_predictor(self, data: dict, writer: SummaryWriter) -> dict:
         t = self.cfg.trainer
         train = data["train"]
-        trainable = train.lengths <= self.env.optimal_steps + t.l_training - 1
-        # the training set proper: lengths T_min … T_min + L_training − 1, same count in every run
-        idx = torch.nonzero(trainable[0]).squeeze(1).expand(self.R, -1) if bool((trainable == trainable[0]).all()) \
-            else trainable.float().argsort(1, descending=True)[:, : int(trainable.sum(1).min())]
-        fit = train.select(idx)
+        # the training set proper: lengths T_min … T_min + L_training − 1; balancing laid the
+        # lengths out in the same blocks in every run, so run 0's positions hold for all
+        trainable = train.lengths[0] <= self.env.optimal_steps + t.l_training - 1
+        fit = train.select(torch.nonzero(trainable).squeeze(1).expand(self.R, -1))
         y, a, r, lengths = self.tensors(fit)
         errors = {"train": [self.prediction_errors(train)], "test": [self.prediction_errors(data["test"])]}
         epochs = [0]
