@@ -21,13 +21,6 @@ from ferl.sequences import Episodes, balance_and_split, collect_random_episodes
 from ferl.trainers.digit_floor import hparams, pick
 
 
-def moving_average(x: np.ndarray, window: int = 200) -> np.ndarray:
-    """Trailing mean over the last ``window`` entries along the last axis (Figs. 4.6–4.8)."""
-    c = np.cumsum(np.insert(x, 0, 0.0, axis=-1), axis=-1)
-    n = np.minimum(np.arange(1, x.shape[-1] + 1), window)
-    return (c[..., 1:] - c[..., np.maximum(0, np.arange(1, x.shape[-1] + 1) - window)]) / n
-
-
 class TMazeTraining:
     def __init__(self, cfg, run: RunDir, device: torch.device):
         self.cfg, self.run, self.device = cfg, run, device
@@ -167,7 +160,7 @@ class TMazeTraining:
             if stop.requested:
                 raise SystemExit(128 + stop.signal)
         bar.close()
-        junction_arrays = self.stack_junction(junction)
+        junction_arrays = {key: torch.cat([j[key] for j in junction]).numpy() for key in junction[0]} if junction else {}
         if junction_arrays:
             junction_arrays["steps_to_goal"] = records["steps"][junction_arrays["run"], junction_arrays["episode"]]
         episodes = {**records, "td_sampled": td_sampled, "td_sampled_episodes": np.asarray(sampled),
@@ -189,12 +182,6 @@ class TMazeTraining:
                 "junction_signal": env.junction_signal[where].cpu(),
                 "memory": m[where].half().cpu(), "state": s[where, 0].half().cpu(),
                 "hidden": torch.sigmoid(x_sa[where, 0]).half().cpu()}
-
-    def stack_junction(self, junction: list) -> dict:
-        if not junction:
-            return {}
-        out = {key: torch.cat([j[key] for j in junction]).numpy() for key in junction[0]}
-        return out
 
     def log_episodes(self, writer, records, done: int, lr: float, beta: float) -> None:
         """200-episode moving averages, mean over runs (Figs. 4.6–4.8, 4.11–4.13)."""
