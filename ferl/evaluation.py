@@ -51,11 +51,17 @@ def evaluate_floor(actor, clean: torch.Tensor, noise_levels, probe_noise: float,
     }
 
 
-def greedy_accuracy(greedy_counts: np.ndarray, optimal_mask: np.ndarray) -> np.ndarray:
-    """(R, L, C, nA) counts, (C, nA) optimal-action mask → (R, L) fraction of test images whose
-    greedy action is optimal; classes with no optimal action (the goal) are excluded."""
-    counted = optimal_mask.any(1) & ~optimal_mask.all(1)
-    if not counted.any():  # no reward: every action is optimal everywhere
-        counted = np.ones(len(optimal_mask), bool)
-    hits = (greedy_counts * optimal_mask)[:, :, counted].sum((2, 3))
-    return hits / greedy_counts[:, :, counted].sum((2, 3))
+def greedy_accuracy(greedy_counts: np.ndarray, optimal_action) -> np.ndarray:
+    """Fraction of test images whose greedy action is optimal (Fig. 3.6).
+
+    ``greedy_counts`` is (R, L, C, nA): per run, test-noise level and class, how many of the n
+    test images made each action greedy. Classes without a unique optimal action (the goal;
+    every class without reward) are excluded. Returns (R, L); NaN when no class is scored.
+    """
+    counts = np.asarray(greedy_counts, dtype=np.float64)
+    actions = np.asarray(optimal_action)
+    scored = np.flatnonzero(actions >= 0)
+    if scored.size == 0:
+        return np.full(counts.shape[:2], np.nan)
+    correct = counts[:, :, scored, actions[scored]].sum(axis=-1)
+    return correct / counts[:, :, scored, :].sum(axis=(-1, -2))

@@ -282,3 +282,13 @@ def make_tmaze_run(run_dir: Path, *, n_runs: int = 2, n_episodes: int = 600,
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     (run_dir / "tb").mkdir()
     return run_dir
+
+
+def assert_analysis_outputs(run_dir: Path, figures, data) -> str:
+    """Every figure (as a non-trivial PNG) and data file is in RUN/analysis; returns report.md."""
+    out = run_dir / "analysis"
+    for name in figures:
+        assert (out / f"{name}.png").stat().st_size > 1000, name
+    for name in data:
+        assert (out / name).is_file(), name
+    return (out / "report.md").read_text()

@@ -7,6 +7,7 @@ import pytest
 from scipy.spatial.distance import cdist
 
 from ferl.analysis import coding
+from ferl.evaluation import greedy_accuracy
 
 
 def test_median_firing_rates_hand_example():
@@ -131,11 +132,11 @@ def test_greedy_accuracy_hand_example():
     counts[0, 1] = [[3, 7], [10, 0], [6, 4]]
     optimal = [0, -1, 1]
     expected = [[(8 + 9) / 20, (3 + 4) / 20]]
-    np.testing.assert_allclose(coding.greedy_accuracy(counts, optimal), expected)
+    np.testing.assert_allclose(greedy_accuracy(counts, optimal), expected)
 
 
 def test_greedy_accuracy_without_optimal_actions_is_nan():
-    assert np.isnan(coding.greedy_accuracy(np.ones((2, 3, 4, 4)), [-1] * 4)).all()
+    assert np.isnan(greedy_accuracy(np.ones((2, 3, 4, 4)), [-1] * 4)).all()
 
 
 def test_moving_average_matches_convolution():

@@ -10,7 +10,7 @@ import pytest
 
 from ferl.analysis import tmaze
 from ferl.analysis.report import HELD, NOT_HELD, TMAZE_CLAIMS, evaluate
-from synthetic_runs import make_floor_run, make_tmaze_run
+from synthetic_runs import assert_analysis_outputs, make_floor_run, make_tmaze_run
 from test_analyze_cli import analyze, event_files
 
 FIGURES = ["prediction_errors_joint", "learning_curves", "td_errors",
@@ -84,12 +84,7 @@ def claim_verdicts(run_dir: Path) -> dict[str, str]:
 
 
 def check_outputs(run_dir: Path) -> None:
-    out = run_dir / "analysis"
-    for name in FIGURES:
-        assert (out / f"{name}.png").stat().st_size > 1000, name
-    for name in DATA:
-        assert (out / name).is_file(), name
-    report = (out / "report.md").read_text()
+    report = assert_analysis_outputs(run_dir, FIGURES, DATA)
     assert report.startswith("# T-maze (matching)")
     for name in [*FIGURES, *DATA]:
         assert f"]({name}" in report, name

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from synthetic_runs import make_floor_run
+from synthetic_runs import assert_analysis_outputs, make_floor_run
 
 REPO = Path(__file__).resolve().parents[1]
 FIGURES = ["fig3_4_reward", "fig3_5_weights", "fig3_6a_greedy_before", "fig3_6b_greedy_after",
@@ -47,12 +47,7 @@ def analyzed_run(tmp_path_factory):
 def test_single_run_writes_figures_data_and_report(analyzed_run):
     run_dir, _, result = analyzed_run
     assert result.returncode == 0, result.stderr
-    out = run_dir / "analysis"
-    for name in FIGURES:
-        assert (out / f"{name}.png").stat().st_size > 1000, name
-    for name in DATA:
-        assert (out / name).is_file(), name
-    report = (out / "report.md").read_text()
+    report = assert_analysis_outputs(run_dir, FIGURES, DATA)
     claim_rows = [line for line in report.splitlines()
                   if line.startswith("| ") and line.rstrip().endswith("** |")]
     assert claim_rows, report

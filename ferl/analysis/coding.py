@@ -114,22 +114,6 @@ def pairwise_mutual_information(images_by_class: Sequence[np.ndarray],
     return mi
 
 
-def greedy_accuracy(greedy_counts: np.ndarray, optimal_action: Sequence[int]) -> np.ndarray:
-    """Fraction of test images whose greedy action is optimal (Fig. 3.6).
-
-    `greedy_counts` is (R, L, C, nA): per run, test noise level and class, how
-    many of the n test images made each action greedy. The goal class (optimal
-    action −1) is excluded. Returns (R, L); NaN when no class has an optimal action.
-    """
-    counts = np.asarray(greedy_counts, dtype=np.float64)
-    actions = np.asarray(optimal_action)
-    scored = np.flatnonzero(actions >= 0)
-    if scored.size == 0:
-        return np.full(counts.shape[:2], np.nan)
-    correct = counts[:, :, scored, actions[scored]].sum(axis=-1)
-    return correct / counts[:, :, scored, :].sum(axis=(-1, -2))
-
-
 def sem_over_runs(values: np.ndarray) -> np.ndarray:
     """Standard error of the mean over axis 0 (runs); 0 for a single run."""
     values = np.asarray(values, dtype=np.float64)

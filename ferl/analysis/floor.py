@@ -19,6 +19,7 @@ from typing import Sequence
 import numpy as np
 
 from ferl.analysis import coding
+from ferl.evaluation import greedy_accuracy
 from ferl.analysis import floor_figures as figs
 from ferl.analysis.report import FLOOR_CLAIMS, PERCEPTUAL_PAIRS, RunAnalysis, evaluate
 
@@ -110,7 +111,7 @@ class FloorRun:
     # ---- behaviour (Figs. 3.4, 3.6) ----
     @cached_property
     def accuracy(self) -> dict[str, np.ndarray]:
-        return {p: coding.greedy_accuracy(self.test[f"greedy_counts_{p}"], self.optimal_action)
+        return {p: greedy_accuracy(self.test[f"greedy_counts_{p}"], self.optimal_action)
                 for p in PHASES}
 
     # ---- population coding (Figs. 3.10–3.13) ----

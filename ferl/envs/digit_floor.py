@@ -78,7 +78,6 @@ def optimal_policy(rewards: np.ndarray, gamma: float = 0.9, tol: float = 1e-9):
             break
         V = V_new
     mask = Q >= Q.max(1, keepdims=True) - 1e-6
-    mask[GOAL] = True  # the agent never acts from the goal: every action counts as optimal
     action = np.where(mask.sum(1) == 1, mask.argmax(1), -1)
     action[GOAL] = -1
     greedy = mask.argmax(1)
@@ -111,9 +110,8 @@ class DigitFloor:
         self.classes = sorted(set(layout), key=lambda c: (c == NOISE_CLASS, c))
 
         rewards = patch_rewards(reward_condition, goal_reward, boundary_reward, other_reward)
-        self.optimal_mask, self.optimal_action, self.optimal_reward_rate = optimal_policy(rewards)
-        where = [layout.index(c) for c in self.classes]
-        self.class_optimal_mask, self.class_optimal_action = self.optimal_mask[where], self.optimal_action[where]
+        _, self.optimal_action, self.optimal_reward_rate = optimal_policy(rewards)
+        self.class_optimal_action = self.optimal_action[[layout.index(c) for c in self.classes]]
 
         side = 3 * patches
         rows, cols = np.divmod(np.arange(side * side), side)
@@ -191,10 +189,6 @@ class DigitFloor:
         moved = self.next_tile.index_select(0, move)
         self.tile = torch.where(self.lands_in_goal.index_select(0, move), transport, moved)
         return self._observe(idx, values), reward
-
-    def tile_classes(self) -> list:
-        """Class label of every run's current tile (for tests and rendering, not the hot path)."""
-        return [self.layout[p] for p in self.tile_position[self.tile].tolist()]
 
     def state_dict(self) -> dict:
         return {"tile": self.tile, "tile_image": self.tile_image, "bank": self.bank,

@@ -27,6 +27,11 @@ def pick(x: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
     return flat.index_select(0, index).unsqueeze(1)
 
 
+def json_values(x: np.ndarray) -> list:
+    """Per-run values for summary.json; NaN (no optimal action to score, e.g. without reward) → null."""
+    return [None if np.isnan(v) else float(v) for v in x]
+
+
 def weight_images(W: torch.Tensor) -> torch.Tensor:
     """Run 0's state→hidden weights as H images (H, 1, 28, 28) scaled to [0, 1] (Fig. 3.5)."""
     w = W[0].T.reshape(-1, 1, 28, 28)
@@ -139,13 +144,13 @@ class FloorTraining:
             **{f"{key}_{phase}": result[key] for phase, result in (("before", before), ("after", after))
                for key in ("greedy_counts", "probs", "hidden", "hidden_marginal")})
         levels = [f"{x:g}" for x in self.cfg.trainer.test_noise_levels]
-        acc_after = greedy_accuracy(after["greedy_counts"], env.class_optimal_mask)
-        acc_before = greedy_accuracy(before["greedy_counts"], env.class_optimal_mask)
+        acc_after = greedy_accuracy(after["greedy_counts"], env.class_optimal_action)
+        acc_before = greedy_accuracy(before["greedy_counts"], env.class_optimal_action)
         last = max(1, self.T // 10)
         return {
             "reward_per_step_last10pct": rewards[:, -last:].mean(1).tolist(),
-            "greedy_accuracy": {lvl: acc_after[:, i].tolist() for i, lvl in enumerate(levels)},
-            "greedy_accuracy_before": {lvl: acc_before[:, i].tolist() for i, lvl in enumerate(levels)},
+            "greedy_accuracy": {lvl: json_values(acc_after[:, i]) for i, lvl in enumerate(levels)},
+            "greedy_accuracy_before": {lvl: json_values(acc_before[:, i]) for i, lvl in enumerate(levels)},
         }
 
 
@@ -167,7 +172,8 @@ def train_digit_floor(cfg, run: RunDir, device: torch.device) -> dict:
             writer.add_histogram(f"weights/{name}", getattr(job.actor, name), job.T)
         optimal = {"reward_per_step": job.env.optimal_reward_rate}
         headline = {"reward_per_step_last10pct": float(np.mean(metrics["reward_per_step_last10pct"])),
-                    **{f"greedy_accuracy/{k}": float(np.mean(v)) for k, v in metrics["greedy_accuracy"].items()}}
+                    **{f"greedy_accuracy/{k}": float(np.mean(v)) for k, v in metrics["greedy_accuracy"].items()
+                       if None not in v}}
         writer.add_hparams(hparams(cfg), {f"hparam/{k}": v for k, v in headline.items()}, run_name=".")
     agent_steps = job.T * job.R
     return {
