@@ -49,7 +49,8 @@ def _publish_figures(figures: dict, out: Path, tb_dir: Path) -> None:
 
 def _write_claims_json(path: Path, results) -> None:
     path.write_text(json.dumps([{"claim": r.claim.text, "source": r.claim.source,
-                                 "measured": r.measured.text, "verdict": r.verdict}
+                                 "measured": r.measured.text, "criterion": r.claim.criterion,
+                                 "verdict": r.verdict}
                                 for r in results], indent=2, ensure_ascii=False) + "\n")
 
 

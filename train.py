@@ -38,8 +38,8 @@ def check_run_dir(path: Path, resume: bool) -> None:
 
 
 def discard_if_new(path: Path) -> None:
-    """Remove a run directory that only Hydra's own files are in (a config that failed)."""
-    if path.is_dir() and {p.name for p in path.iterdir()} <= HYDRA_OWN:
+    """Remove a run directory that holds only Hydra's own files and empty folders (a config that failed)."""
+    if path.is_dir() and all(p.name in HYDRA_OWN or (p.is_dir() and not any(p.iterdir())) for p in path.iterdir()):
         shutil.rmtree(path, ignore_errors=True)
         if path.parent.is_dir() and not any(path.parent.iterdir()):
             path.parent.rmdir()
@@ -88,6 +88,7 @@ def main(cfg: DictConfig) -> None:
     try:
         summary = TRAINERS[cfg.task](cfg, run, resolve_device(cfg.device))
     except ConfigError as e:  # a setting that only shows itself once data exist
+        discard_if_new(run_path)
         print(f"ferl: error: {e}", file=sys.stderr)
         sys.exit(2)
     run.write_summary(summary)

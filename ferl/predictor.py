@@ -10,8 +10,10 @@ The memory m_t summarises the history (y_0, a_0, …, y_{t−1}, a_{t−1}); hea
 * loss of a sequence Σ_t E_t: cross entropy ρ_y CE(y_t, ŷ_t) for t = 0 … T plus ρ_r CE(r_t, r̂_t)
   (Eq. 4.6, Eq. 5.1) or ½ ρ_r (r_t − r̂_t)² (Eq. 5.2) for t = 1 … T
 
-σ_β(x) = 1/(1 + exp(−βx)). The loss is summed over t, as the BPTT algorithm of §2.4.1 accumulates
-its gradients (step 7), and trained in pattern mode: one SGD step per sequence (§4.3.1).
+σ_β(x) = 1/(1 + exp(−βx)). §2.4.1 is ambiguous about the time reduction: it defines the objective
+as the average J(T) = 1/(T+1) Σ_t E_t, yet its BPTT algorithm (steps 7–8) accumulates and applies
+the plain sum Σ_t. ``time_average`` picks the average (J(T)) or the sum. Training is in pattern
+mode: one SGD step per sequence (§4.3.1).
 
 All parameters carry the run dimension first, W_mm (R, M, M). Sequences are padded batches
 y (R, B, T+1, Y), a (R, B, T, A) one-hot, r (R, B, T+1, ·) with r[:, :, 0] unused, and lengths (R, B),
@@ -57,7 +59,8 @@ class ElmanPredictor(nn.Module):
     def __init__(self, n_runs: int, n_obs: int, n_actions: int, n_memory: int = 20, n_reward: int = 4,
                  reward_output: str = "bits", c_y: float = 1.0, c_a: float = 1.0, beta_m: float = 1.0,
                  beta_y: float = 1.0, beta_r: float = 1.0, rho_y: float = 1.0, rho_r: float = 1.0,
-                 lr: float = 0.05, init_std: float = 1.0, predict_obs: bool = True, seed: int = 0):
+                 lr: float = 0.05, init_std: float = 1.0, predict_obs: bool = True,
+                 time_average: bool = False, seed: int = 0):
         super().__init__()
         if reward_output not in REWARD_OUTPUTS:
             raise ValueError(f"reward_output must be one of {REWARD_OUTPUTS}, got {reward_output!r}")
@@ -65,7 +68,7 @@ class ElmanPredictor(nn.Module):
             raise ValueError("a predictor needs an observation or a reward head")
         self.reward_output, self.predict_obs = reward_output, predict_obs
         self.c_y, self.c_a, self.beta_m, self.beta_y, self.beta_r = c_y, c_a, beta_m, beta_y, beta_r
-        self.rho_y, self.rho_r, self.lr = rho_y, rho_r, lr
+        self.rho_y, self.rho_r, self.lr, self.time_average = rho_y, rho_r, lr, time_average
         # Each run is initialised from its own seed, so run r does not depend on n_runs (§4.3.1:
         # all weights and biases from a spherical Gaussian of variance init_std²).
         gens = [torch.Generator().manual_seed(seed + r) for r in range(n_runs)]
@@ -150,7 +153,7 @@ class ElmanPredictor(nn.Module):
         return y, a, (torch.where(valid, r, 0.0) if r is not None else None)
 
     def loss(self, y, a, r, lengths) -> torch.Tensor:
-        """Σ_t E_t per (run, sequence), (R, B): Eq. (4.6) cross entropy ρ_y CE(y_t, ŷ_t) for
+        """Σ_t E_t, or J(T) = Σ_t E_t / (T + 1) with ``time_average``, per (run, sequence), (R, B): Eq. (4.6) cross entropy ρ_y CE(y_t, ŷ_t) for
         t = 0 … T plus ρ_r CE(r_t, r̂_t) (bits) or ½ ρ_r (r_t − r̂_t)² (linear, Eq. 5.2) for t = 1 … T.
 
         BPTT: this is a differentiable function of the unrolled Eqs. (4.1–4.5), so autograd's
@@ -170,7 +173,7 @@ class ElmanPredictor(nn.Module):
             E_r = (F.binary_cross_entropy_with_logits(z_r, r, reduction="none") if self.reward_output == "bits"
                    else 0.5 * (r - z_r).square()).sum(-1)
             E = E + self.rho_r * torch.where(reward_steps(valid), E_r, 0.0)
-        return E.sum(-1)
+        return E.sum(-1) / (lengths + 1) if self.time_average else E.sum(-1)
 
     def train_epoch(self, y, a, r, lengths, order: torch.Tensor) -> None:
         """One epoch of BPTT in pattern mode (§4.3.1): for i = 1 … N every run takes a plain SGD
@@ -191,9 +194,10 @@ class ElmanPredictor(nn.Module):
                     q.sub_(g, alpha=self.lr)
 
     @torch.no_grad()
-    def abs_errors(self, y, a, r, lengths) -> torch.Tensor:
-        """Weighted absolute prediction error of every step, (R, B, T+1), Eq. (4.8):
-        ρ_y Σ_i |y_{i,t} − ŷ_{i,t}| + ρ_r Σ_i |r_{i,t} − r̂_{i,t}| (reward term from t = 1).
+    def prediction_errors(self, y, a, r, lengths) -> torch.Tensor:
+        """Prediction error of every step, (R, B, T+1): the weighted absolute error of Eq. (4.8),
+        ρ_y Σ_i |y_{i,t} − ŷ_{i,t}| + ρ_r Σ_i |r_{i,t} − r̂_{i,t}| (reward term from t = 1), with the
+        squared error ρ_r (r_t − r̂_t)² for a linear scalar reward (Fig. 5.17b).
         NaN at padded steps, and at t = 0 for a predictor without an observation head."""
         y_hat, r_hat, _ = self.forward_sequences(y, a, lengths)
         valid = valid_steps(lengths, y.shape[2])
@@ -201,7 +205,8 @@ class ElmanPredictor(nn.Module):
         if self.predict_obs:
             err = err + self.rho_y * (y - y_hat).abs().sum(-1)
         if self.reward_output != "none":
-            err = err + self.rho_r * torch.where(reward_steps(valid), (r - r_hat).abs().sum(-1), 0.0)
+            diff = (r - r_hat).square() if self.reward_output == "linear" else (r - r_hat).abs()
+            err = err + self.rho_r * torch.where(reward_steps(valid), diff.sum(-1), 0.0)
         return torch.where(valid if self.predict_obs else reward_steps(valid), err, torch.nan)
 
     def reward_targets(self, env, rewards: torch.Tensor):

@@ -1,7 +1,8 @@
 """Config checks run before any work (CONTRACT §6): one line naming the key and what is allowed.
 
 Rules are data: (key, test, what is allowed). A rule applies when its key is in the
-composed config, so each task's groups bring only their own keys.
+composed config, so each task's groups bring only their own keys; a ``*`` in a key stands for
+every entry of a mapping (``predictor.*.lr``: the learning rate of each named predictor).
 """
 from numbers import Integral, Real
 
@@ -12,6 +13,7 @@ from omegaconf.errors import MissingMandatoryValue
 from ferl.actor import ACTION_CODES, ACTION_SELECTIONS, TD_RULES
 from ferl.data import DataError
 from ferl.envs.digit_floor import REWARD_CONDITIONS
+from ferl.preprocessor import RULES as PREPROCESSOR_RULES
 
 
 class ConfigError(ValueError):
@@ -82,13 +84,17 @@ RULES = [
     ("env.digit_classes", lambda x: isinstance(x, dict) and all(_int(v) and 0 <= v <= 9 for v in x.values()),
      "a map observation name → digit class 0–9"),
     ("env.image_index", non_negative_int, "an integer ≥ 0"),
-    ("env.binarize_threshold", unit_interval, "a threshold in [0, 1]"),
-    ("predictor.n_memory", positive_int, "an integer ≥ 1"),
-    ("predictor.reward_output", one_of("bits", "linear", "none"), "bits, linear or none"),
-    ("predictor.lr", positive, "a learning rate > 0"),
-    ("predictor.init_std", non_negative, "a standard deviation ≥ 0"),
-    *[(f"predictor.{k}", non_negative, "a number ≥ 0") for k in ("c_y", "c_a", "rho_y", "rho_r")],
-    *[(f"predictor.{k}", positive, "a gain > 0") for k in ("beta_m", "beta_y", "beta_r")],
+    ("env.binarize_threshold", lambda x: x is None or unit_interval(x), "null (grey levels) or a threshold in [0, 1]"),
+    ("env.reservoir_size", positive_int, "an integer ≥ 1 (images per observation)"),
+    ("predictor.*.n_memory", positive_int, "an integer ≥ 1"),
+    ("predictor.*.reward_output", one_of("bits", "linear", "none"), "bits, linear or none"),
+    ("predictor.*.predict_obs", one_of(True, False), "true or false"),
+    ("predictor.*.time_average", one_of(True, False), "true or false"),
+    ("predictor.*.lr", positive, "a learning rate > 0"),
+    ("predictor.*.init_std", non_negative, "a standard deviation ≥ 0"),
+    *[(f"predictor.*.{k}", non_negative, "a number ≥ 0") for k in ("c_y", "c_a", "rho_y", "rho_r")],
+    *[(f"predictor.*.{k}", positive, "a gain > 0") for k in ("beta_m", "beta_y", "beta_r")],
+    *[rule for rule in PREPROCESSOR_RULES if rule[0].startswith("preprocessor.")],
     ("actor.n_hidden", positive_int, "an integer ≥ 1"),
     ("actor.td_rule", one_of(*TD_RULES), ", ".join(TD_RULES)),
     ("actor.gamma", discount, "a discount factor in [0, 1)"),
@@ -121,9 +127,18 @@ RULES = [
 _ABSENT = object()
 
 
+def expand(cfg: DictConfig, key: str) -> list[str]:
+    """The concrete keys a rule key names: ``a.*.b`` → ``a.x.b`` for every entry x of ``a``."""
+    if "*" not in key:
+        return [key]
+    head, _, tail = key.partition(".*.")
+    node = OmegaConf.select(cfg, head, default=None)
+    return [f"{head}.{name}.{tail}" for name in node] if isinstance(node, DictConfig) else []
+
+
 def validate(cfg: DictConfig) -> None:
     """Raise ConfigError for the first rule the config breaks, then check cross-key facts."""
-    for key, test, allowed in RULES:
+    for key, test, allowed in ((k, t, a) for rule_key, t, a in RULES for k in expand(cfg, rule_key)):
         try:
             value = OmegaConf.select(cfg, key, default=_ABSENT, throw_on_missing=True)
         except MissingMandatoryValue:
@@ -163,10 +178,23 @@ def check_cross_keys(cfg) -> None:
         missing = [n for n in names if n not in env.digit_classes]
         if missing:
             raise ConfigError(f"env.digit_classes.{missing[0]} is required: every observation needs a digit class")
+    check_preprocessor(cfg)
     trainer, data = cfg.get("trainer", {}), cfg.get("data", {})
     if "test_per_class" in trainer and "test_per_class" in data and trainer.test_per_class > data.test_per_class:
         raise ConfigError(f"trainer.test_per_class={trainer.test_per_class} is not allowed: at most "
                           f"data.test_per_class={data.test_per_class} held-out images per class exist")
+
+
+def check_preprocessor(cfg) -> None:
+    """The RBM preprocessor reads 784-pixel images: the digit T-mazes (§5.3.2), not bit codes."""
+    pre = cfg.get("preprocessor")
+    if pre is None:
+        return
+    if cfg.get("task") != "tmaze" or "digit_classes" not in cfg.get("env", {}):
+        raise ConfigError("preprocessor is not allowed here: it processes the images of env=digit_tmaze "
+                          "(use preprocessor=null for bit observations)")
+    if pre.n_visible != 784:
+        raise ConfigError(f"preprocessor.n_visible={pre.n_visible} is not allowed: the digit images have 784 pixels")
 
 
 def check_data(cfg) -> None:

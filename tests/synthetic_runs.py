@@ -4,7 +4,8 @@ The records are built so that the answers are known. Digit floor (`make_floor_ru
 after training the greedy action is the optimal one for most test images, hidden
 activations cluster by optimal action (so every same-action pair forms its own
 cluster), and the image templates of "7" and "8" are near copies of "1" and "3"
-(low mutual information). T-maze (`make_tmaze_run`): see its docstring.
+(low mutual information). T-maze (`make_tmaze_run`, chapter 4; `make_ch5_run`, chapter 5):
+see their docstrings.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 CLASSES = [str(d) for d in range(9)]
 ARRANGEMENT = np.array(CLASSES).reshape(3, 3)
@@ -175,17 +177,20 @@ def _prediction_errors(rng, n_runs, epochs, lengths, scale: float) -> np.ndarray
 
 def make_tmaze_run(run_dir: Path, *, n_runs: int = 2, n_episodes: int = 600,
                    matching: bool = True, hidden: str = "separable",
-                   memory_keys: tuple[str, ...] = ("memory",),
+                   memory_keys: tuple[str, ...] = ("memory_joint",),
+                   signal_memories: tuple[str, ...] | None = None,
                    predictors: tuple[str, ...] = ("joint",),
                    steps_to_goal: bool = True, n_memory: int = 6, n_hidden: int = 5,
                    seed: int = 0, experiment: str | None = None) -> Path:
     """Write a synthetic T-maze run (docs/records.md, "T-mazes") into `run_dir` and return it.
 
     The truth: every run becomes optimal by 60 % of the episodes and its TD error decays
-    ~100-fold; memories encode the initial signal from the start; the actor's hidden
-    activations at the junction are unstructured in the first half of the episodes and
-    one prototype per condition (plus small noise) in the second half — unless `hidden`
-    is "shuffled", which permutes them across each run's visits (a null control).
+    ~100-fold; the memories in `signal_memories` (default: all) encode the initial signal
+    from the start, the others are one prototype per run plus noise; the actor's state is
+    the junction observation and all memories; the actor's hidden activations at the
+    junction are unstructured in the first half of the episodes and one prototype per
+    condition (plus small noise) in the second half — unless `hidden` is "shuffled", which
+    permutes them across each run's visits (a null control).
     """
     rng = np.random.default_rng(seed)
     experiment = experiment or f"table4_1_{'matching' if matching else 'regular'}_synthetic"
@@ -244,12 +249,16 @@ def make_tmaze_run(run_dir: Path, *, n_runs: int = 2, n_episodes: int = 600,
     if steps_to_goal:
         junction["steps_to_goal"] = episodes["steps"][run_idx, episode_idx]
     for key in memory_keys:
-        junction[key] = noisy(rng.uniform(0.1, 0.9, (n_runs, 2, n_memory)), initial, 0.03)
+        if signal_memories is None or key in signal_memories:
+            junction[key] = noisy(rng.uniform(0.1, 0.9, (n_runs, 2, n_memory)), initial, 0.03)
+        else:
+            junction[key] = noisy(rng.uniform(0.1, 0.9, (n_runs, 1, n_memory)),
+                                 np.zeros_like(initial), 0.03)
     obs = np.zeros((n_visits, N_OBS))
     obs[:, 2] = 1.0                                   # position bit: the T-junction
     if matching:
         obs[np.arange(n_visits), 5 + junction_signal] = 1.0
-    junction["state"] = np.concatenate([obs, junction[memory_keys[0]]], axis=1)
+    junction["state"] = np.concatenate([obs, *(junction[k] for k in memory_keys)], axis=1)
     late = episode_idx >= n_episodes // 2
     acts = np.where(late[:, None],
                     noisy(rng.uniform(0, 1, (n_runs, n_conditions, n_hidden)), cond, 0.05),
@@ -281,6 +290,65 @@ def make_tmaze_run(run_dir: Path, *, n_runs: int = 2, n_episodes: int = 600,
     }
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     (run_dir / "tb").mkdir()
+    return run_dir
+
+
+# ---- T-mazes of chapter 5 (Algorithm 2) -------------------------------------------
+
+CH5_MEMORIES = ("memory_observation", "memory_reward")
+# The observations of the matching maze in the order of the environment's observation table,
+# with the digit classes of table5_1_pixel: the signals share the digits 0 and 1.
+DIGIT_CLASSES = {"start_0": 0, "start_1": 1, "corridor": 2, "junction_0": 0, "junction_1": 1,
+                 "goal_left": 3, "goal_right": 4}
+
+
+def _preprocessor_records(rng, n_runs: int, reservoir_size: int, n_hidden: int, sweeps: int,
+                          codes: str) -> dict[str, np.ndarray]:
+    """records/preprocessor.npz: raw images around one binary prototype per digit class, and
+    processed codes around one prototype per class and run ("separable") or, "shuffled",
+    the same codes permuted across each run's images (a null control)."""
+    classes = sorted(set(DIGIT_CLASSES.values()))
+    images = _clean_images(rng, [str(c) for c in classes], reservoir_size)    # (C, K, 784)
+    protos = rng.uniform(0, 1, (n_runs, len(classes), 1, n_hidden))
+    y = np.clip(protos + rng.normal(0, 0.05, (n_runs, len(classes), reservoir_size, n_hidden)),
+                0, 1)
+    if codes == "shuffled":
+        flat = y.reshape(n_runs, -1, n_hidden)
+        y = np.stack([f[rng.permutation(len(f))] for f in flat]).reshape(y.shape)
+    table = [DIGIT_CLASSES[name] for name in DIGIT_CLASSES]
+    curve = 0.03 + 0.1 * np.exp(-np.arange(sweeps) / 3.0)
+    return dict(reconstruction_error=(curve + rng.uniform(0, 0.002, (n_runs, sweeps))
+                                      ).astype(np.float32),
+                test_error_before=rng.uniform(0.22, 0.24, n_runs).astype(np.float32),
+                test_error_after=rng.uniform(0.03, 0.04, n_runs).astype(np.float32),
+                cached=np.bool_(False),
+                raw_observations=np.concatenate([images[c] for c in table]).astype(np.float16),
+                processed_observations=np.concatenate([y[:, c] for c in table], axis=1
+                                                      ).astype(np.float16))
+
+
+def make_ch5_run(run_dir: Path, *, pixel: bool = True, signal_memory: str = "memory_reward",
+                 codes: str = "separable", reservoir_size: int = 20, n_rbm_hidden: int = 8,
+                 sweeps: int = 12, n_runs: int = 2, seed: int = 0) -> Path:
+    """A synthetic chapter-5 run (Algorithm 2): `make_tmaze_run` with the predictors
+    `observation` and `reward`, whose memories keep the initial signal only in
+    `signal_memory`, and a `.hydra/config.yaml` naming the environment. With `pixel`, a
+    digit maze (table5_1_pixel) whose records/preprocessor.npz holds `reservoir_size`
+    images per digit class and their processed codes (see `_preprocessor_records`)."""
+    experiment = f"table5_1_{'pixel' if pixel else 'bit'}_synthetic"
+    make_tmaze_run(run_dir, n_runs=n_runs, predictors=("observation", "reward"),
+                   memory_keys=CH5_MEMORIES, signal_memories=(signal_memory,), seed=seed,
+                   experiment=experiment)
+    env = {"_target_": "ferl.envs.tmaze.TMaze", "matching": True}
+    if pixel:
+        env = {"_target_": "ferl.envs.digit_tmaze.DigitTMaze", "matching": True,
+               "digit_classes": DIGIT_CLASSES, "reservoir_size": reservoir_size}
+        np.savez(run_dir / "records" / "preprocessor.npz", **_preprocessor_records(
+            np.random.default_rng(seed + 1), n_runs, reservoir_size, n_rbm_hidden, sweeps, codes))
+    (run_dir / ".hydra").mkdir()
+    (run_dir / ".hydra" / "config.yaml").write_text(yaml.safe_dump(
+        {"experiment": experiment, "task": "tmaze", "seed": seed, "n_runs": n_runs, "env": env,
+         "trainer": {"l_training": 5}}, sort_keys=False))
     return run_dir
 
 

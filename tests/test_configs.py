@@ -7,13 +7,14 @@ from omegaconf import OmegaConf
 
 from conftest import EXPERIMENTS
 from ferl.data import MnistSplit
+from ferl.trainers.tmaze import PREPROCESSOR_EXTRA_KEYS
 from ferl.validate import ConfigError, validate
 from test_digit_floor import tiny_split
 
 
 def test_contract_experiments_exist():
-    assert {"ch3_floor", "ch3_coding_cw", "ch3_coding_ccw", "ch3_coding_noreward",
-            "table4_1_regular", "table4_1_matching", "table4_2_digit"} <= set(EXPERIMENTS)
+    assert {"ch3_floor", "ch3_coding_cw", "ch3_coding_ccw", "ch3_coding_noreward", "table4_1_regular",
+            "table4_1_matching", "table4_2_digit", "table5_1_bit", "table5_1_pixel"} <= set(EXPERIMENTS)
 
 
 @pytest.mark.parametrize("name", EXPERIMENTS)
@@ -24,13 +25,22 @@ def test_experiment_composes_validates_and_instantiates(compose_cfg, name):
     validate(cfg)
     split: MnistSplit = tiny_split()
     needs_data = cfg.task == "digit_floor" or "digit_classes" in cfg.env
+    small_reservoir = {"reservoir_size": 10} if cfg.env.get("reservoir_size", 1) > 1 else {}  # tiny_split: 20 per class
     env = instantiate(cfg.env, n_runs=2, generator=torch.Generator().manual_seed(0),
-                      **({"data": split} if needs_data else {}))
+                      **({"data": split} if needs_data else {}), **small_reservoir)
     n_state = env.observation_size
     if cfg.task == "tmaze":
-        predictor = instantiate(cfg.predictor, n_runs=2, n_obs=env.observation_size, n_actions=4, seed=0)
-        assert predictor.W_mm.shape == (2, cfg.predictor.n_memory, cfg.predictor.n_memory)
-        n_state += cfg.predictor.n_memory
+        n_obs = env.observation_size
+        if cfg.get("preprocessor"):
+            args = {k: v for k, v in cfg.preprocessor.items() if k not in PREPROCESSOR_EXTRA_KEYS}
+            pre = instantiate(args, n_runs=2, seed=0)
+            n_obs = pre.transform(env.observation_table).shape[-1]
+            assert n_obs == cfg.preprocessor.n_hidden and env.observation_size == cfg.preprocessor.n_visible
+        n_state = n_obs
+        for p_cfg in cfg.predictor.values():
+            predictor = instantiate(p_cfg, n_runs=2, n_obs=n_obs, n_actions=4, seed=0)
+            assert predictor.W_mm.shape == (2, p_cfg.n_memory, p_cfg.n_memory)
+            n_state += p_cfg.n_memory
         assert env.optimal_discounted_return(cfg.actor.gamma) == pytest.approx(4.3175)
     else:
         assert env.optimal_reward_rate == pytest.approx({"none": 0.0}.get(cfg.env.reward_condition, 8.0))
@@ -41,12 +51,31 @@ def test_experiment_composes_validates_and_instantiates(compose_cfg, name):
 def test_table_4_1_and_4_2_parameters(compose_cfg):
     cfg = compose_cfg(["experiment=table4_1_matching"])
     assert (cfg.env.corridor_length, cfg.env.max_steps, cfg.env.matching) == (3, 10, True)
-    p, a, t = cfg.predictor, cfg.actor, cfg.trainer
+    p, a, t = cfg.predictor.joint, cfg.actor, cfg.trainer
     assert (p.n_memory, p.n_reward, p.rho_y, p.rho_r, p.c_y, p.c_a, p.beta_m, p.beta_y, p.lr) == (20, 4, 1, 4, 1, 1, 1, 1, 0.05)
     assert (a.n_hidden, a.lr.value, a.beta.start, a.beta.end, a.gamma) == (20, 0.05, 0, 10, 0.95)
     assert (t.n_sample, t.l_training, t.n_epoch, t.n_episodes) == (2000, 5, 400, 10000)
     digit = compose_cfg(["experiment=table4_2_digit"])
-    assert digit.predictor.c_y == pytest.approx(7 / 784, abs=1e-4) and digit.env.matching
+    assert digit.predictor.joint.c_y == pytest.approx(7 / 784, abs=1e-4) and digit.env.matching
+
+
+def test_table_5_1_parameters(compose_cfg):
+    """Table 5.1: separate predictors with 20 memory nodes each, no ρ / c / gains; N_epoch 400 / 600;
+    §5.3.2: RBM 784 → 20 by CD-3 for 600 sweeps, reservoirs of 100 images."""
+    for name, epochs in (("table5_1_bit", 400), ("table5_1_pixel", 600)):
+        cfg = compose_cfg([f"experiment={name}"])
+        obs, rew = cfg.predictor.observation, cfg.predictor.reward
+        assert list(cfg.predictor) == ["observation", "reward"]
+        assert (obs.n_memory, obs.reward_output, obs.lr) == (20, "none", 0.05)
+        assert (rew.n_memory, rew.reward_output, rew.predict_obs, rew.lr) == (20, "linear", False, 0.05)
+        assert not {"rho_y", "rho_r", "c_y", "c_a", "beta_m", "beta_y"} & (set(obs) | set(rew))
+        assert cfg.trainer.n_epoch == epochs and cfg.env.matching and cfg.actor.n_hidden == 20
+    pixel = compose_cfg(["experiment=table5_1_pixel"])
+    p = pixel.preprocessor
+    assert (p.n_visible, p.n_hidden, p.cd_k, p.sweeps) == (784, 20, 3, 600)
+    assert pixel.env.reservoir_size == 100 and pixel.env.binarize_threshold is None
+    assert len(set(pixel.env.digit_classes.values())) == 5  # Fig. 5.15: five digits
+    assert compose_cfg(["experiment=table5_1_bit"]).get("preprocessor") is None
 
 
 def test_dissertation_parameters(compose_cfg):
@@ -75,9 +104,17 @@ def test_dissertation_parameters(compose_cfg):
     ("experiment=table4_2_digit env.digit_classes.start_0=11", "env.digit_classes"),
     ("experiment=table4_2_digit +env.digit_classes.elsewhere=3", "env.digit_classes.elsewhere"),
     ("experiment=table4_2_digit ~env.digit_classes.corridor", "env.digit_classes.corridor"),
-    ("experiment=table4_1_matching predictor.n_memory=0", "predictor.n_memory"),
+    ("experiment=table4_1_matching predictor.joint.n_memory=0", "predictor.joint.n_memory"),
+    ("experiment=table4_1_matching predictor.joint.time_average=maybe", "predictor.joint.time_average"),
     ("experiment=table4_1_matching trainer.train_fraction=1.0", "trainer.train_fraction"),
     ("experiment=table4_1_matching resume=true", "resume"),
+    ("experiment=table5_1_pixel preprocessor.cd_k=0", "preprocessor.cd_k"),
+    ("experiment=table5_1_pixel preprocessor.n_hidden=0", "preprocessor.n_hidden"),
+    ("experiment=table5_1_pixel preprocessor.n_visible=700", "preprocessor.n_visible"),
+    ("experiment=table5_1_bit preprocessor=rbm", "preprocessor"),
+    ("experiment=table5_1_pixel env.reservoir_size=0", "env.reservoir_size"),
+    ("experiment=table5_1_pixel env.binarize_threshold=2", "env.binarize_threshold"),
+    ("experiment=table5_1_bit predictor.reward.reward_output=gaussian", "predictor.reward.reward_output"),
 ])
 def test_bad_values_name_their_key(compose_cfg, override, key):
     cfg = compose_cfg(override.split())

@@ -203,19 +203,19 @@ def test_learns_deterministic_sequences():
     r[:, :, 4, 1] = 1
     lengths = torch.full((2, 2), 4)
     p = ElmanPredictor(2, 4, 3, n_memory=8, n_reward=2, lr=0.3, seed=0).double()
-    before = p.abs_errors(y, a, r, lengths).mean()
+    before = p.prediction_errors(y, a, r, lengths).mean()
     order = torch.tensor([[0, 1], [1, 0]])
     for _ in range(300):
         p.train_epoch(y, a, r, lengths, order)
-    after = p.abs_errors(y, a, r, lengths)
+    after = p.prediction_errors(y, a, r, lengths)
     assert before > 1.0
     assert after.mean() < 0.05 and after.mean() < 0.1 * before, (before, after)
 
 
-def test_abs_errors_eq_4_8_and_nan_padding():
+def test_prediction_errors_eq_4_8_and_nan_padding():
     p = make(R=2)
     y, a, r, lengths = data(2, 3, 5)
-    err = p.abs_errors(y, a, r, lengths)
+    err = p.prediction_errors(y, a, r, lengths)
     y_hat, r_hat, _ = p.forward_sequences(y, a, lengths)
     for run in range(2):
         for b in range(3):

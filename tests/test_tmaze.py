@@ -220,3 +220,38 @@ def test_images_replace_observations():
     assert torch.allclose(obs[:, 0], (3 + env.junction_signal).float() / 10)
     with pytest.raises(ValueError, match="corridor"):
         make_env(matching=True, images={n: v for n, v in images.items() if n != "corridor"})
+
+
+def test_reservoir_draws_a_fresh_image_of_the_class_at_every_visit():
+    """§5.3.2: K images per observation; every visit (even a wall bump that stays put) draws anew."""
+    names = ("start_0", "start_1", "corridor", "junction_0", "junction_1", "goal_left", "goal_right")
+    K = 5
+    # image k of observation n carries n in pixel 0 and k in pixel 1
+    images = {n: torch.stack([torch.tensor([float(i), float(k), 0.0]) for k in range(K)]) for i, n in enumerate(names)}
+    env = make_env(R=400, matching=True, images=images)
+    assert env.reservoir_size == K and env.observation_table.shape == (len(names) * K, 3)
+    first = env.reset()
+    assert torch.equal(first[:, 0], env.initial_signal.float())  # start_0 / start_1
+    assert torch.equal(env.obs_id // K, env.observation_class)
+    bumped, _, _, _ = act(env, S)  # wall bump at the start: same observation class, new draw
+    assert torch.equal(bumped[:, 0], first[:, 0])
+    assert (bumped[:, 1] != first[:, 1]).float().mean() > 0.7  # P(same draw) = 1/K
+    assert set(bumped[:, 1].long().tolist()) == set(range(K))
+    with pytest.raises(ValueError, match="same size"):
+        make_env(matching=True, images={**images, "corridor": images["corridor"][:2]})
+
+
+def test_digit_reservoir_images_come_from_their_class():
+    from ferl.envs.digit_tmaze import DigitTMaze
+    from test_digit_floor import tiny_split
+
+    data = tiny_split()
+    classes = {"start_0": 0, "start_1": 1, "corridor": 2, "junction_0": 0, "junction_1": 1, "goal_left": 3, "goal_right": 4}
+    env = DigitTMaze(3, torch.Generator().manual_seed(0), data, classes, reservoir_size=4, binarize_threshold=None,
+                     corridor_length=3, max_steps=10, matching=True)
+    pools = {c: data.train_images[data.train_labels == c][:4] for c in range(5)}
+    for name, label in classes.items():
+        n = env.observation_names.index(name)
+        assert torch.equal(env.observation_table[n * 4:(n + 1) * 4], pools[label])
+    with pytest.raises(ValueError, match="env.reservoir_size"):
+        DigitTMaze(1, torch.Generator(), data, classes, reservoir_size=10_000, matching=True)

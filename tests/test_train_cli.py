@@ -58,14 +58,17 @@ def test_same_seed_same_numbers(tmp_path, tiny_run):
 
 
 @pytest.mark.parametrize("override", ["env.noise=1.5", "actor.n_hidden=0", "actor.td_rule=td_lambda",
-                                      "data=mnist_idx", "actor.foo=1", "experiment=nope"])
+                                      "data=mnist_idx", "actor.foo=1", "experiment=nope",
+                                      # found once the data are loaded: the embedded subset has 100 per class
+                                      "experiment=table5_1_pixel env.reservoir_size=101",
+                                      "experiment=table5_1_pixel preprocessor.cd_k=0"])
 def test_bad_input_one_line_nothing_written(tmp_path, override):
     run_dir = tmp_path / "out" / "run"
-    result = run_train(override, f"hydra.run.dir={run_dir}")
+    result = run_train(*override.split(), f"hydra.run.dir={run_dir}")
     assert result.returncode != 0
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("ferl: error:"), result.stderr
-    assert override.split("=")[0].split(".")[-1] in lines[0]
+    assert override.split()[-1].split("=")[0].split(".")[-1] in lines[0]
     assert not (tmp_path / "out").exists()
 
 

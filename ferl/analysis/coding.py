@@ -1,9 +1,11 @@
-"""Population coding and behaviour statistics of the digit floor (§3.5).
+"""Population coding and behaviour statistics (§3.5, §4.3, §5.3).
 
 Pure numpy/scipy: median firing rates (Eq. 3.12), their Gram matrix and the
 derived distance D = g1ᵀ + 1gᵀ − 2G (§3.5.3), hierarchical clustering of D,
-the pixel–label mutual information behind Fig. 3.12, and the greedy-action
-accuracy read off Fig. 3.6.
+the pixel–label mutual information behind Fig. 3.12, moving averages and the
+s.e.m. over runs, and the PCA with the silhouette of labelled points on the
+leading PCs that scores the separation of T-junction activations
+(Figs. 4.14–4.19, 5.7–5.13, 5.20–5.25) and of digit classes (Figs. 5.15–5.16).
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ from typing import Sequence
 
 import numpy as np
 from scipy.cluster.hierarchy import linkage
-from scipy.spatial.distance import squareform
+from scipy.spatial.distance import cdist, squareform
 from scipy.special import entr
 
 
@@ -132,3 +134,64 @@ def moving_average(values: np.ndarray, window: int = 100) -> np.ndarray:
     csum = np.cumsum(values, axis=-1)
     csum = np.concatenate([np.zeros(values.shape[:-1] + (1,)), csum], axis=-1)
     return (csum[..., window:] - csum[..., :-window]) / window
+
+
+# ---- PCA and the separation of labelled points (§4.3.2, §5.3) ----------------
+
+def silhouette_score(points: np.ndarray, labels: np.ndarray) -> float:
+    """Mean silhouette coefficient (Rousseeuw, 1987) of a labelling, Euclidean distance.
+
+    s_i = (b_i − a_i) / max(a_i, b_i), with a_i the mean distance of point i to the
+    other members of its cluster and b_i the smallest mean distance to another
+    cluster; s_i = 0 in a singleton cluster or where a_i = b_i = 0. NaN with fewer
+    than two labels.
+    """
+    x = np.asarray(points, dtype=np.float64)
+    classes, idx = np.unique(np.asarray(labels), return_inverse=True)
+    if len(classes) < 2:
+        return float("nan")
+    member = np.eye(len(classes))[idx]                       # (n, k) one-hot
+    counts = member.sum(axis=0)
+    sums = cdist(x, x) @ member                              # (n, k) distance to each cluster
+    rows = np.arange(len(x))
+    own = counts[idx]
+    a = sums[rows, idx] / np.maximum(own - 1, 1)
+    to_other = sums / counts
+    to_other[rows, idx] = np.inf
+    b = to_other.min(axis=1)
+    denom = np.maximum(a, b)
+    s = np.where((own > 1) & (denom > 0), (b - a) / np.where(denom > 0, denom, 1.0), 0.0)
+    return float(s.mean())
+
+
+def pca(x: np.ndarray, n_components: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """PCA by SVD of the centred data.
+
+    Returns the scores on the first `n_components` PCs, (n, n_components), zero where
+    there are fewer components (samples or units), and the explained-variance ratio
+    of every PC, one per unit (zeros past the rank).
+    """
+    x = np.asarray(x, dtype=np.float64)
+    u, s, _ = np.linalg.svd(x - x.mean(axis=0), full_matrices=False)
+    k = min(n_components, len(s))
+    scores = np.zeros((len(x), n_components))
+    scores[:, :k] = u[:, :k] * s[:k]
+    ratio = np.zeros(x.shape[1])
+    total = np.sum(s ** 2)
+    if total > 0:
+        ratio[:len(s)] = s ** 2 / total
+    return scores, ratio
+
+
+def _subsample(n: int, size: int) -> np.ndarray:
+    """The same `size` of n indices every time (deterministic, in order)."""
+    if n <= size:
+        return np.arange(n)
+    return np.sort(np.random.default_rng(0).choice(n, size, replace=False))
+
+
+def subsampled_silhouette(points: np.ndarray, labels: np.ndarray, max_points: int) -> float:
+    """`silhouette_score` of the same ≤ `max_points` points every time (bounds the O(n²)
+    distances)."""
+    keep = _subsample(len(points), max_points)
+    return silhouette_score(np.asarray(points)[keep], np.asarray(labels)[keep])

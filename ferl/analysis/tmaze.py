@@ -1,12 +1,17 @@
 """One T-maze run (chapters 4–5) → its figures, data files and judged claims.
 
-`TMazeRun` loads the T-maze records of docs/records.md plus `summary.json` and
-derives what the figures and claims share: the Eq. (4.7)–(4.8) prediction errors
-of each predictor (Figs. 4.5/4.10), 200-episode moving averages of the behaviour
-(Figs. 4.6–4.8, 4.11–4.13) and PCA projections of the activations at the
-T-junction with the silhouette of the task conditions on PC1–3 (Figs. 4.14–4.19).
-`analyze` writes the numbers into the run's `analysis/` folder and returns the
-figures and claims for the report.
+`TMazeRun` loads the T-maze records of docs/records.md plus `summary.json` and the
+run's `.hydra/config.yaml`, and derives what the figures and claims share: the
+prediction errors of each predictor (Eq. 4.8; Figs. 4.5/4.10, and 5.2/5.17 for the
+observation and reward predictors of chapter 5), 200-episode moving averages of the
+behaviour (Figs. 4.6–4.8, 4.11–4.13, 5.3–5.6, 5.18–5.19) and PCA projections of the
+activations at the T-junction with the silhouette of the task conditions and, for
+memories, of the initial signal on PC1–3 (Figs. 4.14–4.19, 5.7–5.13, 5.20–5.25).
+A run is chapter 5 (Algorithm 2) when its predictors are not the single `joint` one of
+Algorithm 1; its RBM preprocessor, where it has one, is analysed by
+`ferl.analysis.preprocessor` (Figs. 5.15–5.16). `Numbering` maps every figure to the
+dissertation's. `analyze` writes the numbers into the run's `analysis/` folder and
+returns the figures and claims for the report.
 """
 
 from __future__ import annotations
@@ -18,18 +23,20 @@ from functools import cached_property
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.distance import cdist
+import yaml
 
+from ferl.analysis import preprocessor as preproc
 from ferl.analysis import tmaze_figures as figs
-from ferl.analysis.coding import moving_average, sem_over_runs
+from ferl.analysis.coding import moving_average, pca, sem_over_runs, subsampled_silhouette
 from ferl.analysis.floor import _fmt, _load_npz, _write_csv
 from ferl.analysis.report import TMAZE_CLAIMS, RunAnalysis, evaluate
+from ferl.envs.tmaze import observation_names
 
 TASK = "tmaze"
 WINDOW = 200                  # moving-average window of Figs. 4.6–4.8, 4.11–4.13
 PHASE_EPISODES = 1000         # "first / last 1000 episodes" of Figs. 4.14–4.19
 N_PCS = 3                     # separation is scored on PC1–3, the space of Fig. 4.19(b)
-L_TRAINING = 5                # Tables 4.1/4.2; the records do not carry it
+L_TRAINING = 5                # Tables 4.1/4.2/5.1, for runs without trainer.l_training
 GOAL_REWARD = 5.0             # terminal reward at the correct goal (§4.3.1)
 MAX_SILHOUETTE_POINTS = 2000  # visits per run and phase; bounds the O(n²) distances
 PHASES = ("first", "last")
@@ -43,54 +50,10 @@ CURVES = {  # episodes.npz key → (axis label, optimum: TMazeRun attribute, num
     "correct_goal": ("correct-goal rate", 1.0),
     "td_abs_mean": ("mean |δ| per episode", None),
 }
+LABELLINGS = {"condition": "conditions", "initial_signal": "initial signal"}
 
 
 # ---- numbers -----------------------------------------------------------------
-
-def silhouette_score(points: np.ndarray, labels: np.ndarray) -> float:
-    """Mean silhouette coefficient (Rousseeuw, 1987) of a labelling, Euclidean distance.
-
-    s_i = (b_i − a_i) / max(a_i, b_i), with a_i the mean distance of point i to the
-    other members of its cluster and b_i the smallest mean distance to another
-    cluster; s_i = 0 in a singleton cluster or where a_i = b_i = 0. NaN with fewer
-    than two labels.
-    """
-    x = np.asarray(points, dtype=np.float64)
-    classes, idx = np.unique(np.asarray(labels), return_inverse=True)
-    if len(classes) < 2:
-        return float("nan")
-    member = np.eye(len(classes))[idx]                       # (n, k) one-hot
-    counts = member.sum(axis=0)
-    sums = cdist(x, x) @ member                              # (n, k) distance to each cluster
-    rows = np.arange(len(x))
-    own = counts[idx]
-    a = sums[rows, idx] / np.maximum(own - 1, 1)
-    to_other = sums / counts
-    to_other[rows, idx] = np.inf
-    b = to_other.min(axis=1)
-    denom = np.maximum(a, b)
-    s = np.where((own > 1) & (denom > 0), (b - a) / np.where(denom > 0, denom, 1.0), 0.0)
-    return float(s.mean())
-
-
-def pca(x: np.ndarray, n_components: int = N_PCS) -> tuple[np.ndarray, np.ndarray]:
-    """PCA by SVD of the centred data.
-
-    Returns the scores on the first `n_components` PCs, (n, n_components), zero where
-    there are fewer components (samples or units), and the explained-variance ratio
-    of every PC, one per unit (zeros past the rank).
-    """
-    x = np.asarray(x, dtype=np.float64)
-    u, s, _ = np.linalg.svd(x - x.mean(axis=0), full_matrices=False)
-    k = min(n_components, len(s))
-    scores = np.zeros((len(x), n_components))
-    scores[:, :k] = u[:, :k] * s[:k]
-    ratio = np.zeros(x.shape[1])
-    total = np.sum(s ** 2)
-    if total > 0:
-        ratio[:len(s)] = s ** 2 / total
-    return scores, ratio
-
 
 def curve(values: np.ndarray, window: int = WINDOW) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(R, N) per-episode values → (episode, mean, s.e.m. over runs) of the trailing
@@ -108,11 +71,53 @@ def nanmean(x: np.ndarray, axis=None) -> np.ndarray:
         return np.nanmean(x, axis=axis)
 
 
-def _subsample(n: int, size: int) -> np.ndarray:
-    """The same `size` of n indices every time (deterministic, in order)."""
-    if n <= size:
-        return np.arange(n)
-    return np.sort(np.random.default_rng(0).choice(n, size, replace=False))
+@dataclass(frozen=True)
+class LayerFigures:
+    """Where the dissertation shows a junction layer: its activations, their PCA per phase with
+    the explained variance, and the projection on PC1–3 (None: not shown, not drawn)."""
+    activations: str
+    pca: str
+    pca3d: str | None = None
+
+
+@dataclass(frozen=True)
+class Numbering:
+    """The dissertation's figures of one model (chapter 4: Algorithm 1, one `joint` predictor;
+    chapter 5: Algorithm 2, `observation` and `reward` predictors) on one maze."""
+    parameters: str                  # the table of parameters (L_training)
+    prediction_errors: str
+    predictor_panels: dict[str, str]  # predictor → its panel of the prediction-error figure
+    learning_curves: str
+    td_errors: str
+    layers: dict[str, LayerFigures]  # junction layer → figures; "memory": any other memory
+
+    def prediction_figure(self, name: str) -> str:
+        return self.prediction_errors + self.predictor_panels.get(name, "")
+
+    def layer(self, name: str) -> LayerFigures:
+        return self.layers.get(name, self.layers["memory"])
+
+
+CH4_LAYERS = {"memory": LayerFigures("Fig. 4.14(a)", "Fig. 4.14(b)"),
+              "state": LayerFigures("Fig. 4.15(a)", "Figs. 4.15(b)/4.16"),
+              "hidden": LayerFigures("Fig. 4.17(a)", "Figs. 4.17(b)/4.19(a)", "Fig. 4.19(b)")}
+CH4_REGULAR = Numbering("Tables 4.1/4.2", "Fig. 4.5", {}, "Figs. 4.6–4.7", "Fig. 4.8", CH4_LAYERS)
+CH4_MATCHING = Numbering("Tables 4.1/4.2", "Fig. 4.10", {}, "Figs. 4.11–4.12", "Fig. 4.13",
+                         CH4_LAYERS)
+CH5_PANELS = {"observation": "(a)", "reward": "(b)"}  # Figs. 5.2/5.17: (a) Eq. 5.1, (b) Eq. 5.2
+CH5_BIT = Numbering("Table 5.1", "Fig. 5.2", CH5_PANELS, "Figs. 5.3–5.5", "Fig. 5.6", {
+    "memory": LayerFigures("Figs. 5.7–5.8(a)", "Figs. 5.7–5.8(b)"),
+    "memory_reward": LayerFigures("Fig. 5.7(a)", "Fig. 5.7(b)"),
+    "memory_observation": LayerFigures("Fig. 5.8(a)", "Fig. 5.8(b)"),
+    "state": LayerFigures("Fig. 5.9(a)", "Figs. 5.9(b)/5.10(a)", "Fig. 5.10(b)"),
+    "hidden": LayerFigures("Figs. 5.11(a)/5.12", "Figs. 5.11(b)/5.13(a)", "Fig. 5.13(b)")})
+CH5_DIGIT = Numbering("Table 5.1", "Fig. 5.17", CH5_PANELS, "Figs. 5.18–5.19(a–b)",
+                      "Fig. 5.19(c–d)", {
+    "memory": LayerFigures("Figs. 5.20–5.21(a)", "Figs. 5.20–5.21(b)"),
+    "memory_reward": LayerFigures("Fig. 5.20(a)", "Fig. 5.20(b)"),
+    "memory_observation": LayerFigures("Fig. 5.21(a)", "Fig. 5.21(b)"),
+    "state": LayerFigures("Fig. 5.22(a)", "Figs. 5.22(b)/5.23(a)", "Fig. 5.23(b)"),
+    "hidden": LayerFigures("Figs. 5.24(a)/5.25(a)", "Figs. 5.24(b)/5.25(b)")})
 
 
 @dataclass(frozen=True)
@@ -132,13 +137,19 @@ class TMazeRun:
     predictor: dict[str, np.ndarray]
     episodes: dict[str, np.ndarray]
     junction: dict[str, np.ndarray]
+    config: dict                                # .hydra/config.yaml; {} without one
+    preprocessor: dict[str, np.ndarray] | None  # records/preprocessor.npz (Algorithm 2)
 
     @classmethod
     def load(cls, run_dir: Path) -> TMazeRun:
         records = run_dir / "records"
+        config = run_dir / ".hydra" / "config.yaml"
+        rbm = records / "preprocessor.npz"
         return cls(run_dir, json.loads((run_dir / "summary.json").read_text()),
                    _load_npz(records / "predictor.npz"), _load_npz(records / "episodes.npz"),
-                   _load_npz(records / "junction.npz"))
+                   _load_npz(records / "junction.npz"),
+                   (yaml.safe_load(config.read_text()) if config.is_file() else None) or {},
+                   _load_npz(rbm) if rbm.is_file() else None)
 
     # ---- the task ----
     @property
@@ -164,8 +175,10 @@ class TMazeRun:
 
     @property
     def digit(self) -> bool:
-        """Digit observations (§4.3.3); only the experiment's name tells."""
-        return "digit" in self.experiment.lower()
+        """Digit observations (§4.3.3, §5.3.2): a DigitTMaze in the run's config or, without
+        a config, "digit" in the experiment's name."""
+        target = self.config.get("env", {}).get("_target_")
+        return "DigitTMaze" in target if target else "digit" in self.experiment.lower()
 
     @property
     def variant(self) -> str:
@@ -173,8 +186,25 @@ class TMazeRun:
 
     @property
     def chapter4(self) -> bool:
-        """The one-predictor model of Algorithm 1, whose figures chapter 4 shows."""
+        """The one-predictor model of Algorithm 1, whose figures chapter 4 shows; any other
+        set of predictors is the model of Algorithm 2 (chapter 5)."""
         return self.predictors == ["joint"]
+
+    @property
+    def numbering(self) -> Numbering:
+        if self.chapter4:
+            return CH4_MATCHING if self.matching else CH4_REGULAR
+        return CH5_DIGIT if self.digit else CH5_BIT
+
+    @cached_property
+    def preprocessing(self) -> preproc.Preprocessing | None:
+        """The RBM preprocessor's images and codes (Figs. 5.15–5.16); None without one."""
+        if self.preprocessor is None:
+            return None
+        env = self.config.get("env", {})
+        return preproc.Preprocessing.from_records(
+            self.preprocessor, observation_names(env.get("matching", self.matching)),
+            env.get("digit_classes") or {})
 
     @property
     def optimal_return(self) -> float:
@@ -194,7 +224,7 @@ class TMazeRun:
     def condition_title(self) -> str:
         return "(initial, junction) signal" if self.matching else "initial signal"
 
-    # ---- predictors (Figs. 4.5/4.10) ----
+    # ---- predictors (Figs. 4.5/4.10, 5.2/5.17) ----
     @cached_property
     def predictors(self) -> list[str]:
         suffix = "_error_train"
@@ -207,17 +237,25 @@ class TMazeRun:
         return self.predictor[f"{name}_epochs"].astype(np.int64)
 
     def errors(self, name: str, split: str) -> np.ndarray:
-        """(R, E, nT, Tmax+1) Eq. (4.7) errors, NaN for t > T."""
+        """(R, E, nT, Tmax+1) Eq. (4.7) errors (chapter 5: figs.ERROR_UNITS), NaN for t > T."""
         return self.predictor[f"{name}_error_{split}"].astype(np.float64)
 
-    def trained_max(self, name: str) -> int:
-        """Longest trained step-length, T_min + L_training − 1 (Algorithm 1)."""
-        return int(self.lengths(name).min()) + L_TRAINING - 1
+    @property
+    def l_training(self) -> int:
+        return int(self.config.get("trainer", {}).get("l_training", L_TRAINING))
 
-    # ---- behaviour (Figs. 4.6–4.8, 4.11–4.13) ----
+    def trained_max(self, name: str) -> int:
+        """Longest trained step-length, T_min + L_training − 1 (Algorithms 1–2)."""
+        return int(self.lengths(name).min()) + self.l_training - 1
+
+    # ---- behaviour (Figs. 4.6–4.8, 4.11–4.13, 5.3–5.6, 5.18–5.19) ----
     @cached_property
     def curves(self) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
         return {key: curve(self.episodes[key]) for key in CURVES}
+
+    def each_run(self, key: str) -> np.ndarray:
+        """(R, N − WINDOW + 1) moving average of every run (Figs. 4.6(b), 5.3(b), 5.18(b))."""
+        return moving_average(self.episodes[key], WINDOW)
 
     def optimum(self, key: str) -> float | None:
         target = CURVES[key][1]
@@ -229,7 +267,7 @@ class TMazeRun:
         return (values[:, :WINDOW] if first else values[:, -WINDOW:]).mean(axis=1)
 
     def error_trend(self, name: str, early_epochs: float) -> dict[str, float]:
-        """Figs. 4.5/4.10 in numbers: the Eq. (4.8) error averaged over runs, step-lengths
+        """Figs. 4.5/4.10/5.2/5.17 in numbers: the error averaged over runs, step-lengths
         and steps t ≥ 1 (t = 0 predicts the random initial signal and cannot improve, §4.3.1).
 
         `initial`/`final`: training data of the trained lengths at the first/last epoch;
@@ -252,7 +290,7 @@ class TMazeRun:
     def metric(self, name: str) -> np.ndarray:
         return np.asarray(self.summary["metrics"][name], dtype=np.float64)
 
-    # ---- the T-junction (Figs. 4.14–4.19) ----
+    # ---- the T-junction (Figs. 4.14–4.19, 5.7–5.13, 5.20–5.25) ----
     @cached_property
     def layers(self) -> list[str]:
         """Activation layers recorded at the junction: memories, actor state, actor hidden."""
@@ -302,8 +340,9 @@ class TMazeRun:
         if key not in self._projections:
             visits = self.phase_visits(phase, r)
             visits = visits[~self.nonfinite_visits(layer)[visits]]
-            self._projections[key] = (Projection(visits, *pca(self.junction[layer][visits]))
-                                      if len(visits) >= 2 else None)
+            self._projections[key] = (
+                Projection(visits, *pca(self.junction[layer][visits], N_PCS))
+                if len(visits) >= 2 else None)
         return self._projections[key]
 
     def separation_labels(self, layer: str) -> list[str]:
@@ -323,9 +362,8 @@ class TMazeRun:
                         proj = self.projection(layer, phase, r)
                         if proj is None:
                             continue
-                        keep = _subsample(len(proj.visits), MAX_SILHOUETTE_POINTS)
-                        scores[p, r] = silhouette_score(proj.scores[keep],
-                                                        self.junction[labels][proj.visits[keep]])
+                        scores[p, r] = subsampled_silhouette(
+                            proj.scores, self.junction[labels][proj.visits], MAX_SILHOUETTE_POINTS)
                 out[layer, labels] = scores
         return out
 
@@ -337,17 +375,13 @@ class TMazeRun:
 
 
 def layer_label(layer: str) -> str:
-    if layer.startswith("memory"):
-        part = layer[len("memory"):].strip("_")
-        return f"predictor memory{f' ({part})' if part else ''}"
-    return {"state": "actor state (y, m)", "hidden": "actor hidden ĥ"}.get(layer, layer)
-
-
-def _layer_figures(layer: str) -> tuple[str, str]:
-    """Dissertation figures of a layer's (activations, PCA + explained variance)."""
-    return {"state": ("Fig. 4.15(a)", "Figs. 4.15(b)/4.16"),
-            "hidden": ("Fig. 4.17(a)", "Figs. 4.17(b)/4.19(a)")}.get(
-        layer, ("Fig. 4.14(a)", "Fig. 4.14(b)"))
+    named = {"memory_observation": "observation-predictor memory m^y",
+             "memory_reward": "reward-predictor memory m^r",
+             "state": "actor state (y, m)", "hidden": "actor hidden ĥ"}
+    if layer in named or not layer.startswith("memory"):
+        return named.get(layer, layer)
+    part = layer[len("memory"):].strip("_")
+    return f"predictor memory{f' ({part})' if part else ''}"
 
 
 # ---- data files ------------------------------------------------------------
@@ -362,8 +396,10 @@ def write_tables(run: TMazeRun, out: Path) -> list[str]:
 
     episodes = run.curves["discounted_return"][0]
     columns = [column for key in CURVES for column in run.curves[key][1:]]  # mean, sem
+    columns += list(run.each_run("discounted_return"))
     table("learning_curves.csv",
-          ["episode", *(f"{k}_ma{WINDOW}_{s}" for k in CURVES for s in ("mean", "sem"))],
+          ["episode", *(f"{k}_ma{WINDOW}_{s}" for k in CURVES for s in ("mean", "sem")),
+           *(f"discounted_return_ma{WINDOW}_run_{r}" for r in range(run.n_runs))],
           [(int(e), *(_fmt(c[i]) for c in columns)) for i, e in enumerate(episodes)])
 
     for name in run.predictors:
@@ -394,6 +430,8 @@ def write_tables(run: TMazeRun, out: Path) -> list[str]:
                for layer in run.layers for phase in PHASES
                for ratio in [run.explained(layer, phase)] for sem in [sem_over_runs(ratio)]
                for k in range(ratio.shape[1])])
+    if run.preprocessing is not None:
+        written += preproc.write_tables(run.preprocessing, out)
     return written
 
 
@@ -404,66 +442,73 @@ def _junction_figures(run: TMazeRun, layer: str) -> dict[str, tuple]:
     j, r = run.junction, FIGURE_RUN
     mine = j["run"] == r
     what = f"{layer_label(layer)} at the T-junction, run {r}"
-    fig_a, fig_b = _layer_figures(layer)
+    numbers = run.numbering.layer(layer)
     out[f"junction_{layer}_activations"] = (
         figs.junction_activations(j[layer][mine].astype(np.float64), j["condition"][mine],
                                   j["episode"][mine], run.condition_names, run.condition_title,
                                   what),
-        f"{fig_a}: {what}, every visit, sorted by condition then episode")
+        f"{numbers.activations}: {what}, every visit, sorted by condition then episode")
     panels, explained = [], []
     for p, phase in enumerate(PHASES):
         proj = run.projection(layer, phase, r)
         if proj is None:
             continue
-        sil = run.separation[layer, "condition"][p, r]
-        panels.append((f"{run.phase_label(phase)}\nsilhouette of the conditions on PC1–3: "
-                       f"{sil:.2f}", proj.scores, j["condition"][proj.visits],
-                       run.steps_to_goal[proj.visits]))
+        scores = ", ".join(f"{LABELLINGS[labels]} {run.separation[layer, labels][p, r]:.2f}"
+                           for labels in run.separation_labels(layer))
+        panels.append((f"{run.phase_label(phase)}\nsilhouette on PC1–3: {scores}",
+                       proj.scores, j["condition"][proj.visits], run.steps_to_goal[proj.visits]))
         explained.append((run.phase_label(phase), proj.explained))
     if not panels:
         return out
     out[f"junction_{layer}_pca"] = (
         figs.junction_pca(panels, explained, run.condition_names, run.condition_title,
                           (run.optimal_steps, run.max_steps),
-                          f"{what}: PCA fit separately on each phase's visits; "
+                          f"{numbers.pca}: {what}: PCA fit separately on each phase's visits; "
                           "marker size = steps to the goal"),
-        f"{fig_b}: {what}, PC1–2 and explained-variance ratios of the PCA fit on the visits "
-        f"of the first and, separately, the last {run.phase_episodes} episodes")
-    if layer == "hidden":
-        out["junction_hidden_pca3d"] = (
+        f"{numbers.pca}: {what}, PC1–2 and explained-variance ratios of the PCA fit on the "
+        f"visits of the first and, separately, the last {run.phase_episodes} episodes")
+    if numbers.pca3d:
+        out[f"junction_{layer}_pca3d"] = (
             figs.junction_pca3d([(t, s, c) for t, s, c, _ in panels], run.condition_names,
-                                run.condition_title, f"{what}: projection on PC1–3"),
-            f"Fig. 4.19(b): {what} on PC1–3, PCA fit per phase as in junction_hidden_pca")
+                                run.condition_title,
+                                f"{numbers.pca3d}: {what}: projection on PC1–3"),
+            f"{numbers.pca3d}: {what} on PC1–3, PCA fit per phase as in junction_{layer}_pca")
     return out
 
 
 def make_figures(run: TMazeRun) -> dict[str, tuple]:
-    """name → (Figure, caption) for every chapter-4 figure this run's records support."""
-    out = {}
-    pe, lc, td = ("4.10", "4.11–4.12", "4.13") if run.matching else ("4.5", "4.6–4.7", "4.8")
+    """name → (Figure, caption) for every chapter-4/5 figure this run's records support."""
+    out = {} if run.preprocessing is None else preproc.make_figures(run.preprocessing)
+    num = run.numbering
     for name in run.predictors:
+        fig_no = num.prediction_figure(name)
+        units = figs.ERROR_UNITS.get(name, "prediction error")
         out[f"prediction_errors_{name}"] = (
             figs.prediction_errors(nanmean(run.errors(name, "train"), axis=0),
                                    nanmean(run.errors(name, "test"), axis=0),
                                    run.lengths(name), run.epochs(name), run.trained_max(name),
-                                   f"Fig. {pe}: prediction errors of the `{name}` predictor, "
+                                   units,
+                                   f"{fig_no}: prediction errors of the `{name}` predictor, "
                                    f"mean over {run.n_runs} runs ({run.variant} T-maze)"),
-            f"Fig. {pe}: Eq. (4.8) prediction error of `{name}` per epoch × step, "
+            f"{fig_no}: {units.splitlines()[0]} of the `{name}` predictor per epoch × step, "
             "train (top) / test (bottom) by step-length T")
     episodes = run.curves["discounted_return"][0]
     panels = [(CURVES[k][0], *run.curves[k][1:], run.optimum(k))
               for k in CURVES if k != "td_abs_mean"]
     out["learning_curves"] = (
-        figs.learning_curves(episodes, panels, WINDOW, run.n_runs,
-                             f"Figs. {lc}: {run.variant} T-maze ({run.experiment})"),
-        f"Figs. {lc}: discounted return, steps to the goal, terminal reward and correct-goal "
-        "rate; moving average, mean ± s.e.m. over runs, optimum dotted")
+        figs.learning_curves(episodes, panels,
+                             (CURVES["discounted_return"][0], run.each_run("discounted_return"),
+                              run.optimal_return), WINDOW, run.n_runs,
+                             f"{num.learning_curves}: {run.variant} T-maze ({run.experiment})"),
+        f"{num.learning_curves}: discounted return, steps to the goal, terminal reward and "
+        "correct-goal rate; moving average, mean ± s.e.m. over runs, optimum dotted; the "
+        "discounted return of each run")
     out["td_errors"] = (
         figs.td_errors(episodes, *run.curves["td_abs_mean"][1:], WINDOW, run.n_runs,
                        run.episodes["td_sampled"][FIGURE_RUN],
                        run.episodes["td_sampled_episodes"],
-                       f"Fig. {td}: TD errors ({run.variant} T-maze)"),
-        f"Fig. {td}: (a) moving average of the episode-mean |δ|, mean ± s.e.m.; "
+                       f"{num.td_errors}: TD errors ({run.variant} T-maze)"),
+        f"{num.td_errors}: (a) moving average of the episode-mean |δ|, mean ± s.e.m.; "
         f"(b) per-step δ of the sampled episodes of run {FIGURE_RUN}")
     for layer in run.layers:
         out |= _junction_figures(run, layer)
@@ -473,9 +518,9 @@ def make_figures(run: TMazeRun) -> dict[str, tuple]:
 def _header(run: TMazeRun) -> list[tuple[str, str]]:
     predictors = "; ".join(
         f"`{name}`: T = {run.lengths(name).min()}…{run.lengths(name).max()}, trained on "
-        f"T ≤ {run.trained_max(name)} (L_training = {L_TRAINING}, Tables 4.1/4.2), "
-        f"{len(run.epochs(name))} logged epochs up to {run.epochs(name)[-1]}"
-        for name in run.predictors)
+        f"T ≤ {run.trained_max(name)} (L_training = {run.l_training}, "
+        f"{run.numbering.parameters}), {len(run.epochs(name))} logged epochs up to "
+        f"{run.epochs(name)[-1]}" for name in run.predictors)
     junction = (f"{len(run.junction['run'])} visits; layers "
                 f"{', '.join(f'`{k}` ({run.junction[k].shape[1]} units)' for k in run.layers)}; "
                 f"PCA (SVD) fit per run on the visits of the first and, separately, the last "
@@ -486,10 +531,12 @@ def _header(run: TMazeRun) -> list[tuple[str, str]]:
     if any(dropped.values()):
         junction += "; left out for non-finite activations: " + ", ".join(
             f"`{k}` {n} visits" for k, n in dropped.items() if n)
-    return [
+    header = [
         ("run directory", f"`{run.run_dir}`"),
         ("experiment", run.experiment),
         ("seeds", str(run.summary.get("seeds", "?"))),
+        ("model", "Algorithm 1, one joint predictor (chapter 4)" if run.chapter4 else
+                  "Algorithm 2, separate observation and reward predictors (chapter 5)"),
         ("task", f"{run.variant} T-maze, T_min = {run.optimal_steps:g}, "
                  f"T_max = {run.max_steps}"),
         ("runs × actor episodes", f"{run.n_runs} × {run.n_episodes}"),
@@ -499,6 +546,9 @@ def _header(run: TMazeRun) -> list[tuple[str, str]]:
         ("moving averages", f"{WINDOW} episodes, mean ± s.e.m. over runs"),
         ("junction analysis", junction),
     ]
+    if run.preprocessing is not None:
+        header.append(("preprocessor", preproc.describe(run.preprocessing)))
+    return header
 
 
 def analyze(run_dir: Path, out: Path) -> RunAnalysis:

@@ -1,8 +1,9 @@
-"""Figures of chapter 4 (T-mazes, Figs. 4.5–4.19), drawn from run records.
+"""Figures of the T-mazes (chapter 4, Figs. 4.5–4.19; chapter 5, Figs. 5.2–5.25), drawn from
+run records.
 
 Like `floor_figures`, every function takes plain arrays and returns a
 `matplotlib.figure.Figure` built without pyplot. The numbers come from
-`ferl.analysis.tmaze`.
+`ferl.analysis.tmaze` and, for the RBM preprocessor of §5.3.2, `ferl.analysis.preprocessor`.
 """
 
 from __future__ import annotations
@@ -15,7 +16,11 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.ticker import MaxNLocator
 
-ERROR_UNITS = "weighted absolute error, Eq. 4.8\nρ_y Σ|y − ŷ| + ρ_r Σ|r − r̂|"
+ERROR_UNITS = {  # predictor → its recorded error measure (Eq. 4.8; Figs. 5.2/5.17 (a) and (b))
+    "joint": "Eq. 4.8 weighted absolute error\nρ_y Σ|y − ŷ| + ρ_r Σ|r − r̂|",
+    "observation": "absolute error Σ|y − ŷ|\n(processed observations)",
+    "reward": "squared error (r − r̂)²\n(scalar reward)",
+}
 MARKER_SIZES = (6.0, 60.0)  # scatter area of the shortest / longest episode (Fig. 4.14b)
 
 
@@ -33,8 +38,9 @@ def _condition_colors(n: int) -> list:
 
 
 def prediction_errors(train: np.ndarray, test: np.ndarray, lengths: np.ndarray,
-                      epochs: np.ndarray, trained_max: int, title: str) -> Figure:
-    """Figs. 4.5/4.10: run-mean error (E, nT, Tmax+1); rows train/test, one column per T."""
+                      epochs: np.ndarray, trained_max: int, units: str, title: str) -> Figure:
+    """Figs. 4.5/4.10/5.2/5.17: run-mean error (E, nT, Tmax+1); rows train/test, one column
+    per T; `units` names the error measure on the colour bar."""
     n_lengths = len(lengths)
     # The untrained epoch 0 can be many times the rest; a 99th-percentile top (epoch 0
     # saturates) keeps the learning visible.
@@ -55,7 +61,7 @@ def prediction_errors(train: np.ndarray, test: np.ndarray, lengths: np.ndarray,
             if row == 1:
                 ax.set_xlabel("step t")
         axes[row, 0].set_ylabel("predictor epoch")
-    fig.colorbar(im, ax=axes, label=ERROR_UNITS, shrink=0.8, extend=extend)
+    fig.colorbar(im, ax=axes, label=units, shrink=0.8, extend=extend)
     fig.suptitle(title)
     return fig
 
@@ -69,23 +75,36 @@ def _curve(ax, episodes: np.ndarray, mean: np.ndarray, sem: np.ndarray,
         ax.legend(loc="best", fontsize="small")
 
 
-def learning_curves(episodes: np.ndarray, panels: Sequence[tuple], window: int,
-                    n_runs: int, title: str) -> Figure:
-    """Figs. 4.6–4.7 / 4.11–4.12: moving averages, mean ± s.e.m. over runs.
+def learning_curves(episodes: np.ndarray, panels: Sequence[tuple], each_run: tuple,
+                    window: int, n_runs: int, title: str) -> Figure:
+    """Figs. 4.6–4.7 / 4.11–4.12 / 5.3–5.5 / 5.18–5.19(a–b): moving averages, mean ± s.e.m.
+    over runs, and one measure in every run (Figs. 4.6(b), 5.3(b), 5.18(b)).
 
-    `panels` holds (label, mean, sem, optimum or None) per measure.
+    `panels` holds (label, mean, sem, optimum or None) per measure, `each_run`
+    (label, moving averages (R, len(episodes)), optimum or None).
     """
     ncols = 2
-    nrows = -(-len(panels) // ncols)
+    nrows = -(-(len(panels) + 1) // ncols)
     fig = Figure(figsize=(11, 3.4 * nrows), layout="constrained")
     axes = fig.subplots(nrows, ncols, squeeze=False, sharex=True).ravel()
     for ax, (label, mean, sem, optimum) in zip(axes, panels):
         _curve(ax, episodes, mean, sem, optimum)
         ax.set_ylabel(label)
-    for ax in axes[len(panels):]:
-        ax.set_axis_off()
+    label, per_run, optimum = each_run
+    ax = axes[len(panels)]
+    for r, values in enumerate(per_run):
+        ax.plot(episodes, values, lw=0.8, label=f"run {r}" if len(per_run) <= 10 else None)
+    if optimum is not None:
+        ax.axhline(optimum, color="k", ls=":")
+    ax.set_ylabel(f"{label}, each run")
+    if len(per_run) <= 10:
+        ax.legend(fontsize="x-small", ncols=2, loc="best")
     for ax in axes[-ncols:]:
         ax.set_xlabel("actor episode")
+    for k in range(len(panels) + 1, len(axes)):  # empty cells: label the panel above
+        axes[k].set_axis_off()
+        axes[k - ncols].xaxis.set_tick_params(labelbottom=True)
+        axes[k - ncols].set_xlabel("actor episode")
     fig.suptitle(f"{title}\n{window}-episode moving average, mean ± s.e.m. over {n_runs} runs; "
                  "dotted: optimum")
     return fig
@@ -180,26 +199,70 @@ def junction_pca(panels: Sequence[tuple], explained: Sequence[tuple],
     ax.set_xticks(range(1, n_show + 1))
     ax.set_xlabel("principal component")
     ax.set_ylabel("explained variance ratio")
-    ax.set_title("contribution of each PC (Figs. 4.16 / 4.19a)", fontsize="small")
+    ax.set_title("contribution of each PC", fontsize="small")
     ax.legend(fontsize="x-small")
     fig.suptitle(title)
     return fig
 
 
+def _pc3_scatter(ax, scores: np.ndarray, colors: np.ndarray, subtitle: str) -> None:
+    ax.scatter(scores[:, 0], scores[:, 1], scores[:, 2], c=colors, s=8, alpha=0.6,
+               linewidths=0, depthshade=False)
+    ax.set_xlabel("PC1")
+    ax.set_ylabel("PC2")
+    ax.set_zlabel("PC3")
+    ax.set_title(subtitle, fontsize="small")
+
+
 def junction_pca3d(panels: Sequence[tuple], condition_names: Sequence[str],
                    legend_title: str, title: str) -> Figure:
-    """Fig. 4.19(b): projection on PC1–3; `panels` holds (subtitle, scores (n, 3), condition)."""
+    """Figs. 4.19(b)/5.10(b)/5.13(b)/5.23(b): projection on PC1–3; `panels` holds
+    (subtitle, scores (n, 3), condition)."""
     fig = Figure(figsize=(12, 5.5), layout="constrained")
     colors = np.array(_condition_colors(len(condition_names)))
     for k, (subtitle, scores, condition) in enumerate(panels):
         ax = fig.add_subplot(1, len(panels), k + 1, projection="3d")
-        ax.scatter(scores[:, 0], scores[:, 1], scores[:, 2], c=colors[condition], s=8,
-                   alpha=0.6, linewidths=0, depthshade=False)
-        ax.set_xlabel("PC1")
-        ax.set_ylabel("PC2")
-        ax.set_zlabel("PC3")
-        ax.set_title(subtitle, fontsize="small")
+        _pc3_scatter(ax, scores, colors[condition], subtitle)
         if k == 0:
             _condition_legend(ax, condition_names, legend_title)
+    fig.suptitle(title)
+    return fig
+
+
+def class_pca(scores: np.ndarray, labels: np.ndarray, class_names: Sequence[str],
+              subtitle: str, spectra: Sequence[tuple], title: str) -> Figure:
+    """Figs. 5.15/5.16: (a) images projected on PC1–3, coloured by digit class; then one
+    panel of explained-variance ratios per (label, ratios) in `spectra` (Figs. 5.15(b–c),
+    5.16(b))."""
+    n_panels = 1 + len(spectra)
+    fig = Figure(figsize=(5.5 + 4.5 * len(spectra), 4.8), layout="constrained")
+    ax = fig.add_subplot(1, n_panels, 1, projection="3d")
+    _pc3_scatter(ax, scores, np.array(_condition_colors(len(class_names)))[labels],
+                 f"(a) {subtitle}")
+    _condition_legend(ax, class_names, "digit class")
+    for k, (label, ratio) in enumerate(spectra):
+        ax = fig.add_subplot(1, n_panels, k + 2)
+        ax.bar(np.arange(1, len(ratio) + 1), ratio, width=0.8 if len(ratio) <= 50 else 1.0)
+        ax.set_xlabel("principal component")
+        ax.set_ylabel("explained variance ratio")
+        ax.set_title(f"({'bcd'[k]}) {label}", fontsize="small")
+    fig.suptitle(title)
+    return fig
+
+
+def reconstruction_error(mean: np.ndarray, sem: np.ndarray, n_runs: int,
+                         held_out: tuple[float, float], title: str) -> Figure:
+    """The RBM preprocessor's training (§5.3.2): reconstruction error per sweep, mean ± s.e.m.
+    over runs, with the mean held-out error before and after training as points."""
+    fig = Figure(figsize=(7, 4.2), layout="constrained")
+    ax = fig.add_subplot()
+    sweeps = np.arange(1, len(mean) + 1)
+    _curve(ax, sweeps, mean, sem, None)
+    ax.plot([0, sweeps[-1]], held_out, "o", color="tab:red",
+            label="held-out images: before / after training")
+    ax.legend(fontsize="small")
+    ax.set_xlabel("sweep through the training images")
+    ax.set_ylabel("mean squared reconstruction error")
+    ax.set_title(f"mean ± s.e.m. over {n_runs} runs", fontsize="small")
     fig.suptitle(title)
     return fig

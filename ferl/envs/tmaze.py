@@ -8,9 +8,10 @@ otherwise; the episode is cut off after T_max actions. Regular maze: a signal s0
 start, s0 = 1 rewards the right goal. Matching maze: s0 at the start and s1 at the junction,
 s0 = s1 rewards the right goal (§4.3.2).
 
-Observations are ids into ``observation_table``: 7 bits (5 position + 2 signal, Fig. 4.3), or
-one fixed image per observation (the digit matching T-maze, §4.3.3). The dynamics are
-(position, action) tables, so a step is a few gathers.
+Observations are ids into ``observation_table``: 7 bits (5 position + 2 signal, Fig. 4.3), one
+fixed image per observation (the digit matching T-maze, §4.3.3), or a reservoir of K images per
+observation from which every visit draws one afresh (§5.3.2): observation n, image k has id
+n·K + k. The dynamics are (position, action) tables, so a step is a few gathers.
 """
 import numpy as np
 import torch
@@ -18,7 +19,7 @@ import torch
 ACTIONS = ("N", "E", "S", "W")
 N, E, S, W = range(4)
 POSITION_BITS = ("start", "corridor", "junction", "goal_left", "goal_right")
-STATE_KEYS = ("position", "t", "done", "initial_signal", "junction_signal")
+STATE_KEYS = ("position", "t", "done", "initial_signal", "junction_signal", "obs_id")
 
 
 def observation_names(matching: bool) -> tuple:
@@ -95,8 +96,13 @@ class TMaze:
             missing = [n for n in self.observation_names if n not in images]
             if missing:
                 raise ValueError(f"images: no image for observation(s) {missing}")
-            table = torch.stack([torch.as_tensor(images[n], dtype=torch.float32).reshape(-1)
-                                 for n in self.observation_names])
+            # each entry (V,) or a reservoir (K, V); all observations share one K
+            entries = [torch.as_tensor(images[n], dtype=torch.float32) for n in self.observation_names]
+            entries = [x.reshape(-1, x.shape[-1]) for x in entries]
+            if len({len(x) for x in entries}) > 1:
+                raise ValueError("images: every observation needs a reservoir of the same size")
+            table = torch.cat(entries)
+        self.reservoir_size = table.shape[0] // len(self.observation_names)
         self.observation_table = table.to(self.device)
         self.observation_size = self.observation_table.shape[1]
 
@@ -123,9 +129,17 @@ class TMaze:
         return torch.randint(2, (self.n_runs,), generator=self.generator, device=self.device)
 
     @property
-    def obs_id(self) -> torch.Tensor:
+    def observation_class(self) -> torch.Tensor:
+        """Index into ``observation_names`` of what every run sees now."""
         signals = 2 * self.initial_signal + self.junction_signal.clamp(min=0)
         return self.observation_id_table.index_select(0, 4 * self.position + signals)
+
+    def _draw_observation(self) -> None:
+        """Fix the observation id of the current visit; a reservoir draws a fresh image (§5.3.2)."""
+        self.obs_id = self.observation_class
+        if self.reservoir_size > 1:
+            k = torch.randint(self.reservoir_size, (self.n_runs,), generator=self.generator, device=self.device)
+            self.obs_id = self.obs_id * self.reservoir_size + k
 
     @property
     def condition(self) -> torch.Tensor:
@@ -160,6 +174,7 @@ class TMaze:
         self.done = torch.zeros(self.n_runs, dtype=torch.bool, device=self.device)
         self.initial_signal = self._signal()
         self.junction_signal = self._signal() if self.matching else torch.full_like(zeros, -1)
+        self._draw_observation()
         return self.observe()
 
     def step(self, action: torch.Tensor):
@@ -174,6 +189,7 @@ class TMaze:
         terminated = live & (self.position >= self.corridor_length)
         truncated = live & ~terminated & (self.t >= self.max_steps)
         self.done = self.done | terminated | truncated
+        self._draw_observation()
         return self.observe(), reward, terminated, truncated
 
     def reward_code(self, reward: torch.Tensor) -> torch.Tensor:

@@ -1,24 +1,34 @@
-"""Chapters 4–5: predictor–actor agents on the T-maze POMDPs (Algorithm 1; Algorithm 2 in ch. 5).
+"""Chapters 4–5: predictor–actor agents on the T-maze POMDPs (Algorithm 1, Algorithm 2).
 
+    [ch. 5] train the RBM preprocessor by CD-k; processed observation y = ĥ(y⁽⁰⁾) (§5.2)
     collect N_sample random episodes → balance and split (§4.3.1)
-    → train the Elman predictor by BPTT in pattern mode (Eqs. 4.1–4.6), logging Eq. 4.7–4.8 errors
-    → freeze it and train the FERL actor on the state (y_t, m_t) by SARSA(0) for N episodes
+    → train every Elman predictor by BPTT in pattern mode (Eqs. 4.1–4.6; 5.1–5.2), logging the
+      Eq. 4.7–4.8 errors (squared error for a scalar reward, Fig. 5.17b)
+    → freeze them and train the FERL actor on the state (y_t, m_t of every predictor) by SARSA(0)
 
-All runs of the batch play their episodes in lockstep: episode k of every run starts together,
-runs whose episode has ended wait (their TD errors are masked) until the slowest has finished.
+Chapter 4 has one joint predictor; chapter 5 an observation and a reward predictor (§5.2), each
+with its own memory. All runs of the batch play their episodes in lockstep: episode k of every
+run starts together, runs whose episode has ended wait (their TD errors are masked) until the
+slowest has finished.
 """
 import time
 
 import numpy as np
 import torch
 import torch.nn.functional as F
+from hydra.errors import InstantiationException
 from hydra.utils import instantiate
+from omegaconf import OmegaConf
 from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
+from ferl.preprocessor import load_or_fit
 from ferl.run_dir import RunDir, StopRequest
 from ferl.sequences import Episodes, balance_and_split, collect_random_episodes
 from ferl.trainers.digit_floor import hparams, pick
+from ferl.validate import ConfigError
+
+PREPROCESSOR_EXTRA_KEYS = ("cache_dir",)  # preprocessor keys that are not constructor arguments
 
 
 class TMazeTraining:
@@ -28,28 +38,68 @@ class TMazeTraining:
         self.generator = torch.Generator(device).manual_seed(cfg.seed)
         self.data = instantiate(cfg.data).load() if cfg.env.get("digit_classes") else None
         self.env = self.make_env(self.R)
-        self.predictor = instantiate(cfg.predictor, n_runs=self.R, n_obs=self.env.observation_size,
-                                     n_actions=self.env.n_actions, seed=cfg.seed).to(device)
-        n_state = self.env.observation_size + cfg.predictor.n_memory
+        self.preprocessor = self.make_preprocessor()
+        n_obs = cfg.preprocessor.n_hidden if self.preprocessor is not None else self.env.observation_size
+        self.predictors = {name: instantiate(p, n_runs=self.R, n_obs=n_obs, n_actions=self.env.n_actions,
+                                             seed=cfg.seed + 10_000 * i).to(device)
+                           for i, (name, p) in enumerate(cfg.predictor.items())}
+        n_state = n_obs + sum(p.n_memory for p in cfg.predictor.values())
         self.actor = instantiate(cfg.actor, n_runs=self.R, n_state=n_state, n_actions=self.env.n_actions,
                                  seed=cfg.seed + 100_000).to(device)
         self.gamma = cfg.actor.gamma
+        self.table = self.env.observation_table  # (ids, Y), or (R, ids, Y) once processed
 
     def make_env(self, n_runs: int):
         extra = {"data": self.data} if self.data is not None else {}
-        return instantiate(self.cfg.env, n_runs=n_runs, generator=self.generator, device=self.device, **extra)
+        try:
+            return instantiate(self.cfg.env, n_runs=n_runs, generator=self.generator, device=self.device, **extra)
+        except InstantiationException as e:  # e.g. a reservoir larger than the data's class pool
+            raise ConfigError(str(e.__cause__ or e).splitlines()[0]) from None
+
+    def make_preprocessor(self):
+        pcfg = self.cfg.get("preprocessor")
+        if pcfg is None:
+            return None
+        args = {k: v for k, v in OmegaConf.to_container(pcfg, resolve=True).items() if k not in PREPROCESSOR_EXTRA_KEYS}
+        return instantiate(args, n_runs=self.R, seed=self.cfg.seed + 200_000).to(self.device)
+
+    # ---- preprocessor (Algorithm 2, first phase) ------------------------------------------------
+    def train_preprocessor(self, writer: SummaryWriter) -> dict:
+        """CD-k on the MNIST training images (§5.3.2), or the cached result of the same settings;
+        the observation table becomes each run's processed observations ĥ (R, ids, N^y)."""
+        images = self.data.train_images.to(self.device)
+        test = self.data.test_images.to(self.device)
+        before = self.preprocessor.reconstruction_error(test)
+        # no generator: every run trains on its own stream (seed + r), so the cache key is complete
+        history, cached = load_or_fit(self.preprocessor, images, None, self.cfg.preprocessor.cache_dir,
+                                      {"data": OmegaConf.to_container(self.cfg.data, resolve=True)}, writer)
+        if cached:  # the fit's own logging happened in the run that trained it
+            for sweep, value in enumerate(np.asarray(history).mean(0), 1):
+                writer.add_scalar("preprocessor/reconstruction_error", float(value), sweep)
+        after = self.preprocessor.reconstruction_error(test)
+        with torch.no_grad():
+            self.table = self.preprocessor.transform(self.env.observation_table)
+        return {"reconstruction_error": np.asarray(history), "test_error_before": before.cpu().numpy(),
+                "test_error_after": after.cpu().numpy(), "cached": np.bool_(cached),
+                "raw_observations": self.env.observation_table.cpu().numpy().astype(np.float16),
+                "processed_observations": self.table.cpu().numpy().astype(np.float16)}
 
     # ---- predictor data and training --------------------------------------------------------
     def observations(self, ids: torch.Tensor) -> torch.Tensor:
-        """Observation vectors of observation ids; the padding id −1 picks the appended zero row."""
-        table = torch.cat([self.env.observation_table, torch.zeros(1, self.env.observation_size, device=self.device)])
-        return table[ids]
+        """(Processed) observation vectors of observation ids (R, …); the padding id −1 gives zeros."""
+        safe = ids.clamp(min=0)
+        if self.table.dim() == 2:
+            y = self.table[safe]
+        else:
+            runs = torch.arange(self.R, device=self.device).view(-1, *([1] * (ids.dim() - 1)))
+            y = self.table[runs, safe]
+        return torch.where((ids >= 0).unsqueeze(-1), y, 0.0)
 
-    def tensors(self, ep: Episodes):
+    def tensors(self, ep: Episodes, predictor):
         """Episodes → predictor inputs y (R,B,T+1,Y), a (R,B,T,A), r targets (R,B,T+1,·), lengths."""
         y = self.observations(ep.obs)
         a = F.one_hot(ep.actions, self.env.n_actions).float()
-        return y, a, self.predictor.reward_targets(self.env, ep.rewards), ep.lengths
+        return y, a, predictor.reward_targets(self.env, ep.rewards), ep.lengths
 
     def collect(self) -> dict:
         t = self.cfg.trainer
@@ -60,43 +110,49 @@ class TMazeTraining:
             episodes, self.env.optimal_steps, self.cfg.env.max_steps, t.train_fraction, self.generator)
         return {"train": train, "test": test, "n_train": n_train, "n_test": n_test}
 
-    def prediction_errors(self, ep: Episodes) -> np.ndarray:
+    def prediction_errors(self, ep: Episodes, predictor) -> np.ndarray:
         """(R, nT, Tmax+1) Eq. (4.7): mean over the sequences of each length of Eq. (4.8) per step."""
-        y, a, r, lengths = self.tensors(ep)
-        with torch.no_grad():
-            err = self.predictor.abs_errors(y, a, r, lengths)  # (R, B, Tmax+1), NaN on padding
+        y, a, r, lengths = self.tensors(ep, predictor)
+        err = predictor.prediction_errors(y, a, r, lengths)  # (R, B, Tmax+1), NaN on padding
         lengths_all = range(self.env.optimal_steps, self.cfg.env.max_steps + 1)
         out = [torch.nanmean(torch.where((lengths == T).unsqueeze(-1), err, torch.nan), dim=1) for T in lengths_all]
         return torch.stack(out, 1).cpu().numpy().astype(np.float32)
 
-    def train_predictor(self, data: dict, writer: SummaryWriter) -> dict:
+    def train_predictors(self, data: dict, writer: SummaryWriter) -> dict:
+        """Every predictor on the same episodes, each in its own shuffled order per epoch."""
+        records = {}
+        for name, predictor in self.predictors.items():
+            records |= self.train_predictor(name, predictor, data, writer)
+        return records
+
+    def train_predictor(self, name: str, predictor, data: dict, writer: SummaryWriter) -> dict:
         t = self.cfg.trainer
         train = data["train"]
         # the training set proper: lengths T_min … T_min + L_training − 1; balancing laid the
         # lengths out in the same blocks in every run, so run 0's positions hold for all
         trainable = train.lengths[0] <= self.env.optimal_steps + t.l_training - 1
         fit = train.select(torch.nonzero(trainable).squeeze(1).expand(self.R, -1))
-        y, a, r, lengths = self.tensors(fit)
-        errors = {"train": [self.prediction_errors(train)], "test": [self.prediction_errors(data["test"])]}
+        y, a, r, lengths = self.tensors(fit, predictor)
+        errors = {s: [self.prediction_errors(data[s], predictor)] for s in ("train", "test")}
         epochs = [0]
-        for epoch in tqdm(range(1, t.n_epoch + 1), desc="predictor", unit="epoch", mininterval=1.0):
+        for epoch in tqdm(range(1, t.n_epoch + 1), desc=f"predictor {name}", unit="epoch", mininterval=1.0):
             order = torch.rand(self.R, y.shape[1], generator=self.generator, device=self.device).argsort(1)
-            self.predictor.train_epoch(y, a, r, lengths, order)
+            predictor.train_epoch(y, a, r, lengths, order)
             if epoch % t.error_every == 0 or epoch == t.n_epoch:
                 epochs.append(epoch)
                 for split in ("train", "test"):
-                    errors[split].append(self.prediction_errors(data[split]))
-                    writer.add_scalar(f"predictor/error_{split}", float(np.nanmean(errors[split][-1])), epoch)
+                    errors[split].append(self.prediction_errors(data[split], predictor))
+                    writer.add_scalar(f"predictor_{name}/error_{split}", float(np.nanmean(errors[split][-1])), epoch)
                 for T, value in zip(range(self.env.optimal_steps, self.cfg.env.max_steps + 1),
                                     np.nanmean(errors["test"][-1], axis=(0, 2))):
-                    writer.add_scalar(f"predictor/error_test_T{T}", float(value), epoch)
+                    writer.add_scalar(f"predictor_{name}/error_test_T{T}", float(value), epoch)
         lengths_all = np.arange(self.env.optimal_steps, self.cfg.env.max_steps + 1)
-        return {"joint_lengths": lengths_all, "joint_epochs": np.asarray(epochs),
-                **{f"joint_error_{s}": np.stack(errors[s], 1) for s in ("train", "test")}}
+        return {f"{name}_lengths": lengths_all, f"{name}_epochs": np.asarray(epochs),
+                **{f"{name}_error_{s}": np.stack(errors[s], 1) for s in ("train", "test")}}
 
     # ---- actor phase ----------------------------------------------------------------------------
     def train_actor(self, writer: SummaryWriter, stop: StopRequest) -> dict:
-        cfg, env, actor, predictor, R = self.cfg, self.env, self.actor, self.predictor, self.R
+        cfg, env, actor, R = self.cfg, self.env, self.actor, self.R
         N, T_max = cfg.trainer.n_episodes, cfg.env.max_steps
         records = {k: np.zeros((R, N), dtype=dt) for k, dt in (
             ("discounted_return", np.float32), ("steps", np.int64), ("terminal_reward", np.float32),
@@ -111,9 +167,10 @@ class TMazeTraining:
             started = time.perf_counter()
             progress = k / N
             lr, beta = actor.learning_rate(progress), actor.inverse_temperature(progress)
-            y = env.reset()
-            m, _ = predictor.initial()
-            s = torch.cat([y, m], 1).unsqueeze(1)
+            env.reset()
+            y = self.observations(env.obs_id)
+            m = {name: p.initial()[0] for name, p in self.predictors.items()}
+            s = torch.cat([y, *m.values()], 1).unsqueeze(1)
             F_all, x = actor.evaluate(s)
             a = actor.select(s, F_all, beta, self.generator)
             F_sa, x_sa = pick(F_all, a), pick(x, a)
@@ -125,10 +182,11 @@ class TMazeTraining:
                 active = ~env.done
                 if env.at_junction.any():
                     junction.append(self.junction_record(k, t, m, s, x_sa, active))
-                y_next, r, terminated, _ = env.step(a.squeeze(1))
-                with torch.no_grad():
-                    m_next, _, _ = predictor.step(m, y, F.one_hot(a.squeeze(1), env.n_actions).float())
-                s_next = torch.cat([y_next, m_next], 1).unsqueeze(1)
+                _, r, terminated, _ = env.step(a.squeeze(1))
+                y_next = self.observations(env.obs_id)
+                a_code = F.one_hot(a.squeeze(1), env.n_actions).float()
+                m_next = {name: p.step(m[name], y, a_code)[0] for name, p in self.predictors.items()}
+                s_next = torch.cat([y_next, *m_next.values()], 1).unsqueeze(1)
                 F_next, x_next = actor.evaluate(s_next)
                 a_next = actor.select(s_next, F_next, beta, self.generator)
                 boot_off = terminated | ~active
@@ -180,7 +238,8 @@ class TMazeTraining:
         return {"run": where.cpu(), "episode": torch.full_like(where, k).cpu(), "step": torch.full_like(where, t).cpu(),
                 "condition": env.condition[where].cpu(), "initial_signal": env.initial_signal[where].cpu(),
                 "junction_signal": env.junction_signal[where].cpu(),
-                "memory": m[where].half().cpu(), "state": s[where, 0].half().cpu(),
+                **{f"memory_{name}": mem[where].half().cpu() for name, mem in m.items()},
+                "state": s[where, 0].half().cpu(),
                 "hidden": torch.sigmoid(x_sa[where, 0]).half().cpu()}
 
     def log_episodes(self, writer, records, done: int, lr: float, beta: float) -> None:
@@ -193,18 +252,20 @@ class TMazeTraining:
 
 
 def train_tmaze(cfg, run: RunDir, device: torch.device) -> dict:
-    """Algorithm 1 phase by phase; returns the summary.json dict."""
+    """Algorithm 1 / 2 phase by phase; returns the summary.json dict."""
     wall_start = time.perf_counter()
     job = TMazeTraining(cfg, run, device)
     with SummaryWriter(run.tb) as writer, StopRequest() as stop:
+        if job.preprocessor is not None:
+            run.save_records("preprocessor", **job.train_preprocessor(writer))
         data = job.collect()
-        predictor_records = job.train_predictor(data, writer)
-        run.save_records("predictor", **predictor_records)
+        run.save_records("predictor", **job.train_predictors(data, writer))
         actor = job.train_actor(writer, stop)
         run.save_records("episodes", **actor["episodes"])
         run.save_records("junction", **actor["junction"])
-        run.save_checkpoint({"predictor": job.predictor.state_dict(), "actor": job.actor.state_dict(),
-                             "generator": job.generator.get_state()})
+        run.save_checkpoint({"predictors": {n: p.state_dict() for n, p in job.predictors.items()},
+                             "preprocessor": job.preprocessor.state_dict() if job.preprocessor is not None else None,
+                             "actor": job.actor.state_dict(), "generator": job.generator.get_state()})
         metrics = final_metrics(actor["episodes"], job.optimal_return, cfg.trainer.final_window)
         writer.add_hparams(hparams(cfg), {f"hparam/{k}": float(np.mean(v)) for k, v in metrics.items()}, run_name=".")
     return {

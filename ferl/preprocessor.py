@@ -1,0 +1,296 @@
+"""Chapter-5 observation preprocessor: an RBM trained by contrastive divergence (§5.2, §5.3.2).
+
+Algorithm 2 first trains an RBM on MNIST training images (§5.3.2: 784 visible, 20 hidden nodes,
+the whole training set swept 600 times with CD-3) and then shows the agent the hidden
+expectations ĥ = σ(Wᵀy⁽⁰⁾ + b_h) of every raw observation y⁽⁰⁾ instead of its pixels.
+
+The model (§2.1.5), batched over runs (W (R, V, H), b_v (R, V), b_h (R, H)), at β = 1:
+
+* energy E(v, h) = −vᵀWh − vᵀb_v − hᵀb_h                                    (Eq. 2.18)
+* p(h | v) factorises, p(h_k = 1 | v) = σ(Wᵀv + b_h)_k                (Eq. 2.19 and the next)
+* by the symmetry of Eq. 2.18, p(v_i = 1 | h) = σ(W h + b_v)_i
+* log-likelihood gradient  ∂/∂W ln p = ⟨v hᵀ⟩_data − ⟨v hᵀ⟩_model        (Eqs. 2.26–2.31),
+  with ⟨v⟩ and ⟨h⟩ in place of ⟨v hᵀ⟩ for b_v and b_h (Eqs. 2.24–2.25)
+* CD-k: the model term is replaced by the state of a k-step alternating Gibbs chain started at
+  the data (Eq. 2.32 for k = 1; CD-n in the text after it); PCD (Tieleman 2008, also named in
+  §2.1.5) continues persistent chains instead of restarting them at the data.
+
+Free energies and hidden expectations come from ``ferl.rbm``.
+
+Choices the dissertation does not give (defaults follow Hinton 2010, "A practical guide to
+training restricted Boltzmann machines", UTML TR 2010-003, cited by section):
+
+* visible units: grey levels in [0, 1] are the data (the mean-field relaxation at the end of
+  §2.1.5); reconstructions are the probabilities σ(W h + b_v), not samples (guide §3.2).
+  ``visible="binary"`` samples them, which makes the chain a proper binary RBM sampler.
+* hidden units: sampled when driven by data or on the way through the chain, probabilities
+  in the statistics and at the last update (guide §3.1–3.3).
+* SGD on minibatches of 100 (§4: 10 to 100), learning rate 0.1 and weight cost 2·10⁻⁴ as in
+  Hinton & Salakhutdinov's 2006 MNIST RBM code (§7, §10: 10⁻⁵ to 10⁻², on the weights only, not
+  the biases), momentum 0.5 for the first 5 sweeps then 0.9 (§9), initial weights N(0, 0.01²)
+  and zero biases (§8; the guide's data-based visible biases are not used).
+* each run draws its shuffles and Gibbs samples from its own stream seeded from seed + r, so run
+  r's whole training does not depend on n_runs.
+* the reconstruction error is the mean squared error of the one-step mean-field reconstruction
+  σ(W σ(Wᵀv + b_h) + b_v) against v (the guide's §5 monitor, without sampling noise).
+"""
+import hashlib
+import json
+import os
+from pathlib import Path
+from typing import NamedTuple, Sequence, Union
+
+import numpy as np
+import torch
+from torch import nn
+from tqdm import tqdm
+
+from ferl import rbm
+
+VISIBLE_MODES = ("mean_field", "binary")
+Generators = Union[torch.Generator, Sequence[torch.Generator]]
+
+
+def _int_at_least(low):
+    return lambda x: isinstance(x, int) and not isinstance(x, bool) and x >= low
+
+
+def _number(test):
+    return lambda x: isinstance(x, (int, float)) and not isinstance(x, bool) and test(x)
+
+
+# (key, test, what is allowed): one line per setting, as in ferl.validate.
+RULES = [
+    ("n_runs", _int_at_least(1), "an integer ≥ 1"),
+    ("preprocessor.n_visible", _int_at_least(1), "an integer ≥ 1"),
+    ("preprocessor.n_hidden", _int_at_least(1), "an integer ≥ 1"),
+    ("preprocessor.cd_k", _int_at_least(1), "an integer ≥ 1 (Gibbs steps of CD-k)"),
+    ("preprocessor.persistent", lambda x: isinstance(x, bool), "true or false"),
+    ("preprocessor.lr", _number(lambda x: x > 0), "a number > 0"),
+    ("preprocessor.momentum", _number(lambda x: 0 <= x < 1), "a number in [0, 1)"),
+    ("preprocessor.initial_momentum", _number(lambda x: 0 <= x < 1), "a number in [0, 1)"),
+    ("preprocessor.initial_momentum_sweeps", _int_at_least(0), "an integer ≥ 0"),
+    ("preprocessor.weight_decay", _number(lambda x: x >= 0), "a number ≥ 0"),
+    ("preprocessor.batch_size", _int_at_least(1), "an integer ≥ 1"),
+    ("preprocessor.sweeps", _int_at_least(1), "an integer ≥ 1"),
+    ("preprocessor.init_std", _number(lambda x: x >= 0), "a number ≥ 0"),
+    ("preprocessor.visible", lambda x: x in VISIBLE_MODES, " or ".join(VISIBLE_MODES)),
+    ("seed", _int_at_least(0), "an integer ≥ 0"),
+]
+
+
+def check(hparams: dict) -> None:
+    for key, test, allowed in RULES:
+        value = hparams[key.rsplit(".", 1)[-1]]
+        if not test(value):
+            raise ValueError(f"{key}={value!r}: must be {allowed}")
+
+
+class Gradient(NamedTuple):
+    """Log-likelihood ascent direction (or its data / model term), batched over runs."""
+    W: torch.Tensor    # (R, V, H)
+    b_v: torch.Tensor  # (R, V)
+    b_h: torch.Tensor  # (R, H)
+
+
+def statistics(v: torch.Tensor, h: torch.Tensor) -> Gradient:
+    """Batch means ⟨v hᵀ⟩, ⟨v⟩, ⟨h⟩ of v (R, B, V) and h (R, B, H): one term of Eq. (2.31)."""
+    return Gradient(torch.bmm(v.mT, h) / v.shape[1], v.mean(1), h.mean(1))
+
+
+def per_run(generator: Generators, n_runs: int) -> list:
+    """One generator per run: the given sequence, or a single stream that every run draws from."""
+    gens = [generator] * n_runs if isinstance(generator, torch.Generator) else list(generator)
+    if len(gens) != n_runs:
+        raise ValueError(f"{len(gens)} generators given for {n_runs} runs")
+    return gens
+
+
+def uniform(shape, gens: list, like: torch.Tensor) -> torch.Tensor:
+    """U(0, 1) numbers (R, *shape), run r's from gens[r], on like's device and dtype."""
+    return torch.stack([torch.rand(shape, generator=g, device=like.device, dtype=like.dtype) for g in gens])
+
+
+def bernoulli(p: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+    """Binary states that are 1 with probability p, given uniforms u of the same shape."""
+    return (u < p).to(p.dtype)
+
+
+def minibatch(images: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    """Rows idx (R, B) of shared images (N, V) or of per-run images (R, N, V) → (R, B, V)."""
+    if images.dim() == 2:
+        return images[idx]
+    return images[torch.arange(idx.shape[0], device=idx.device).unsqueeze(1), idx]
+
+
+class RBMPreprocessor(nn.Module):
+    """RBM observation preprocessor (§5.3.2), n_runs independent RBMs trained at once.
+
+    §5.3.2 gives n_visible = 784, n_hidden = 20, cd_k = 3 and sweeps = 600. It gives none of
+    the others; their defaults are those of Hinton's practical guide (see the module docstring):
+    lr 0.1, momentum 0.5 for the first ``initial_momentum_sweeps`` = 5 sweeps then 0.9, weight
+    decay 2·10⁻⁴ (weights only), minibatches of 100, init_std 0.01, mean-field visible units.
+    Run r's initial weights and its training stream come from seed + r.
+    """
+
+    def __init__(self, n_runs: int, n_visible: int = 784, n_hidden: int = 20, cd_k: int = 3,
+                 persistent: bool = False, lr: float = 0.1, momentum: float = 0.9,
+                 initial_momentum: float = 0.5, initial_momentum_sweeps: int = 5,
+                 weight_decay: float = 2e-4, batch_size: int = 100, sweeps: int = 600,
+                 init_std: float = 0.01, visible: str = "mean_field", seed: int = 0):
+        super().__init__()
+        # Every constructor argument: the cache key of load_or_fit and the checks.
+        self.hparams = {k: v for k, v in locals().items() if k not in ("self", "__class__")}
+        check(self.hparams)
+        self.cd_k, self.persistent, self.visible = cd_k, persistent, visible
+        self.lr, self.weight_decay, self.batch_size, self.sweeps = lr, weight_decay, batch_size, sweeps
+        self.momentum, self.initial_momentum, self.initial_momentum_sweeps = momentum, initial_momentum, initial_momentum_sweeps
+        gens = [torch.Generator().manual_seed(seed + r) for r in range(n_runs)]
+        self.register_buffer("W", torch.stack([torch.randn(n_visible, n_hidden, generator=g) for g in gens]) * init_std)
+        self.register_buffer("b_v", torch.zeros(n_runs, n_visible))
+        self.register_buffer("b_h", torch.zeros(n_runs, n_hidden))
+        # Run r trains on a stream seeded from its own generator after the weights were drawn:
+        # independent of n_runs, and not a replay of the numbers that drew its weights.
+        self.train_seeds = [int(torch.randint(2**62, (), generator=g)) for g in gens]
+        self.chains = None  # PCD: hidden states (R, C, H) of the persistent chains
+
+    @property
+    def n_runs(self) -> int:
+        return self.W.shape[0]
+
+    def run_generators(self) -> list:
+        """Run r's training stream (shuffles and Gibbs samples) on the weights' device."""
+        return [torch.Generator(self.W.device).manual_seed(s) for s in self.train_seeds]
+
+    # ---- the model -----------------------------------------------------------------------------
+    @torch.no_grad()
+    def transform(self, v: torch.Tensor) -> torch.Tensor:
+        """Processed observations ĥ = σ(Wᵀv + b_h) (Algorithm 2): v (B, V) shared or (R, B, V) → (R, B, H)."""
+        return rbm.hidden_expectation(v.to(self.W), self.W, self.b_h)
+
+    def visible_given(self, h: torch.Tensor, gens: list = None) -> torch.Tensor:
+        """p(v = 1 | h) = σ(W h + b_v) for h (R, B, H); sampled from gens when visible="binary"."""
+        p = torch.sigmoid(torch.baddbmm(self.b_v.unsqueeze(1), h, self.W.mT))
+        if self.visible == "binary" and gens is not None:
+            return bernoulli(p, uniform(p.shape[1:], gens, p))
+        return p
+
+    @torch.no_grad()
+    def reconstruction_error(self, v: torch.Tensor) -> torch.Tensor:
+        """Mean squared error per run (R,) of σ(W ĥ + b_v), ĥ = σ(Wᵀv + b_h), against v."""
+        v = v.to(self.W)
+        v_hat = self.visible_given(self.transform(v))
+        return (v_hat - v).pow(2).mean((1, 2))
+
+    # ---- contrastive divergence ----------------------------------------------------------------
+    def gibbs(self, h: torch.Tensor, gens: list):
+        """cd_k alternating Gibbs steps h → v → h from hidden states h (R, B, H).
+
+        Hidden states are sampled on the way; the last update keeps p(h = 1 | v) (guide §3.3).
+        Returns the last visible states and hidden probabilities.
+        """
+        for step in range(self.cd_k):
+            if step:
+                h = bernoulli(p, uniform(p.shape[1:], gens, p))
+            v = self.visible_given(h, gens)
+            p = rbm.hidden_expectation(v, self.W, self.b_h)
+        return v, p
+
+    def negative_phase(self, h_data: torch.Tensor, gens: list):
+        """The chain's end (v, p(h | v)): started from h sampled given the data (CD) or from the
+        persistent chains (PCD, which are first drawn from the data they meet)."""
+        start = self.chains if self.persistent and self.chains is not None else \
+            bernoulli(h_data, uniform(h_data.shape[1:], gens, h_data))
+        v, p = self.gibbs(start, gens)
+        if self.persistent:
+            self.chains = bernoulli(p, uniform(p.shape[1:], gens, p))
+        return v, p
+
+    def contrast(self, v: torch.Tensor, gens: list):
+        """CD-k estimate of the gradient and the data's hidden expectations (R, B, H)."""
+        h_data = rbm.hidden_expectation(v, self.W, self.b_h)   # positive phase, Eq. (2.25)
+        data, model = statistics(v, h_data), statistics(*self.negative_phase(h_data, gens))
+        return Gradient(*(d - m for d, m in zip(data, model))), h_data
+
+    @torch.no_grad()
+    def cd_gradient(self, v: torch.Tensor, generator: Generators) -> Gradient:
+        """CD-k (PCD-k when persistent) estimate of the batch-mean log-likelihood gradient
+        (Eq. 2.31 with the model term of Eq. 2.32) for v (R, B, V), or (B, V) shared by all runs.
+
+        ``generator``: one per run (independent runs) or a single one that all runs share.
+        """
+        v = v.to(self.W).expand(self.n_runs, *v.shape[-2:])
+        return self.contrast(v, per_run(generator, self.n_runs))[0]
+
+    # ---- training ------------------------------------------------------------------------------
+    def sgd_step(self, grad: Gradient, velocity: list, momentum: float) -> None:
+        """Δθ ← m Δθ + α (∇θ − λ W), θ ← θ + Δθ; the weight cost λ W on weights only (guide §9–10)."""
+        grad = grad._replace(W=grad.W - self.weight_decay * self.W)
+        for param, g, vel in zip((self.W, self.b_v, self.b_h), grad, velocity):
+            param.add_(vel.mul_(momentum).add_(g, alpha=self.lr))
+
+    def sweep(self, images: torch.Tensor, gens: list, velocity: list, momentum: float) -> torch.Tensor:
+        """One pass over the images in minibatches, each run in its own random order; returns the
+        reconstruction error per run (R,), each minibatch measured just before its update."""
+        n, V = images.shape[-2:]
+        order = torch.stack([torch.randperm(n, generator=g, device=images.device) for g in gens])
+        squared = torch.zeros(self.n_runs, device=images.device)
+        for idx in order.split(self.batch_size, dim=1):
+            v = minibatch(images, idx)
+            grad, h_data = self.contrast(v, gens)
+            squared += (self.visible_given(h_data) - v).pow(2).sum((1, 2))
+            self.sgd_step(grad, velocity, momentum)
+        return squared / (n * V)
+
+    @torch.no_grad()
+    def fit(self, images: torch.Tensor, generator: Generators = None, writer=None, progress: bool = True) -> np.ndarray:
+        """Train for ``sweeps`` passes over images (N, V) shared by every run, or (R, N, V).
+
+        ``generator``: None = each run's own stream from seed + r (runs independent of n_runs),
+        else one generator per run or a single shared one. Returns the reconstruction error per
+        run and sweep (R, sweeps); logs it and run 0's filters to a TensorBoard writer if given.
+        """
+        images = images.to(self.W)
+        gens = per_run(self.run_generators() if generator is None else generator, self.n_runs)
+        velocity = [torch.zeros_like(p) for p in (self.W, self.b_v, self.b_h)]
+        self.chains = None
+        errors = np.zeros((self.n_runs, self.sweeps), dtype=np.float32)
+        for s in tqdm(range(self.sweeps), desc="preprocessor", unit="sweep", disable=not progress, mininterval=1.0):
+            momentum = self.initial_momentum if s < self.initial_momentum_sweeps else self.momentum
+            errors[:, s] = self.sweep(images, gens, velocity, momentum).cpu().numpy()
+            if writer is not None:
+                writer.add_scalar("preprocessor/reconstruction_error", float(errors[:, s].mean()), s + 1)
+        if writer is not None and self.W.shape[1] == 784:
+            from ferl.trainers.digit_floor import weight_images  # lazy: trainers import this module
+            writer.add_images("preprocessor/filters", weight_images(self.W), self.sweeps)
+        return errors
+
+
+def tensor_digest(x: torch.Tensor) -> str:
+    """sha256 of a tensor's shape, dtype and values."""
+    digest = hashlib.sha256(f"{tuple(x.shape)} {x.dtype}".encode())
+    digest.update(x.detach().cpu().contiguous().numpy().data)
+    return digest.hexdigest()
+
+
+def load_or_fit(preprocessor: RBMPreprocessor, images: torch.Tensor, generator, cache_dir, key_parts: dict,
+                writer=None):
+    """Fit the preprocessor, or load the fit that identical settings saved in cache_dir before.
+
+    The file rbm-<sha256[:16]>.pt is keyed by the hyperparameters (n_runs and seed included),
+    the image tensor and key_parts, which must name anything else the fit depends on (e.g. the
+    seed of an explicit generator). Returns (reconstruction errors (R, sweeps), cached).
+    """
+    key = json.dumps({"hparams": preprocessor.hparams, "images": tensor_digest(images), "key_parts": key_parts},
+                     sort_keys=True, default=str)
+    path = Path(cache_dir) / f"rbm-{hashlib.sha256(key.encode()).hexdigest()[:16]}.pt"
+    if path.is_file():
+        saved = torch.load(path, map_location=preprocessor.W.device)
+        preprocessor.load_state_dict(saved["state_dict"])
+        return saved["errors"].numpy(), True
+    errors = preprocessor.fit(images, generator, writer)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")  # readers never see a half-written file
+    torch.save({"state_dict": preprocessor.state_dict(), "errors": torch.from_numpy(errors), "key": key}, tmp)
+    os.replace(tmp, path)
+    return errors, False
