@@ -26,6 +26,7 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) benchmarks/bench_floor.py
+	$(PY) benchmarks/bench_preprocessor.py
 
 clean:
 	rm -rf $(VENV) outputs/*/ .pytest_cache
