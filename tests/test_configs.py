@@ -75,6 +75,8 @@ def test_table_5_1_parameters(compose_cfg):
     assert (p.n_visible, p.n_hidden, p.cd_k, p.sweeps) == (784, 20, 3, 600)
     assert pixel.env.reservoir_size == 100 and pixel.env.binarize_threshold is None
     assert len(set(pixel.env.digit_classes.values())) == 5  # Fig. 5.15: five digits
+    assert compose_cfg(["experiment=table5_1_bit"]).trainer.n_sample == 2000
+    assert pixel.trainer.n_sample == 8000  # the documented deviation (conf/experiment/table5_1_pixel.yaml)
     assert compose_cfg(["experiment=table5_1_bit"]).get("preprocessor") is None
 
 

@@ -94,10 +94,10 @@ def test_algorithm2_bit_run_state_is_observation_and_both_memories(tmp_path):
 
 
 def test_reduced_scale_pixel_agent_beats_a_memoryless_one(tmp_path):
-    """Algorithm 2 on the noisy digit maze at reduced scale (3 runs, a 30-sweep RBM, 100 predictor
-    epochs, 3 000 episodes): choosing the goal needs the initial signal from the reward
+    """Algorithm 2 on the noisy digit maze at reduced scale (3 runs, a 30-sweep RBM, Table 5.1's
+    2 000 random episodes, 100 predictor epochs, 3 000 actor episodes): choosing the goal needs the initial signal from the reward
     predictor's memory, so a memoryless agent is right at most half of the time."""
-    result = run_train("experiment=table5_1_pixel", "n_runs=3", "preprocessor.sweeps=30",
+    result = run_train("experiment=table5_1_pixel", "n_runs=3", "preprocessor.sweeps=30", "trainer.n_sample=2000",
                        f"preprocessor.cache_dir={tmp_path / 'cache'}", "trainer.n_epoch=100",
                        "trainer.n_episodes=3000", f"hydra.run.dir={tmp_path / 'pixel'}")
     assert result.returncode == 0, result.stderr[-2000:]
