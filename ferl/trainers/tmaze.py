@@ -85,15 +85,16 @@ class TMazeTraining:
                 "processed_observations": self.table.cpu().numpy().astype(np.float16)}
 
     # ---- predictor data and training --------------------------------------------------------
-    def observations(self, ids: torch.Tensor) -> torch.Tensor:
-        """(Processed) observation vectors of observation ids (R, …); the padding id −1 gives zeros."""
-        safe = ids.clamp(min=0)
+    def lookup(self, ids: torch.Tensor) -> torch.Tensor:
+        """(Processed) observation vectors of valid observation ids (R, …): the online step."""
         if self.table.dim() == 2:
-            y = self.table[safe]
-        else:
-            runs = torch.arange(self.R, device=self.device).view(-1, *([1] * (ids.dim() - 1)))
-            y = self.table[runs, safe]
-        return torch.where((ids >= 0).unsqueeze(-1), y, 0.0)
+            return self.table[ids]
+        runs = torch.arange(self.R, device=self.device).view(-1, *([1] * (ids.dim() - 1)))
+        return self.table[runs, ids]
+
+    def observations(self, ids: torch.Tensor) -> torch.Tensor:
+        """As ``lookup`` for padded episodes: the padding id −1 gives zeros."""
+        return torch.where((ids >= 0).unsqueeze(-1), self.lookup(ids.clamp(min=0)), 0.0)
 
     def tensors(self, ep: Episodes, predictor):
         """Episodes → predictor inputs y (R,B,T+1,Y), a (R,B,T,A), r targets (R,B,T+1,·), lengths."""
@@ -168,7 +169,7 @@ class TMazeTraining:
             progress = k / N
             lr, beta = actor.learning_rate(progress), actor.inverse_temperature(progress)
             env.reset()
-            y = self.observations(env.obs_id)
+            y = self.lookup(env.obs_id)
             m = {name: p.initial()[0] for name, p in self.predictors.items()}
             s = torch.cat([y, *m.values()], 1).unsqueeze(1)
             F_all, x = actor.evaluate(s)
@@ -183,7 +184,7 @@ class TMazeTraining:
                 if env.at_junction.any():
                     junction.append(self.junction_record(k, t, m, s, x_sa, active))
                 _, r, terminated, _ = env.step(a.squeeze(1))
-                y_next = self.observations(env.obs_id)
+                y_next = self.lookup(env.obs_id)
                 a_code = F.one_hot(a.squeeze(1), env.n_actions).float()
                 m_next = {name: p.step(m[name], y, a_code)[0] for name, p in self.predictors.items()}
                 s_next = torch.cat([y_next, *m_next.values()], 1).unsqueeze(1)
