@@ -20,6 +20,7 @@ from torch import nn
 from ferl import rbm
 
 TD_RULES = ("sarsa", "q", "expected_sarsa")
+LR_NORMS = ("edges", "fan_in", "none")  # what α is divided by the square root of
 ACTION_CODES = ("onehot", "binary")
 ACTION_SELECTIONS = ("clamp", "gibbs")
 
@@ -45,12 +46,14 @@ def sample_categorical(probs: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
 
 class FERLActor(nn.Module):
     def __init__(self, n_runs: int, n_state: int, n_actions: int, n_hidden: int, td_rule: str,
-                 gamma: float, lr, beta, lr_edge_norm: bool = True, init_std: float = 0.01,
+                 gamma: float, lr, beta, lr_norm: str = "edges", init_std: float = 0.01,
                  action_code: str = "onehot", action_selection: str = "clamp",
                  gibbs_sweeps: int = 20, seed: int = 0):
         super().__init__()
         self.td_rule, self.gamma = td_rule, gamma
-        self.lr_schedule, self.beta_schedule, self.lr_edge_norm = lr, beta, lr_edge_norm
+        if lr_norm not in LR_NORMS:
+            raise ValueError(f"actor.lr_norm must be one of {LR_NORMS}, got {lr_norm!r}")
+        self.lr_schedule, self.beta_schedule, self.lr_norm = lr, beta, lr_norm
         self.action_selection, self.gibbs_sweeps = action_selection, gibbs_sweeps
         codes = action_code_table(n_actions, action_code)
         n_bits = codes.shape[1]
@@ -65,14 +68,20 @@ class FERLActor(nn.Module):
         self.register_buffer("b_h", torch.zeros(n_runs, n_hidden))
 
     @property
+    def fan_in(self) -> int:
+        """Connections into one hidden node: state + action nodes."""
+        return self.W_sh.shape[1] + self.W_ah.shape[1]
+
+    @property
     def n_edges(self) -> int:
         """Connections of the network (state + action nodes) × hidden nodes (§3.5)."""
-        return (self.W_sh.shape[1] + self.W_ah.shape[1]) * self.W_sh.shape[2]
+        return self.fan_in * self.W_sh.shape[2]
 
     def learning_rate(self, progress: float) -> float:
-        """α of Eq. (3.10), divided by √(number of edges) when lr_edge_norm (§3.5)."""
+        """α of Eq. (3.10) divided by √(total edges) ("edges", §3.5), by √(fan-in of a hidden
+        node) ("fan_in") or by nothing ("none")."""
         alpha = self.lr_schedule(progress)
-        return alpha / math.sqrt(self.n_edges) if self.lr_edge_norm else alpha
+        return alpha / math.sqrt({"edges": self.n_edges, "fan_in": self.fan_in, "none": 1}[self.lr_norm])
 
     def inverse_temperature(self, progress: float) -> float:
         return self.beta_schedule(progress)

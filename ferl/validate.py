@@ -10,7 +10,7 @@ import torch
 from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import MissingMandatoryValue
 
-from ferl.actor import ACTION_CODES, ACTION_SELECTIONS, TD_RULES
+from ferl.actor import ACTION_CODES, ACTION_SELECTIONS, LR_NORMS, TD_RULES
 from ferl.data import DataError
 from ferl.envs.digit_floor import REWARD_CONDITIONS
 from ferl.preprocessor import RULES as PREPROCESSOR_RULES
@@ -97,6 +97,7 @@ RULES = [
     *[rule for rule in PREPROCESSOR_RULES if rule[0].startswith("preprocessor.")],
     ("actor.n_hidden", positive_int, "an integer ≥ 1"),
     ("actor.td_rule", one_of(*TD_RULES), ", ".join(TD_RULES)),
+    ("actor.lr_norm", one_of(*LR_NORMS), ", ".join(LR_NORMS)),
     ("actor.gamma", discount, "a discount factor in [0, 1)"),
     ("actor.init_std", non_negative, "a standard deviation ≥ 0"),
     ("actor.action_code", one_of(*ACTION_CODES), ", ".join(ACTION_CODES)),

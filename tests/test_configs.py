@@ -96,7 +96,7 @@ def test_dissertation_parameters(compose_cfg):
 @pytest.mark.parametrize("override,key", [
     ("env.noise=1.5", "env.noise"), ("env.noise=-0.1", "env.noise"),
     ("actor.n_hidden=0", "actor.n_hidden"), ("actor.n_hidden=-3", "actor.n_hidden"),
-    ("actor.td_rule=td_lambda", "actor.td_rule"), ("n_runs=0", "n_runs"),
+    ("actor.td_rule=td_lambda", "actor.td_rule"), ("n_runs=0", "n_runs"), ("actor.lr_norm=sqrt", "actor.lr_norm"),
     ("env.reward_condition=up", "env.reward_condition"), ("trainer.steps=0", "trainer.steps"),
     ("device=tpu", "device"), ("actor.gamma=1.0", "actor.gamma"),
     ("env.noise_tile='4'", "env.noise_tile"), ("env.patches=0", "env.patches"),
