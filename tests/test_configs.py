@@ -76,7 +76,8 @@ def test_table_5_1_parameters(compose_cfg):
     assert pixel.env.reservoir_size == 100 and pixel.env.binarize_threshold is None
     assert len(set(pixel.env.digit_classes.values())) == 5  # Fig. 5.15: five digits
     assert compose_cfg(["experiment=table5_1_bit"]).trainer.n_sample == 2000
-    assert pixel.trainer.n_sample == 8000  # the documented deviation (conf/experiment/table5_1_pixel.yaml)
+    assert pixel.trainer.n_sample == 8000  # the documented deviations (conf/experiment/table5_1_pixel.yaml)
+    assert pixel.actor.lr_norm == "edges" and compose_cfg(["experiment=table5_1_bit"]).actor.lr_norm == "fan_in"
     assert compose_cfg(["experiment=table5_1_bit"]).get("preprocessor") is None
 
 
