@@ -111,6 +111,7 @@ RULES = [
     ("trainer.steps", positive_int, "an integer ≥ 1"),
     ("trainer.log_every", positive_int, "an integer ≥ 1"),
     ("trainer.checkpoint_every", positive_int, "an integer ≥ 1"),
+    ("trainer.checkpoint_every_epochs", positive_int, "an integer ≥ 1"),
     ("trainer.test_per_class", positive_int, "an integer ≥ 1"),
     ("trainer.test_noise_levels", noise_levels, "a non-empty list of noise levels in [0, 1]"),
     ("trainer.n_sample", positive_int, "an integer ≥ 1 (N_sample episodes)"),
@@ -156,9 +157,6 @@ def validate(cfg: DictConfig) -> None:
 
 
 def check_cross_keys(cfg) -> None:
-    if cfg.get("task") == "tmaze" and cfg.get("resume"):
-        raise ConfigError("resume=true is not supported for task=tmaze yet: its checkpoint is written "
-                          "when the run ends (phase-aware checkpoints are issue 7/7)")
     env = cfg.get("env", {})
     if env.get("noise_tile") is not None:
         labels = {str(c) for row in env.arrangement for c in row}

@@ -33,7 +33,8 @@ def snapshot(run_dir: Path, skip=("analysis", "tb")) -> dict[str, tuple[str, int
 
 
 def event_files(run_dir: Path) -> list[Path]:
-    return sorted((run_dir / "tb").glob("events.out.tfevents.*"))
+    """The analysis figures' TensorBoard log (CONTRACT §4), rewritten by every analysis."""
+    return sorted((run_dir / "tb" / "analysis").glob("events.out.tfevents.*"))
 
 
 @pytest.fixture(scope="module")
@@ -70,17 +71,22 @@ def test_single_run_results_reflect_the_synthetic_truth(analyzed_run):
                    json.loads((run_dir / "analysis" / "claims.json").read_text()))
 
 
-def test_rerun_overwrites_only_analysis_and_appends_to_tb(analyzed_run):
+def test_rerun_overwrites_only_analysis_and_its_tb_log(analyzed_run):
     run_dir, before, _ = analyzed_run
     stale = run_dir / "analysis" / "stale.txt"
     stale.write_text("left over from an older analysis")
-    n_events = len(event_files(run_dir))
+    old_events = event_files(run_dir)
+    training_log = run_dir / "tb" / "events.out.tfevents.training"
+    training_log.write_text("the training phase's own log")
 
     result = analyze(run_dir)
     assert result.returncode == 0, result.stderr
     assert not stale.exists()
     assert (run_dir / "analysis" / "report.md").is_file()
-    assert len(event_files(run_dir)) > n_events
+    new_events = event_files(run_dir)
+    assert len(new_events) == 1 and not set(new_events) & set(old_events)
+    assert training_log.read_text() == "the training phase's own log"
+    training_log.unlink()
     assert snapshot(run_dir) == before
 
 

@@ -110,7 +110,7 @@ def test_dissertation_parameters(compose_cfg):
     ("experiment=table4_1_matching predictor.joint.n_memory=0", "predictor.joint.n_memory"),
     ("experiment=table4_1_matching predictor.joint.time_average=maybe", "predictor.joint.time_average"),
     ("experiment=table4_1_matching trainer.train_fraction=1.0", "trainer.train_fraction"),
-    ("experiment=table4_1_matching resume=true", "resume"),
+    ("experiment=table4_1_matching trainer.checkpoint_every_epochs=0", "trainer.checkpoint_every_epochs"),
     ("experiment=table5_1_pixel preprocessor.cd_k=0", "preprocessor.cd_k"),
     ("experiment=table5_1_pixel preprocessor.n_hidden=0", "preprocessor.n_hidden"),
     ("experiment=table5_1_pixel preprocessor.n_visible=700", "preprocessor.n_visible"),

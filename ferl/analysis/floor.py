@@ -19,6 +19,7 @@ from typing import Sequence
 import numpy as np
 
 from ferl.analysis import coding
+from ferl.analysis.coding import sem_over_runs
 from ferl.evaluation import greedy_accuracy
 from ferl.analysis import floor_figures as figs
 from ferl.analysis.report import FLOOR_CLAIMS, PERCEPTUAL_PAIRS, RunAnalysis, evaluate
@@ -215,7 +216,7 @@ def _reward_curve(run: FloorRun) -> tuple[np.ndarray, np.ndarray, np.ndarray, in
     ma = coding.moving_average(rewards, window)
     stride = max(1, ma.shape[1] // MAX_CURVE_POINTS)  # plotting every step adds nothing visible
     keep = np.arange(0, ma.shape[1], stride)
-    return keep + window, ma[:, keep].mean(axis=0), ma[:, keep].std(axis=0), window
+    return keep + window, ma[:, keep].mean(axis=0), sem_over_runs(ma[:, keep]), window
 
 
 def write_tables(run: FloorRun, out: Path) -> list[str]:
@@ -226,9 +227,9 @@ def write_tables(run: FloorRun, out: Path) -> list[str]:
         _write_csv(out / name, header, rows)
         written.append(name)
 
-    steps, mean, std, window = _reward_curve(run)
-    table("reward_moving_average.csv", ["step", f"mean_ma{window}", f"sd_ma{window}"],
-          [(int(s), _fmt(m), _fmt(d)) for s, m, d in zip(steps, mean, std)])
+    steps, mean, sem, window = _reward_curve(run)
+    table("reward_moving_average.csv", ["step", f"mean_ma{window}", f"sem_ma{window}"],
+          [(int(s), _fmt(m), _fmt(d)) for s, m, d in zip(steps, mean, sem)])
 
     runs = _run_columns(run.n_runs)
     table("greedy_accuracy.csv", ["phase", "test_noise", "mean", "sem", *runs],
@@ -295,10 +296,10 @@ def _pair_clusters(run: FloorRun) -> dict:
 def make_figures(run: FloorRun, n_outlier_images: int = 40) -> dict[str, tuple]:
     """name → (Figure, caption) for every chapter-3 figure this run's records support."""
     out = {}
-    steps, mean, std, window = _reward_curve(run)
-    out["fig3_4_reward"] = (figs.reward_curve(steps, mean, std, run.optimal_reward, window,
+    steps, mean, sem, window = _reward_curve(run)
+    out["fig3_4_reward"] = (figs.reward_curve(steps, mean, sem, run.optimal_reward, window,
                                               run.n_runs),
-                            "Fig. 3.4: moving average of the reward, mean ± s.d. over runs")
+                            "Fig. 3.4: moving average of the reward, mean ± s.e.m. over runs")
     out["fig3_5_weights"] = (figs.weight_images(run.weights["W_sh_before"][0],
                                                 run.weights["W_sh_after"][0]),
                              "Fig. 3.5: observation→hidden weights before/after training (run 0)")

@@ -37,14 +37,14 @@ def _no_ticks(ax) -> None:
     ax.set_yticks([])
 
 
-def reward_curve(steps: np.ndarray, mean: np.ndarray, std: np.ndarray,
+def reward_curve(steps: np.ndarray, mean: np.ndarray, sem: np.ndarray,
                  optimum: float | None, window: int, n_runs: int) -> Figure:
-    """Fig. 3.4: moving average of the reward, mean ± 1 s.d. over runs."""
+    """Fig. 3.4: moving average of the reward, mean ± s.e.m. over runs."""
     fig = Figure(figsize=(7, 4), layout="constrained")
     ax = fig.add_subplot()
     ax.plot(steps, mean, color="tab:blue", label=f"mean over {n_runs} runs")
-    ax.fill_between(steps, mean - std, mean + std, color="tab:blue", alpha=0.25,
-                    label="±1 s.d. over runs")
+    ax.fill_between(steps, mean - sem, mean + sem, color="tab:blue", alpha=0.25,
+                    label="± s.e.m. over runs")
     if optimum is not None:
         ax.axhline(optimum, color="k", ls="--", label=f"optimum ({optimum:g} per step)")
     ax.set_xlabel("training step")
@@ -129,6 +129,26 @@ def accuracy_vs_noise(noise_levels: np.ndarray, acc_before: np.ndarray, acc_afte
     ax.set_ylim(-0.02, 1.02)
     ax.set_title(f"Fig. 3.6: greedy accuracy vs test noise (mean ± s.e.m., {len(acc_after)} runs)")
     ax.legend(loc="upper right", fontsize="small")
+    return fig
+
+
+def noise_grid_heatmap(train: np.ndarray, test: np.ndarray, accuracy: np.ndarray,
+                       experiment: str) -> Figure:
+    """Fig. 3.6 over every pair of noise levels: greedy accuracy after training (mean over
+    runs) by training noise (rows) and test noise (columns); the diagonal is test = training."""
+    fig = Figure(figsize=(2.0 + 0.75 * len(test), 1.8 + 0.5 * len(train)), layout="constrained")
+    ax = fig.add_subplot()
+    im = ax.imshow(accuracy, vmin=0, vmax=1, cmap="viridis", aspect="auto")
+    for (t, k), value in np.ndenumerate(accuracy):
+        if np.isfinite(value):
+            ax.text(k, t, f"{value:.2f}", ha="center", va="center", fontsize="small",
+                    color="k" if value > 0.6 else "w")
+    ax.set_xticks(range(len(test)), [f"{100 * x:g}" for x in test])
+    ax.set_yticks(range(len(train)), [f"{100 * x:g}" for x in train])
+    ax.set_xlabel("test noise (% of pixels replaced by white noise)")
+    ax.set_ylabel("training noise (% of pixels)")
+    ax.set_title(f"Fig. 3.6: greedy accuracy after training, `{experiment}`, mean over runs")
+    fig.colorbar(im, ax=ax, label="greedy accuracy (fraction optimal)")
     return fig
 
 

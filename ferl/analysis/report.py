@@ -21,6 +21,7 @@ if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
     from ferl.analysis.floor import FloorRun
+    from ferl.analysis.sweep import Sweep
     from ferl.analysis.tmaze import TMazeRun
 
 HELD, PARTLY, NOT_HELD = "held", "partly", "not held"
@@ -237,6 +238,9 @@ def _every_or_on_average(value: tuple[bool, bool]) -> str:
     return HELD if every else PARTLY if on_average else NOT_HELD
 
 
+SAME_ACTION_PAIRS_SOURCE = "§3.5.3, Figs. 3.11(a)/(b), 3.13"
+
+
 FLOOR_CLAIMS: list[Claim] = [
     Claim("Despite the observation noise the agent performs at a nearly optimal level "
           "at the end of training (upper bound 8 reward/step).",
@@ -263,7 +267,7 @@ FLOOR_CLAIMS: list[Claim] = [
           "§3.5.3, Fig. 3.10(a)–(c)", _class_selectivity, at_least(*SELECTIVITY_GAIN)),
     Claim("Pairs of tiles with the same optimal action form their own clusters of the "
           "median firing rates.",
-          "§3.5.3, Figs. 3.11(a)/(b), 3.13",
+          SAME_ACTION_PAIRS_SOURCE,
           _pairs_cluster(lambda run: run.same_action_pairs, with_reward=True), all_or_some),
     Claim("Pairs of tiles with the same optimal action form their own clusters of the hidden "
           "activation defined in fn. 6 (actions weighted by the policy instead of uniformly).",
@@ -723,6 +727,44 @@ CH5_TMAZE_CLAIMS: list[Claim] = [
 
 TMAZE_CLAIMS = CH4_TMAZE_CLAIMS + CH5_TMAZE_CLAIMS
 
+
+# ---- across the jobs of a sweep --------------------------------------------------
+
+def _hidden_size_verdicts(sweep: Sweep) -> Measured | None:
+    """The same-action-pair claim judged in jobs of one experiment that differ only in
+    `actor.n_hidden` (the first such set with two sizes or more)."""
+    for experiment in dict.fromkeys(j.experiment for j in sweep.jobs):
+        for by_size in sweep.varying(experiment, "actor", "n_hidden"):
+            found = {int(n): job.verdict(SAME_ACTION_PAIRS_SOURCE) for n, job in by_size.items()}
+            found = {n: r.verdict for n, r in found.items() if r is not None}
+            if len(found) >= 2:
+                levels = [VERDICTS.index(v) for v in found.values()]
+                text = "; ".join(f"{n} hidden: {v}" for n, v in sorted(found.items()))
+                return Measured((max(levels) - min(levels), min(levels)),
+                                f"`{experiment}`, verdict of the same-action-pair claim "
+                                f"({SAME_ACTION_PAIRS_SOURCE}) by hidden size — {text}")
+    return None
+
+
+def _same_across_sizes(value: tuple[int, int]) -> str:
+    spread, best = value
+    if VERDICTS[best] == NOT_HELD:  # no size forms the clusters: nothing to compare
+        return NOT_HELD
+    return HELD if spread == 0 else PARTLY if spread == 1 else NOT_HELD
+
+
+SWEEP_CLAIMS: list[Claim] = [
+    Claim("The reward-dependent representations do not severely depend on the number of hidden "
+          "nodes: with 10 and 40 hidden nodes the median firing patterns cluster as with 20.",
+          "§3.5.3, Fig. 3.13", _hidden_size_verdicts, _same_across_sizes,
+          "held: the same verdict (held or partly) at every size; partly: verdicts one level "
+          "apart; not held otherwise, or not held at every size"),
+]
+
+# The order of the dissertation, for reports that gather claims from many runs.
+CLAIM_ORDER: list[Claim] = FLOOR_CLAIMS + SWEEP_CLAIMS + TMAZE_CLAIMS
+
+
 # ---- markdown ---------------------------------------------------------------
 
 def _cell(text: str) -> str:
@@ -763,18 +805,18 @@ class RunOutcome:
     task: str
     status: str                       # "analyzed", "skipped: …" or "failed: …"
     verdicts: dict[str, int] = field(default_factory=dict)
+    results: list[ClaimResult] = field(default_factory=list)
+    figures: list[tuple[str, str]] = field(default_factory=list)  # (name, caption)
 
 
-def write_sweep_report(path: Path, sweep_dir: Path, outcomes: Sequence[RunOutcome]) -> None:
-    """Top-level `analysis/report.md` of a sweep: one row per run, linking its report."""
-    lines = [f"# Analysis of sweep `{sweep_dir}`", "",
-             "| run | experiment | task | status | held | partly | not held |",
+def jobs_table(sweep_dir: Path, out: Path, outcomes: Sequence[RunOutcome]) -> list[str]:
+    """One row per job of a sweep, linking its report (from `out`) and counting its verdicts."""
+    lines = ["| run | experiment | task | status | held | partly | not held |",
              "| --- | --- | --- | --- | --- | --- | --- |"]
     for o in outcomes:
         name = os.path.relpath(o.run_dir, sweep_dir)
         if o.status == "analyzed":
-            link = os.path.relpath(o.run_dir / "analysis" / "report.md", path.parent)
-            name = f"[{name}]({link})"
+            name = f"[{name}]({os.path.relpath(o.run_dir / 'analysis' / 'report.md', out)})"
         counts = " | ".join(str(o.verdicts.get(v, "")) for v in VERDICTS)
         lines.append(f"| {name} | {o.experiment} | {o.task} | {_cell(o.status)} | {counts} |")
-    path.write_text("\n".join(lines) + "\n")
+    return lines

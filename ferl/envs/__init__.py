@@ -1,1 +1,7 @@
-"""Batched environments: every run of a batch has its own copy, advanced by one tensor op."""
+"""Batched environments: every run of a batch has its own copy, advanced by one tensor op.
+
+Importing the package registers their Gymnasium views (``ferl.envs.gym``, CONTRACT §5).
+"""
+from ferl.envs.gym import register_envs
+
+register_envs()

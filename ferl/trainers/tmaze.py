@@ -119,14 +119,23 @@ class TMazeTraining:
         out = [torch.nanmean(torch.where((lengths == T).unsqueeze(-1), err, torch.nan), dim=1) for T in lengths_all]
         return torch.stack(out, 1).cpu().numpy().astype(np.float32)
 
-    def train_predictors(self, data: dict, writer: SummaryWriter) -> dict:
-        """Every predictor on the same episodes, each in its own shuffled order per epoch."""
-        records = {}
+    def train_predictors(self, data: dict, writer: SummaryWriter, progress: dict | None = None,
+                         stop: StopRequest | None = None) -> dict:
+        """Every predictor on the same episodes, each in its own shuffled order per epoch; a
+        predictor whose phase a checkpoint lists as done is not trained again."""
+        progress = progress if progress is not None else {"done": []}
+        stop = stop if stop is not None else StopRequest()
+        records = progress.setdefault("predictor_records", {})
         for name, predictor in self.predictors.items():
-            records |= self.train_predictor(name, predictor, data, writer)
+            if f"predictor_{name}" not in progress["done"]:
+                records |= self.train_predictor(name, predictor, data, writer, progress, stop)
+                self.finish_phase(progress, f"predictor_{name}", writer, stop)
         return records
 
-    def train_predictor(self, name: str, predictor, data: dict, writer: SummaryWriter) -> dict:
+    def train_predictor(self, name: str, predictor, data: dict, writer: SummaryWriter,
+                        progress: dict, stop: StopRequest) -> dict:
+        """Pattern-mode BPTT for N_epoch epochs, from the epoch a checkpoint left it at; a
+        checkpoint every ``trainer.checkpoint_every_epochs`` epochs and on SIGINT/SIGTERM."""
         t = self.cfg.trainer
         train = data["train"]
         # the training set proper: lengths T_min … T_min + L_training − 1; balancing laid the
@@ -134,9 +143,14 @@ class TMazeTraining:
         trainable = train.lengths[0] <= self.env.optimal_steps + t.l_training - 1
         fit = train.select(torch.nonzero(trainable).squeeze(1).expand(self.R, -1))
         y, a, r, lengths = self.tensors(fit, predictor)
-        errors = {s: [self.prediction_errors(data[s], predictor)] for s in ("train", "test")}
-        epochs = [0]
-        for epoch in tqdm(range(1, t.n_epoch + 1), desc=f"predictor {name}", unit="epoch", mininterval=1.0):
+        partial = progress.get("predictor_partial") or {}
+        if partial.get("name") == name:
+            errors, epochs, start = partial["errors"], partial["epochs"], partial["epoch"]
+        else:
+            errors = {s: [self.prediction_errors(data[s], predictor)] for s in ("train", "test")}
+            epochs, start = [0], 0
+        for epoch in tqdm(range(start + 1, t.n_epoch + 1), desc=f"predictor {name}", unit="epoch",
+                          initial=start, total=t.n_epoch, mininterval=1.0):
             order = torch.rand(self.R, y.shape[1], generator=self.generator, device=self.device).argsort(1)
             predictor.train_epoch(y, a, r, lengths, order)
             if epoch % t.error_every == 0 or epoch == t.n_epoch:
@@ -147,27 +161,70 @@ class TMazeTraining:
                 for T, value in zip(range(self.env.optimal_steps, self.cfg.env.max_steps + 1),
                                     np.nanmean(errors["test"][-1], axis=(0, 2))):
                     writer.add_scalar(f"predictor_{name}/error_test_T{T}", float(value), epoch)
+            if (epoch % t.checkpoint_every_epochs == 0 or stop.requested) and epoch < t.n_epoch:
+                progress["predictor_partial"] = {"name": name, "epoch": epoch, "errors": errors, "epochs": epochs}
+                self.checkpoint(progress, writer, stop)
+        progress["predictor_partial"] = None
         lengths_all = np.arange(self.env.optimal_steps, self.cfg.env.max_steps + 1)
         return {f"{name}_lengths": lengths_all, f"{name}_epochs": np.asarray(epochs),
                 **{f"{name}_error_{s}": np.stack(errors[s], 1) for s in ("train", "test")}}
 
+    # ---- checkpoints (CONTRACT §2: interruption and resume) ---------------------------------------
+    def checkpoint(self, progress: dict, writer: SummaryWriter, stop: StopRequest) -> None:
+        """Write everything a resumed run needs (atomically); exit if a signal asked to stop."""
+        writer.flush()
+        self.run.save_checkpoint({
+            "progress": progress, "generator": self.generator.get_state(),
+            "predictors": {n: p.state_dict() for n, p in self.predictors.items()},
+            "preprocessor": self.preprocessor.state_dict() if self.preprocessor is not None else None,
+            "actor": self.actor.state_dict()})
+        if stop.requested:
+            raise SystemExit(128 + stop.signal)
+
+    def finish_phase(self, progress: dict, phase: str, writer: SummaryWriter, stop: StopRequest) -> None:
+        progress["done"].append(phase)
+        self.checkpoint(progress, writer, stop)
+
+    def restore(self, saved: dict) -> dict:
+        """Parameters and RNG state of a checkpoint; returns its progress (finished phases, data,
+        records so far)."""
+        self.generator.set_state(saved["generator"])
+        for name, p in self.predictors.items():
+            p.load_state_dict(saved["predictors"][name])
+        self.actor.load_state_dict(saved["actor"])
+        if self.preprocessor is not None and saved["preprocessor"] is not None:
+            self.preprocessor.load_state_dict(saved["preprocessor"])
+            if "preprocessor" in saved["progress"]["done"]:
+                with torch.no_grad():
+                    self.table = self.preprocessor.transform(self.env.observation_table)
+        return saved["progress"]
+
     # ---- actor phase ----------------------------------------------------------------------------
-    def train_actor(self, writer: SummaryWriter, stop: StopRequest) -> dict:
-        cfg, env, actor, R = self.cfg, self.env, self.actor, self.R
-        N, T_max = cfg.trainer.n_episodes, cfg.env.max_steps
+    def fresh_actor_state(self) -> dict:
+        """Records of the actor phase before its first episode."""
+        R, N, T_max = self.R, self.cfg.trainer.n_episodes, self.cfg.env.max_steps
         records = {k: np.zeros((R, N), dtype=dt) for k, dt in (
             ("discounted_return", np.float32), ("steps", np.int64), ("terminal_reward", np.float32),
             ("correct_goal", bool), ("td_abs_mean", np.float32), ("condition", np.int64))}
+        n_sampled = len(range(0, N, self.cfg.trainer.td_sample_every))
+        return {"episode": 0, "records": records, "junction": [], "active_time": 0.0, "agent_steps": 0,
+                "td_sampled": np.full((R, n_sampled, T_max), np.nan, dtype=np.float32)}
+
+    def train_actor(self, writer: SummaryWriter, stop: StopRequest, progress: dict | None = None) -> dict:
+        """SARSA(0) episodes from where a checkpoint left them (``progress["actor_partial"]``);
+        a checkpoint every ``trainer.checkpoint_every`` episodes and on SIGINT/SIGTERM."""
+        cfg, env, actor, R = self.cfg, self.env, self.actor, self.R
+        N, T_max = cfg.trainer.n_episodes, cfg.env.max_steps
+        progress = progress if progress is not None else {"done": []}
+        state = progress.get("actor_partial") or self.fresh_actor_state()
+        records, td_sampled, junction = state["records"], state["td_sampled"], state["junction"]
+        active_time, agent_steps = state["active_time"], state["agent_steps"]
         sampled = list(range(0, N, cfg.trainer.td_sample_every))
-        td_sampled = np.full((R, len(sampled), T_max), np.nan, dtype=np.float32)
-        junction = []
-        active_time = 0.0
-        agent_steps = 0
-        bar = tqdm(range(N), desc="actor", unit="episode", mininterval=1.0)
+        bar = tqdm(range(state["episode"], N), desc="actor", unit="episode", initial=state["episode"],
+                   total=N, mininterval=1.0)
         for k in bar:
             started = time.perf_counter()
-            progress = k / N
-            lr, beta = actor.learning_rate(progress), actor.inverse_temperature(progress)
+            lr, beta = actor.learning_rate(k / N), actor.inverse_temperature(k / N)
             env.reset()
             y = self.lookup(env.obs_id)
             m = {name: p.initial()[0] for name, p in self.predictors.items()}
@@ -216,10 +273,15 @@ class TMazeTraining:
                 td_sampled[:, k // cfg.trainer.td_sample_every, : td.shape[1]] = td
             if (k + 1) % cfg.trainer.log_every == 0:
                 self.log_episodes(writer, records, k + 1, lr, beta)
-            if stop.requested:
-                raise SystemExit(128 + stop.signal)
+            if ((k + 1) % cfg.trainer.checkpoint_every == 0 or stop.requested) and k + 1 < N:
+                junction = [concat_records(junction)] if junction else []
+                progress["actor_partial"] = {"episode": k + 1, "records": records, "td_sampled": td_sampled,
+                                             "junction": junction, "active_time": active_time,
+                                             "agent_steps": agent_steps}
+                self.checkpoint(progress, writer, stop)
         bar.close()
-        junction_arrays = {key: torch.cat([j[key] for j in junction]).numpy() for key in junction[0]} if junction else {}
+        progress["actor_partial"] = None
+        junction_arrays = {key: v.numpy() for key, v in concat_records(junction).items()} if junction else {}
         if junction_arrays:
             junction_arrays["steps_to_goal"] = records["steps"][junction_arrays["run"], junction_arrays["episode"]]
         episodes = {**records, "td_sampled": td_sampled, "td_sampled_episodes": np.asarray(sampled),
@@ -253,20 +315,25 @@ class TMazeTraining:
 
 
 def train_tmaze(cfg, run: RunDir, device: torch.device) -> dict:
-    """Algorithm 1 / 2 phase by phase; returns the summary.json dict."""
+    """Algorithm 1 / 2 phase by phase, each skipped when a resumed checkpoint lists it as done;
+    returns the summary.json dict."""
     wall_start = time.perf_counter()
     job = TMazeTraining(cfg, run, device)
+    saved = run.load_checkpoint() if cfg.resume else None
+    progress = job.restore(saved) if saved else {"done": []}
     with SummaryWriter(run.tb) as writer, StopRequest() as stop:
-        if job.preprocessor is not None:
+        if job.preprocessor is not None and "preprocessor" not in progress["done"]:
             run.save_records("preprocessor", **job.train_preprocessor(writer))
-        data = job.collect()
-        run.save_records("predictor", **job.train_predictors(data, writer))
-        actor = job.train_actor(writer, stop)
+            job.finish_phase(progress, "preprocessor", writer, stop)
+        if "collect" not in progress["done"]:
+            progress["data"] = job.collect()
+            job.finish_phase(progress, "collect", writer, stop)
+        run.save_records("predictor", **job.train_predictors(progress["data"], writer, progress, stop))
+        actor = job.train_actor(writer, stop, progress)
         run.save_records("episodes", **actor["episodes"])
         run.save_records("junction", **actor["junction"])
-        run.save_checkpoint({"predictors": {n: p.state_dict() for n, p in job.predictors.items()},
-                             "preprocessor": job.preprocessor.state_dict() if job.preprocessor is not None else None,
-                             "actor": job.actor.state_dict(), "generator": job.generator.get_state()})
+        progress["data"] = None  # the finished run keeps parameters, not the training data
+        job.finish_phase(progress, "actor", writer, StopRequest())  # finished: a late signal no longer stops it
         metrics = final_metrics(actor["episodes"], job.optimal_return, cfg.trainer.final_window)
         writer.add_hparams(hparams(cfg), {f"hparam/{k}": float(np.mean(v)) for k, v in metrics.items()}, run_name=".")
     return {
@@ -277,6 +344,11 @@ def train_tmaze(cfg, run: RunDir, device: torch.device) -> dict:
         "wall_time_s": time.perf_counter() - wall_start,
         "agent_steps_per_s": actor["agent_steps"] / max(actor["actor_time"], 1e-9),
     }
+
+
+def concat_records(parts: list) -> dict:
+    """Junction records gathered step by step (a list of dicts of tensors) → one dict."""
+    return {key: torch.cat([p[key] for p in parts]) for key in parts[0]}
 
 
 def final_metrics(episodes: dict, optimal_return: float, window: int) -> dict:
