@@ -2,6 +2,7 @@
 
     python train.py [experiment=NAME] [group=option ...] [key=value ...]
     python train.py -m experiment=ch3_floor seed=0,10 env.noise=0.125,0.5
+    python train.py -m hparams_search=matching_optuna      # Optuna: main() returns optimized_metric
 """
 import io
 import os
@@ -15,6 +16,7 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
+from ferl.hydra_support import optimized_value, summary_table  # also: the launcher resolver
 from ferl.run_dir import RunDir
 from ferl.trainers.digit_floor import train_digit_floor
 from ferl.trainers.tmaze import train_tmaze
@@ -73,7 +75,9 @@ def release_stderr() -> None:
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")
-def main(cfg: DictConfig) -> None:
+def main(cfg: DictConfig) -> float | None:
+    """One job; returns the mean over runs of summary.json's ``optimized_metric`` (None when
+    that key is null), which Hydra's Optuna sweeper maximises or minimises."""
     release_stderr()
     run_path = Path(HydraConfig.get().runtime.output_dir)
     try:
@@ -92,11 +96,19 @@ def main(cfg: DictConfig) -> None:
         print(f"ferl: error: {e}", file=sys.stderr)
         sys.exit(2)
     run.write_summary(summary)
+    try:
+        value = optimized_value(summary, cfg.optimized_metric)
+    except ConfigError as e:
+        print(f"ferl: error: {e}", file=sys.stderr)
+        sys.exit(2)
     print(f"ferl: {cfg.name} done in {summary['wall_time_s']:.1f} s "
           f"({summary['agent_steps_per_s']:.0f} agent-steps/s)\n"
           f"  summary:     {run_path / 'summary.json'}\n"
           f"  TensorBoard: tensorboard --logdir {run.tb}\n"
-          f"  analysis:    python analyze.py {run_path}")
+          f"  analysis:    python analyze.py {run_path}\n"
+          f"{summary_table(summary)}"
+          + (f"\n  {cfg.optimized_metric} (optimized_metric, mean over runs): {value:.4f}" if value is not None else ""))
+    return value
 
 
 if __name__ == "__main__":

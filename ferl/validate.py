@@ -71,6 +71,7 @@ RULES = [
     ("n_runs", positive_int, "an integer ≥ 1"),
     ("device", one_of("auto", "cpu", "cuda"), "auto, cpu or cuda"),
     ("resume", one_of(True, False), "true or false"),
+    ("optimized_metric", lambda x: x is None or (isinstance(x, str) and x != ""), "null or a summary.json metric name"),
     ("cpu_threads", positive_int, "an integer ≥ 1"),
     ("task", one_of("digit_floor", "tmaze"), "digit_floor or tmaze"),
     ("env.noise", unit_interval, "a fraction of pixels in [0, 1]"),
@@ -112,6 +113,7 @@ RULES = [
     ("trainer.log_every", positive_int, "an integer ≥ 1"),
     ("trainer.checkpoint_every", positive_int, "an integer ≥ 1"),
     ("trainer.checkpoint_every_epochs", positive_int, "an integer ≥ 1"),
+    ("trainer.divergence_limit", positive, "a number > 0"),
     ("trainer.test_per_class", positive_int, "an integer ≥ 1"),
     ("trainer.test_noise_levels", noise_levels, "a non-empty list of noise levels in [0, 1]"),
     ("trainer.n_sample", positive_int, "an integer ≥ 1 (N_sample episodes)"),
@@ -125,6 +127,14 @@ RULES = [
     ("trainer.final_window", positive_int, "an integer ≥ 1"),
     ("data.test_per_class", lambda x: _int(x) and 1 <= x <= 499, "an integer in [1, 499] (500 images per class)"),
 ]
+
+# summary.json metrics per task (CONTRACT §2; ferl/trainers/*.py write them), by the names that
+# `optimized_metric` uses: a per-test-level metric is ``<name>/<level>`` (``greedy_accuracy/0.125``).
+TASK_METRICS = {
+    "tmaze": ("final_discounted_return", "final_steps_to_goal", "final_correct_goal_rate", "solved"),
+    "digit_floor": ("reward_per_step_last10pct",),
+}
+LEVEL_METRICS = {"digit_floor": ("greedy_accuracy", "greedy_accuracy_before")}
 
 _ABSENT = object()
 
@@ -178,10 +188,27 @@ def check_cross_keys(cfg) -> None:
         if missing:
             raise ConfigError(f"env.digit_classes.{missing[0]} is required: every observation needs a digit class")
     check_preprocessor(cfg)
+    check_optimized_metric(cfg)
     trainer, data = cfg.get("trainer", {}), cfg.get("data", {})
     if "test_per_class" in trainer and "test_per_class" in data and trainer.test_per_class > data.test_per_class:
         raise ConfigError(f"trainer.test_per_class={trainer.test_per_class} is not allowed: at most "
                           f"data.test_per_class={data.test_per_class} held-out images per class exist")
+
+
+def check_optimized_metric(cfg) -> None:
+    """``optimized_metric`` names a metric that this task's summary.json will hold."""
+    metric, task = cfg.get("optimized_metric"), cfg.get("task")
+    if metric is None or task not in TASK_METRICS:
+        return
+    names, allowed = list(TASK_METRICS[task]), ", ".join(TASK_METRICS[task])
+    if LEVEL_METRICS.get(task):
+        levels = [f"{x:g}" for x in cfg.get("trainer", {}).get("test_noise_levels", [])]
+        names += [f"{m}/{lvl}" for m in LEVEL_METRICS[task] for lvl in levels]
+        allowed += ", " + ", ".join(f"{m}/L" for m in LEVEL_METRICS[task]) + \
+            f" with L a test noise level of trainer.test_noise_levels ({', '.join(levels)})"
+    if metric not in names:
+        raise ConfigError(f"optimized_metric={metric!r} is not allowed: expected null or a summary.json "
+                          f"metric of task={task}: {allowed}")
 
 
 def check_preprocessor(cfg) -> None:

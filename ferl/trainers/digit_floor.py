@@ -11,13 +11,18 @@ import time
 import numpy as np
 import torch
 from hydra.utils import instantiate
-from omegaconf import OmegaConf
 from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
 from ferl.evaluation import evaluate_floor, floor_test_images, greedy_accuracy
+from ferl.guard import DivergenceGuard
 from ferl.random_blocks import Blocks, steps_per_block
 from ferl.run_dir import RunDir, StopRequest
+from ferl.tb_logging import as_images, flat_config, log_embedding, log_hparams, log_weights, tile, weight_images
+
+hparams = flat_config  # the flattened config of the HParams tab (ferl.tb_logging)
+ACTION_NAMES = ("N", "E", "S", "W")
+EMBEDDED_PER_CLASS = 100  # test digits per class in the projector (TensorBoard tags: docs/records.md)
 
 
 def pick(x: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
@@ -30,13 +35,6 @@ def pick(x: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
 def json_values(x: np.ndarray) -> list:
     """Per-run values for summary.json; NaN (no optimal action to score, e.g. without reward) → null."""
     return [None if np.isnan(v) else float(v) for v in x]
-
-
-def weight_images(W: torch.Tensor) -> torch.Tensor:
-    """Run 0's state→hidden weights as H images (H, 1, 28, 28) scaled to [0, 1] (Fig. 3.5)."""
-    w = W[0].T.reshape(-1, 1, 28, 28)
-    lo, hi = w.amin((1, 2, 3), keepdim=True), w.amax((1, 2, 3), keepdim=True)
-    return (w - lo) / (hi - lo + 1e-12)
 
 
 class FloorTraining:
@@ -54,6 +52,8 @@ class FloorTraining:
         self.action_uniforms = Blocks(
             lambda steps: (torch.rand(steps, self.R, 1, 1, generator=self.generator, device=device),),
             steps_per_block(self.R))
+        self.guard = DivergenceGuard(self.R, cfg.trainer.divergence_limit,
+                                     [cfg.seed + r for r in range(self.R)], device)
 
     def test_phase(self) -> dict:
         t = self.cfg.trainer
@@ -69,17 +69,19 @@ class FloorTraining:
         return {"step": 0, "before": before, "W_sh_before": self.actor.W_sh.cpu().clone(),
                 "s": s, "a": a, "F_sa": pick(F, a), "x_sa": pick(x, a),
                 "rewards": torch.zeros(self.T, self.R, device=self.device),
-                "td_errors": torch.zeros(self.T, self.R, device=self.device), "actor_time": 0.0}
+                "td_errors": torch.zeros(self.T, self.R, device=self.device), "actor_time": 0.0,
+                "checked": 0}  # steps whose TD errors the divergence guard has seen
 
     def checkpoint(self, state: dict) -> None:
         self.run.save_checkpoint({**state, "actor": self.actor.state_dict(), "env": self.env.state_dict(),
                                   "action_uniforms": self.action_uniforms.state_dict(),
-                                  "generator": self.generator.get_state()})
+                                  "guard": self.guard.state_dict(), "generator": self.generator.get_state()})
 
     def restore(self, saved: dict) -> dict:
         self.actor.load_state_dict(saved.pop("actor"))
         self.env.load_state_dict(saved.pop("env"))
         self.action_uniforms.load_state_dict(saved.pop("action_uniforms"), self.device)
+        self.guard.load_state_dict(saved.pop("guard"))
         self.generator.set_state(saved.pop("generator"))
         return {k: v.to(self.device) if torch.is_tensor(v) and k != "W_sh_before" else v for k, v in saved.items()}
 
@@ -99,13 +101,16 @@ class FloorTraining:
             F_next, x_next = actor.evaluate(s_next)
             a_next = actor.select(s_next, F_next, beta, gen, *self.action_uniforms.next())
             delta = actor.td_error(r.unsqueeze(1), F_sa, F_next, a_next, beta)
-            actor.update(s, a, x_sa, delta, lr)
+            actor.update(s, a, x_sa, self.guard.mask(delta), lr)
             rewards[t], td_errors[t] = r, delta.squeeze(1)
             s, a, F_sa, x_sa = s_next, a_next, pick(F_next, a_next), pick(x_next, a_next)
 
             done = t + 1
             if done % t_cfg.log_every == 0 or done == T:
+                self.guard.check(td_errors[state["checked"]:done], state["checked"])
+                state["checked"] = done
                 self.log_progress(writer, rewards, td_errors, done, lr, beta)
+                bar.set_postfix(reward_ma100=f"{rewards[max(0, done - 100):done].mean():.2f}", refresh=False)
                 bar.update(done - bar.n)
             if done % t_cfg.checkpoint_every == 0 or stop.requested or done == T:
                 state.update(step=done, s=s, a=a, F_sa=F_sa, x_sa=x_sa,
@@ -122,12 +127,39 @@ class FloorTraining:
         """Fig. 3.4's 100-step moving average (mean and spread over runs), TD error, α, β."""
         window = rewards[max(0, done - 100):done].mean(0)
         recent_td = td_errors[max(0, done - self.cfg.trainer.log_every):done].abs().mean()
-        for name, value in {"reward_ma100/mean": window.mean(), "reward_ma100/std": window.std(correction=0),
-                            "reward_ma100/min": window.min(), "reward_ma100/max": window.max(),
+        for name, value in {"reward_ma100": window.mean(), "reward_ma100_std": window.std(correction=0),
+                            "reward_ma100_min": window.min(), "reward_ma100_max": window.max(),
                             "td_error_abs": recent_td}.items():
-            writer.add_scalar(f"train/{name}", value.item(), done)
+            writer.add_scalar(f"actor/{name}", value.item(), done)
         writer.add_scalar("schedule/learning_rate", lr, done)
         writer.add_scalar("schedule/beta", beta, done)
+
+    def log_actor(self, writer, step: int) -> None:
+        """Run 0's weights: histograms and the 28 × 28 image→hidden tiles (Fig. 3.5)."""
+        log_weights(writer, "actor", self.actor, step)
+        writer.add_image("actor/W_sh_images", tile(weight_images(self.actor.W_sh)[:, 0]), step)
+
+    def log_test(self, writer, result: dict, step: int) -> None:
+        """Greedy accuracy per test-noise level, mean over runs (Fig. 3.6), before / after training."""
+        accuracy = greedy_accuracy(result["greedy_counts"], self.env.class_optimal_action)
+        for i, level in enumerate(self.cfg.trainer.test_noise_levels):
+            if not np.isnan(accuracy[:, i]).all():
+                writer.add_scalar(f"test/greedy_accuracy_{level:g}", float(np.nanmean(accuracy[:, i])), step)
+
+    def log_test_digits(self, writer, after: dict, step: int) -> None:
+        """Sample observations (clean test images and the noisy ones the actor was probed with,
+        one row per class) and run 0's hidden activations per test digit in the projector."""
+        n = min(8, self.test_images.shape[1])
+        writer.add_image("test/observations_clean", tile(as_images(self.test_images[:, :n])), step)
+        writer.add_image("test/observations_noisy", tile(as_images(after["probe_images"][:, :n])), step)
+        C, k = self.test_images.shape[0], min(EMBEDDED_PER_CLASS, self.test_images.shape[1])
+        optimal = self.env.class_optimal_action
+        greedy = after["probs"][0, :, :k].argmax(-1)  # (C, k): softmax is monotone in −F at β > 0
+        log_embedding(writer, "actor/hidden_test_digits", after["hidden"][0, :, :k].reshape(C * k, -1), {
+            "class": np.repeat(np.asarray(self.env.classes), k),
+            "optimal_action": np.repeat([ACTION_NAMES[a] if a >= 0 else "none" for a in optimal], k),
+            "greedy_action": [ACTION_NAMES[a] for a in greedy.reshape(-1)],
+        }, step, images=after["probe_images"][:, :k])
 
     def records_and_summary(self, state: dict, after: dict, wall_time: float) -> dict:
         env, before = self.env, state["before"]
@@ -161,41 +193,24 @@ def train_digit_floor(cfg, run: RunDir, device: torch.device) -> dict:
     saved = run.load_checkpoint() if cfg.resume else None
     state = job.restore(saved) if saved else job.fresh_state()
     with SummaryWriter(run.tb) as writer:
-        if state["step"] == 0:
-            writer.add_images("weights/W_sh_before", weight_images(job.actor.W_sh), 0)
+        if state["step"] == 0:  # not again on resume: the interrupted run logged these
+            job.log_actor(writer, 0)
+            job.log_test(writer, state["before"], 0)
         with StopRequest() as stop:
             state = job.train(state, writer, stop)
         after = job.test_phase()
         metrics = job.records_and_summary(state, after, time.perf_counter() - wall_start)
-        writer.add_images("weights/W_sh_after", weight_images(job.actor.W_sh), job.T)
-        for name in ("W_sh", "W_ah", "b_h"):
-            writer.add_histogram(f"weights/{name}", getattr(job.actor, name), job.T)
-        optimal = {"reward_per_step": job.env.optimal_reward_rate}
-        headline = {"reward_per_step_last10pct": float(np.mean(metrics["reward_per_step_last10pct"])),
-                    **{f"greedy_accuracy/{k}": float(np.mean(v)) for k, v in metrics["greedy_accuracy"].items()
-                       if None not in v}}
-        writer.add_hparams(hparams(cfg), {f"hparam/{k}": v for k, v in headline.items()}, run_name=".")
-    agent_steps = job.T * job.R
-    return {
-        "experiment": cfg.name, "task": "digit_floor",
-        "seeds": [cfg.seed + r for r in range(job.R)],
-        "metrics": metrics, "optimal": optimal,
-        "wall_time_s": time.perf_counter() - wall_start,
-        "agent_steps_per_s": agent_steps / max(state["actor_time"], 1e-9),
-    }
-
-
-def hparams(cfg) -> dict:
-    """Flat scalar view of the config for TensorBoard's HParams tab."""
-    flat = {}
-
-    def walk(node, prefix):
-        for key, value in node.items():
-            name = f"{prefix}{key}"
-            if isinstance(value, dict):
-                walk(value, name + ".")
-            elif isinstance(value, (int, float, str, bool)):
-                flat[name] = value
-
-    walk(OmegaConf.to_container(cfg, resolve=True), "")
-    return flat
+        job.log_actor(writer, job.T)
+        job.log_test(writer, after, job.T)
+        job.log_test_digits(writer, after, job.T)
+        agent_steps = job.T * job.R
+        summary = {
+            "experiment": cfg.name, "task": "digit_floor",
+            "seeds": [cfg.seed + r for r in range(job.R)],
+            "metrics": metrics, "optimal": {"reward_per_step": job.env.optimal_reward_rate},
+            "wall_time_s": time.perf_counter() - wall_start,
+            "agent_steps_per_s": agent_steps / max(state["actor_time"], 1e-9),
+            "diverged": job.guard.report("step"),
+        }
+        log_hparams(writer, cfg, summary, job.T)
+    return summary

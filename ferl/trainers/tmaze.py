@@ -22,13 +22,17 @@ from omegaconf import OmegaConf
 from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
+from ferl.guard import DivergenceGuard
 from ferl.preprocessor import load_or_fit
 from ferl.run_dir import RunDir, StopRequest
 from ferl.sequences import Episodes, balance_and_split, collect_random_episodes
-from ferl.trainers.digit_floor import hparams, pick
+from ferl.tb_logging import (IMAGE_SIDE, as_images, log_embedding, log_hparams, log_weights, matrix_image, tile,
+                              weight_images)
+from ferl.trainers.digit_floor import pick
 from ferl.validate import ConfigError
 
 PREPROCESSOR_EXTRA_KEYS = ("cache_dir",)  # preprocessor keys that are not constructor arguments
+EMBEDDED_JUNCTION_VISITS = 2000  # run 0's last junction visits in the projector (docs/records.md)
 
 
 class TMazeTraining:
@@ -48,6 +52,8 @@ class TMazeTraining:
                                  seed=cfg.seed + 100_000).to(device)
         self.gamma = cfg.actor.gamma
         self.table = self.env.observation_table  # (ids, Y), or (R, ids, Y) once processed
+        self.guard = DivergenceGuard(self.R, cfg.trainer.divergence_limit,
+                                     [cfg.seed + r for r in range(self.R)], device)
 
     def make_env(self, n_runs: int):
         extra = {"data": self.data} if self.data is not None else {}
@@ -73,16 +79,51 @@ class TMazeTraining:
         # no generator: every run trains on its own stream (seed + r), so the cache key is complete
         history, cached = load_or_fit(self.preprocessor, images, None, self.cfg.preprocessor.cache_dir,
                                       {"data": OmegaConf.to_container(self.cfg.data, resolve=True)}, writer)
+        sweeps = np.asarray(history).shape[1]
         if cached:  # the fit's own logging happened in the run that trained it
             for sweep, value in enumerate(np.asarray(history).mean(0), 1):
                 writer.add_scalar("preprocessor/reconstruction_error", float(value), sweep)
+            if self.preprocessor.W.shape[1] == IMAGE_SIDE ** 2:
+                writer.add_images("preprocessor/filters", weight_images(self.preprocessor.W), sweeps)
         after = self.preprocessor.reconstruction_error(test)
+        self.log_preprocessor(writer, test, before, after, sweeps)
         with torch.no_grad():
             self.table = self.preprocessor.transform(self.env.observation_table)
         return {"reconstruction_error": np.asarray(history), "test_error_before": before.cpu().numpy(),
                 "test_error_after": after.cpu().numpy(), "cached": np.bool_(cached),
                 "raw_observations": self.env.observation_table.cpu().numpy().astype(np.float16),
                 "processed_observations": self.table.cpu().numpy().astype(np.float16)}
+
+    def log_preprocessor(self, writer, test: torch.Tensor, before, after, sweeps: int) -> None:
+        """Held-out reconstruction error before / after (mean over runs), run 0's weights, and
+        its reconstructions σ(W ĥ + b_v) of one test image per digit class (row 2) under the
+        images (row 1)."""
+        writer.add_scalar("preprocessor/test_reconstruction_error", float(before.mean()), 0)
+        writer.add_scalar("preprocessor/test_reconstruction_error", float(after.mean()), sweeps)
+        log_weights(writer, "preprocessor", self.preprocessor, sweeps)
+        if test.shape[1] != IMAGE_SIDE ** 2:
+            return
+        labels = self.data.test_labels.cpu()
+        first = [int(torch.nonzero(labels == c)[0]) for c in labels.unique().tolist()][:10]
+        images = test[first]
+        with torch.no_grad():
+            recon = self.preprocessor.visible_given(self.preprocessor.transform(images))[0]
+        writer.add_image("preprocessor/reconstructions", tile(torch.stack([as_images(images), as_images(recon)])), sweeps)
+
+    def log_observations(self, writer) -> None:
+        """What the agent observes: up to 8 images of every observation's reservoir (one row
+        per observation of the environment's table), or the table of bit codes itself."""
+        table, names = self.env.observation_table.float().cpu(), self.env.observation_names
+        if table.shape[1] == IMAGE_SIDE ** 2:
+            per_name = table.view(len(names), -1, table.shape[1])
+            writer.add_image("env/observations", tile(as_images(per_name[:, :8])), 0)
+        else:
+            writer.add_image("env/observations", matrix_image(table), 0)
+
+    def log_collect(self, writer, data: dict) -> None:
+        writer.add_scalar("collect/train_sequences", data["train"].lengths.shape[1], 0)
+        writer.add_scalar("collect/test_sequences", data["test"].lengths.shape[1], 0)
+        writer.add_scalar("collect/train_per_length", data["n_train"], 0)
 
     # ---- predictor data and training --------------------------------------------------------
     def lookup(self, ids: torch.Tensor) -> torch.Tensor:
@@ -149,8 +190,9 @@ class TMazeTraining:
         else:
             errors = {s: [self.prediction_errors(data[s], predictor)] for s in ("train", "test")}
             epochs, start = [0], 0
-        for epoch in tqdm(range(start + 1, t.n_epoch + 1), desc=f"predictor {name}", unit="epoch",
-                          initial=start, total=t.n_epoch, mininterval=1.0):
+            log_weights(writer, f"predictor_{name}", predictor, 0)
+        for epoch in (bar := tqdm(range(start + 1, t.n_epoch + 1), desc=f"predictor {name}", unit="epoch",
+                                  initial=start, total=t.n_epoch, mininterval=1.0)):
             order = torch.rand(self.R, y.shape[1], generator=self.generator, device=self.device).argsort(1)
             predictor.train_epoch(y, a, r, lengths, order)
             if epoch % t.error_every == 0 or epoch == t.n_epoch:
@@ -158,6 +200,7 @@ class TMazeTraining:
                 for split in ("train", "test"):
                     errors[split].append(self.prediction_errors(data[split], predictor))
                     writer.add_scalar(f"predictor_{name}/error_{split}", float(np.nanmean(errors[split][-1])), epoch)
+                bar.set_postfix(error_test=f"{np.nanmean(errors['test'][-1]):.4f}", refresh=False)
                 for T, value in zip(range(self.env.optimal_steps, self.cfg.env.max_steps + 1),
                                     np.nanmean(errors["test"][-1], axis=(0, 2))):
                     writer.add_scalar(f"predictor_{name}/error_test_T{T}", float(value), epoch)
@@ -165,6 +208,7 @@ class TMazeTraining:
                 progress["predictor_partial"] = {"name": name, "epoch": epoch, "errors": errors, "epochs": epochs}
                 self.checkpoint(progress, writer, stop)
         progress["predictor_partial"] = None
+        log_weights(writer, f"predictor_{name}", predictor, t.n_epoch)
         lengths_all = np.arange(self.env.optimal_steps, self.cfg.env.max_steps + 1)
         return {f"{name}_lengths": lengths_all, f"{name}_epochs": np.asarray(epochs),
                 **{f"{name}_error_{s}": np.stack(errors[s], 1) for s in ("train", "test")}}
@@ -177,7 +221,7 @@ class TMazeTraining:
             "progress": progress, "generator": self.generator.get_state(),
             "predictors": {n: p.state_dict() for n, p in self.predictors.items()},
             "preprocessor": self.preprocessor.state_dict() if self.preprocessor is not None else None,
-            "actor": self.actor.state_dict()})
+            "actor": self.actor.state_dict(), "guard": self.guard.state_dict()})
         if stop.requested:
             raise SystemExit(128 + stop.signal)
 
@@ -192,6 +236,7 @@ class TMazeTraining:
         for name, p in self.predictors.items():
             p.load_state_dict(saved["predictors"][name])
         self.actor.load_state_dict(saved["actor"])
+        self.guard.load_state_dict(saved["guard"])
         if self.preprocessor is not None and saved["preprocessor"] is not None:
             self.preprocessor.load_state_dict(saved["preprocessor"])
             if "preprocessor" in saved["progress"]["done"]:
@@ -216,6 +261,8 @@ class TMazeTraining:
         cfg, env, actor, R = self.cfg, self.env, self.actor, self.R
         N, T_max = cfg.trainer.n_episodes, cfg.env.max_steps
         progress = progress if progress is not None else {"done": []}
+        if progress.get("actor_partial") is None:
+            self.log_actor(writer, 0)
         state = progress.get("actor_partial") or self.fresh_actor_state()
         records, td_sampled, junction = state["records"], state["td_sampled"], state["junction"]
         active_time, agent_steps = state["active_time"], state["agent_steps"]
@@ -250,7 +297,7 @@ class TMazeTraining:
                 boot_off = terminated | ~active
                 delta = actor.td_error(r.unsqueeze(1), F_sa, F_next, a_next, beta, boot_off.unsqueeze(1))
                 delta = delta * active.unsqueeze(1)
-                actor.update(s, a, x_sa, delta, lr)
+                actor.update(s, a, x_sa, self.guard.mask(delta), lr)
                 ret += active * (self.gamma ** t) * r
                 td_sum += delta.squeeze(1).abs()
                 last_r = torch.where(active, r, last_r)
@@ -271,8 +318,13 @@ class TMazeTraining:
             if k % cfg.trainer.td_sample_every == 0:
                 td = torch.stack(td_steps, 1).cpu().numpy()
                 td_sampled[:, k // cfg.trainer.td_sample_every, : td.shape[1]] = td
+            if (k + 1) % cfg.trainer.log_every == 0 or k + 1 == N:
+                checked = k + 1 - (k % cfg.trainer.log_every + 1)  # first episode not yet checked
+                self.guard.check(torch.as_tensor(records["td_abs_mean"][:, checked:k + 1].T), checked, "episode")
             if (k + 1) % cfg.trainer.log_every == 0:
                 self.log_episodes(writer, records, k + 1, lr, beta)
+                bar.set_postfix(return_ma200=f"{records['discounted_return'][:, max(0, k - 199):k + 1].mean():.3f}",
+                                correct_ma200=f"{records['correct_goal'][:, max(0, k - 199):k + 1].mean():.2f}", refresh=False)
             if ((k + 1) % cfg.trainer.checkpoint_every == 0 or stop.requested) and k + 1 < N:
                 junction = [concat_records(junction)] if junction else []
                 progress["actor_partial"] = {"episode": k + 1, "records": records, "td_sampled": td_sampled,
@@ -281,6 +333,7 @@ class TMazeTraining:
                 self.checkpoint(progress, writer, stop)
         bar.close()
         progress["actor_partial"] = None
+        self.log_actor(writer, N)
         junction_arrays = {key: v.numpy() for key, v in concat_records(junction).items()} if junction else {}
         if junction_arrays:
             junction_arrays["steps_to_goal"] = records["steps"][junction_arrays["run"], junction_arrays["episode"]]
@@ -305,6 +358,27 @@ class TMazeTraining:
                 "state": s[where, 0].half().cpu(),
                 "hidden": torch.sigmoid(x_sa[where, 0]).half().cpu()}
 
+    def log_actor(self, writer, step: int) -> None:
+        """Run 0's weights: histograms, W_sh as a (state nodes × hidden) image and, where the
+        observation is an unprocessed image, its 784 rows as 28 × 28 tiles."""
+        log_weights(writer, "actor", self.actor, step)
+        W = self.actor.W_sh
+        writer.add_image("actor/W_sh_matrix", matrix_image(W[0]), step)
+        if self.preprocessor is None and self.env.observation_size == IMAGE_SIDE ** 2:
+            writer.add_image("actor/W_sh_images", tile(weight_images(W[:, :IMAGE_SIDE ** 2])[:, 0]), step)
+
+    def log_junction(self, writer, junction: dict, episodes: dict, step: int) -> None:
+        """Run 0's actor hidden activations at its last T-junction visits in the projector,
+        labelled with the episode's condition and outcome (Figs. 4.14–4.19)."""
+        visits = np.flatnonzero(junction["run"] == 0)[-EMBEDDED_JUNCTION_VISITS:] if junction else []
+        if len(visits) == 0:
+            return
+        episode = junction["episode"][visits]
+        log_embedding(writer, "actor/hidden_at_junction", junction["hidden"][visits], {
+            **{key: junction[key][visits] for key in ("condition", "initial_signal", "junction_signal")},
+            "episode": episode, "steps_to_goal": junction["steps_to_goal"][visits],
+            "correct_goal": episodes["correct_goal"][0, episode].astype(int)}, step)
+
     def log_episodes(self, writer, records, done: int, lr: float, beta: float) -> None:
         """200-episode moving averages, mean over runs (Figs. 4.6–4.8, 4.11–4.13)."""
         window = slice(max(0, done - 200), done)
@@ -322,28 +396,34 @@ def train_tmaze(cfg, run: RunDir, device: torch.device) -> dict:
     saved = run.load_checkpoint() if cfg.resume else None
     progress = job.restore(saved) if saved else {"done": []}
     with SummaryWriter(run.tb) as writer, StopRequest() as stop:
+        if not progress["done"]:
+            job.log_observations(writer)
         if job.preprocessor is not None and "preprocessor" not in progress["done"]:
             run.save_records("preprocessor", **job.train_preprocessor(writer))
             job.finish_phase(progress, "preprocessor", writer, stop)
         if "collect" not in progress["done"]:
             progress["data"] = job.collect()
+            job.log_collect(writer, progress["data"])
             job.finish_phase(progress, "collect", writer, stop)
         run.save_records("predictor", **job.train_predictors(progress["data"], writer, progress, stop))
         actor = job.train_actor(writer, stop, progress)
         run.save_records("episodes", **actor["episodes"])
         run.save_records("junction", **actor["junction"])
+        job.log_junction(writer, actor["junction"], actor["episodes"], cfg.trainer.n_episodes)
         progress["data"] = None  # the finished run keeps parameters, not the training data
         job.finish_phase(progress, "actor", writer, StopRequest())  # finished: a late signal no longer stops it
         metrics = final_metrics(actor["episodes"], job.optimal_return, cfg.trainer.final_window)
-        writer.add_hparams(hparams(cfg), {f"hparam/{k}": float(np.mean(v)) for k, v in metrics.items()}, run_name=".")
-    return {
-        "experiment": cfg.name, "task": "tmaze",
-        "seeds": [cfg.seed + r for r in range(job.R)],
-        "metrics": metrics,
-        "optimal": {"discounted_return": job.optimal_return, "steps_to_goal": job.env.optimal_steps},
-        "wall_time_s": time.perf_counter() - wall_start,
-        "agent_steps_per_s": actor["agent_steps"] / max(actor["actor_time"], 1e-9),
-    }
+        summary = {
+            "experiment": cfg.name, "task": "tmaze",
+            "seeds": [cfg.seed + r for r in range(job.R)],
+            "metrics": metrics,
+            "optimal": {"discounted_return": job.optimal_return, "steps_to_goal": job.env.optimal_steps},
+            "wall_time_s": time.perf_counter() - wall_start,
+            "agent_steps_per_s": actor["agent_steps"] / max(actor["actor_time"], 1e-9),
+            "diverged": job.guard.report("episode"),
+        }
+        log_hparams(writer, cfg, summary, cfg.trainer.n_episodes)
+    return summary
 
 
 def concat_records(parts: list) -> dict:

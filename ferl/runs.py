@@ -1,0 +1,183 @@
+"""Read run directories back into pandas: configs, summary.json metrics and TensorBoard scalars.
+
+    from ferl import runs
+    r = runs.load("outputs/multirun/2026-01-01_12-00-00")   # a run, or any folder of runs
+    r.configs    # one row per run: run, run_dir, overrides, the flattened resolved config
+    r.metrics    # one row per run × seed: run, run_dir, experiment, task, seed, every metric
+    r.scalars    # long: run, run_dir, tag, step, value, wall_time (TensorBoard's own reader)
+    r.table()    # metrics joined with the config: one row per run × seed
+
+A run directory is one holding ``summary.json`` (CONTRACT §2); ``run`` is its path relative to
+the folder given ("." for the run itself), ``run_dir`` its absolute path. Nested config keys and
+per-level metrics are flattened with dots and slashes as in TensorBoard's HParams tab
+(``actor.n_hidden``, ``greedy_accuracy/0.125``). ``python -m ferl.runs DIR`` prints the tables.
+"""
+import argparse
+import json
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import pandas as pd
+from omegaconf import OmegaConf
+from tensorboard.backend.event_processing.event_accumulator import SCALARS, EventAccumulator
+
+SUMMARY = "summary.json"
+
+
+def find_runs(path) -> list[Path]:
+    """The run directories at or below ``path`` (folders holding summary.json), sorted."""
+    path = Path(path)
+    if (path / SUMMARY).is_file():
+        return [path]
+    return sorted(p.parent for p in path.rglob(SUMMARY))
+
+
+def _flatten(node, prefix: str = "", sep: str = ".") -> dict:
+    flat = {}
+    for key, value in node.items():
+        if isinstance(value, dict):
+            flat.update(_flatten(value, f"{prefix}{key}{sep}", sep))
+        else:
+            flat[f"{prefix}{key}"] = _hashable(value)
+    return flat
+
+
+def _hashable(value):
+    """Lists as tuples, so that config columns can be grouped on."""
+    return tuple(_hashable(v) for v in value) if isinstance(value, list) else value
+
+
+def load_config(run_dir) -> dict:
+    """The run's resolved config (``.hydra/config.yaml``), flattened: ``{"actor.n_hidden": 20}``,
+    lists as tuples. Hydra saves it unresolved; ``${hydra:…}`` (e.g. ``name``) is read from
+    ``.hydra/hydra.yaml``, and an entry that cannot be resolved keeps its text."""
+    hydra_dir = Path(run_dir) / ".hydra"
+    text = re.sub(r"\$\{hydra:", "${hydra.", (hydra_dir / "config.yaml").read_text())
+    cfg = OmegaConf.create(text)
+    keys = list(cfg.keys())
+    if (hydra_dir / "hydra.yaml").is_file():
+        OmegaConf.set_struct(cfg, False)
+        cfg.hydra = OmegaConf.load(hydra_dir / "hydra.yaml").hydra
+    resolved = {}
+    for key in keys:
+        try:
+            node = cfg[key]
+            resolved[key] = OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node
+        except Exception:  # noqa: BLE001 — an interpolation of something not saved with the run
+            resolved[key] = OmegaConf.to_container(cfg, resolve=False)[key]
+    return _flatten(resolved)
+
+
+def load_overrides(run_dir) -> str:
+    """The command-line overrides of the run (``.hydra/overrides.yaml``), space-separated."""
+    path = Path(run_dir) / ".hydra" / "overrides.yaml"
+    return " ".join(OmegaConf.load(path)) if path.is_file() else ""
+
+
+def load_summary(run_dir) -> dict:
+    return json.loads((Path(run_dir) / SUMMARY).read_text())
+
+
+def _names(run_dir: Path, root: Path) -> dict:
+    return {"run": run_dir.relative_to(root).as_posix() if run_dir != root else ".", "run_dir": str(run_dir.resolve())}
+
+
+def configs(path) -> pd.DataFrame:
+    """One row per run: run, run_dir, overrides and the flattened resolved config."""
+    root = Path(path)
+    rows = []
+    for run_dir in find_runs(root):
+        row = {**_names(run_dir, root), "overrides": load_overrides(run_dir)}
+        if (run_dir / ".hydra" / "config.yaml").is_file():
+            row.update(load_config(run_dir))
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def metrics(path) -> pd.DataFrame:
+    """One row per run × seed: run, run_dir, experiment, task, seed, every summary.json metric
+    (a per-level metric as ``<name>/<level>``; null → NaN), wall_time_s and agent_steps_per_s."""
+    root = Path(path)
+    rows = []
+    for run_dir in find_runs(root):
+        summary = load_summary(run_dir)
+        per_seed = _flatten(summary["metrics"], sep="/")
+        for i, seed in enumerate(summary["seeds"]):
+            rows.append({**_names(run_dir, root), "experiment": summary["experiment"], "task": summary["task"],
+                         "seed": seed, **{name: _number(values[i]) for name, values in per_seed.items()},
+                         "wall_time_s": summary["wall_time_s"], "agent_steps_per_s": summary["agent_steps_per_s"]})
+    return pd.DataFrame(rows)
+
+
+def _number(value):
+    return float("nan") if value is None else value
+
+
+SCALAR_COLUMNS = ["run", "run_dir", "tag", "step", "value", "wall_time"]
+
+
+def scalars(path, tags=None) -> pd.DataFrame:
+    """Every TensorBoard scalar of the runs' ``tb/`` logs, long: run, run_dir, tag, step, value,
+    wall_time; ``tags`` (a collection or a regular expression) keeps only those. Read with
+    TensorBoard's EventAccumulator, no downsampling; a step logged twice (a resumed run repeats
+    the steps after its last checkpoint) keeps its last value."""
+    root = Path(path)
+    wanted = re.compile(tags) if isinstance(tags, str) else (set(tags) if tags is not None else None)
+    frames = []
+    for run_dir in find_runs(root):
+        if not (run_dir / "tb").is_dir():
+            continue
+        events = EventAccumulator(str(run_dir / "tb"), size_guidance={SCALARS: 0})
+        events.Reload()
+        for tag in events.Tags()[SCALARS]:
+            if wanted is not None and not (wanted.search(tag) if isinstance(wanted, re.Pattern) else tag in wanted):
+                continue
+            points = events.Scalars(tag)
+            frames.append(pd.DataFrame({**_names(run_dir, root), "tag": tag,
+                                        "step": [p.step for p in points], "value": [p.value for p in points],
+                                        "wall_time": [p.wall_time for p in points]}))
+    if not frames:
+        return pd.DataFrame(columns=SCALAR_COLUMNS)
+    out = pd.concat(frames, ignore_index=True)
+    out = out.sort_values(["run", "tag", "wall_time"], kind="stable")
+    out = out.drop_duplicates(["run", "tag", "step"], keep="last").sort_values(["run", "tag", "step"], kind="stable")
+    return out[SCALAR_COLUMNS].reset_index(drop=True)
+
+
+@dataclass
+class Runs:
+    configs: pd.DataFrame
+    metrics: pd.DataFrame
+    scalars: pd.DataFrame
+
+    def table(self) -> pd.DataFrame:
+        """Metrics joined with each run's config: one row per run × seed."""
+        config = self.configs.drop(columns=[c for c in ("experiment", "task") if c in self.configs and c in self.metrics])
+        return self.metrics.merge(config, on=["run", "run_dir"], how="left", suffixes=("", "_config"))
+
+
+def load(path, tags=None) -> Runs:
+    """Configs, metrics and scalars of the run or runs at ``path`` (FileNotFoundError if none)."""
+    if not find_runs(path):
+        raise FileNotFoundError(f"no run directories (folders with {SUMMARY}) at or below {path}")
+    return Runs(configs(path), metrics(path), scalars(path, tags))
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description="Print the runs at DIR: metrics (mean over seeds) and scalar tags.")
+    parser.add_argument("path", help="a run directory or any folder of runs")
+    args = parser.parse_args(argv)
+    try:
+        r = load(args.path)
+    except FileNotFoundError as e:
+        raise SystemExit(f"ferl.runs: error: {e}") from None
+    numeric = r.metrics.drop(columns=["run_dir", "seed"]).groupby(["run", "experiment", "task"]).mean(numeric_only=True)
+    with pd.option_context("display.max_columns", None, "display.width", 200):
+        print(numeric.T.to_string())
+    tags = r.scalars.groupby("tag")["step"].agg(["count", "max"]).rename(columns={"count": "points", "max": "last_step"})
+    print(f"\nscalar tags ({len(tags)}):\n{tags.to_string()}")
+
+
+if __name__ == "__main__":
+    main()
