@@ -46,6 +46,8 @@ reproduce: $(STAMP)
 bench: $(STAMP)
 	$(PY) benchmarks/bench_floor.py
 	$(PY) benchmarks/bench_preprocessor.py
+	$(PY) benchmarks/bench_tmaze.py
+	$(PY) benchmarks/bench_predictor.py
 
 clean:
 	rm -rf $(VENV) outputs/*/ .pytest_cache

@@ -103,8 +103,10 @@ def _safe_analyze_run(run_dir: Path):
 
 def _read_summary(run_dir: Path) -> dict | None:
     """A run's summary for the sweep tables, also where its own analysis failed; None if unreadable."""
+    from ferl.runs import load_summary
+
     try:
-        return json.loads((run_dir / "summary.json").read_text())
+        return load_summary(run_dir)
     except (OSError, ValueError):
         return None
 
@@ -114,9 +116,10 @@ def analyze_sweep(sweep_dir: Path, readme: Path | None = None) -> list:
     from ferl.analysis import sweep as sw
     from ferl.analysis.report import jobs_table
 
+    from ferl.runs import find_runs
+
     start = time.perf_counter()
-    runs = sorted(p.parent for p in sweep_dir.rglob("summary.json")
-                  if "analysis" not in p.relative_to(sweep_dir).parts)
+    runs = find_runs(sweep_dir)
     outcomes = [_safe_analyze_run(r) for r in runs]
     jobs = [sw.Job(o, summary) for o in outcomes
             if (summary := _read_summary(o.run_dir)) is not None]

@@ -114,3 +114,24 @@ def test_missing_directory_is_one_line_error(tmp_path):
     assert result.returncode == 2
     assert len(result.stderr.strip().splitlines()) == 1
     assert "does_not_exist" in result.stderr
+
+
+def test_a_diverged_run_is_left_out_of_the_clustering(tmp_path):
+    """A run whose weights diverged has NaN activations: its dendrogram is skipped, not fatal."""
+    import numpy as np
+
+    from ferl.analysis.floor import FloorRun
+
+    run_dir = make_floor_run(tmp_path / "run", n_runs=3)
+    path = run_dir / "records" / "floor_test.npz"
+    with np.load(path) as data:
+        test = {k: data[k] for k in data.files}
+    for key in ("hidden_after", "hidden_marginal_after"):
+        test[key][1] = np.nan
+    np.savez(path, **test)
+    run = FloorRun.load(run_dir)
+    assert run.mfr_linkages[1] is None and run.mfr_linkages[0] is not None
+    assert all(len(run.cluster_hits(i, j)) == 2 for i, j in run.same_action_pairs)
+    result = analyze(run_dir)
+    assert result.returncode == 0, result.stderr
+    assert ": 2/2 runs" in (run_dir / "analysis" / "report.md").read_text()  # the healthy runs

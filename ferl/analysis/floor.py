@@ -139,14 +139,16 @@ class FloorRun:
     def _linkage_cache(self) -> dict:
         return {}
 
-    def linkages(self, source: str) -> list[np.ndarray]:
+    def linkages(self, source: str) -> list[np.ndarray | None]:
         """Per-run average-linkage trees of D = g1ᵀ + 1gᵀ − 2G over the cluster classes, from the
         median over test images of ``hidden`` (Eq. 3.12: actions marginalised with a uniform prior)
-        or ``hidden_marginal`` (§3.5.3 fn. 6: actions weighted by the policy P(a|z))."""
+        or ``hidden_marginal`` (§3.5.3 fn. 6: actions weighted by the policy P(a|z)); None for a
+        run whose activations are not finite (its weights diverged)."""
         if source not in self._linkage_cache:
             idx = [self.classes.index(c) for c in self.cluster_classes]
             self._linkage_cache[source] = [
                 coding.linkage_from_distance(coding.gram_distance(coding.median_firing_rates(h[idx]))[1], LINKAGE)
+                if np.isfinite(h).all() else None
                 for h in self.test[f"{source}_after"]]
         return self._linkage_cache[source]
 
@@ -155,9 +157,10 @@ class FloorRun:
         return coding.same_action_pairs(self.classes, self.optimal_action)
 
     def cluster_hits(self, i: int, j: int, source: str = "hidden") -> list[bool]:
-        """Per run: are classes i and j (indices into classes) merged directly in the dendrogram?"""
+        """Per run with finite activations: are classes i and j (indices into classes) merged
+        directly in the dendrogram?"""
         a, b = (self.cluster_classes.index(self.classes[k]) for k in (i, j))
-        return [coding.pair_forms_cluster(z, a, b) for z in self.linkages(source)]
+        return [coding.pair_forms_cluster(z, a, b) for z in self.linkages(source) if z is not None]
 
     def median_activation(self, phase: str) -> np.ndarray:
         """(R, C, H) median of the marginal activation (§3.5.3, fn. 6)."""
@@ -331,10 +334,12 @@ def make_figures(run: FloorRun, n_outlier_images: int = 40) -> dict[str, tuple]:
                                run.median_activation("after")[0], run.classes),
         "Fig. 3.10: median hidden activation per class (run 0)")
     what = f"{run.summary.get('experiment', '')}, {run.mfr['after'].shape[2]} hidden nodes"
-    out["fig3_11_dendrogram_run0"] = (
-        figs.mfr_dendrogram(run.mfr_linkages[0], run.cluster_classes,
-                            f"Fig. 3.11/3.13: clustered MFRs after training\n(run 0; {what})"),
-        "Figs. 3.11/3.13: MFR dendrogram after training, run 0")
+    shown = next((r for r, z in enumerate(run.mfr_linkages) if z is not None), None)
+    if shown is not None:  # the first run whose weights did not diverge
+        out["fig3_11_dendrogram_run0"] = (
+            figs.mfr_dendrogram(run.mfr_linkages[shown], run.cluster_classes,
+                                f"Fig. 3.11/3.13: clustered MFRs after training\n(run {shown}; {what})"),
+            f"Figs. 3.11/3.13: MFR dendrogram after training, run {shown}")
     out["fig3_11_dendrogram_all_runs"] = (
         figs.mfr_dendrogram_grid(run.mfr_linkages, run.cluster_classes,
                                  f"Fig. 3.11/3.13: clustered MFRs after training, every run\n"

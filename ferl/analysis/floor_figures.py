@@ -147,7 +147,7 @@ def noise_grid_heatmap(train: np.ndarray, test: np.ndarray, accuracy: np.ndarray
     ax.set_yticks(range(len(train)), [f"{100 * x:g}" for x in train])
     ax.set_xlabel("test noise (% of pixels replaced by white noise)")
     ax.set_ylabel("training noise (% of pixels)")
-    ax.set_title(f"Fig. 3.6: greedy accuracy after training, `{experiment}`, mean over runs")
+    ax.set_title(f"Fig. 3.6: greedy accuracy after training, {experiment}, mean over runs")
     fig.colorbar(im, ax=ax, label="greedy accuracy (fraction optimal)")
     return fig
 
@@ -217,9 +217,9 @@ def mfr_dendrogram(linkage_matrix: np.ndarray, labels: Sequence[str], title: str
     return fig
 
 
-def mfr_dendrogram_grid(linkages: Sequence[np.ndarray], labels: Sequence[str],
+def mfr_dendrogram_grid(linkages: Sequence[np.ndarray | None], labels: Sequence[str],
                         title: str, ncols: int = 5) -> Figure:
-    """Figs. 3.11/3.13 for every run: one small dendrogram per run."""
+    """Figs. 3.11/3.13 for every run: one small dendrogram per run (None: a diverged run)."""
     ncols = min(ncols, len(linkages))
     nrows = -(-len(linkages) // ncols)
     fig = Figure(figsize=(3 * ncols, 2.6 * nrows), layout="constrained")
@@ -228,7 +228,12 @@ def mfr_dendrogram_grid(linkages: Sequence[np.ndarray], labels: Sequence[str],
         if r >= len(linkages):
             ax.set_axis_off()
             continue
-        _dendrogram(ax, linkages[r], labels)
+        if linkages[r] is None:
+            ax.text(0.5, 0.5, "diverged\n(non-finite activations)", ha="center", va="center",
+                    transform=ax.transAxes, fontsize="small")
+            _no_ticks(ax)
+        else:
+            _dendrogram(ax, linkages[r], labels)
         ax.set_title(f"run {r}", fontsize="small")
         ax.tick_params(labelsize="x-small")
     for ax in axes[::ncols]:

@@ -22,8 +22,8 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
-import yaml
 
+from ferl import runs
 from ferl.analysis.floor import _fmt, _write_csv
 from ferl.analysis.floor_figures import noise_grid_heatmap
 from ferl.analysis.report import (CLAIM_ORDER, SWEEP_CLAIMS, VERDICTS, ClaimResult, RunAnalysis, RunOutcome,
@@ -38,17 +38,8 @@ TRAIN_WALL_TIME = "train_wall_time_s"            # written by `make reproduce`
 
 def _job_overrides(run_dir: Path) -> tuple[str, ...]:
     """The job's command-line overrides besides the experiment and Hydra's own (launcher, dirs)."""
-    path = run_dir / ".hydra" / "overrides.yaml"
-    if not path.is_file():
-        return ()
-    found = yaml.safe_load(path.read_text()) or []
-    return tuple(o for o in found
+    return tuple(o for o in runs.load_overrides(run_dir).split()
                  if not o.lstrip("+~").startswith(("experiment=", "hydra.", "hydra/")))
-
-
-def _load_config(run_dir: Path) -> dict:
-    path = run_dir / ".hydra" / "config.yaml"
-    return (yaml.safe_load(path.read_text()) or {}) if path.is_file() else {}
 
 
 @dataclass
@@ -77,13 +68,20 @@ class Job:
     def variant(self) -> str:
         return " ".join(self.overrides) or DISSERTATION_SETTING
 
+    @property
+    def label(self) -> str:
+        """`experiment` and its overrides, e.g. `ch3_floor env.noise=0.5`."""
+        return f"`{' '.join((self.experiment, *self.overrides))}`"
+
     @cached_property
     def config(self) -> dict:
-        return _load_config(self.run_dir)
+        """The flattened resolved config (`ferl.runs`), {} without `.hydra/config.yaml`."""
+        has_config = (self.run_dir / ".hydra" / "config.yaml").is_file()
+        return runs.load_config(self.run_dir) if has_config else {}
 
     def setting(self, group: str, key: str):
-        """A resolved config value (`.hydra/config.yaml`), None without one."""
-        return (self.config.get(group) or {}).get(key)
+        """A resolved config value, None without one."""
+        return self.config.get(f"{group}.{key}")
 
     def verdict(self, source: str) -> ClaimResult | None:
         return next((r for r in self.outcome.results if r.claim.source == source), None)
@@ -249,10 +247,10 @@ def claims_rows_markdown(rows: Sequence[ReportRow], out: Path, links: bool = Tru
         if row.job is None:
             job = "across jobs"
         else:
-            name = f"{row.job.experiment} ({row.job.variant})"
+            name = row.job.label
             job = (f"[{name}]({_link(row.job.run_dir / 'analysis' / 'report.md', out)})"
                    if links else name)
-        others = "; ".join(f"`{j.variant}`: {o.verdict}" for j, o in row.others) or "—"
+        others = "; ".join(f"{j.label}: {o.verdict}" for j, o in row.others) or "—"
         cells = [r.claim.text, r.claim.source, r.measured.text]
         lines.append("| " + " | ".join(map(_cell, cells))
                      + f" | **{r.verdict}** | {job} | {others} |")
@@ -322,7 +320,10 @@ def update_readme(readme: Path, rows: Sequence[ReportRow], wall: dict[str, float
     head, rest = text.split(README_BEGIN, 1)
     _, tail = rest.split(README_END, 1)
     timing = ", ".join(f"{k} {v:.0f} s" for k, v in wall.items())
-    block = [README_BEGIN, "", f"Generated from `{report}` ({timing}; {len(rows)} claims: "
+    shown = os.path.relpath(report, readme.parent)
+    if shown.startswith(".."):  # a sweep outside the checkout: name it from outputs/ on
+        shown = Path(*report.parts[-5:]).as_posix()
+    block = [README_BEGIN, "", f"Generated from `{shown}` ({timing}; {len(rows)} claims: "
              f"{verdict_counts(rows)}).", ""]
     block += claims_rows_markdown(rows, readme.parent, links=False) + ["", README_END]
     readme.write_text(head + "\n".join(block) + tail)

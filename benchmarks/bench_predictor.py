@@ -1,0 +1,117 @@
+"""Sequences per second of pattern-mode BPTT (§4.3.1): batched torch vs the NumPy reference.
+
+    python benchmarks/bench_predictor.py [--epochs 2] [--sequences 0] [--runs 1 10 100] [--device cpu] [--threads 1]
+
+The data are those of the trainer (experiment table4_1_matching): N_sample random-policy episodes
+per run collected, balanced and split by TMazeTraining.collect, of which the training lengths
+T_min … T_min + L_training − 1 (3 … 7 actions) are trained on.  The torch side times
+ElmanPredictor.train_epoch (the joint predictor, one SGD step per sequence for every run at once,
+autograd BPTT) for ``--epochs`` epochs over the whole training set of each run (265 sequences
+with the default N_sample), or over ``--sequences`` of them, each epoch in a fresh random order;
+sequences/s = sequences summed over runs / wall time.  The NumPy side
+(benchmarks/numpy_tmaze_reference.py, hand-written BPTT) trains one run on the same number of
+run 0's sequences of a 1-run batch, in the same invocation.  Prints a
+table and merges it into benchmarks/results.json under "predictor_bptt" (other entries are kept).
+"""
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from hydra import compose, initialize_config_dir
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.numpy_tmaze_reference import JOINT, run_numpy_bptt_reference  # noqa: E402
+from ferl.trainers.tmaze import TMazeTraining  # noqa: E402
+
+EXPERIMENT = "table4_1_matching"
+
+
+def training_data(runs: int, device: str):
+    """The joint predictor and its training tensors y, a, r, lengths (R, N, …), as
+    TMazeTraining.train_predictor builds them."""
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose("config", overrides=[f"experiment={EXPERIMENT}", f"n_runs={runs}"])
+    job = TMazeTraining(cfg, run=None, device=torch.device(device))
+    train = job.collect()["train"]
+    trainable = train.lengths[0] <= job.env.optimal_steps + cfg.trainer.l_training - 1
+    fit = train.select(torch.nonzero(trainable).squeeze(1).expand(runs, -1))
+    predictor = job.predictors["joint"]
+    return predictor, job.tensors(fit, predictor), job.generator
+
+
+def per_run(sequences: int, available: int) -> int:
+    return available if sequences <= 0 else min(sequences, available)
+
+
+def torch_bptt(runs: int, epochs: int, sequences: int, device: str) -> dict:
+    predictor, (y, a, r, lengths), generator = training_data(runs, device)
+    n = per_run(sequences, y.shape[1])
+    orders = [torch.rand(runs, y.shape[1], generator=generator, device=y.device).argsort(1)[:, :n]
+              for _ in range(epochs)]
+    predictor.train_epoch(y, a, r, lengths, orders[0][:, :5])  # warm-up (autograd's first call)
+    start = time.perf_counter()
+    for order in orders:
+        predictor.train_epoch(y, a, r, lengths, order)
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+    wall = time.perf_counter() - start
+    return {"runs": runs, "sequences_per_run": n, "epochs": epochs, "wall_time_s": wall,
+            "sequences_per_s": runs * n * epochs / wall}
+
+
+def numpy_bptt(epochs: int, sequences: int, device: str) -> dict:
+    """A random subset (all by default) of run 0's training sequences of a 1-run batch,
+    unpadded, through the NumPy reference."""
+    _, (y, a, r, lengths), _ = training_data(1, device)
+    pick = np.random.default_rng(0).permutation(y.shape[1])[: per_run(sequences, y.shape[1])]
+    seqs = []
+    for i in pick.tolist():
+        T = int(lengths[0, i])
+        seqs.append(tuple(x[0, i, :k].double().cpu().numpy() for x, k in ((y, T + 1), (a, T), (r, T + 1))))
+    out = run_numpy_bptt_reference(seqs, epochs=epochs, seed=0, hp=JOINT)
+    return {"sequences": len(seqs), "epochs": epochs, "mean_length": float(np.mean([len(s[1]) for s in seqs])),
+            "wall_time_s": out["wall_time_s"], "sequences_per_s": out["sequences_per_s"]}
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--epochs", type=int, default=2)
+    parser.add_argument("--sequences", type=int, default=0, help="sequences per run and epoch (0: the whole training set)")
+    parser.add_argument("--runs", type=int, nargs="+", default=[1, 10, 100])
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads (config cpu_threads)")
+    parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results.json"))
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    load = os.getloadavg()[0]
+    reference = numpy_bptt(args.epochs, args.sequences, args.device)
+    rows = [torch_bptt(r, args.epochs, args.sequences, args.device) for r in args.runs]
+    ref_rate = reference["sequences_per_s"]
+    print(f"pattern-mode BPTT of the joint predictor ({EXPERIMENT} training set, lengths 3–7), device={args.device}, "
+          f"torch threads={args.threads}, load average {load:.2f} on {os.cpu_count()} CPUs")
+    print(f"NumPy per-sequence reference (1 run, {reference['epochs']} × {reference['sequences']} sequences, "
+          f"mean length {reference['mean_length']:.1f}): {ref_rate:10.0f} sequences/s")
+    print(f"{'runs':>6} {'seq/run':>8} {'sequences/s':>12} {'× NumPy':>8}")
+    for row in rows:
+        row["speedup_vs_numpy"] = row["sequences_per_s"] / ref_rate
+        print(f"{row['runs']:>6} {row['sequences_per_run']:>8} {row['sequences_per_s']:>12.0f} "
+              f"{row['speedup_vs_numpy']:>8.2f}")
+    out = Path(args.out)
+    results = json.loads(out.read_text()) if out.is_file() else {}
+    results["predictor_bptt"] = {
+        "experiment": EXPERIMENT, "machine": platform.processor() or platform.machine(), "cpus": os.cpu_count(),
+        "torch_threads": torch.get_num_threads(), "load_average_1min": load, "device": args.device,
+        "numpy_reference": reference, "torch": rows}
+    out.write_text(json.dumps(results, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()

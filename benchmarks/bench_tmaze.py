@@ -1,0 +1,107 @@
+"""Agent-steps per second of the T-maze actor phase: batched torch vs the NumPy reference.
+
+    python benchmarks/bench_tmaze.py [--episodes 500] [--runs 1 10 100 1000] [--device cpu] [--threads 1]
+
+The torch side is the actor loop of ``ferl/trainers/tmaze.py`` itself (TMazeTraining.train_actor,
+experiment table4_1_matching: matching T-maze, T_min = 3, joint Elman predictor whose memory is
+stepped every step, FERL actor, SARSA(0)), with the predictor left at its random initialisation:
+the forward passes cost the same whether or not it was trained.  agent-steps/s is the trainer's
+own figure (summary.json ``agent_steps_per_s``): environment steps summed over runs / wall time
+of the episode loop; runs wait in lockstep for the slowest episode of the batch, and that waiting
+is part of the time.  Large batches play fewer episodes (``--episodes`` × 10 / runs, at least
+``--min-episodes``) to keep the benchmark short; the β schedule is compressed accordingly.
+With 1000 runs a few seeds trip the divergence guard in their first episodes (stderr lines
+"ferl: run … diverged"); the guard freezes them and the timing goes on unchanged.
+
+The NumPy side (benchmarks/numpy_tmaze_reference.py) is the same algorithm for one run with one
+Python iteration per step, measured in the same invocation.  Prints a table and merges it into
+benchmarks/results.json under "tmaze_actor" (other entries are kept).
+"""
+import os
+
+os.environ.setdefault("TQDM_DISABLE", "1")  # the trainer's progress bar; tqdm reads TQDM_* when imported
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import platform  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import torch  # noqa: E402
+from hydra import compose, initialize_config_dir  # noqa: E402
+from torch.utils.tensorboard import SummaryWriter  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.numpy_tmaze_reference import run_numpy_tmaze_reference  # noqa: E402
+from ferl.run_dir import RunDir, StopRequest  # noqa: E402
+from ferl.trainers.tmaze import TMazeTraining  # noqa: E402
+
+EXPERIMENT = "table4_1_matching"
+
+
+def episodes_for(runs: int, episodes: int, min_episodes: int) -> int:
+    return max(min_episodes, min(episodes, episodes * 10 // runs))
+
+
+def torch_actor_phase(runs: int, episodes: int, device: str) -> dict:
+    """TMazeTraining.train_actor with a random joint predictor; the trainer's agent-steps/s."""
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose("config", overrides=[f"experiment={EXPERIMENT}", f"n_runs={runs}",
+                                           f"trainer.n_episodes={episodes}", f"trainer.log_every={episodes}",
+                                           f"trainer.checkpoint_every={episodes}",
+                                           f"trainer.td_sample_every={episodes}",
+                                           f"trainer.final_window={episodes}"])
+    cfg.name = "bench"
+    with tempfile.TemporaryDirectory() as tmp:
+        run = RunDir(tmp)
+        run.save_checkpoint = lambda state: None  # time the arithmetic, not the disk
+        job = TMazeTraining(cfg, run, torch.device(device))
+        with SummaryWriter(run.tb) as writer, StopRequest() as stop:
+            out = job.train_actor(writer, stop)
+        if device.startswith("cuda"):
+            torch.cuda.synchronize()
+    return {"runs": runs, "episodes": episodes, "agent_steps": out["agent_steps"],
+            "wall_time_s": out["actor_time"], "agent_steps_per_s": out["agent_steps"] / out["actor_time"]}
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--episodes", type=int, default=500, help="episodes per run for runs ≤ 10")
+    parser.add_argument("--min-episodes", type=int, default=20)
+    parser.add_argument("--numpy-episodes", type=int, default=2000)
+    parser.add_argument("--runs", type=int, nargs="+", default=[1, 10, 100, 1000])
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads (config cpu_threads)")
+    parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results.json"))
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    load = os.getloadavg()[0]
+    reference = run_numpy_tmaze_reference(args.numpy_episodes, seed=0)
+    torch_actor_phase(1, 3, args.device)  # warm-up: first-call costs of torch and the trainer
+    rows = [torch_actor_phase(r, episodes_for(r, args.episodes, args.min_episodes), args.device) for r in args.runs]
+    ref_rate = reference["steps_per_s"]
+    print(f"T-maze actor phase ({EXPERIMENT}, joint predictor forward each step), device={args.device}, "
+          f"torch threads={args.threads}, load average {load:.2f} on {os.cpu_count()} CPUs")
+    print(f"NumPy per-step reference (1 run, {args.numpy_episodes} episodes, {reference['agent_steps']} steps): "
+          f"{ref_rate:10.0f} agent-steps/s")
+    print(f"{'runs':>6} {'episodes':>9} {'agent-steps':>12} {'agent-steps/s':>14} {'× NumPy':>8}")
+    for row in rows:
+        row["speedup_vs_numpy"] = row["agent_steps_per_s"] / ref_rate
+        print(f"{row['runs']:>6} {row['episodes']:>9} {row['agent_steps']:>12} {row['agent_steps_per_s']:>14.0f} "
+              f"{row['speedup_vs_numpy']:>8.2f}")
+    out = Path(args.out)
+    results = json.loads(out.read_text()) if out.is_file() else {}
+    results["tmaze_actor"] = {
+        "experiment": EXPERIMENT, "predictor": "random (untrained) joint", "machine": platform.processor() or platform.machine(),
+        "cpus": os.cpu_count(), "torch_threads": torch.get_num_threads(), "load_average_1min": load,
+        "device": args.device, "numpy_reference": {"episodes": args.numpy_episodes, "agent_steps": reference["agent_steps"],
+                                                   "agent_steps_per_s": ref_rate},
+        "torch": rows}
+    out.write_text(json.dumps(results, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()
