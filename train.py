@@ -16,11 +16,14 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from ferl.hydra_support import optimized_value, summary_table  # also: the launcher resolver
+from ferl.hydra_support import condense_hydra_error, optimized_value, summary_table  # also: the launcher resolver
 from ferl.run_dir import RunDir
+from ferl.schema import register_schemas
 from ferl.trainers.digit_floor import train_digit_floor
 from ferl.trainers.tmaze import train_tmaze
 from ferl.validate import ConfigError, validate
+
+register_schemas()  # conf/*/*.yaml extend these structured-config schemas (ferl/schema.py)
 
 TRAINERS = {"digit_floor": train_digit_floor, "tmaze": train_tmaze}
 HYDRA_OWN = {".hydra", "train.log"}  # what Hydra writes into a run directory before main()
@@ -60,9 +63,7 @@ def one_line_errors():
     except SystemExit as e:
         captured, sys.stderr = sys.stderr, real
         if e.code and isinstance(captured, io.StringIO):
-            report = captured.getvalue().split("Config search path:")[0]
-            lines = [ln.strip() for ln in report.splitlines() if ln.strip() and "HYDRA_FULL_ERROR" not in ln]
-            print("ferl: error: " + " | ".join(lines), file=sys.stderr)
+            print("ferl: error: " + condense_hydra_error(captured.getvalue()), file=sys.stderr)
         raise
     finally:
         if isinstance(sys.stderr, io.StringIO):

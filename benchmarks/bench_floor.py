@@ -25,11 +25,13 @@ sys.path.insert(0, str(ROOT))
 from benchmarks.numpy_reference import run_numpy_reference  # noqa: E402
 from ferl.data import MnistEmbedded  # noqa: E402
 from ferl.run_dir import RunDir, StopRequest  # noqa: E402
+from ferl.schema import register_schemas  # noqa: E402
 from ferl.trainers.digit_floor import FloorTraining  # noqa: E402
 
 
 def torch_actor_phase(runs: int, steps: int, device: str) -> float:
     """Agent-steps/s of FloorTraining.train (the actor phase only, as in summary.json)."""
+    register_schemas()  # the typed config groups (conf/*/*_schema), as train.py registers them
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
         cfg = compose("config", overrides=[f"n_runs={runs}", f"trainer.steps={steps}", "trainer.test_per_class=1",
                                            f"trainer.log_every={steps}", f"trainer.checkpoint_every={steps}",

@@ -29,6 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.numpy_tmaze_reference import JOINT, run_numpy_bptt_reference  # noqa: E402
+from ferl.schema import register_schemas  # noqa: E402
 from ferl.trainers.tmaze import TMazeTraining  # noqa: E402
 
 EXPERIMENT = "table4_1_matching"
@@ -37,6 +38,7 @@ EXPERIMENT = "table4_1_matching"
 def training_data(runs: int, device: str):
     """The joint predictor and its training tensors y, a, r, lengths (R, N, …), as
     TMazeTraining.train_predictor builds them."""
+    register_schemas()  # the typed config groups (conf/*/*_schema), as train.py registers them
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
         cfg = compose("config", overrides=[f"experiment={EXPERIMENT}", f"n_runs={runs}"])
     job = TMazeTraining(cfg, run=None, device=torch.device(device))

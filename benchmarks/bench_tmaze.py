@@ -30,6 +30,7 @@ from pathlib import Path  # noqa: E402
 
 import torch  # noqa: E402
 from hydra import compose, initialize_config_dir  # noqa: E402
+from ferl.schema import register_schemas  # noqa: E402
 from torch.utils.tensorboard import SummaryWriter  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -48,6 +49,7 @@ def episodes_for(runs: int, episodes: int, min_episodes: int) -> int:
 
 def torch_actor_phase(runs: int, episodes: int, device: str) -> dict:
     """TMazeTraining.train_actor with a random joint predictor; the trainer's agent-steps/s."""
+    register_schemas()  # the typed config groups (conf/*/*_schema), as train.py registers them
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
         cfg = compose("config", overrides=[f"experiment={EXPERIMENT}", f"n_runs={runs}",
                                            f"trainer.n_episodes={episodes}", f"trainer.log_every={episodes}",

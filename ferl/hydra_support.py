@@ -1,8 +1,8 @@
 """Hydra glue of train.py: the joblib launcher's job count, the metric that main() returns to a
-sweeper, and the final summary table.
+sweeper, the final summary table, and the config schemas in Hydra's ConfigStore.
 
 Imported by train.py; joblib's worker processes import it too (main() refers to it), so the
-resolver and the warning filter below are in place wherever a job's config is composed.
+resolver, the schemas and the warning filter below are in place wherever a job's config is composed.
 """
 import math
 import os
@@ -10,6 +10,7 @@ import warnings
 
 from omegaconf import OmegaConf
 
+from ferl.schema import SCHEMA_SUFFIX, register_schemas
 from ferl.validate import ConfigError
 
 # conf/hydra/launcher/{joblib,submitit_slurm}.yaml set our defaults on top of the plugins' configs
@@ -24,8 +25,26 @@ def jobs_per_machine(cpu_threads) -> int:
     return max(1, cores // max(1, int(cpu_threads)))
 
 
+# The config groups' schemas (ferl/schema.py), for a worker that composes its job's config anew.
+register_schemas()
+
 # conf/hydra/launcher/joblib.yaml: n_jobs: ${ferl.jobs_per_machine:${cpu_threads}}
 OmegaConf.register_new_resolver("ferl.jobs_per_machine", jobs_per_machine, replace=True)
+
+
+def condense_hydra_error(report: str) -> str:
+    """Hydra's multi-line composition error as one line that starts with the full key when the
+    error names one (a schema's type or enum check, ferl/schema.py; the schemas themselves are
+    left out of the options a group offers):
+    ``env.noise: Value 'abc' of type 'str' could not be converted to Float | Error merging override env.noise=abc``."""
+    lines = [ln.strip() for ln in report.split("Config search path:")[0].splitlines()
+             if ln.strip() and "HYDRA_FULL_ERROR" not in ln and not ln.strip().endswith(SCHEMA_SUFFIX)]
+    key = next((ln.partition(":")[2].strip() for ln in lines if ln.startswith("full_key:")), "")
+    rest = [ln for ln in lines if not ln.startswith(("full_key:", "object_type=", "reference_type="))]
+    if key:  # the cause first, then which override or file it came from
+        rest = [ln for ln in rest if not ln.startswith(("Error merging", "In '"))] + \
+               [ln for ln in rest if ln.startswith(("Error merging", "In '"))]
+    return (f"{key}: " if key else "") + " | ".join(rest)
 
 
 def flat_metrics(metrics: dict) -> dict[str, list]:

@@ -6,7 +6,10 @@ from pathlib import Path
 import pytest
 from hydra import compose, initialize_config_dir
 
+from ferl.schema import register_schemas
+
 ROOT = Path(__file__).resolve().parents[1]
+register_schemas()  # conf/ extends ferl/schema.py's schemas, as in train.py
 EXPERIMENTS = sorted(p.stem for p in (ROOT / "conf" / "experiment").glob("*.yaml"))
 
 

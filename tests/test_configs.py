@@ -1,12 +1,16 @@
-"""Every experiment config composes, validates and instantiates its modules."""
+"""Every experiment config composes, validates and instantiates its modules; a bad setting is
+rejected with one line naming its key, by the schemas (types) or by ferl.validate (values)."""
 import pytest
 import torch
 from hydra.core.hydra_config import HydraConfig
+from hydra.errors import HydraException
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-from conftest import EXPERIMENTS
+from conftest import EXPERIMENTS, ROOT, run_train
 from ferl.data import MnistSplit
+from ferl.hydra_support import condense_hydra_error
+from ferl.schema import SCHEMA_SUFFIX, SCHEMAS
 from ferl.trainers.tmaze import PREPROCESSOR_EXTRA_KEYS
 from ferl.validate import ConfigError, validate
 from test_digit_floor import tiny_split
@@ -94,12 +98,57 @@ def test_dissertation_parameters(compose_cfg):
     assert cfg.actor.gamma == 0.9 and cfg.trainer.steps == 100_000 and cfg.n_runs == 10
 
 
-@pytest.mark.parametrize("override,key", [
+def config_error(compose_cfg, overrides) -> tuple[str, str]:
+    """Compose the config (Hydra checks the schemas' types) and validate it (ranges, cross-key
+    rules): ("compose" | "validate", the one-line message) of the step that rejects it, or
+    ("", "") when both accept it."""
+    try:
+        cfg = compose_cfg(overrides)
+    except HydraException as e:  # what train.py's one_line_errors prints, without "ferl: error: "
+        return "compose", condense_hydra_error(str(e) + (f"\n{e.__cause__}" if e.__cause__ else ""))
+    HydraConfig.instance().set_config(cfg)
+    try:
+        validate(cfg)
+    except ConfigError as e:
+        return "validate", str(e)
+    return "", ""
+
+
+def test_every_option_file_extends_its_schema():
+    for (group, option), schema in SCHEMAS.items():
+        defaults = OmegaConf.load(ROOT / "conf" / group / f"{option}.yaml").defaults
+        assert list(defaults) == [f"{option}{SCHEMA_SUFFIX}", "_self_"], (group, option)
+    assert OmegaConf.load(ROOT / "conf" / "config.yaml").defaults[0] == f"config{SCHEMA_SUFFIX}"
+    options = {(p.parent.name, p.stem) for p in (ROOT / "conf").glob("*/*.yaml")
+               if p.parent.name not in ("experiment", "hparams_search")}
+    assert options == set(SCHEMAS)
+
+
+# a value of the wrong type or outside an enum: rejected while Hydra composes (ferl/schema.py)
+TYPE_ERRORS = [
+    ("env.noise=abc", "env.noise"), ("n_runs=2.5", "n_runs"), ("env.patches=x", "env.patches"),
+    ("actor.td_rule=td_lambda", "actor.td_rule"), ("actor.lr_norm=sqrt", "actor.lr_norm"),
+    ("env.reward_condition=up", "env.reward_condition"), ("device=tpu", "device"), ("task=maze", "task"),
+    ("seed=first", "seed"), ("resume=maybe", "resume"), ("actor.gamma=high", "actor.gamma"),
+    ("actor.action_code=gray", "actor.action_code"), ("actor.action_selection=argmax", "actor.action_selection"),
+    ("actor.foo=1", "actor.foo"), ("trainer.test_noise_levels=[a]", "trainer.test_noise_levels"),
+    ("data.test_per_class=many", "data.test_per_class"),
+    ("experiment=table4_1_matching env.matching=perhaps", "env.matching"),
+    ("experiment=table4_1_matching predictor.joint.time_average=maybe", "predictor.joint.time_average"),
+    ("experiment=table4_1_matching predictor.joint.n_memory=2.5", "predictor.joint.n_memory"),
+    ("experiment=table4_1_matching trainer.n_episodes=lots", "trainer.n_episodes"),
+    ("experiment=table4_2_digit env.digit_classes.start_0=one", "env.digit_classes.start_0"),
+    ("experiment=table5_1_bit predictor.reward.reward_output=gaussian", "predictor.reward.reward_output"),
+    ("experiment=table5_1_bit predictor.observation.rho_y=2", "predictor.observation.rho_y"),
+    ("experiment=table5_1_pixel preprocessor.visible=gaussian", "preprocessor.visible"),
+    ("experiment=table5_1_pixel preprocessor.persistent=maybe", "preprocessor.persistent"),
+]
+
+# a value of the right type that cannot work: rejected by ferl.validate (ranges, cross-key rules)
+VALUE_ERRORS = [
     ("env.noise=1.5", "env.noise"), ("env.noise=-0.1", "env.noise"),
     ("actor.n_hidden=0", "actor.n_hidden"), ("actor.n_hidden=-3", "actor.n_hidden"),
-    ("actor.td_rule=td_lambda", "actor.td_rule"), ("n_runs=0", "n_runs"), ("actor.lr_norm=sqrt", "actor.lr_norm"),
-    ("env.reward_condition=up", "env.reward_condition"), ("trainer.steps=0", "trainer.steps"),
-    ("device=tpu", "device"), ("actor.gamma=1.0", "actor.gamma"),
+    ("n_runs=0", "n_runs"), ("trainer.steps=0", "trainer.steps"), ("actor.gamma=1.0", "actor.gamma"),
     ("env.noise_tile='4'", "env.noise_tile"), ("env.patches=0", "env.patches"),
     ("data=mnist_idx", "data.root"), ("data=mnist_idx data.root=/nonexistent", "data.root"),
     ("experiment=table4_1_regular env.corridor_length=0", "env.corridor_length"),
@@ -108,7 +157,6 @@ def test_dissertation_parameters(compose_cfg):
     ("experiment=table4_2_digit +env.digit_classes.elsewhere=3", "env.digit_classes.elsewhere"),
     ("experiment=table4_2_digit ~env.digit_classes.corridor", "env.digit_classes.corridor"),
     ("experiment=table4_1_matching predictor.joint.n_memory=0", "predictor.joint.n_memory"),
-    ("experiment=table4_1_matching predictor.joint.time_average=maybe", "predictor.joint.time_average"),
     ("experiment=table4_1_matching trainer.train_fraction=1.0", "trainer.train_fraction"),
     ("experiment=table4_1_matching trainer.checkpoint_every_epochs=0", "trainer.checkpoint_every_epochs"),
     ("experiment=table5_1_pixel preprocessor.cd_k=0", "preprocessor.cd_k"),
@@ -117,11 +165,37 @@ def test_dissertation_parameters(compose_cfg):
     ("experiment=table5_1_bit preprocessor=rbm", "preprocessor"),
     ("experiment=table5_1_pixel env.reservoir_size=0", "env.reservoir_size"),
     ("experiment=table5_1_pixel env.binarize_threshold=2", "env.binarize_threshold"),
-    ("experiment=table5_1_bit predictor.reward.reward_output=gaussian", "predictor.reward.reward_output"),
-])
+    ("trainer.test_per_class=450", "trainer.test_per_class"),
+]
+
+
+@pytest.mark.parametrize("override,key", TYPE_ERRORS + VALUE_ERRORS)
 def test_bad_values_name_their_key(compose_cfg, override, key):
-    cfg = compose_cfg(override.split())
-    HydraConfig.instance().set_config(cfg)
-    with pytest.raises(ConfigError) as e:
-        validate(cfg)
-    assert key in str(e.value) and "\n" not in str(e.value)
+    stage, message = config_error(compose_cfg, override.split())
+    assert stage == ("compose" if (override, key) in TYPE_ERRORS else "validate"), message
+    assert key in message and "\n" not in message, message
+    if stage == "compose":
+        assert message.startswith(f"{key}"), message  # the full key first, then Hydra's reason
+
+
+def test_enum_errors_list_the_allowed_values(compose_cfg):
+    from ferl.actor import TD_RULES
+
+    _, message = config_error(compose_cfg, ["actor.td_rule=td_lambda"])
+    assert all(rule in message for rule in TD_RULES), message
+
+
+@pytest.mark.parametrize("override", ["n_runs=2.5", "env.noise=abc", "actor.td_rule=td_lambda", "device=tpu",
+                                      "actor.gamma=high", "trainer.steps=many",
+                                      "experiment=table4_1_matching predictor.joint.time_average=maybe"])
+def test_type_errors_through_train_py(tmp_path, override):
+    """A wrong type stops train.py at composition: one line naming the full key, no traceback,
+    exit status ≠ 0, no run directory."""
+    run_dir = tmp_path / "out" / "run"
+    result = run_train(*override.split(), f"hydra.run.dir={run_dir}", timeout=120)
+    assert result.returncode != 0
+    lines = result.stderr.strip().splitlines()
+    key = override.split()[-1].split("=")[0]
+    assert len(lines) == 1 and lines[0].startswith(f"ferl: error: {key}: "), result.stderr
+    assert "Traceback" not in result.stderr + result.stdout
+    assert not (tmp_path / "out").exists()

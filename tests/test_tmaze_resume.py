@@ -104,3 +104,42 @@ def test_a_finished_phase_is_not_recomputed(tmp_path, whole):
     assert "predictor joint" not in err  # no predictor epoch ran again (its progress bar)
     assert "actor" in err
     assert summary(run_dir)["metrics"] == summary(whole)["metrics"]
+
+
+PIXEL = ["experiment=table5_1_pixel", "n_runs=2", "env.reservoir_size=5", "preprocessor.sweeps=60",
+         "trainer.n_sample=300", "trainer.n_epoch=3", "trainer.n_episodes=100", "trainer.log_every=50",
+         "trainer.td_sample_every=50", "trainer.final_window=50"]
+
+
+def train_pixel(run_dir: Path, *args: str, stderr=subprocess.PIPE) -> subprocess.Popen:
+    # a cache of its own per run directory: every run fits its RBM (no shortcut through the cache)
+    return subprocess.Popen([sys.executable, str(ROOT / "train.py"), *PIXEL, *args, f"hydra.run.dir={run_dir}",
+                             f"preprocessor.cache_dir={run_dir.parent / (run_dir.name + '_cache')}"],
+                            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=stderr, text=True)
+
+
+def test_sigterm_in_the_preprocessor_phase_then_resume(tmp_path):
+    """SIGTERM while the RBM preprocessor trains: the phase finishes, is checkpointed, the run
+    exits; the resumed run does not train the RBM again and ends as an uninterrupted one."""
+    whole, cut = tmp_path / "whole", tmp_path / "cut"
+    proc = train_pixel(whole)
+    assert proc.wait(timeout=300) == 0, proc.stderr.read()[-2000:]
+
+    proc = train_pixel(cut, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 120
+    while not list((cut / "tb").glob("events.out.tfevents.*")) and time.time() < deadline:
+        time.sleep(0.02)
+    time.sleep(0.5)  # the signal handler is installed right after the TensorBoard writer
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=240) == 128 + signal.SIGTERM
+    assert progress(cut)["done"] == ["preprocessor"]
+
+    proc = train_pixel(cut, "resume=true")
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 0, err[-2000:]
+    assert "preprocessor:" not in err  # no CD sweep ran again
+    assert summary(cut)["metrics"] == summary(whole)["metrics"]
+    for name in ("preprocessor", "predictor", "episodes"):
+        got, want = records(cut, name), records(whole, name)
+        for key in want:
+            np.testing.assert_array_equal(got[key], want[key], err_msg=f"{name}.npz {key}")
