@@ -16,6 +16,7 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
+from ferl.data import DataError
 from ferl.hydra_support import condense_hydra_error, optimized_value, summary_table  # also: the launcher resolver
 from ferl.run_dir import RunDir
 from ferl.schema import register_schemas
@@ -92,7 +93,7 @@ def main(cfg: DictConfig) -> float | None:
     run = RunDir(run_path)
     try:
         summary = TRAINERS[cfg.task](cfg, run, resolve_device(cfg.device))
-    except ConfigError as e:  # a setting that only shows itself once data exist
+    except (ConfigError, DataError) as e:  # a setting or input file that shows itself once data load
         discard_if_new(run_path)
         print(f"ferl: error: {e}", file=sys.stderr)
         sys.exit(2)

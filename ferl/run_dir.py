@@ -7,6 +7,7 @@ import json
 import os
 import signal
 import tempfile
+import time
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -57,6 +58,21 @@ class RunDir:
     def write_summary(self, summary: dict) -> None:
         with atomic_path(self.path / "summary.json") as tmp:
             tmp.write_text(json.dumps(summary, indent=2) + "\n")
+
+
+class CheckpointTimer:
+    """Due once every ``minutes`` of wall time (0: never), so that a long phase is checkpointed
+    by the clock as well as by its step count; a due call starts the next period."""
+
+    def __init__(self, minutes: float):
+        self.period = 60.0 * minutes
+        self.next = time.monotonic() + self.period
+
+    def due(self) -> bool:
+        if self.period <= 0 or time.monotonic() < self.next:
+            return False
+        self.next = time.monotonic() + self.period
+        return True
 
 
 class StopRequest:

@@ -194,6 +194,7 @@ class DigitFloorTrainerSchema:
     checkpoint_every: int = MISSING
     test_per_class: int = MISSING
     test_noise_levels: List[float] = MISSING
+    checkpoint_minutes: float = MISSING
     divergence_limit: float = MISSING
 
 
@@ -211,6 +212,7 @@ class Algorithm1TrainerSchema:
     final_window: int = MISSING
     checkpoint_every_epochs: int = MISSING
     checkpoint_every: int = MISSING
+    checkpoint_minutes: float = MISSING
     divergence_limit: float = MISSING
 
 

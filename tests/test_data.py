@@ -103,3 +103,40 @@ def test_truncated_gzip_is_a_data_error(tmp_path):
     path.write_bytes(path.read_bytes()[:20])
     with pytest.raises(DataError, match="data.root"):
         read_idx(path)
+
+
+def _corrupt_wrong_magic(root):
+    fake_mnist(root, gz=False, magic=1234)
+
+
+def _corrupt_truncated(root):
+    fake_mnist(root, gz=False, truncate=10)
+
+
+def _corrupt_counts(root):
+    fake_mnist(root, gz=False)
+    write_idx(root / "t10k-labels-idx1-ubyte", np.zeros(7))
+
+
+def _corrupt_gzip(root):
+    fake_mnist(root, gz=True)
+    path = root / "train-images-idx3-ubyte.gz"
+    path.write_bytes(path.read_bytes()[:40])
+
+
+@pytest.mark.parametrize("corrupt, message", [
+    (_corrupt_wrong_magic, "magic number"), (_corrupt_truncated, "header announces"),
+    (_corrupt_counts, "20 images but 7 labels"), (_corrupt_gzip, "cannot read"),
+])
+def test_corrupt_idx_through_train_py_is_one_line_and_leaves_nothing(tmp_path, corrupt, message):
+    from conftest import run_train
+
+    root = tmp_path / "mnist"
+    root.mkdir()
+    corrupt(root)
+    run_dir = tmp_path / "run"
+    result = run_train("data=mnist_idx", f"data.root={root}", "n_runs=1", f"hydra.run.dir={run_dir}")
+    lines = result.stderr.strip().splitlines()
+    assert result.returncode != 0 and len(lines) == 1, result.stderr[-2000:]
+    assert lines[0].startswith("ferl: error: data.root") and message in lines[0]
+    assert "Traceback" not in result.stderr and not run_dir.exists()

@@ -1,7 +1,6 @@
 """RBM observation preprocessor (§5.3.2): CD-k against the exact gradient of a tiny RBM, training on
 embedded MNIST, run independence, caching and config."""
 import itertools
-from pathlib import Path
 
 import pytest
 import torch
@@ -12,7 +11,6 @@ from ferl import rbm
 from ferl.data import MnistEmbedded
 from ferl.preprocessor import Gradient, RBMPreprocessor, load_or_fit
 
-ROOT = Path(__file__).resolve().parents[1]
 V, H = 4, 3
 DATA = torch.tensor([[1, 1, 0, 0], [0, 0, 1, 1], [1, 0, 1, 0]], dtype=torch.float64)
 
@@ -175,8 +173,8 @@ def test_bad_settings_name_the_key(key, value):
         RBMPreprocessor(1, **{key: value})
 
 
-def test_config_instantiates_section_5_3_2_settings():
-    cfg = OmegaConf.load(ROOT / "conf" / "preprocessor" / "rbm.yaml")
+def test_config_instantiates_section_5_3_2_settings(compose_cfg):
+    cfg = OmegaConf.to_container(compose_cfg(["experiment=table5_1_pixel"]).preprocessor, resolve=True)
     cache_dir = cfg.pop("cache_dir")  # not a constructor argument: the trainer pops it
     model = instantiate(cfg, n_runs=2, seed=0)
     assert isinstance(model, RBMPreprocessor) and cache_dir

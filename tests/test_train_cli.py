@@ -99,6 +99,29 @@ def test_sigterm_then_resume_equals_uninterrupted(tmp_path):
     assert summary(cut)["metrics"] == summary(whole)["metrics"]
 
 
+def test_kill_9_resumes_from_a_checkpoint_the_clock_wrote(tmp_path):
+    """No step-count checkpoint falls inside the run: only trainer.checkpoint_minutes writes one.
+    kill -9 (no handler) leaves it intact, and the resumed run ends as an uninterrupted one."""
+    args = [*TINY, "trainer.steps=8000", "trainer.checkpoint_every=1000000", "trainer.log_every=500",
+            "trainer.checkpoint_minutes=0.002"]
+    whole = tmp_path / "whole"
+    assert run_train(*args, f"hydra.run.dir={whole}").returncode == 0
+    cut = tmp_path / "cut"
+    proc = subprocess.Popen([sys.executable, str(ROOT / "train.py"), *args, f"hydra.run.dir={cut}"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 120
+    while not (cut / "checkpoints" / "last.pt").exists() and time.time() < deadline:
+        time.sleep(0.05)
+    time.sleep(0.3)
+    proc.kill()
+    assert proc.wait(timeout=60) == -signal.SIGKILL, "the run ended before it could be killed"
+    step = torch.load(cut / "checkpoints" / "last.pt", weights_only=False)["step"]
+    assert 0 < step < 8000  # written by the clock: no step count reaches checkpoint_every
+    result = run_train(*args, "resume=true", f"hydra.run.dir={cut}")
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert summary(cut)["metrics"] == summary(whole)["metrics"]
+
+
 def test_reduced_scale_learning_beats_random_policy(tmp_path):
     """3 runs × 20 000 steps (a fifth of §3.5.1) must clearly beat the uniform-random policy,
     whose reward rate is measured here on the same floor with random actions."""

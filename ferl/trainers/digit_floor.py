@@ -17,7 +17,7 @@ from tqdm import tqdm
 from ferl.evaluation import evaluate_floor, floor_test_images, greedy_accuracy
 from ferl.guard import DivergenceGuard
 from ferl.random_blocks import Blocks, steps_per_block
-from ferl.run_dir import RunDir, StopRequest
+from ferl.run_dir import CheckpointTimer, RunDir, StopRequest
 from ferl.tb_logging import as_images, flat_config, log_embedding, log_hparams, log_weights, tile, weight_images
 
 hparams = flat_config  # the flattened config of the HParams tab (ferl.tb_logging)
@@ -91,6 +91,7 @@ class FloorTraining:
         t_cfg = self.cfg.trainer
         s, a, F_sa, x_sa = state["s"], state["a"], state["F_sa"], state["x_sa"]
         rewards, td_errors = state["rewards"], state["td_errors"]
+        clock = CheckpointTimer(t_cfg.checkpoint_minutes)
         bar = tqdm(total=T, initial=state["step"], desc="actor", unit="step", mininterval=1.0, dynamic_ncols=True)
         started = time.perf_counter()
         for t in range(state["step"], T):
@@ -112,7 +113,7 @@ class FloorTraining:
                 self.log_progress(writer, rewards, td_errors, done, lr, beta)
                 bar.set_postfix(reward_ma100=f"{rewards[max(0, done - 100):done].mean():.2f}", refresh=False)
                 bar.update(done - bar.n)
-            if done % t_cfg.checkpoint_every == 0 or stop.requested or done == T:
+            if done % t_cfg.checkpoint_every == 0 or stop.requested or done == T or clock.due():
                 state.update(step=done, s=s, a=a, F_sa=F_sa, x_sa=x_sa,
                              actor_time=state["actor_time"] + time.perf_counter() - started)
                 started = time.perf_counter()

@@ -24,7 +24,7 @@ from tqdm import tqdm
 
 from ferl.guard import DivergenceGuard
 from ferl.preprocessor import load_or_fit
-from ferl.run_dir import RunDir, StopRequest
+from ferl.run_dir import CheckpointTimer, RunDir, StopRequest
 from ferl.sequences import Episodes, balance_and_split, collect_random_episodes
 from ferl.tb_logging import (IMAGE_SIDE, as_images, log_embedding, log_hparams, log_weights, matrix_image, tile,
                               weight_images)
@@ -191,6 +191,7 @@ class TMazeTraining:
             errors = {s: [self.prediction_errors(data[s], predictor)] for s in ("train", "test")}
             epochs, start = [0], 0
             log_weights(writer, f"predictor_{name}", predictor, 0)
+        clock = CheckpointTimer(t.checkpoint_minutes)
         for epoch in (bar := tqdm(range(start + 1, t.n_epoch + 1), desc=f"predictor {name}", unit="epoch",
                                   initial=start, total=t.n_epoch, mininterval=1.0)):
             order = torch.rand(self.R, y.shape[1], generator=self.generator, device=self.device).argsort(1)
@@ -204,7 +205,7 @@ class TMazeTraining:
                 for T, value in zip(range(self.env.optimal_steps, self.cfg.env.max_steps + 1),
                                     np.nanmean(errors["test"][-1], axis=(0, 2))):
                     writer.add_scalar(f"predictor_{name}/error_test_T{T}", float(value), epoch)
-            if (epoch % t.checkpoint_every_epochs == 0 or stop.requested) and epoch < t.n_epoch:
+            if (epoch % t.checkpoint_every_epochs == 0 or stop.requested or clock.due()) and epoch < t.n_epoch:
                 progress["predictor_partial"] = {"name": name, "epoch": epoch, "errors": errors, "epochs": epochs}
                 self.checkpoint(progress, writer, stop)
         progress["predictor_partial"] = None
@@ -267,6 +268,7 @@ class TMazeTraining:
         records, td_sampled, junction = state["records"], state["td_sampled"], state["junction"]
         active_time, agent_steps = state["active_time"], state["agent_steps"]
         sampled = list(range(0, N, cfg.trainer.td_sample_every))
+        clock = CheckpointTimer(cfg.trainer.checkpoint_minutes)
         bar = tqdm(range(state["episode"], N), desc="actor", unit="episode", initial=state["episode"],
                    total=N, mininterval=1.0)
         for k in bar:
@@ -325,7 +327,7 @@ class TMazeTraining:
                 self.log_episodes(writer, records, k + 1, lr, beta)
                 bar.set_postfix(return_ma200=f"{records['discounted_return'][:, max(0, k - 199):k + 1].mean():.3f}",
                                 correct_ma200=f"{records['correct_goal'][:, max(0, k - 199):k + 1].mean():.2f}", refresh=False)
-            if ((k + 1) % cfg.trainer.checkpoint_every == 0 or stop.requested) and k + 1 < N:
+            if ((k + 1) % cfg.trainer.checkpoint_every == 0 or stop.requested or clock.due()) and k + 1 < N:
                 junction = [concat_records(junction)] if junction else []
                 progress["actor_partial"] = {"episode": k + 1, "records": records, "td_sampled": td_sampled,
                                              "junction": junction, "active_time": active_time,
