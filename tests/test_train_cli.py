@@ -79,47 +79,40 @@ def test_existing_run_is_never_overwritten(tiny_run):
     assert (tiny_run / "summary.json").read_text() == before
 
 
-def test_sigterm_then_resume_equals_uninterrupted(tmp_path):
-    args = [*TINY, "trainer.steps=20000", "trainer.checkpoint_every=500", "trainer.log_every=500"]
-    whole = tmp_path / "whole"
+def interrupt_and_resume(tmp_path, args: list, steps: int, sig: int, expected_code: int,
+                         settle: float = 0.0) -> None:
+    """Run `args` whole; run them again and send `sig` once a checkpoint exists (after `settle`
+    seconds); check the checkpoint lies inside the run, resume, compare with the whole run."""
+    whole, cut = tmp_path / "whole", tmp_path / "cut"
     assert run_train(*args, f"hydra.run.dir={whole}").returncode == 0
-    cut = tmp_path / "cut"
     proc = subprocess.Popen([sys.executable, str(ROOT / "train.py"), *args, f"hydra.run.dir={cut}"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 120
     while not (cut / "checkpoints" / "last.pt").exists() and time.time() < deadline:
         time.sleep(0.05)
-    proc.send_signal(signal.SIGTERM)
-    assert proc.wait(timeout=120) == 128 + signal.SIGTERM, "the run ended before it could be interrupted"
+    time.sleep(settle)
+    proc.send_signal(sig)
+    assert proc.wait(timeout=120) == expected_code, "the run ended before it could be interrupted"
     assert not (cut / "summary.json").exists()
     step = torch.load(cut / "checkpoints" / "last.pt", weights_only=False)["step"]
-    assert 0 < step < 20000
+    assert 0 < step < steps
     result = run_train(*args, "resume=true", f"hydra.run.dir={cut}")
     assert result.returncode == 0, result.stderr[-2000:]
     assert summary(cut)["metrics"] == summary(whole)["metrics"]
+
+
+def test_sigterm_then_resume_equals_uninterrupted(tmp_path):
+    args = [*TINY, "trainer.steps=20000", "trainer.checkpoint_every=500", "trainer.log_every=500"]
+    interrupt_and_resume(tmp_path, args, 20000, signal.SIGTERM, 128 + signal.SIGTERM)
 
 
 def test_kill_9_resumes_from_a_checkpoint_the_clock_wrote(tmp_path):
-    """No step-count checkpoint falls inside the run: only trainer.checkpoint_minutes writes one.
-    kill -9 (no handler) leaves it intact, and the resumed run ends as an uninterrupted one."""
+    """No step count reaches checkpoint_every inside the run: only trainer.checkpoint_minutes
+    writes checkpoints. kill -9 (no handler) leaves the last one intact, and the resumed run
+    ends as an uninterrupted one."""
     args = [*TINY, "trainer.steps=8000", "trainer.checkpoint_every=1000000", "trainer.log_every=500",
             "trainer.checkpoint_minutes=0.002"]
-    whole = tmp_path / "whole"
-    assert run_train(*args, f"hydra.run.dir={whole}").returncode == 0
-    cut = tmp_path / "cut"
-    proc = subprocess.Popen([sys.executable, str(ROOT / "train.py"), *args, f"hydra.run.dir={cut}"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    deadline = time.time() + 120
-    while not (cut / "checkpoints" / "last.pt").exists() and time.time() < deadline:
-        time.sleep(0.05)
-    time.sleep(0.3)
-    proc.kill()
-    assert proc.wait(timeout=60) == -signal.SIGKILL, "the run ended before it could be killed"
-    step = torch.load(cut / "checkpoints" / "last.pt", weights_only=False)["step"]
-    assert 0 < step < 8000  # written by the clock: no step count reaches checkpoint_every
-    result = run_train(*args, "resume=true", f"hydra.run.dir={cut}")
-    assert result.returncode == 0, result.stderr[-2000:]
-    assert summary(cut)["metrics"] == summary(whole)["metrics"]
+    interrupt_and_resume(tmp_path, args, 8000, signal.SIGKILL, -signal.SIGKILL, settle=0.3)
 
 
 def test_reduced_scale_learning_beats_random_policy(tmp_path):
