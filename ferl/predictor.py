@@ -60,7 +60,7 @@ class ElmanPredictor(nn.Module):
                  reward_output: str = "bits", c_y: float = 1.0, c_a: float = 1.0, beta_m: float = 1.0,
                  beta_y: float = 1.0, beta_r: float = 1.0, rho_y: float = 1.0, rho_r: float = 1.0,
                  lr: float = 0.05, init_std: float = 1.0, predict_obs: bool = True,
-                 time_average: bool = False, seed: int = 0):
+                 time_average: bool = False, batch_size: int = 1, seed: int = 0):
         super().__init__()
         if reward_output not in REWARD_OUTPUTS:
             raise ValueError(f"reward_output must be one of {REWARD_OUTPUTS}, got {reward_output!r}")
@@ -69,6 +69,7 @@ class ElmanPredictor(nn.Module):
         self.reward_output, self.predict_obs = reward_output, predict_obs
         self.c_y, self.c_a, self.beta_m, self.beta_y, self.beta_r = c_y, c_a, beta_m, beta_y, beta_r
         self.rho_y, self.rho_r, self.lr, self.time_average = rho_y, rho_r, lr, time_average
+        self.batch_size = batch_size
         # Each run is initialised from its own seed, so run r does not depend on n_runs (§4.3.1:
         # all weights and biases from a spherical Gaussian of variance init_std²).
         gens = [torch.Generator().manual_seed(seed + r) for r in range(n_runs)]
@@ -179,15 +180,19 @@ class ElmanPredictor(nn.Module):
         """One epoch of BPTT in pattern mode (§4.3.1): for i = 1 … N every run takes a plain SGD
         step θ ← θ − α ∇_θ Σ_t E_t on its own sequence order[:, i] (order (R, N), a permutation
         of each run's N sequences). Runs share nothing: the summed loss of all runs has, for
-        run r's parameters, the gradient of run r's loss alone."""
+        run r's parameters, the gradient of run r's loss alone. With ``batch_size`` B > 1 a step
+        follows every B sequences, on the mean of their losses (padded steps masked)."""
         runs = torch.arange(order.shape[0], device=order.device).unsqueeze(1)
         y, a, lengths = y[runs, order], a[runs, order], lengths[runs, order]
         r = r[runs, order] if r is not None else None
         params = list(self.parameters())
-        for i, T in enumerate(lengths.max(0).values.tolist()):  # T: trims the padding all runs share
-            s = slice(i, i + 1)
+        B = self.batch_size
+        longest = lengths.max(0).values  # per position, over runs
+        for i in range(0, lengths.shape[1], B):
+            s = slice(i, i + B)
+            T = int(longest[s].max())  # trims the padding all runs and sequences of the step share
             loss = self.loss(y[:, s, : T + 1], a[:, s, :T], r[:, s, : T + 1] if r is not None else None,
-                             lengths[:, s]).sum()
+                             lengths[:, s]).sum() / lengths[:, s].shape[1]
             grads = torch.autograd.grad(loss, params)
             with torch.no_grad():
                 for q, g in zip(params, grads):

@@ -134,6 +134,7 @@ class ElmanSchema:
     lr: float = MISSING
     init_std: float = MISSING
     time_average: bool = MISSING
+    batch_size: int = MISSING
 
 
 @dataclass

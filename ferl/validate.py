@@ -91,6 +91,7 @@ RULES = [
     ("predictor.*.reward_output", one_of("bits", "linear", "none"), "bits, linear or none"),
     ("predictor.*.predict_obs", one_of(True, False), "true or false"),
     ("predictor.*.time_average", one_of(True, False), "true or false"),
+    ("predictor.*.batch_size", positive_int, "an integer ≥ 1 (1: pattern mode, one SGD step per sequence)"),
     ("predictor.*.lr", positive, "a learning rate > 0"),
     ("predictor.*.init_std", non_negative, "a standard deviation ≥ 0"),
     *[(f"predictor.*.{k}", non_negative, "a number ≥ 0") for k in ("c_y", "c_a", "rho_y", "rho_r")],

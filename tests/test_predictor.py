@@ -170,6 +170,30 @@ def test_pattern_mode_epoch_equals_sequential_sgd_of_single_runs():
             torch.testing.assert_close(qb[run], qs[0], msg=name)
 
 
+@pytest.mark.parametrize("batch_size", [2, 3])
+def test_batched_epoch_is_sgd_on_the_mean_loss_of_each_chunk(batch_size):
+    """batch_size B: one step per B sequences of the run's order (the last chunk smaller), on the
+    mean of their losses, each computed by the per-step reference loop on its unpadded sequence."""
+    R, N, lr = 2, 7, 0.2
+    batched = make(R=R, seed=20, lr=lr, batch_size=batch_size)
+    y, a, r, lengths = data(R, N, 6, seed=4)
+    order = torch.stack([torch.randperm(N, generator=torch.Generator().manual_seed(k)) for k in range(R)])
+    batched.train_epoch(y, a, r, lengths, order)
+    for run in range(R):
+        single = make(R=1, seed=20 + run, lr=lr)
+        chunks = order[run].split(batch_size)
+        for chunk in chunks:
+            losses = [reference_loss(single, 0, y[run, i, : int(lengths[run, i]) + 1],
+                                     a[run, i, : int(lengths[run, i])], r[run, i, : int(lengths[run, i]) + 1])
+                      for i in chunk.tolist()]
+            grads = torch.autograd.grad(torch.stack(losses).mean(), list(single.parameters()))
+            with torch.no_grad():
+                for q, gq in zip(single.parameters(), grads):
+                    q -= lr * gq
+        for (name, qb), qs in zip(batched.named_parameters(), single.parameters()):
+            torch.testing.assert_close(qb[run], qs[0], msg=name)
+
+
 def test_runs_are_independent():
     """Run 0's parameters after training depend on run 0's data only."""
     R, N = 3, 6
