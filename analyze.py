@@ -127,7 +127,7 @@ def analyze_sweep(sweep_dir: Path, readme: Path | None = None) -> list:
     out = sweep_dir / "analysis"
     shutil.rmtree(out, ignore_errors=True)
     out.mkdir()
-    analysis, rows, _ = sw.analyze_sweep(sweep, out)
+    analysis, rows = sw.analyze_sweep(sweep, out)
     _publish_figures(analysis.figures, out, out / "tb")
     _write_json(out / "claims.json",
                 [_claim_json(r.result, job=None if r.job is None else str(r.job.run_dir),

@@ -7,14 +7,11 @@ agent-steps/s = environment steps summed over runs / wall time of the step loop.
 table and writes benchmarks/results.json.
 """
 import argparse
-import json
-import platform
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 from hydra import compose, initialize_config_dir
 from torch.utils.tensorboard import SummaryWriter
@@ -23,6 +20,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.numpy_reference import run_numpy_reference  # noqa: E402
+from benchmarks.report import save_results, speedup_table  # noqa: E402
 from ferl.data import MnistEmbedded  # noqa: E402
 from ferl.run_dir import RunDir, StopRequest  # noqa: E402
 from ferl.schema import register_schemas  # noqa: E402
@@ -69,13 +67,9 @@ def main():
     rows = [{"runs": r, "agent_steps_per_s": torch_actor_phase(r, args.steps, args.device)} for r in args.runs]
     print(f"digit floor actor phase, {args.steps} steps, device={args.device}, torch threads={args.threads}")
     print(f"NumPy per-step reference (1 run): {reference:10.0f} agent-steps/s")
-    print(f"{'runs':>6} {'agent-steps/s':>14} {'× NumPy':>8}")
-    for row in rows:
-        row["speedup_vs_numpy"] = row["agent_steps_per_s"] / reference
-        print(f"{row['runs']:>6} {row['agent_steps_per_s']:>14.0f} {row['speedup_vs_numpy']:>8.1f}")
-    result = {"machine": platform.processor() or platform.machine(), "cpus": torch.get_num_threads(),
-              "device": args.device, "steps": args.steps, "numpy_reference_steps_per_s": reference, "torch": rows}
-    Path(args.out).write_text(json.dumps(result, indent=2) + "\n")
+    speedup_table(rows, "agent_steps_per_s", reference, [("runs", "runs", "d")])
+    save_results(args.out, "floor_actor", args.device, steps=args.steps,
+                 numpy_reference_steps_per_s=reference, torch=rows)
 
 
 if __name__ == "__main__":

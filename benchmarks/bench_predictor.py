@@ -14,9 +14,7 @@ run 0's sequences of a 1-run batch, in the same invocation.  Prints a
 table and merges it into benchmarks/results.json under "predictor_bptt" (other entries are kept).
 """
 import argparse
-import json
 import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -29,6 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.numpy_tmaze_reference import JOINT, run_numpy_bptt_reference  # noqa: E402
+from benchmarks.report import save_results, speedup_table  # noqa: E402
 from ferl.schema import register_schemas  # noqa: E402
 from ferl.trainers.tmaze import TMazeTraining  # noqa: E402
 
@@ -101,18 +100,8 @@ def main():
           f"torch threads={args.threads}, load average {load:.2f} on {os.cpu_count()} CPUs")
     print(f"NumPy per-sequence reference (1 run, {reference['epochs']} × {reference['sequences']} sequences, "
           f"mean length {reference['mean_length']:.1f}): {ref_rate:10.0f} sequences/s")
-    print(f"{'runs':>6} {'seq/run':>8} {'sequences/s':>12} {'× NumPy':>8}")
-    for row in rows:
-        row["speedup_vs_numpy"] = row["sequences_per_s"] / ref_rate
-        print(f"{row['runs']:>6} {row['sequences_per_run']:>8} {row['sequences_per_s']:>12.0f} "
-              f"{row['speedup_vs_numpy']:>8.2f}")
-    out = Path(args.out)
-    results = json.loads(out.read_text()) if out.is_file() else {}
-    results["predictor_bptt"] = {
-        "experiment": EXPERIMENT, "machine": platform.processor() or platform.machine(), "cpus": os.cpu_count(),
-        "torch_threads": torch.get_num_threads(), "load_average_1min": load, "device": args.device,
-        "numpy_reference": reference, "torch": rows}
-    out.write_text(json.dumps(results, indent=2) + "\n")
+    speedup_table(rows, "sequences_per_s", ref_rate, [("runs", "runs", "d"), ("seq/run", "sequences_per_run", "d")])
+    save_results(args.out, "predictor_bptt", args.device, experiment=EXPERIMENT, numpy_reference=reference, torch=rows)
 
 
 if __name__ == "__main__":

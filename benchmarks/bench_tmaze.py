@@ -22,22 +22,21 @@ import os
 os.environ.setdefault("TQDM_DISABLE", "1")  # the trainer's progress bar; tqdm reads TQDM_* when imported
 
 import argparse  # noqa: E402
-import json  # noqa: E402
-import platform  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import torch  # noqa: E402
 from hydra import compose, initialize_config_dir  # noqa: E402
-from ferl.schema import register_schemas  # noqa: E402
 from torch.utils.tensorboard import SummaryWriter  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.numpy_tmaze_reference import run_numpy_tmaze_reference  # noqa: E402
+from benchmarks.report import save_results, speedup_table  # noqa: E402
 from ferl.run_dir import RunDir, StopRequest  # noqa: E402
+from ferl.schema import register_schemas  # noqa: E402
 from ferl.trainers.tmaze import TMazeTraining  # noqa: E402
 
 EXPERIMENT = "table4_1_matching"
@@ -89,20 +88,11 @@ def main():
           f"torch threads={args.threads}, load average {load:.2f} on {os.cpu_count()} CPUs")
     print(f"NumPy per-step reference (1 run, {args.numpy_episodes} episodes, {reference['agent_steps']} steps): "
           f"{ref_rate:10.0f} agent-steps/s")
-    print(f"{'runs':>6} {'episodes':>9} {'agent-steps':>12} {'agent-steps/s':>14} {'× NumPy':>8}")
-    for row in rows:
-        row["speedup_vs_numpy"] = row["agent_steps_per_s"] / ref_rate
-        print(f"{row['runs']:>6} {row['episodes']:>9} {row['agent_steps']:>12} {row['agent_steps_per_s']:>14.0f} "
-              f"{row['speedup_vs_numpy']:>8.2f}")
-    out = Path(args.out)
-    results = json.loads(out.read_text()) if out.is_file() else {}
-    results["tmaze_actor"] = {
-        "experiment": EXPERIMENT, "predictor": "random (untrained) joint", "machine": platform.processor() or platform.machine(),
-        "cpus": os.cpu_count(), "torch_threads": torch.get_num_threads(), "load_average_1min": load,
-        "device": args.device, "numpy_reference": {"episodes": args.numpy_episodes, "agent_steps": reference["agent_steps"],
-                                                   "agent_steps_per_s": ref_rate},
-        "torch": rows}
-    out.write_text(json.dumps(results, indent=2) + "\n")
+    speedup_table(rows, "agent_steps_per_s", ref_rate,
+                  [("runs", "runs", "d"), ("episodes", "episodes", "d"), ("agent-steps", "agent_steps", "d")])
+    save_results(args.out, "tmaze_actor", args.device, experiment=EXPERIMENT, predictor="random (untrained) joint",
+                 numpy_reference={"episodes": args.numpy_episodes, "agent_steps": reference["agent_steps"],
+                                  "agent_steps_per_s": ref_rate}, torch=rows)
 
 
 if __name__ == "__main__":

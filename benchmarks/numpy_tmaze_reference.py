@@ -31,9 +31,14 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from benchmarks.numpy_reference import sample_action  # noqa: E402  (the floor reference's softmax draw)
 
 N_ACTIONS = 4
 N, E, S, W = range(N_ACTIONS)
@@ -199,20 +204,6 @@ def free_energy_all_actions(s, W_sh, W_ah, b_s, b_a, b_h):
     """F(s, a) of every one-hot action a (A,) and the hidden inputs x (A, H)."""
     x = (s @ W_sh + b_h)[None, :] + W_ah
     return -(s @ b_s) - b_a - softplus(x).sum(axis=1), x
-
-
-def sample_action(F: np.ndarray, beta: float, rng: np.random.Generator) -> int:
-    """Softmax over actions of −βF (Eq. 3.11), by inverting the CDF at one uniform draw."""
-    logits = [-beta * f for f in F.tolist()]
-    mx = max(logits)
-    p = [math.exp(v - mx) for v in logits]
-    u = rng.random() * sum(p)
-    acc = 0.0
-    for i, pi in enumerate(p):
-        acc += pi
-        if u < acc:
-            return i
-    return len(p) - 1
 
 
 def td_error(r: float, F_sa: float, F_next_a: float, gamma: float, terminal: bool) -> float:

@@ -186,11 +186,12 @@ class ElmanPredictor(nn.Module):
         y, a, lengths = y[runs, order], a[runs, order], lengths[runs, order]
         r = r[runs, order] if r is not None else None
         params = list(self.parameters())
-        B = self.batch_size
-        longest = lengths.max(0).values  # per position, over runs
-        for i in range(0, lengths.shape[1], B):
+        B, n = self.batch_size, lengths.shape[1]
+        # T of every step: the longest sequence of its B positions over all runs, read once (one
+        # host sync per epoch); it trims the padding all runs and sequences of the step share
+        longest = F.pad(lengths.max(0).values, (0, -n % B)).view(-1, B).max(1).values.tolist()
+        for i, T in zip(range(0, n, B), longest):
             s = slice(i, i + B)
-            T = int(longest[s].max())  # trims the padding all runs and sequences of the step share
             loss = self.loss(y[:, s, : T + 1], a[:, s, :T], r[:, s, : T + 1] if r is not None else None,
                              lengths[:, s]).sum() / lengths[:, s].shape[1]
             grads = torch.autograd.grad(loss, params)

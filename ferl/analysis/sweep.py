@@ -261,8 +261,8 @@ def verdict_counts(rows: Sequence[ReportRow]) -> str:
     return ", ".join(f"{sum(r.result.verdict == v for r in rows)} {v}" for v in VERDICTS)
 
 
-def analyze_sweep(sweep: Sweep, out: Path) -> tuple[RunAnalysis, list[ReportRow], list[NoiseGrid]]:
-    """Write metrics.csv, noise_grid_*.csv and claims.json; return the figures and rows."""
+def analyze_sweep(sweep: Sweep, out: Path) -> tuple[RunAnalysis, list[ReportRow]]:
+    """Write metrics.csv and the noise grids' CSVs; return the figures, data files and report rows."""
     analysis = RunAnalysis(f"Reproduction report: sweep `{sweep.root}`", [])
     rows_data = aggregate(sweep.jobs)
     _write_csv(out / "metrics.csv", ["experiment", "variant", "metric", "mean", "sem", "n_runs"],
@@ -270,8 +270,7 @@ def analyze_sweep(sweep: Sweep, out: Path) -> tuple[RunAnalysis, list[ReportRow]
                 for a in rows_data])
     analysis.data_files.append("metrics.csv")
 
-    grids = noise_grids(sweep)
-    for g in grids:
+    for g in noise_grids(sweep):
         name = f"fig3_6_noise_grid_{g.experiment}"
         _write_csv(out / f"{name}.csv", ["train_noise", "test_noise", "accuracy_mean", "accuracy_sem"],
                    [(_fmt(tr), _fmt(te), _fmt(g.mean[t, k]), _fmt(g.sem[t, k]))
@@ -281,7 +280,7 @@ def analyze_sweep(sweep: Sweep, out: Path) -> tuple[RunAnalysis, list[ReportRow]
                                   f"Fig. 3.6 (all panels' noise pairs): greedy accuracy after "
                                   f"training, `{g.experiment}`, training × test noise")
     analysis.results = evaluate(SWEEP_CLAIMS, sweep)
-    return analysis, reproduction_rows(sweep.jobs, analysis.results), grids
+    return analysis, reproduction_rows(sweep.jobs, analysis.results)
 
 
 def report_lines(sweep: Sweep, analysis: RunAnalysis, rows: Sequence[ReportRow],
