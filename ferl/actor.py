@@ -47,7 +47,7 @@ def sample_categorical(probs: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
 class FERLActor(nn.Module):
     def __init__(self, n_runs: int, n_state: int, n_actions: int, n_hidden: int, td_rule: str,
                  gamma: float, lr, beta, lr_norm: str = "edges", init_std: float = 0.01,
-                 action_code: str = "onehot", action_selection: str = "clamp",
+                 bias_init_std: float = 0.0, action_code: str = "onehot", action_selection: str = "clamp",
                  gibbs_sweeps: int = 20, seed: int = 0):
         super().__init__()
         self.td_rule, self.gamma = td_rule, gamma
@@ -63,9 +63,12 @@ class FERLActor(nn.Module):
         gens = [torch.Generator().manual_seed(seed + r) for r in range(n_runs)]
         self.register_buffer("W_sh", torch.stack([torch.randn(n_state, n_hidden, generator=g) for g in gens]) * init_std)
         self.register_buffer("W_ah", torch.stack([torch.randn(n_bits, n_hidden, generator=g) for g in gens]) * init_std)
-        self.register_buffer("b_s", torch.zeros(n_runs, n_state))
-        self.register_buffer("b_a", torch.zeros(n_runs, n_bits))
-        self.register_buffer("b_h", torch.zeros(n_runs, n_hidden))
+        # biases N(0, bias_init_std²), drawn after the weights so the weights do not depend on it
+        biases = [torch.randn(n_state + n_bits + n_hidden, generator=g) for g in gens]
+        b_s, b_a, b_h = (torch.stack(biases) * bias_init_std).split([n_state, n_bits, n_hidden], 1)
+        self.register_buffer("b_s", b_s.contiguous())
+        self.register_buffer("b_a", b_a.contiguous())
+        self.register_buffer("b_h", b_h.contiguous())
 
     @property
     def fan_in(self) -> int:

@@ -1,7 +1,9 @@
 """The run directory of CONTRACT §2: tb/, summary.json, checkpoints/, records/.
 
 Every file is written atomically (temporary file + rename), so an interruption never
-leaves a half-written checkpoint or summary behind.
+leaves a half-written checkpoint or summary behind. A checkpoint also remembers how long each
+TensorBoard event file was when it was written; resuming cuts the files back to that, so the
+points a resumed run logs again appear once, not twice.
 """
 import json
 import os
@@ -15,6 +17,7 @@ import numpy as np
 import torch
 
 CHECKPOINT = "last.pt"
+TB_EVENTS = "events.out.tfevents.*"  # the run's own event files (tb/analysis/ is analyze.py's)
 
 
 @contextmanager
@@ -47,13 +50,32 @@ class RunDir:
             with open(tmp, "wb") as f:
                 np.savez_compressed(f, **arrays)
 
-    def save_checkpoint(self, state: dict) -> None:
+    def save_checkpoint(self, state: dict, writer=None) -> None:
+        """Write ``state``; with the run's SummaryWriter, flush it first and record the length
+        of every event file, the point ``resume`` rolls the log back to."""
+        if writer is not None:
+            writer.flush()
+            state = {**state, "tb_sizes": {p.name: p.stat().st_size for p in self.tb.glob(TB_EVENTS)}}
         with atomic_path(self.path / "checkpoints" / CHECKPOINT) as tmp:
             torch.save(state, tmp)
 
     def load_checkpoint(self):
         path = self.path / "checkpoints" / CHECKPOINT
         return torch.load(path, map_location="cpu", weights_only=False) if path.exists() else None
+
+    def resume(self):
+        """The last checkpoint (None if there is none) with ``tb/`` rolled back to the moment it
+        was written: event files are cut to their recorded lengths, and files started after it
+        (or, without a checkpoint, every event file) are removed, because the resumed run logs
+        everything from that moment on again."""
+        saved = self.load_checkpoint()
+        sizes = (saved or {}).pop("tb_sizes", {})
+        for path in self.tb.glob(TB_EVENTS):
+            if path.name in sizes:
+                os.truncate(path, sizes[path.name])
+            else:
+                path.unlink()
+        return saved
 
     def write_summary(self, summary: dict) -> None:
         with atomic_path(self.path / "summary.json") as tmp:

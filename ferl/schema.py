@@ -120,6 +120,7 @@ class FERLActorSchema:
     lr_norm: LRNorm = MISSING
     beta: Any = MISSING    # likewise
     init_std: float = MISSING
+    bias_init_std: float = MISSING
     action_code: ActionCode = MISSING
     action_selection: ActionSelection = MISSING
     gibbs_sweeps: int = MISSING

@@ -102,6 +102,7 @@ RULES = [
     ("actor.lr_norm", one_of(*LR_NORMS), ", ".join(LR_NORMS)),
     ("actor.gamma", discount, "a discount factor in [0, 1)"),
     ("actor.init_std", non_negative, "a standard deviation ≥ 0"),
+    ("actor.bias_init_std", non_negative, "a standard deviation ≥ 0"),
     ("actor.action_code", one_of(*ACTION_CODES), ", ".join(ACTION_CODES)),
     ("actor.action_selection", one_of(*ACTION_SELECTIONS), ", ".join(ACTION_SELECTIONS)),
     ("actor.gibbs_sweeps", positive_int, "an integer ≥ 1"),

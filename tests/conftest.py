@@ -31,3 +31,23 @@ def run_train(*overrides, cwd=ROOT, timeout=600, **popen):
 
 TINY = ["n_runs=2", "trainer.steps=300", "trainer.log_every=100", "trainer.checkpoint_every=100",
         "trainer.test_per_class=8", "trainer.test_noise_levels=[0.0,0.125,0.5]"]
+
+
+def tb_scalars(run_dir: Path) -> dict:
+    """Every scalar a run logged to tb/ (its event files in order): tag → [(step, value)]."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+    acc = EventAccumulator(str(Path(run_dir) / "tb"), size_guidance={"scalars": 0})
+    acc.Reload()
+    return {tag: [(e.step, e.value) for e in acc.Scalars(tag)] for tag in acc.Tags()["scalars"]}
+
+
+def assert_same_tb_log(resumed: Path, whole: Path) -> None:
+    """A resumed run's scalars are the uninterrupted run's: every point once, at the same step
+    with the same value (the hparam/ metrics include the timing, so only their steps)."""
+    import numpy as np
+    got, want = tb_scalars(resumed), tb_scalars(whole)
+    assert got.keys() == want.keys()
+    for tag in want:
+        assert [s for s, _ in got[tag]] == [s for s, _ in want[tag]], tag
+        if not tag.startswith("hparam/"):  # NaN == NaN here: a diverged run's statistics are NaN
+            np.testing.assert_array_equal([v for _, v in got[tag]], [v for _, v in want[tag]], err_msg=tag)

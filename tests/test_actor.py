@@ -122,3 +122,16 @@ def test_gibbs_sampling_reaches_free_energy_softmax(code):
     F_scaled, _ = scaled.evaluate(s[:1])
     target = torch.softmax(-F_scaled[0, 0], -1)
     torch.testing.assert_close(freq, target, atol=0.03, rtol=0)
+
+
+def test_bias_init_std_draws_biases_and_leaves_the_weights_alone():
+    """§4.3.1: "weights and biases … initialized with a spherical Gaussian with variance 1"."""
+    kw = dict(n_runs=3, n_state=400, n_actions=4, n_hidden=300, td_rule="sarsa", gamma=0.9,
+              lr=Constant(0.1), beta=Constant(1.0), init_std=1.0, seed=5)
+    zero, unit = FERLActor(**kw), FERLActor(**kw, bias_init_std=1.0)
+    assert torch.equal(zero.W_sh, unit.W_sh) and torch.equal(zero.W_ah, unit.W_ah)
+    for name in ("b_s", "b_a", "b_h"):
+        assert getattr(zero, name).eq(0).all()
+    biases = torch.cat([unit.b_s.flatten(), unit.b_h.flatten()])
+    assert abs(biases.std().item() - 1.0) < 0.05 and abs(biases.mean().item()) < 0.05
+    assert not torch.equal(unit.b_h[0], unit.b_h[1])  # every run its own draw

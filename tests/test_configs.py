@@ -166,6 +166,7 @@ VALUE_ERRORS = [
     ("experiment=table5_1_pixel env.reservoir_size=0", "env.reservoir_size"),
     ("experiment=table5_1_pixel env.binarize_threshold=2", "env.binarize_threshold"),
     ("trainer.test_per_class=450", "trainer.test_per_class"),
+    ("experiment=table4_1_matching actor.bias_init_std=-1", "actor.bias_init_std"),
 ]
 
 

@@ -191,3 +191,40 @@ def test_tensorboard_serves_images_histograms_and_embeddings(server):
         assert tag in [e["tensorName"] for e in info["embeddings"]]
         rows = server.get("/data/plugin/projector/metadata", raw=True, run=f"{run}/tb", name=tag).decode().splitlines()
         assert rows[0].startswith(header) and len(rows) > 1 and (n_points is None or len(rows) == n_points + 1)
+
+
+def test_resume_rolls_the_event_files_back_to_the_checkpoint(tmp_path):
+    """Points logged (and flushed) after the last checkpoint, in the same event file and in a
+    file a later attempt started, are gone after `RunDir.resume`; the ones before it stay."""
+    from torch.utils.tensorboard import SummaryWriter
+
+    from conftest import tb_scalars
+    from ferl.run_dir import RunDir
+
+    run = RunDir(tmp_path / "run")
+    with SummaryWriter(run.tb) as writer:
+        for step in range(3):
+            writer.add_scalar("actor/x", float(step), step)
+        run.save_checkpoint({"step": 3}, writer)
+        for step in range(3, 6):  # logged and on disk, but after the checkpoint
+            writer.add_scalar("actor/x", float(step), step)
+    with SummaryWriter(run.tb, filename_suffix=".later") as writer:
+        writer.add_scalar("actor/x", 99.0, 4)
+    assert len(tb_scalars(run.path)["actor/x"]) == 7
+
+    assert run.resume() == {"step": 3}
+    assert tb_scalars(run.path)["actor/x"] == [(0, 0.0), (1, 1.0), (2, 2.0)]
+    assert len(list(run.tb.glob("events.out.tfevents.*"))) == 1
+
+
+def test_resume_without_a_checkpoint_starts_the_log_afresh(tmp_path):
+    from torch.utils.tensorboard import SummaryWriter
+
+    from ferl.run_dir import RunDir
+
+    run = RunDir(tmp_path / "run")
+    with SummaryWriter(run.tb) as writer:
+        writer.add_scalar("actor/x", 1.0, 0)
+    (run.tb / "analysis").mkdir()  # analyze.py's own log is not the run's
+    assert run.resume() is None
+    assert not list(run.tb.glob("events.out.tfevents.*")) and (run.tb / "analysis").is_dir()

@@ -102,4 +102,4 @@ def test_reduced_scale_pixel_agent_beats_a_memoryless_one(tmp_path):
                        "trainer.n_episodes=3000", f"hydra.run.dir={tmp_path / 'pixel'}")
     assert result.returncode == 0, result.stderr[-2000:]
     rates = json.loads((tmp_path / "pixel" / "summary.json").read_text())["metrics"]["final_correct_goal_rate"]
-    assert np.mean(rates) > 0.6 and max(rates) > 0.75, rates
+    assert np.mean(rates) > 0.6 and min(rates) > 0.5, rates

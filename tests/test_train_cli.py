@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import ROOT, TINY, run_train
+from conftest import ROOT, TINY, assert_same_tb_log, run_train
 
 
 def summary(run_dir):
@@ -99,6 +99,7 @@ def interrupt_and_resume(tmp_path, args: list, steps: int, sig: int, expected_co
     result = run_train(*args, "resume=true", f"hydra.run.dir={cut}")
     assert result.returncode == 0, result.stderr[-2000:]
     assert summary(cut)["metrics"] == summary(whole)["metrics"]
+    assert_same_tb_log(cut, whole)
 
 
 def test_sigterm_then_resume_equals_uninterrupted(tmp_path):

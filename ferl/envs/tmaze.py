@@ -135,10 +135,11 @@ class TMaze:
         return self.observation_id_table.index_select(0, 4 * self.position + signals)
 
     def _draw_observation(self) -> None:
-        """Fix the observation id of the current visit; a reservoir draws a fresh image (§5.3.2)."""
+        """Fix the observation id of the current visit; a reservoir draws a fresh image (§5.3.2),
+        the one ``reset`` drew for this run's time step."""
         self.obs_id = self.observation_class
         if self.reservoir_size > 1:
-            k = torch.randint(self.reservoir_size, (self.n_runs,), generator=self.generator, device=self.device)
+            k = self.reservoir_draws.gather(0, self.t.unsqueeze(0)).squeeze(0)
             self.obs_id = self.obs_id * self.reservoir_size + k
 
     @property
@@ -174,6 +175,12 @@ class TMaze:
         self.done = torch.zeros(self.n_runs, dtype=torch.bool, device=self.device)
         self.initial_signal = self._signal()
         self.junction_signal = self._signal() if self.matching else torch.full_like(zeros, -1)
+        if self.reservoir_size > 1:
+            # the images of every step of the episode, drawn now: how many random numbers an
+            # episode takes then does not depend on how long any run's episode lasts, so runs
+            # of a batch never shift each other's random streams (a diverged run included)
+            self.reservoir_draws = torch.randint(self.reservoir_size, (self.max_steps + 1, self.n_runs),
+                                                 generator=self.generator, device=self.device)
         self._draw_observation()
         return self.observe()
 

@@ -72,10 +72,11 @@ class FloorTraining:
                 "td_errors": torch.zeros(self.T, self.R, device=self.device), "actor_time": 0.0,
                 "checked": 0}  # steps whose TD errors the divergence guard has seen
 
-    def checkpoint(self, state: dict) -> None:
+    def checkpoint(self, state: dict, writer: SummaryWriter) -> None:
         self.run.save_checkpoint({**state, "actor": self.actor.state_dict(), "env": self.env.state_dict(),
                                   "action_uniforms": self.action_uniforms.state_dict(),
-                                  "guard": self.guard.state_dict(), "generator": self.generator.get_state()})
+                                  "guard": self.guard.state_dict(), "generator": self.generator.get_state()},
+                                 writer)
 
     def restore(self, saved: dict) -> dict:
         self.actor.load_state_dict(saved.pop("actor"))
@@ -117,7 +118,7 @@ class FloorTraining:
                 state.update(step=done, s=s, a=a, F_sa=F_sa, x_sa=x_sa,
                              actor_time=state["actor_time"] + time.perf_counter() - started)
                 started = time.perf_counter()
-                self.checkpoint(state)
+                self.checkpoint(state, writer)
                 if stop.requested:
                     bar.close()
                     raise SystemExit(128 + stop.signal)
@@ -191,7 +192,7 @@ def train_digit_floor(cfg, run: RunDir, device: torch.device) -> dict:
     """Run the whole chapter-3 procedure; returns the summary.json dict."""
     wall_start = time.perf_counter()
     job = FloorTraining(cfg, run, device)
-    saved = run.load_checkpoint() if cfg.resume else None
+    saved = run.resume() if cfg.resume else None
     state = job.restore(saved) if saved else job.fresh_state()
     with SummaryWriter(run.tb) as writer:
         if state["step"] == 0:  # not again on resume: the interrupted run logged these

@@ -9,7 +9,9 @@
 Chapter 4 has one joint predictor; chapter 5 an observation and a reward predictor (§5.2), each
 with its own memory. All runs of the batch play their episodes in lockstep: episode k of every
 run starts together, runs whose episode has ended wait (their TD errors are masked) until the
-slowest has finished.
+slowest has finished. The random numbers of an episode (action draws here, reservoir images in
+the environment) are drawn for all T_max steps when it starts, so no run's episode length shifts
+another run's random stream.
 """
 import time
 
@@ -24,6 +26,7 @@ from tqdm import tqdm
 
 from ferl.guard import DivergenceGuard
 from ferl.preprocessor import load_or_fit
+from ferl.random_blocks import Blocks, steps_per_block
 from ferl.run_dir import CheckpointTimer, RunDir, StopRequest
 from ferl.sequences import Episodes, balance_and_split, collect_random_episodes
 from ferl.tb_logging import (IMAGE_SIDE, as_images, log_embedding, log_hparams, log_weights, matrix_image, tile,
@@ -54,6 +57,10 @@ class TMazeTraining:
         self.table = self.env.observation_table  # (ids, Y), or (R, ids, Y) once processed
         self.guard = DivergenceGuard(self.R, cfg.trainer.divergence_limit,
                                      [cfg.seed + r for r in range(self.R)], device)
+        steps = cfg.env.max_steps + 1  # an episode's action draws: a_0 … a_{T_max}
+        self.episode_uniforms = Blocks(
+            lambda n: (torch.rand(n, steps, self.R, 1, 1, generator=self.generator, device=device),),
+            steps_per_block(steps * self.R))
 
     def make_env(self, n_runs: int):
         extra = {"data": self.data} if self.data is not None else {}
@@ -217,12 +224,12 @@ class TMazeTraining:
     # ---- checkpoints (CONTRACT §2: interruption and resume) ---------------------------------------
     def checkpoint(self, progress: dict, writer: SummaryWriter, stop: StopRequest) -> None:
         """Write everything a resumed run needs (atomically); exit if a signal asked to stop."""
-        writer.flush()
         self.run.save_checkpoint({
             "progress": progress, "generator": self.generator.get_state(),
             "predictors": {n: p.state_dict() for n, p in self.predictors.items()},
             "preprocessor": self.preprocessor.state_dict() if self.preprocessor is not None else None,
-            "actor": self.actor.state_dict(), "guard": self.guard.state_dict()})
+            "actor": self.actor.state_dict(), "guard": self.guard.state_dict(),
+            "episode_uniforms": self.episode_uniforms.state_dict()}, writer)
         if stop.requested:
             raise SystemExit(128 + stop.signal)
 
@@ -238,6 +245,7 @@ class TMazeTraining:
             p.load_state_dict(saved["predictors"][name])
         self.actor.load_state_dict(saved["actor"])
         self.guard.load_state_dict(saved["guard"])
+        self.episode_uniforms.load_state_dict(saved["episode_uniforms"], self.device)
         if self.preprocessor is not None and saved["preprocessor"] is not None:
             self.preprocessor.load_state_dict(saved["preprocessor"])
             if "preprocessor" in saved["progress"]["done"]:
@@ -275,11 +283,12 @@ class TMazeTraining:
             started = time.perf_counter()
             lr, beta = actor.learning_rate(k / N), actor.inverse_temperature(k / N)
             env.reset()
+            (uniform,) = self.episode_uniforms.next()  # (T_max + 1, R, 1, 1)
             y = self.lookup(env.obs_id)
             m = {name: p.initial()[0] for name, p in self.predictors.items()}
             s = torch.cat([y, *m.values()], 1).unsqueeze(1)
             F_all, x = actor.evaluate(s)
-            a = actor.select(s, F_all, beta, self.generator)
+            a = actor.select(s, F_all, beta, self.generator, uniform[0])
             F_sa, x_sa = pick(F_all, a), pick(x, a)
             ret = torch.zeros(R, device=self.device)
             td_sum = torch.zeros(R, device=self.device)
@@ -295,7 +304,7 @@ class TMazeTraining:
                 m_next = {name: p.step(m[name], y, a_code)[0] for name, p in self.predictors.items()}
                 s_next = torch.cat([y_next, *m_next.values()], 1).unsqueeze(1)
                 F_next, x_next = actor.evaluate(s_next)
-                a_next = actor.select(s_next, F_next, beta, self.generator)
+                a_next = actor.select(s_next, F_next, beta, self.generator, uniform[t + 1])
                 boot_off = terminated | ~active
                 delta = actor.td_error(r.unsqueeze(1), F_sa, F_next, a_next, beta, boot_off.unsqueeze(1))
                 delta = delta * active.unsqueeze(1)
@@ -395,7 +404,7 @@ def train_tmaze(cfg, run: RunDir, device: torch.device) -> dict:
     returns the summary.json dict."""
     wall_start = time.perf_counter()
     job = TMazeTraining(cfg, run, device)
-    saved = run.load_checkpoint() if cfg.resume else None
+    saved = run.resume() if cfg.resume else None
     progress = job.restore(saved) if saved else {"done": []}
     with SummaryWriter(run.tb) as writer, StopRequest() as stop:
         if not progress["done"]:
