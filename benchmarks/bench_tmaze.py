@@ -58,7 +58,7 @@ def torch_actor_phase(runs: int, episodes: int, device: str) -> dict:
     cfg.name = "bench"
     with tempfile.TemporaryDirectory() as tmp:
         run = RunDir(tmp)
-        run.save_checkpoint = lambda state: None  # time the arithmetic, not the disk
+        run.save_checkpoint = lambda state, writer=None: None  # time the arithmetic, not the disk
         job = TMazeTraining(cfg, run, torch.device(device))
         with SummaryWriter(run.tb) as writer, StopRequest() as stop:
             out = job.train_actor(writer, stop)

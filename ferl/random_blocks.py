@@ -37,10 +37,20 @@ class Blocks:
         self.buffers, self.cursor = None, steps_per_block
 
     def next(self):
-        if self.cursor == self.steps_per_block:
-            self.buffers, self.cursor = self.draw(self.steps_per_block), 0
-        self.cursor += 1
-        return tuple(b[self.cursor - 1] for b in self.buffers)
+        """One step's tensors."""
+        return tuple(b[0] for b in self.take(1))
+
+    def take(self, steps: int):
+        """The next ``steps`` steps' tensors, stacked: the same numbers ``steps`` calls of
+        ``next`` would hand out, across block boundaries too."""
+        pieces = []
+        while steps:
+            if self.cursor == self.steps_per_block:
+                self.buffers, self.cursor = self.draw(self.steps_per_block), 0
+            n = min(steps, self.steps_per_block - self.cursor)
+            pieces.append(tuple(b[self.cursor:self.cursor + n] for b in self.buffers))
+            self.cursor, steps = self.cursor + n, steps - n
+        return pieces[0] if len(pieces) == 1 else tuple(torch.cat(parts) for parts in zip(*pieces))
 
     def state_dict(self) -> dict:
         return {"buffers": self.buffers, "cursor": self.cursor}

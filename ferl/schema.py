@@ -57,6 +57,7 @@ def root_schema() -> dict:
         "device": EnumNode(Device, MISSING),
         "cpu_threads": IntegerNode(MISSING),
         "resume": BooleanNode(MISSING),
+        "compile": BooleanNode(MISSING),
         # untyped: ferl.validate names the metrics of the task (and rejects a number such as 1)
         "optimized_metric": AnyNode(MISSING),
     }

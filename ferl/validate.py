@@ -71,6 +71,7 @@ RULES = [
     ("n_runs", positive_int, "an integer ≥ 1"),
     ("device", one_of("auto", "cpu", "cuda"), "auto, cpu or cuda"),
     ("resume", one_of(True, False), "true or false"),
+    ("compile", one_of(True, False), "true or false"),
     ("optimized_metric", lambda x: x is None or (isinstance(x, str) and x != ""), "null or a summary.json metric name"),
     ("cpu_threads", positive_int, "an integer ≥ 1"),
     ("task", one_of("digit_floor", "tmaze"), "digit_floor or tmaze"),
@@ -190,6 +191,9 @@ def check_cross_keys(cfg) -> None:
         missing = [n for n in names if n not in env.digit_classes]
         if missing:
             raise ConfigError(f"env.digit_classes.{missing[0]} is required: every observation needs a digit class")
+    if cfg.compile and cfg.get("actor", {}).get("action_selection") == "gibbs":
+        raise ConfigError("compile=true is not allowed with actor.action_selection=gibbs: its chain draws "
+                          "from the generator step by step; use compile=false")
     check_preprocessor(cfg)
     check_optimized_metric(cfg)
     trainer, data = cfg.get("trainer", {}), cfg.get("data", {})

@@ -129,7 +129,8 @@ TYPE_ERRORS = [
     ("env.noise=abc", "env.noise"), ("n_runs=2.5", "n_runs"), ("env.patches=x", "env.patches"),
     ("actor.td_rule=td_lambda", "actor.td_rule"), ("actor.lr_norm=sqrt", "actor.lr_norm"),
     ("env.reward_condition=up", "env.reward_condition"), ("device=tpu", "device"), ("task=maze", "task"),
-    ("seed=first", "seed"), ("resume=maybe", "resume"), ("actor.gamma=high", "actor.gamma"),
+    ("seed=first", "seed"), ("resume=maybe", "resume"), ("compile=maybe", "compile"),
+    ("actor.gamma=high", "actor.gamma"),
     ("actor.action_code=gray", "actor.action_code"), ("actor.action_selection=argmax", "actor.action_selection"),
     ("actor.foo=1", "actor.foo"), ("trainer.test_noise_levels=[a]", "trainer.test_noise_levels"),
     ("data.test_per_class=many", "data.test_per_class"),
@@ -167,6 +168,7 @@ VALUE_ERRORS = [
     ("experiment=table5_1_pixel env.binarize_threshold=2", "env.binarize_threshold"),
     ("trainer.test_per_class=450", "trainer.test_per_class"),
     ("experiment=table4_1_matching actor.bias_init_std=-1", "actor.bias_init_std"),
+    ("compile=true actor.action_selection=gibbs", "compile"),
 ]
 
 

@@ -183,7 +183,11 @@ class DigitFloor:
 
     def step(self, action: torch.Tensor):
         """Move every run by its action (R,); returns (observation (R, 784), reward (R,))."""
-        idx, values, transport = self.noise_blocks.next()
+        return self.step_with(action, *self.noise_blocks.next())
+
+    def step_with(self, action: torch.Tensor, idx, values, transport):
+        """``step`` with its random numbers given (one step of ``noise_blocks``), so that a
+        compiled loop of several steps can take them as inputs."""
         move = self.tile * self.n_actions + action
         reward = self.tile_reward.index_select(0, move)
         moved = self.next_tile.index_select(0, move)

@@ -4,8 +4,11 @@
 
 One training step for every run:  observe s' → F(s', ·) for all actions → sample a' (Eq. 3.11)
 → δ = r − γ F(s', a') + F(s, a) → θ ← θ + α δ (−∂F/∂θ) (Eq. 3.10).  F(s', a') and its hidden
-inputs are kept for the next step, so no free energy is computed twice.
+inputs are kept for the next step, so no free energy is computed twice.  ``td_steps`` runs a
+chunk of such steps on random numbers drawn beforehand; with ``compile=true`` it is one
+``torch.compile``d graph, so Python and per-op overhead is paid once per chunk, not per step.
 """
+import math
 import time
 
 import numpy as np
@@ -22,6 +25,7 @@ from ferl.tb_logging import as_images, flat_config, log_embedding, log_hparams, 
 
 hparams = flat_config  # the flattened config of the HParams tab (ferl.tb_logging)
 ACTION_NAMES = ("N", "E", "S", "W")
+MAX_CHUNK = 16  # steps per call of td_steps (a divisor of the logging and checkpoint intervals)
 EMBEDDED_PER_CLASS = 100  # test digits per class in the projector (TensorBoard tags: docs/records.md)
 
 
@@ -30,6 +34,35 @@ def pick(x: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
     flat = x.reshape(-1, *x.shape[3:]) if x.dim() > 3 else x.reshape(-1)
     index = a.squeeze(1) + torch.arange(0, flat.shape[0], x.shape[2], device=a.device)
     return flat.index_select(0, index).unsqueeze(1)
+
+
+def td_steps(actor, env, generator, s, a, F_sa, x_sa, alive, lrs, betas, uniforms, idx, values, transport):
+    """len(lrs) online TD steps of every run (§3.2); step k uses α = lrs[k], β = betas[k], the
+    action uniforms (R, 1, 1) and the environment's noise and transport draws of index k (Gibbs
+    action selection draws from ``generator`` instead, and is not compiled).
+
+    s (R, 1, S), a (R, 1), F_sa (R, 1), x_sa (R, 1, H): the state, action, its free energy and
+    hidden input before the chunk; returns them after it, with rewards and TD errors (K, R).
+    Runs with ``alive`` False (R, 1) keep their parameters (the divergence guard).
+    """
+    rewards, deltas = [], []
+    for k in range(lrs.shape[0]):
+        obs, r = env.step_with(a.squeeze(1), idx[k], values[k], transport[k])
+        s_next = obs.unsqueeze(1)
+        F_next, x_next = actor.evaluate(s_next)
+        a_next = actor.select(s_next, F_next, betas[k], generator, uniforms[k])
+        delta = actor.td_error(r.unsqueeze(1), F_sa, F_next, a_next, betas[k])
+        actor.update(s, a, x_sa, torch.where(alive, delta, 0.0), lrs[k])
+        rewards.append(r)
+        deltas.append(delta.squeeze(1))
+        s, a, F_sa, x_sa = s_next, a_next, pick(F_next, a_next), pick(x_next, a_next)
+    return s, a, F_sa, x_sa, torch.stack(rewards), torch.stack(deltas)
+
+
+def chunk_length(steps: int, *intervals: int) -> int:
+    """The longest chunk ≤ MAX_CHUNK that divides the run length and every interval, so logging
+    and periodic checkpoints fall on chunk ends."""
+    return math.gcd(MAX_CHUNK, steps, *intervals)
 
 
 def json_values(x: np.ndarray) -> list:
@@ -54,6 +87,9 @@ class FloorTraining:
             steps_per_block(self.R))
         self.guard = DivergenceGuard(self.R, cfg.trainer.divergence_limit,
                                      [cfg.seed + r for r in range(self.R)], device)
+        self.chunk = chunk_length(self.T, cfg.trainer.log_every, cfg.trainer.checkpoint_every)
+        # fullgraph: a graph break would silently fall back to per-op overhead
+        self.td_steps = torch.compile(td_steps, fullgraph=True, dynamic=False) if cfg.compile else td_steps
 
     def test_phase(self) -> dict:
         t = self.cfg.trainer
@@ -88,26 +124,24 @@ class FloorTraining:
 
     def train(self, state: dict, writer: SummaryWriter, stop: StopRequest) -> dict:
         """The online TD loop of §3.2 from state["step"] to T; returns the final state."""
-        actor, env, gen, T = self.actor, self.env, self.generator, self.T
+        actor, env, T = self.actor, self.env, self.T
         t_cfg = self.cfg.trainer
         s, a, F_sa, x_sa = state["s"], state["a"], state["F_sa"], state["x_sa"]
         rewards, td_errors = state["rewards"], state["td_errors"]
         clock = CheckpointTimer(t_cfg.checkpoint_minutes)
         bar = tqdm(total=T, initial=state["step"], desc="actor", unit="step", mininterval=1.0, dynamic_ncols=True)
         started = time.perf_counter()
-        for t in range(state["step"], T):
-            progress = t / T
-            lr, beta = actor.learning_rate(progress), actor.inverse_temperature(progress)
-            obs, r = env.step(a.squeeze(1))
-            s_next = obs.unsqueeze(1)
-            F_next, x_next = actor.evaluate(s_next)
-            a_next = actor.select(s_next, F_next, beta, gen, *self.action_uniforms.next())
-            delta = actor.td_error(r.unsqueeze(1), F_sa, F_next, a_next, beta)
-            actor.update(s, a, x_sa, self.guard.mask(delta), lr)
-            rewards[t], td_errors[t] = r, delta.squeeze(1)
-            s, a, F_sa, x_sa = s_next, a_next, pick(F_next, a_next), pick(x_next, a_next)
+        for t in range(state["step"], T, self.chunk):
+            progress = [(t + k) / T for k in range(self.chunk)]
+            lrs = torch.tensor([actor.learning_rate(p) for p in progress], device=self.device)
+            betas = torch.tensor([actor.inverse_temperature(p) for p in progress], device=self.device)
+            s, a, F_sa, x_sa, r, delta = self.td_steps(
+                actor, env, self.generator, s, a, F_sa, x_sa, self.guard.alive, lrs, betas,
+                *self.action_uniforms.take(self.chunk), *env.noise_blocks.take(self.chunk))
+            rewards[t:t + self.chunk], td_errors[t:t + self.chunk] = r, delta
+            lr, beta = float(lrs[-1]), float(betas[-1])
 
-            done = t + 1
+            done = t + self.chunk
             if done % t_cfg.log_every == 0 or done == T:
                 self.guard.check(td_errors[state["checked"]:done], state["checked"])
                 state["checked"] = done

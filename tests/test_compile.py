@@ -1,0 +1,52 @@
+"""The digit floor's TD loop in chunks (ferl/trainers/digit_floor.py: td_steps): the chunk length
+does not change a run, and `compile=true` (torch.compile of the chunk) gives the eager results
+within floating-point tolerance."""
+import numpy as np
+import pytest
+import torch
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import open_dict
+
+from ferl.run_dir import RunDir
+from ferl.trainers import digit_floor
+from ferl.trainers.digit_floor import chunk_length, train_digit_floor
+
+TINY = ["n_runs=3", "trainer.steps=480", "trainer.log_every=160", "trainer.checkpoint_every=160",
+        "trainer.test_per_class=5", "trainer.test_noise_levels=[0.125]"]
+
+
+def run(compose_cfg, tmp_path, name, *overrides):
+    cfg = compose_cfg([*TINY, *overrides])
+    HydraConfig.instance().set_config(cfg)
+    with open_dict(cfg):
+        del cfg["hydra"]
+    torch.set_num_threads(1)
+    summary = train_digit_floor(cfg, RunDir(tmp_path / name), torch.device("cpu"))
+    with np.load(tmp_path / name / "records" / "floor_train.npz") as train, \
+            np.load(tmp_path / name / "records" / "weights.npz") as weights:
+        return summary, train["rewards"], train["td_errors"], weights["W_sh_after"]
+
+
+def test_chunk_length_divides_the_run_and_the_intervals():
+    assert chunk_length(30_000, 1000, 5000) == 8
+    assert chunk_length(32_000, 1024, 4096) == 16
+    assert chunk_length(1001, 1001, 1001) == 1
+
+
+@pytest.mark.parametrize("td_rule", ["sarsa", "expected_sarsa"])
+def test_chunked_steps_equal_single_steps(compose_cfg, tmp_path, monkeypatch, td_rule):
+    chunked = run(compose_cfg, tmp_path, "chunked", f"actor.td_rule={td_rule}")
+    monkeypatch.setattr(digit_floor, "MAX_CHUNK", 1)
+    single = run(compose_cfg, tmp_path, "single", f"actor.td_rule={td_rule}")
+    assert chunked[0]["metrics"] == single[0]["metrics"]
+    for got, want in zip(chunked[1:], single[1:]):
+        np.testing.assert_array_equal(got, want)
+
+
+def test_compiled_chunks_equal_eager_ones(compose_cfg, tmp_path, monkeypatch):
+    monkeypatch.setattr(digit_floor, "MAX_CHUNK", 4)  # a short unrolled graph compiles faster
+    eager = run(compose_cfg, tmp_path, "eager")
+    compiled = run(compose_cfg, tmp_path, "compiled", "compile=true")
+    np.testing.assert_array_equal(compiled[1], eager[1])  # the same actions, so the same rewards
+    np.testing.assert_allclose(compiled[2], eager[2], rtol=1e-4, atol=1e-4)  # TD errors
+    np.testing.assert_allclose(compiled[3], eager[3], rtol=1e-4, atol=1e-5)  # weights after training
