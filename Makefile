@@ -28,8 +28,10 @@ test: $(STAMP)
 # listed longest first so that the parallel jobs finish together), the training-noise grid of
 # Fig. 3.6 (ch3_floor at 9 training levels; each run tests all 9 levels) and the hidden sizes of
 # Fig. 3.13 (ch3_coding_cw with 10 and 40 hidden; 20 is in the first sweep), the long regular
-# T-maze of Fig. 4.4 (corridor length 6); then the sweep's aggregate tables, reproduction report
-# and README table (analyze.py --readme).
+# T-maze of Fig. 4.4 (corridor length 6: a random walk ends in exactly T_min = 6 steps with
+# probability (1/4)^5 · 1/2 ≈ 5·10⁻⁴, so balancing the lengths 6 … 10 needs ~50× Table 4.1's
+# 2 000 random episodes); then the sweep's aggregate tables, reproduction report and README table
+# (analyze.py --readme).
 REPRO_JOBS  ?= 2
 EXPERIMENTS := table5_1_pixel,table4_2_digit,table5_1_bit,table4_1_regular,table4_1_matching,ch3_floor,ch3_coding_cw,ch3_coding_ccw,ch3_coding_noreward
 NOISE_GRID  := 0.0,0.125,0.25,0.375,0.5,0.625,0.75,0.875,1.0
@@ -40,7 +42,7 @@ reproduce: $(STAMP)
 	$(PY) train.py -m experiment=$(EXPERIMENTS) $$jobs hydra.sweep.dir=$$dir/experiments && \
 	$(PY) train.py -m experiment=ch3_floor env.noise=$(NOISE_GRID) $$jobs hydra.sweep.dir=$$dir/noise_grid && \
 	$(PY) train.py -m experiment=ch3_coding_cw actor.n_hidden=10,40 $$jobs hydra.sweep.dir=$$dir/hidden_sizes && \
-	$(PY) train.py -m experiment=table4_1_regular env.corridor_length=6 $$jobs hydra.sweep.dir=$$dir/long_corridor && \
+	$(PY) train.py -m experiment=table4_1_regular env.corridor_length=6 trainer.n_sample=100000 $$jobs hydra.sweep.dir=$$dir/long_corridor && \
 	echo $$(( $$(date +%s) - start )) > $$dir/train_wall_time_s && \
 	$(PY) analyze.py $$dir --readme README.md && \
 	echo "  reproduced in $$(( $$(date +%s) - start )) s; report: $$dir/analysis/report.md"
