@@ -13,17 +13,23 @@ The memory m_t summarises the history (y_0, a_0, …, y_{t−1}, a_{t−1}); hea
 σ_β(x) = 1/(1 + exp(−βx)). §2.4.1 is ambiguous about the time reduction: it defines the objective
 as the average J(T) = 1/(T+1) Σ_t E_t, yet its BPTT algorithm (steps 7–8) accumulates and applies
 the plain sum Σ_t. ``time_average`` picks the average (J(T)) or the sum. Training is in pattern
-mode: one SGD step per sequence (§4.3.1).
+mode: one SGD step per sequence (§4.3.1), on gradients from BPTT written out (Eqs. 2.57–2.63):
+a few batched matrix products per step instead of autograd's graph, which costs more in
+per-operation overhead than the arithmetic of these small networks.
 
 All parameters carry the run dimension first, W_mm (R, M, M). Sequences are padded batches
 y (R, B, T+1, Y), a (R, B, T, A) one-hot, r (R, B, T+1, ·) with r[:, :, 0] unused, and lengths (R, B),
 the number of actions T of each sequence; steps beyond a sequence's length are masked.
 """
+from itertools import repeat
+
 import torch
 import torch.nn.functional as F
 from torch import nn
 
 REWARD_OUTPUTS = ("bits", "linear", "none")
+MEMORY_PARAMETERS = ("W_my", "W_ma", "W_mm", "b_m", "b_init")
+ERROR_CHUNK = 1 << 20  # output values per chunk of sequences in prediction_errors
 
 
 def linear(x: torch.Tensor, W: torch.Tensor) -> torch.Tensor:
@@ -37,6 +43,11 @@ def affine(x: torch.Tensor, W: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return linear(x, W) + b.view(b.shape[0], *(1,) * (x.dim() - 2), b.shape[1])
 
 
+def scaled(x: torch.Tensor, gain: float) -> torch.Tensor:
+    """gain · x; a gain of 1 (most of Tables 4.1–5.1) costs no operation."""
+    return x if gain == 1 else gain * x
+
+
 def valid_steps(lengths: torch.Tensor, n_steps: int) -> torch.Tensor:
     """(R, B, n_steps) True at the steps t ≤ T of each sequence (t = 0 … n_steps − 1)."""
     return torch.arange(n_steps, device=lengths.device) <= lengths.unsqueeze(-1)
@@ -45,6 +56,47 @@ def valid_steps(lengths: torch.Tensor, n_steps: int) -> torch.Tensor:
 def reward_steps(valid: torch.Tensor) -> torch.Tensor:
     """The valid steps that carry a reward, t ≥ 1."""
     return valid & (torch.arange(valid.shape[-1], device=valid.device) > 0)
+
+
+def memory_drive(params: list, gains: tuple, y_prev: torch.Tensor, a_prev: torch.Tensor) -> torch.Tensor:
+    """W_my (c_y y_{t−1}) + W_ma (c_a a_{t−1}) + b_m (Eq. 4.3) for memory parameters
+    (W_my, W_ma, W_mm, b_m, b_init) and gains (c_y, c_a, β_m)."""
+    W_my, W_ma, _, b_m, _ = params
+    return affine(scaled(y_prev, gains[0]), W_my, b_m) + linear(scaled(a_prev, gains[1]), W_ma)
+
+
+def recur(W_mm: torch.Tensor, beta_m: float, drive: torch.Tensor, m_prev: torch.Tensor) -> torch.Tensor:
+    """m_t = σ_{β_m}(drive + W_mm m_{t−1}), Eq. (4.3): drive, m_prev (R, B, M)."""
+    return torch.sigmoid(scaled(torch.baddbmm(drive, m_prev, W_mm.transpose(1, 2)), beta_m))
+
+
+def unroll(params: list, gains: tuple, y: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+    """Memories m_0 … m_T (R, B, T+1, M) of padded sequences y (R, B, T+1, Y), a (R, B, T, A),
+    Eqs. (4.1, 4.3)."""
+    drive = memory_drive(params, gains, y[:, :, :-1], a)  # (R, B, T, M): input to m_1 … m_T
+    m = [torch.sigmoid(scaled(params[4], gains[2])).unsqueeze(1).expand(-1, y.shape[1], -1)]
+    for drive_t in drive.unbind(2):
+        m.append(recur(params[2], gains[2], drive_t, m[-1]))
+    return torch.stack(m, 2)
+
+
+def backprop_memory(W_mm: torch.Tensor, gains: tuple, m, dm, y, a) -> list:
+    """The memory's part of BPTT (§2.4.1): from ∂J/∂m_t of the heads, dm (R, B, T+1, M), the
+    memory errors from t = T down, δ^m_t = (dm_t + W_mmᵀ δ^m_{t+1}) ⊙ β_m m_t (1 − m_t)
+    (Eqs. 2.60–2.62), and the gradients of W_my, W_ma, W_mm, b_m, b_init: Σ_t δ^m_t (c u_{t−1})ᵀ
+    (Eq. 2.63), Σ_t δ^m_t m_{t−1}ᵀ (Eq. 2.59), Σ_t δ^m_t, and δ^m_0 (m_0 = σ(β_m b_init))."""
+    R, B, T1, M = m.shape
+    T = T1 - 1
+    slope = scaled(m * (1 - m), gains[2]).unbind(2)
+    dm = dm.unbind(2)
+    back = [dm[T] * slope[T]]  # δ^m_T, Eq. (2.61)
+    for t in range(T - 1, -1, -1):
+        back.append(torch.baddbmm(dm[t], back[-1], W_mm).mul_(slope[t]))
+    d_init = back.pop().sum(1)  # δ^m_0: the gradient of b_init
+    d_t = torch.stack(back[::-1], 2).view(R, B * T, M).transpose(1, 2)  # δ^m_1 … δ^m_T
+    prev = lambda x: x[:, :, :T].reshape(R, B * T, x.shape[-1])  # noqa: E731  inputs at t − 1
+    return [scaled(torch.bmm(d_t, prev(y)), gains[0]), scaled(torch.bmm(d_t, a.reshape(R, B * T, -1)), gains[1]),
+            torch.bmm(d_t, prev(m)), d_t.sum(2), d_init]
 
 
 class ElmanPredictor(nn.Module):
@@ -84,26 +136,39 @@ class ElmanPredictor(nn.Module):
         self.W_rm, self.b_r = (gaussian(n_r, M), gaussian(n_r)) if reward_output != "none" else (None, None)
 
     # ---- network equations ------------------------------------------------------------------
+    def memory_parameters(self) -> list:
+        """W_my, W_ma, W_mm, b_m, b_init: everything Eqs. (4.1, 4.3) use, in ``parameters()`` order."""
+        return [getattr(self, name) for name in MEMORY_PARAMETERS]
+
+    def head_parameters(self) -> list:
+        """The output heads' weights and biases that exist, in ``parameters()`` order."""
+        return [q for q in (self.W_ym, self.b_y, self.W_rm, self.b_r) if q is not None]
+
     def initial_memory(self) -> torch.Tensor:
         """m_0 = σ_{β_m}(b_init), (R, M), Eq. (4.1)."""
-        return torch.sigmoid(self.beta_m * self.b_init)
+        return torch.sigmoid(scaled(self.b_init, self.beta_m))
 
     def memory_drive(self, y_prev: torch.Tensor, a_prev: torch.Tensor) -> torch.Tensor:
         """W_my (c_y y_{t−1}) + W_ma (c_a a_{t−1}) + b_m, the feed-forward part of Eq. (4.3)."""
-        return affine(self.c_y * y_prev, self.W_my, self.b_m) + linear(self.c_a * a_prev, self.W_ma)
+        return memory_drive(self.memory_parameters(), self.gains, y_prev, a_prev)
 
     def memory(self, drive: torch.Tensor, m_prev: torch.Tensor) -> torch.Tensor:
         """m_t = σ_{β_m}(drive + W_mm m_{t−1}), Eq. (4.3): drive, m_prev (R, B, M)."""
-        return torch.sigmoid(self.beta_m * torch.baddbmm(drive, m_prev, self.W_mm.transpose(1, 2)))
+        return recur(self.W_mm, self.beta_m, drive, m_prev)
+
+    @property
+    def gains(self) -> tuple:
+        """(c_y, c_a, β_m): what the memory equations take besides their parameters."""
+        return self.c_y, self.c_a, self.beta_m
 
     def head_inputs(self, m: torch.Tensor):
         """Output logits z_y = β_y (W_ym m + b_y), ŷ = σ(z_y) (Eqs. 4.2, 4.4), and z_r =
         β_r (W_rm m + b_r), r̂ = σ(z_r) (Eq. 4.5), or r̂ = z_r = W_rm m + b_r (linear, Eq. 5.2)."""
-        z_y = self.beta_y * affine(m, self.W_ym, self.b_y) if self.predict_obs else None
+        z_y = scaled(affine(m, self.W_ym, self.b_y), self.beta_y) if self.predict_obs else None
         if self.reward_output == "none":
             return z_y, None
         z_r = affine(m, self.W_rm, self.b_r)
-        return z_y, (self.beta_r * z_r if self.reward_output == "bits" else z_r)
+        return z_y, (scaled(z_r, self.beta_r) if self.reward_output == "bits" else z_r)
 
     def outputs(self, m: torch.Tensor):
         """(ŷ, r̂) from the memory m (R, …, M)."""
@@ -125,14 +190,28 @@ class ElmanPredictor(nn.Module):
         m = self.memory(self.memory_drive(y_prev, a_prev).unsqueeze(1), m_prev.unsqueeze(1)).squeeze(1)
         return (m, *self.outputs(m))
 
+    @torch.no_grad()
+    def drive_table(self, observations: torch.Tensor) -> torch.Tensor:
+        """The feed-forward part of Eq. (4.3), W_my (c_y y) + W_ma (c_a a) + b_m, for every
+        observation vector y of ``observations`` (ids, Y) — or per run (R, ids, Y) — and every
+        one-hot action a: (R, ids · A, M), row id · A + a. With the predictor frozen (the actor
+        phase) a memory step is then one lookup and the recurrence (``online_memory``)."""
+        R = self.W_my.shape[0]
+        obs = observations.expand(R, -1, -1) if observations.dim() == 2 else observations
+        from_obs = affine(scaled(obs, self.c_y), self.W_my, self.b_m)  # (R, ids, M)
+        from_action = scaled(self.W_ma, self.c_a).transpose(1, 2)  # (R, A, M): W_ma times a one-hot
+        return (from_obs.unsqueeze(2) + from_action.unsqueeze(1)).flatten(1, 2)
+
+    @torch.no_grad()
+    def online_memory(self, table: torch.Tensor, rows: torch.Tensor, m_prev: torch.Tensor) -> torch.Tensor:
+        """m_t (R, M) from m_{t−1} (R, M) and the rows (R,) of ``drive_table`` flattened to
+        (R · ids · A, M) that (y_{t−1}, a_{t−1}) select, Eq. (4.3)."""
+        return self.memory(table.index_select(0, rows).unsqueeze(1), m_prev.unsqueeze(1)).squeeze(1)
+
     # ---- sequences ------------------------------------------------------------------------------
     def unroll(self, y: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
         """Memories m_0 … m_T (R, B, T+1, M) of padded sequences y (R, B, T+1, Y), a (R, B, T, A)."""
-        drive = self.memory_drive(y[:, :, :-1], a)  # (R, B, T, M): input to m_1 … m_T
-        m = [self.initial_memory().unsqueeze(1).expand(-1, y.shape[1], -1)]
-        for t in range(a.shape[2]):
-            m.append(self.memory(drive[:, :, t], m[-1]))
-        return torch.stack(m, 2)
+        return unroll(self.memory_parameters(), self.gains, y, a)
 
     def forward_sequences(self, y: torch.Tensor, a: torch.Tensor, lengths: torch.Tensor):
         """ŷ (R, B, T+1, Y), r̂ (R, B, T+1, ·) and m (R, B, T+1, M) of padded sequences.
@@ -157,11 +236,9 @@ class ElmanPredictor(nn.Module):
         """Σ_t E_t, or J(T) = Σ_t E_t / (T + 1) with ``time_average``, per (run, sequence), (R, B): Eq. (4.6) cross entropy ρ_y CE(y_t, ŷ_t) for
         t = 0 … T plus ρ_r CE(r_t, r̂_t) (bits) or ½ ρ_r (r_t − r̂_t)² (linear, Eq. 5.2) for t = 1 … T.
 
-        BPTT: this is a differentiable function of the unrolled Eqs. (4.1–4.5), so autograd's
-        reverse pass through the unrolled recursion computes exactly the BPTT gradients of
-        §2.4.1 (Eqs. 2.57–2.63: output errors δ^x_t = ρ_y β_y (ŷ_t − y_t), ρ_r β_r (r̂_t − r_t) or
-        ρ_r (r̂_t − r_t) for the linear reward, memory errors δ^m_t propagated back through W_mm
-        from t = T to 0). Padded steps are masked and contribute nothing.
+        Training uses ``gradients``, BPTT written out; this loss is what it differentiates, and
+        autograd's reverse pass through it is the independent check (tests/test_predictor.py).
+        Padded steps are masked and contribute nothing.
         """
         y, a, r = self.clean(y, a, r, lengths)
         z_y, z_r = self.head_inputs(self.unroll(y, a))
@@ -176,43 +253,70 @@ class ElmanPredictor(nn.Module):
             E = E + self.rho_r * torch.where(reward_steps(valid), E_r, 0.0)
         return E.sum(-1) / (lengths + 1) if self.time_average else E.sum(-1)
 
+    @torch.no_grad()
+    def gradients(self, y, a, r, lengths, weight: torch.Tensor) -> list:
+        """∂/∂θ of Σ_b weight_b · Σ_t E_t(b) for every parameter (in ``parameters()`` order): BPTT
+        of §2.4.1 written out, no autograd (``head_gradients``, then ``backprop_memory``).
+        Inputs as for ``loss``, already ``clean``ed; weight (R, B)."""
+        m = self.unroll(y, a)
+        steps = valid_steps(lengths, y.shape[2]) * weight.unsqueeze(-1)
+        heads, dm = self.head_gradients(m, y, r, steps, steps * (torch.arange(y.shape[2], device=y.device) > 0))
+        return backprop_memory(self.W_mm, self.gains, m, dm, y, a) + heads
+
+    def head_gradients(self, m, y, r, steps: torch.Tensor, reward_steps: torch.Tensor):
+        """The output heads' part of BPTT: their gradients (``head_parameters()`` order) and
+        ∂J/∂m_t from them, (R, B, T+1, M). m from ``unroll``, y and r the targets, steps (R, B, T+1)
+        the weight of every step (0 on padding), reward_steps the same with t = 0 left out.
+
+        Output errors (Eq. 2.58): a sigmoid output under cross entropy, and the linear reward under
+        ½(r − r̂)², both give δ^x_t = ρ · gain · (x̂_t − x_t); the weights' gradients are
+        Σ_t δ^x_t m_tᵀ (Eq. 2.57) and ∂J/∂m_t = Σ_j δ^x_{j,t} w^{xm}_j (Eqs. 2.61–2.62, first term).
+        """
+        R, B, T1 = m.shape[:3]
+        flat = lambda x: x.reshape(R, B * T1, x.shape[-1])  # noqa: E731
+        m_flat, heads = flat(m), []
+        if self.predict_obs:
+            out = torch.sigmoid(scaled(torch.baddbmm(self.b_y.unsqueeze(1), m_flat, self.W_ym.transpose(1, 2)), self.beta_y))
+            heads.append((out, flat(y), steps * (self.rho_y * self.beta_y), self.W_ym))
+        if self.reward_output != "none":
+            z = torch.baddbmm(self.b_r.unsqueeze(1), m_flat, self.W_rm.transpose(1, 2))
+            out, gain = (torch.sigmoid(scaled(z, self.beta_r)), self.beta_r) if self.reward_output == "bits" else (z, 1.0)
+            heads.append((out, flat(r), reward_steps * (self.rho_r * gain), self.W_rm))
+        grads, dm = [], None
+        for out, target, w, W in heads:
+            delta = (out - target).mul_(w.view(R, -1, 1))  # δ^x_t (R, B(T+1), ·)
+            grads += [torch.bmm(delta.transpose(1, 2), m_flat), delta.sum(1)]
+            dm = torch.bmm(delta, W) if dm is None else torch.baddbmm(dm, delta, W)
+        return grads, dm.view(R, B, T1, -1)
+
     def train_epoch(self, y, a, r, lengths, order: torch.Tensor) -> None:
         """One epoch of BPTT in pattern mode (§4.3.1): for i = 1 … N every run takes a plain SGD
         step θ ← θ − α ∇_θ Σ_t E_t on its own sequence order[:, i] (order (R, N), a permutation
-        of each run's N sequences). Runs share nothing: the summed loss of all runs has, for
-        run r's parameters, the gradient of run r's loss alone. With ``batch_size`` B > 1 a step
-        follows every B sequences, on the mean of their losses (padded steps masked)."""
-        runs = torch.arange(order.shape[0], device=order.device).unsqueeze(1)
-        y, a, lengths = y[runs, order], a[runs, order], lengths[runs, order]
-        r = r[runs, order] if r is not None else None
-        params = list(self.parameters())
-        B, n = self.batch_size, lengths.shape[1]
-        # T of every step: the longest sequence of its B positions over all runs, read once (one
-        # host sync per epoch); it trims the padding all runs and sequences of the step share
-        longest = F.pad(lengths.max(0).values, (0, -n % B)).view(-1, B).max(1).values.tolist()
-        for i, T in zip(range(0, n, B), longest):
-            s = slice(i, i + B)
-            loss = self.loss(y[:, s, : T + 1], a[:, s, :T], r[:, s, : T + 1] if r is not None else None,
-                             lengths[:, s]).sum() / lengths[:, s].shape[1]
-            grads = torch.autograd.grad(loss, params)
-            with torch.no_grad():
-                for q, g in zip(params, grads):
-                    q.sub_(g, alpha=self.lr)
+        of each run's N sequences). Runs share nothing: each run's parameters move by the
+        gradient of its own loss alone. With ``batch_size`` B > 1 a step follows every B
+        sequences, on the mean of their losses (padded steps masked)."""
+        PredictorBatch([self]).train_epoch(y, a, [r], lengths, [order])
 
     @torch.no_grad()
     def prediction_errors(self, y, a, r, lengths) -> torch.Tensor:
         """Prediction error of every step, (R, B, T+1): the weighted absolute error of Eq. (4.8),
         ρ_y Σ_i |y_{i,t} − ŷ_{i,t}| + ρ_r Σ_i |r_{i,t} − r̂_{i,t}| (reward term from t = 1), with the
         squared error ρ_r (r_t − r̂_t)² for a linear scalar reward (Fig. 5.17b).
-        NaN at padded steps, and at t = 0 for a predictor without an observation head."""
+        NaN at padded steps, and at t = 0 for a predictor without an observation head.
+        Computed in chunks of sequences, so that the temporaries of 784-pixel outputs stay in cache."""
+        n = max(1, ERROR_CHUNK // (y.shape[0] * y.shape[2] * y.shape[3]))
+        chunks = zip(y.split(n, 1), a.split(n, 1), r.split(n, 1) if r is not None else repeat(None), lengths.split(n, 1))
+        return torch.cat([self._prediction_errors(*chunk) for chunk in chunks], 1)
+
+    def _prediction_errors(self, y, a, r, lengths) -> torch.Tensor:
         y_hat, r_hat, _ = self.forward_sequences(y, a, lengths)
         valid = valid_steps(lengths, y.shape[2])
         err = torch.zeros(valid.shape, dtype=y.dtype, device=y.device)
         if self.predict_obs:
-            err = err + self.rho_y * (y - y_hat).abs().sum(-1)
+            err += self.rho_y * y_hat.sub_(y).abs_().sum(-1)
         if self.reward_output != "none":
-            diff = (r - r_hat).square() if self.reward_output == "linear" else (r - r_hat).abs()
-            err = err + self.rho_r * torch.where(reward_steps(valid), diff.sum(-1), 0.0)
+            diff = r_hat.sub_(r).square_() if self.reward_output == "linear" else r_hat.sub_(r).abs_()
+            err += self.rho_r * torch.where(reward_steps(valid), diff.sum(-1), 0.0)
         return torch.where(valid if self.predict_obs else reward_steps(valid), err, torch.nan)
 
     def reward_targets(self, env, rewards: torch.Tensor):
@@ -226,3 +330,64 @@ class ElmanPredictor(nn.Module):
             return r
         values = torch.as_tensor(env.reward_values, dtype=rewards.dtype, device=rewards.device)
         return (r == values).to(rewards.dtype)
+
+
+class PredictorBatch:
+    """Elman predictors that share the form of the memory (its size and inputs, c_y, c_a, β_m),
+    α, the objective and the batch size, trained on the same sequences as one batch along the
+    run axis — chapter 5's observation and reward predictors (§5.2). Their memories unroll and
+    backpropagate in the same batched products (``unroll``, ``backprop_memory``); only the
+    output heads (``head_gradients``) are separate. Every predictor still takes its own sequence
+    order and plain SGD steps, so each one's training equals training it alone."""
+
+    def __init__(self, predictors: list):
+        keys = {(p.W_my.shape, p.W_ma.shape, p.gains, p.lr, p.time_average, p.batch_size) for p in predictors}
+        if len(keys) != 1:
+            raise ValueError("a PredictorBatch needs predictors with the same memory, gains, lr, objective and batch size")
+        self.members = list(predictors)
+        self.lead = predictors[0]
+
+    @torch.no_grad()
+    def train_epoch(self, y, a, rs: list, lengths, orders: list) -> None:
+        """One pattern-mode epoch (``ElmanPredictor.train_epoch``) of every member on the same
+        sequences y (R, N, T+1, Y), a, lengths (R, N), its targets rs[k] and order orders[k]."""
+        p, P = self.lead, len(self.members)
+        runs = torch.arange(lengths.shape[0], device=lengths.device).unsqueeze(1)
+        R = runs.shape[0]
+        cat = lambda xs: torch.cat(xs) if P > 1 else xs[0]  # noqa: E731
+        lengths_k = [lengths[runs, o] for o in orders]
+        L = cat(lengths_k)
+        y, a, _ = p.clean(cat([y[runs, o] for o in orders]), cat([a[runs, o] for o in orders]), None, L)
+        rs = [p.clean(y[k * R:(k + 1) * R], a[k * R:(k + 1) * R], r[runs, o], Lk)[2] if r is not None else None
+              for k, (r, o, Lk) in enumerate(zip(rs, orders, lengths_k))]
+        # the memories' parameters of all members in one (P·R, …) tensor each while training
+        memory = p.memory_parameters() if P == 1 else [torch.cat(qs) for qs in zip(*(q.memory_parameters() for q in self.members))]
+        params = memory + [q for member in self.members for q in member.head_parameters()]
+        B, n = p.batch_size, L.shape[1]
+        # the weight of every step in its update's loss: 1/(T+1) under J(T), over the sequences
+        # of the update (B, fewer in a last short one), 0 on padding; rewards count from t = 1
+        chunk = torch.arange(n, device=L.device) // B
+        scale = (1.0 / (L + 1).to(y.dtype) if p.time_average else torch.ones_like(L, dtype=y.dtype)) / chunk.bincount()[chunk]
+        steps = valid_steps(L, y.shape[2]) * scale.unsqueeze(-1)
+        reward_steps = steps * (torch.arange(y.shape[2], device=L.device) > 0)
+        # T of every step: the longest sequence of its B positions over all runs, read once (one
+        # host sync per epoch); it trims the padding all runs and sequences of the step share
+        longest = F.pad(L.max(0).values, (0, -n % B)).view(-1, B).max(1).values.tolist()
+        for i, T in zip(range(0, n, B), longest):
+            s = slice(i, i + B)
+            y_s, a_s = y[:, s, : T + 1], a[:, s, :T]
+            m = unroll(memory, p.gains, y_s, a_s)
+            w, w_r = steps[:, s, : T + 1], reward_steps[:, s, : T + 1]
+            heads, dm = [], []
+            for k, member in enumerate(self.members):
+                part = slice(k * R, (k + 1) * R)
+                g, d = member.head_gradients(m[part], y_s[part], rs[k][:, s, : T + 1] if rs[k] is not None else None,
+                                             w[part], w_r[part])
+                heads += g
+                dm.append(d)
+            grads = backprop_memory(memory[2], p.gains, m, cat(dm), y_s, a_s) + heads
+            torch._foreach_add_(params, grads, alpha=-p.lr)
+        if P > 1:
+            for k, member in enumerate(self.members):
+                for q, merged in zip(member.memory_parameters(), memory):
+                    q.copy_(merged[k * R:(k + 1) * R])

@@ -210,6 +210,7 @@ class Algorithm1TrainerSchema:
     n_epoch: int = MISSING
     error_every: int = MISSING
     n_episodes: int = MISSING
+    actor_obs_scale: float = MISSING
     log_every: int = MISSING
     td_sample_every: int = MISSING
     final_window: int = MISSING

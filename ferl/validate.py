@@ -127,6 +127,7 @@ RULES = [
     ("trainer.n_epoch", non_negative_int, "an integer ≥ 0 (N_epoch)"),
     ("trainer.error_every", positive_int, "an integer ≥ 1"),
     ("trainer.n_episodes", positive_int, "an integer ≥ 1 (N episodes)"),
+    ("trainer.actor_obs_scale", positive, "a scale > 0 (1: the dissertation)"),
     ("trainer.td_sample_every", positive_int, "an integer ≥ 1"),
     ("trainer.final_window", positive_int, "an integer ≥ 1"),
     ("data.test_per_class", lambda x: _int(x) and 1 <= x <= 499, "an integer in [1, 499] (500 images per class)"),

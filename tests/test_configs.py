@@ -60,7 +60,10 @@ def test_table_4_1_and_4_2_parameters(compose_cfg):
     assert (a.n_hidden, a.lr.value, a.beta.start, a.beta.end, a.gamma) == (20, 0.05, 0, 10, 0.95)
     assert (t.n_sample, t.l_training, t.n_epoch, t.n_episodes) == (2000, 5, 400, 10000)
     digit = compose_cfg(["experiment=table4_2_digit"])
-    assert digit.predictor.joint.c_y == pytest.approx(7 / 784, abs=1e-4) and digit.env.matching
+    assert (digit.predictor.joint.rho_r, digit.env.matching, digit.actor.lr.value) == (4, True, 0.05)
+    # the documented departures from Table 4.2 (conf/experiment/table4_2_digit.yaml)
+    assert digit.predictor.joint.c_y == 0.1 and digit.predictor.joint.rho_y == pytest.approx(7 / 784, abs=1e-4)
+    assert digit.trainer.actor_obs_scale == 0.1 and cfg.trainer.actor_obs_scale == 1
 
 
 def test_table_5_1_parameters(compose_cfg):
@@ -160,6 +163,7 @@ VALUE_ERRORS = [
     ("experiment=table4_1_matching predictor.joint.n_memory=0", "predictor.joint.n_memory"),
     ("experiment=table4_1_matching trainer.train_fraction=1.0", "trainer.train_fraction"),
     ("experiment=table4_1_matching trainer.checkpoint_every_epochs=0", "trainer.checkpoint_every_epochs"),
+    ("experiment=table4_2_digit trainer.actor_obs_scale=0", "trainer.actor_obs_scale"),
     ("experiment=table5_1_pixel preprocessor.cd_k=0", "preprocessor.cd_k"),
     ("experiment=table5_1_pixel preprocessor.n_hidden=0", "preprocessor.n_hidden"),
     ("experiment=table5_1_pixel preprocessor.n_visible=700", "preprocessor.n_visible"),

@@ -7,7 +7,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from ferl.predictor import ElmanPredictor
+from ferl.predictor import ElmanPredictor, PredictorBatch
 
 Y, A, M, NR = 4, 3, 5, 2
 GAINS = dict(c_y=0.7, c_a=1.3, beta_m=0.8, beta_y=1.2, beta_r=0.9, rho_y=1.5, rho_r=2.5)
@@ -149,6 +149,27 @@ def test_bptt_gradient_matches_finite_differences_and_ignores_padding(kind):
             torch.testing.assert_close(g1, g2, rtol=0, atol=0)
 
 
+@pytest.mark.parametrize("kind", KINDS)
+def test_hand_written_bptt_equals_autograd(kind):
+    """ElmanPredictor.gradients (BPTT written out, Eqs. 2.57–2.63, what train_epoch uses) = autograd
+    of Σ_b w_b loss_b in float64, for sequences of lengths 1, 3 and 7 padded to 7 with random
+    per-sequence weights w; NaN in the padding is cleaned away and changes nothing."""
+    p = make(R=2, **kind)
+    y, a, r, _ = data(2, 3, 7, kind["reward_output"])
+    lengths = torch.tensor([[1, 3, 7], [7, 1, 3]])
+    r = r if p.reward_output != "none" else None
+    w = torch.rand(2, 3, generator=torch.Generator().manual_seed(3), dtype=torch.float64) + 0.5
+    auto = torch.autograd.grad((p.loss(y, a, r, lengths) * w).sum(), list(p.parameters()))
+    pad = (torch.arange(8) > lengths.unsqueeze(-1)).unsqueeze(-1)
+    y, a = torch.where(pad, torch.nan, y), torch.where(pad[:, :, 1:], torch.nan, a)
+    r = torch.where(pad, torch.nan, r) if r is not None else None
+    hand = p.gradients(*p.clean(y, a, r, lengths), lengths, w)
+    assert len(hand) == len(auto)
+    for (name, _), want, got in zip(p.named_parameters(), auto, hand):
+        assert want.abs().max() > 0, name
+        torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-12, msg=name)
+
+
 def test_pattern_mode_epoch_equals_sequential_sgd_of_single_runs():
     """train_epoch on R runs = for each run alone, SGD θ ← θ − α ∇ Σ_t E_t over its sequences in
     its own order, with single-run predictors built from the run's seed (seed + r)."""
@@ -192,6 +213,34 @@ def test_batched_epoch_is_sgd_on_the_mean_loss_of_each_chunk(batch_size):
                     q -= lr * gq
         for (name, qb), qs in zip(batched.named_parameters(), single.parameters()):
             torch.testing.assert_close(qb[run], qs[0], msg=name)
+
+
+def test_predictor_batch_equals_training_each_alone():
+    """Chapter 5's observation and scalar-reward predictors trained as one PredictorBatch (their
+    memories in one batch, heads apart) end with the parameters each gets trained alone on the
+    same sequences in its own order, for 3 epochs."""
+    R, N = 2, 6
+    obs = dict(reward_output="none", time_average=True, lr=0.1)
+    rew = dict(reward_output="linear", predict_obs=False, time_average=True, lr=0.1)
+    y, a, r_bits, lengths = data(R, N, 7, seed=6)
+    r = torch.randn(R, N, 8, 1, generator=torch.Generator().manual_seed(7), dtype=torch.float64)
+    batch = [make(R=R, seed=30, **obs), make(R=R, seed=40, **rew)]
+    alone = [make(R=R, seed=30, **obs), make(R=R, seed=40, **rew)]
+    g = torch.Generator().manual_seed(8)
+    for _ in range(3):
+        orders = [torch.rand(R, N, generator=g).argsort(1) for _ in batch]
+        PredictorBatch(batch).train_epoch(y, a, [None, r], lengths, orders)
+        for p, target, order in zip(alone, (None, r), orders):
+            p.train_epoch(y, a, target, lengths, order)
+    for b, s in zip(batch, alone):
+        for (name, qb), qs in zip(b.named_parameters(), s.parameters()):
+            assert not torch.equal(qb, make(R=R, seed=30 if b.predict_obs else 40, **(obs if b.predict_obs else rew)).get_parameter(name))
+            torch.testing.assert_close(qb, qs, rtol=1e-12, atol=1e-12, msg=name)
+
+
+def test_predictor_batch_needs_the_same_memory():
+    with pytest.raises(ValueError, match="same memory"):
+        PredictorBatch([make(R=2), make(R=2, c_y=0.5)])
 
 
 def test_runs_are_independent():

@@ -17,9 +17,8 @@ def act(env, a):
 
 
 def set_signals(env, s0, s1=None):
-    env.initial_signal = torch.full((env.n_runs,), s0, dtype=torch.long)
-    if s1 is not None:
-        env.junction_signal = torch.full((env.n_runs,), s1, dtype=torch.long)
+    full = lambda v: torch.full((env.n_runs,), v, dtype=torch.long)  # noqa: E731
+    env.set_signals(full(s0), None if s1 is None else full(s1))
 
 
 def bits(obs):

@@ -50,6 +50,9 @@ def test_digit_tmaze_runs(tmp_path):
     assert result.returncode == 0, result.stderr[-2000:]
     junction = np.load(tmp_path / "digit" / "records" / "junction.npz")
     assert junction["state"].shape[1] == 784 + 20
+    # the actor sees the binarized junction digit times trainer.actor_obs_scale (0.1 here)
+    pixels = np.unique(junction["state"][:, :784].astype(np.float32))
+    np.testing.assert_allclose(pixels, [0.0, 0.1], rtol=1e-3)
 
 
 def test_reduced_scale_regular_tmaze_is_learnt(tmp_path):

@@ -131,8 +131,7 @@ class TMaze:
     @property
     def observation_class(self) -> torch.Tensor:
         """Index into ``observation_names`` of what every run sees now."""
-        signals = 2 * self.initial_signal + self.junction_signal.clamp(min=0)
-        return self.observation_id_table.index_select(0, 4 * self.position + signals)
+        return self.observation_id_table.index_select(0, torch.add(self._signals, self.position, alpha=4))
 
     def _draw_observation(self) -> None:
         """Fix the observation id of the current visit; a reservoir draws a fresh image (§5.3.2),
@@ -173,30 +172,44 @@ class TMaze:
         zeros = torch.zeros(self.n_runs, dtype=torch.long, device=self.device)
         self.position, self.t = zeros, zeros.clone()
         self.done = torch.zeros(self.n_runs, dtype=torch.bool, device=self.device)
-        self.initial_signal = self._signal()
-        self.junction_signal = self._signal() if self.matching else torch.full_like(zeros, -1)
+        signals = (self._signal(), self._signal() if self.matching else torch.full_like(zeros, -1))
         if self.reservoir_size > 1:
             # the images of every step of the episode, drawn now: how many random numbers an
             # episode takes then does not depend on how long any run's episode lasts, so runs
             # of a batch never shift each other's random streams (a diverged run included)
             self.reservoir_draws = torch.randint(self.reservoir_size, (self.max_steps + 1, self.n_runs),
                                                  generator=self.generator, device=self.device)
-        self._draw_observation()
+        self.set_signals(*signals)
         return self.observe()
 
-    def step(self, action: torch.Tensor):
-        """Move every live run by its action (R,); returns (obs, reward, terminated, truncated)."""
+    def set_signals(self, initial: torch.Tensor, junction: torch.Tensor | None = None) -> None:
+        """Set the episode's signals s0 (and s1) (R,), and what they fix for the whole episode:
+        the rewarded side and the signals' column of the (position, s0, s1) observation table,
+        so that a step is table lookups only."""
+        self.initial_signal = initial
+        if junction is not None:
+            self.junction_signal = junction
+        self._side = self.rewarded_side
+        self._signals = 2 * self.initial_signal + self.junction_signal.clamp(min=0)
+        self._draw_observation()
+
+    def advance(self, action: torch.Tensor):
+        """Move every live run by its action (R,), fix the new observation id; returns (reward,
+        terminated, truncated). Runs that are done stay put and get reward 0."""
         live = ~self.done
-        move = 4 * self.position + action
-        moved = self.next_position.index_select(0, move)
-        reward = self.move_reward.index_select(0, 2 * move + self.rewarded_side)
-        reward = torch.where(live, reward, torch.zeros_like(reward))
-        self.position = torch.where(live, moved, self.position)
+        move = torch.add(action, self.position, alpha=4)
+        reward = torch.where(live, self.move_reward.index_select(0, torch.add(self._side, move, alpha=2)), 0.0)
+        self.position = torch.where(live, self.next_position.index_select(0, move), self.position)
         self.t = self.t + live
         terminated = live & (self.position >= self.corridor_length)
         truncated = live & ~terminated & (self.t >= self.max_steps)
         self.done = self.done | terminated | truncated
         self._draw_observation()
+        return reward, terminated, truncated
+
+    def step(self, action: torch.Tensor):
+        """``advance`` and the new observations: (obs, reward, terminated, truncated)."""
+        reward, terminated, truncated = self.advance(action)
         return self.observe(), reward, terminated, truncated
 
     def reward_code(self, reward: torch.Tensor) -> torch.Tensor:
@@ -212,3 +225,5 @@ class TMaze:
     def load_state_dict(self, state: dict) -> None:
         for k in STATE_KEYS:
             setattr(self, k, state[k].to(self.device))
+        self._side = self.rewarded_side
+        self._signals = 2 * self.initial_signal + self.junction_signal.clamp(min=0)

@@ -25,6 +25,7 @@ from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
 from ferl.guard import DivergenceGuard
+from ferl.predictor import PredictorBatch, scaled
 from ferl.preprocessor import load_or_fit
 from ferl.random_blocks import Blocks, steps_per_block
 from ferl.run_dir import CheckpointTimer, RunDir, StopRequest
@@ -36,6 +37,8 @@ from ferl.validate import ConfigError
 
 PREPROCESSOR_EXTRA_KEYS = ("cache_dir",)  # preprocessor keys that are not constructor arguments
 EMBEDDED_JUNCTION_VISITS = 2000  # run 0's last junction visits in the projector (docs/records.md)
+# per-episode records of the actor phase (records/episodes.npz), in the order play_episode returns them
+OUTCOMES = ("discounted_return", "steps", "terminal_reward", "correct_goal", "td_abs_mean", "condition")
 
 
 class TMazeTraining:
@@ -145,10 +148,12 @@ class TMazeTraining:
         return torch.where((ids >= 0).unsqueeze(-1), self.lookup(ids.clamp(min=0)), 0.0)
 
     def tensors(self, ep: Episodes, predictor):
-        """Episodes → predictor inputs y (R,B,T+1,Y), a (R,B,T,A), r targets (R,B,T+1,·), lengths."""
+        """Episodes → predictor inputs y (R,B,T+1,Y), a (R,B,T,A), r targets (R,B,T+1,·) of
+        ``predictor`` (None without one), lengths."""
         y = self.observations(ep.obs)
         a = F.one_hot(ep.actions, self.env.n_actions).float()
-        return y, a, predictor.reward_targets(self.env, ep.rewards), ep.lengths
+        r = predictor.reward_targets(self.env, ep.rewards) if predictor is not None else None
+        return y, a, r, ep.lengths
 
     def collect(self) -> dict:
         t = self.cfg.trainer
@@ -159,67 +164,89 @@ class TMazeTraining:
             episodes, self.env.optimal_steps, self.cfg.env.max_steps, t.train_fraction, self.generator)
         return {"train": train, "test": test, "n_train": n_train, "n_test": n_test}
 
-    def prediction_errors(self, ep: Episodes, predictor) -> np.ndarray:
-        """(R, nT, Tmax+1) Eq. (4.7): mean over the sequences of each length of Eq. (4.8) per step."""
-        y, a, r, lengths = self.tensors(ep, predictor)
-        err = predictor.prediction_errors(y, a, r, lengths)  # (R, B, Tmax+1), NaN on padding
+    def prediction_errors(self, tensors: tuple, predictor) -> np.ndarray:
+        """(R, nT, Tmax+1) Eq. (4.7): mean over the sequences of each length of Eq. (4.8) per step;
+        ``tensors`` (y, a, r, lengths) of a data split (``tensors``)."""
+        lengths = tensors[3]
+        err = predictor.prediction_errors(*tensors)  # (R, B, Tmax+1), NaN on padding
         lengths_all = range(self.env.optimal_steps, self.cfg.env.max_steps + 1)
         out = [torch.nanmean(torch.where((lengths == T).unsqueeze(-1), err, torch.nan), dim=1) for T in lengths_all]
         return torch.stack(out, 1).cpu().numpy().astype(np.float32)
 
     def train_predictors(self, data: dict, writer: SummaryWriter, progress: dict | None = None,
                          stop: StopRequest | None = None) -> dict:
-        """Every predictor on the same episodes, each in its own shuffled order per epoch; a
-        predictor whose phase a checkpoint lists as done is not trained again."""
+        """Every predictor on the same episodes, each in its own shuffled order per epoch; those
+        that share the form of the memory train as one batch (``PredictorBatch``). A predictor
+        whose phase a checkpoint lists as done is not trained again."""
         progress = progress if progress is not None else {"done": []}
         stop = stop if stop is not None else StopRequest()
         records = progress.setdefault("predictor_records", {})
-        for name, predictor in self.predictors.items():
-            if f"predictor_{name}" not in progress["done"]:
-                records |= self.train_predictor(name, predictor, data, writer, progress, stop)
-                self.finish_phase(progress, f"predictor_{name}", writer, stop)
+        groups = {}
+        for name, p in self.predictors.items():
+            groups.setdefault((p.W_my.shape, p.W_ma.shape, p.gains, p.lr, p.time_average, p.batch_size), []).append(name)
+        for names in groups.values():
+            if any(f"predictor_{name}" not in progress["done"] for name in names):
+                records |= self.train_predictor_group(names, data, writer, progress, stop)
+                progress["done"] += [f"predictor_{name}" for name in names]
+                self.checkpoint(progress, writer, stop)
         return records
 
-    def train_predictor(self, name: str, predictor, data: dict, writer: SummaryWriter,
-                        progress: dict, stop: StopRequest) -> dict:
-        """Pattern-mode BPTT for N_epoch epochs, from the epoch a checkpoint left it at; a
-        checkpoint every ``trainer.checkpoint_every_epochs`` epochs and on SIGINT/SIGTERM."""
+    def train_predictor_group(self, names: list, data: dict, writer: SummaryWriter,
+                              progress: dict, stop: StopRequest) -> dict:
+        """Pattern-mode BPTT of the named predictors for N_epoch epochs, from the epoch a
+        checkpoint left them at; a checkpoint every ``trainer.checkpoint_every_epochs`` epochs
+        and on SIGINT/SIGTERM."""
         t = self.cfg.trainer
         train = data["train"]
+        members = [self.predictors[name] for name in names]
+        batch = PredictorBatch(members)
         # the training set proper: lengths T_min … T_min + L_training − 1; balancing laid the
         # lengths out in the same blocks in every run, so run 0's positions hold for all
         trainable = train.lengths[0] <= self.env.optimal_steps + t.l_training - 1
         fit = train.select(torch.nonzero(trainable).squeeze(1).expand(self.R, -1))
-        y, a, r, lengths = self.tensors(fit, predictor)
+        y, a, _, lengths = self.tensors(fit, None)
+        targets = [p.reward_targets(self.env, fit.rewards) for p in members]
+        splits = {(name, s): self.tensors(data[s], p) for name, p in zip(names, members) for s in ("train", "test")}
         partial = progress.get("predictor_partial") or {}
-        if partial.get("name") == name:
+        if partial.get("names") == names:
             errors, epochs, start = partial["errors"], partial["epochs"], partial["epoch"]
         else:
-            errors = {s: [self.prediction_errors(data[s], predictor)] for s in ("train", "test")}
+            errors = {name: {s: [self.prediction_errors(splits[name, s], p)] for s in ("train", "test")}
+                      for name, p in zip(names, members)}
             epochs, start = [0], 0
-            log_weights(writer, f"predictor_{name}", predictor, 0)
+            for name, p in zip(names, members):
+                log_weights(writer, f"predictor_{name}", p, 0)
         clock = CheckpointTimer(t.checkpoint_minutes)
-        for epoch in (bar := tqdm(range(start + 1, t.n_epoch + 1), desc=f"predictor {name}", unit="epoch",
-                                  initial=start, total=t.n_epoch, mininterval=1.0)):
-            order = torch.rand(self.R, y.shape[1], generator=self.generator, device=self.device).argsort(1)
-            predictor.train_epoch(y, a, r, lengths, order)
+        for epoch in (bar := tqdm(range(start + 1, t.n_epoch + 1), desc=f"predictor {'+'.join(names)}",
+                                  unit="epoch", initial=start, total=t.n_epoch, mininterval=1.0)):
+            orders = [torch.rand(self.R, y.shape[1], generator=self.generator, device=self.device).argsort(1)
+                      for _ in members]
+            batch.train_epoch(y, a, targets, lengths, orders)
             if epoch % t.error_every == 0 or epoch == t.n_epoch:
                 epochs.append(epoch)
-                for split in ("train", "test"):
-                    errors[split].append(self.prediction_errors(data[split], predictor))
-                    writer.add_scalar(f"predictor_{name}/error_{split}", float(np.nanmean(errors[split][-1])), epoch)
-                bar.set_postfix(error_test=f"{np.nanmean(errors['test'][-1]):.4f}", refresh=False)
-                for T, value in zip(range(self.env.optimal_steps, self.cfg.env.max_steps + 1),
-                                    np.nanmean(errors["test"][-1], axis=(0, 2))):
-                    writer.add_scalar(f"predictor_{name}/error_test_T{T}", float(value), epoch)
+                for name, p in zip(names, members):
+                    self.log_prediction_errors(name, p, errors[name], splits, writer, epoch)
+                bar.set_postfix(error_test=" ".join(f"{np.nanmean(errors[n]['test'][-1]):.4f}" for n in names), refresh=False)
             if (epoch % t.checkpoint_every_epochs == 0 or stop.requested or clock.due()) and epoch < t.n_epoch:
-                progress["predictor_partial"] = {"name": name, "epoch": epoch, "errors": errors, "epochs": epochs}
+                progress["predictor_partial"] = {"names": names, "epoch": epoch, "errors": errors, "epochs": epochs}
                 self.checkpoint(progress, writer, stop)
         progress["predictor_partial"] = None
-        log_weights(writer, f"predictor_{name}", predictor, t.n_epoch)
         lengths_all = np.arange(self.env.optimal_steps, self.cfg.env.max_steps + 1)
-        return {f"{name}_lengths": lengths_all, f"{name}_epochs": np.asarray(epochs),
-                **{f"{name}_error_{s}": np.stack(errors[s], 1) for s in ("train", "test")}}
+        records = {}
+        for name, p in zip(names, members):
+            log_weights(writer, f"predictor_{name}", p, t.n_epoch)
+            records |= {f"{name}_lengths": lengths_all, f"{name}_epochs": np.asarray(epochs),
+                        **{f"{name}_error_{s}": np.stack(errors[name][s], 1) for s in ("train", "test")}}
+        return records
+
+    def log_prediction_errors(self, name: str, predictor, errors: dict, splits: dict, writer, epoch: int) -> None:
+        """Append the Eq. 4.7 errors of both splits to ``errors`` and log them (mean, and test per T)."""
+        for split in ("train", "test"):
+            errors[split].append(self.prediction_errors(splits[name, split], predictor))
+            writer.add_scalar(f"predictor_{name}/error_{split}", float(np.nanmean(errors[split][-1])), epoch)
+        for T, value in zip(range(self.env.optimal_steps, self.cfg.env.max_steps + 1),
+                            np.nanmean(errors["test"][-1], axis=(0, 2))):
+            writer.add_scalar(f"predictor_{name}/error_test_T{T}", float(value), epoch)
 
     # ---- checkpoints (CONTRACT §2: interruption and resume) ---------------------------------------
     def checkpoint(self, progress: dict, writer: SummaryWriter, stop: StopRequest) -> None:
@@ -267,7 +294,7 @@ class TMazeTraining:
     def train_actor(self, writer: SummaryWriter, stop: StopRequest, progress: dict | None = None) -> dict:
         """SARSA(0) episodes from where a checkpoint left them (``progress["actor_partial"]``);
         a checkpoint every ``trainer.checkpoint_every`` episodes and on SIGINT/SIGTERM."""
-        cfg, env, actor, R = self.cfg, self.env, self.actor, self.R
+        cfg, R = self.cfg, self.R
         N, T_max = cfg.trainer.n_episodes, cfg.env.max_steps
         progress = progress if progress is not None else {"done": []}
         if progress.get("actor_partial") is None:
@@ -276,58 +303,23 @@ class TMazeTraining:
         records, td_sampled, junction = state["records"], state["td_sampled"], state["junction"]
         active_time, agent_steps = state["active_time"], state["agent_steps"]
         sampled = list(range(0, N, cfg.trainer.td_sample_every))
+        self.freeze_predictors()
         clock = CheckpointTimer(cfg.trainer.checkpoint_minutes)
         bar = tqdm(range(state["episode"], N), desc="actor", unit="episode", initial=state["episode"],
                    total=N, mininterval=1.0)
         for k in bar:
             started = time.perf_counter()
-            lr, beta = actor.learning_rate(k / N), actor.inverse_temperature(k / N)
-            env.reset()
-            (uniform,) = self.episode_uniforms.next()  # (T_max + 1, R, 1, 1)
-            y = self.lookup(env.obs_id)
-            m = {name: p.initial()[0] for name, p in self.predictors.items()}
-            s = torch.cat([y, *m.values()], 1).unsqueeze(1)
-            F_all, x = actor.evaluate(s)
-            a = actor.select(s, F_all, beta, self.generator, uniform[0])
-            F_sa, x_sa = pick(F_all, a), pick(x, a)
-            ret = torch.zeros(R, device=self.device)
-            td_sum = torch.zeros(R, device=self.device)
-            last_r = torch.zeros(R, device=self.device)
-            td_steps = []
-            for t in range(T_max):
-                active = ~env.done
-                if env.at_junction.any():
-                    junction.append(self.junction_record(k, t, m, s, x_sa, active))
-                _, r, terminated, _ = env.step(a.squeeze(1))
-                y_next = self.lookup(env.obs_id)
-                a_code = F.one_hot(a.squeeze(1), env.n_actions).float()
-                m_next = {name: p.step(m[name], y, a_code)[0] for name, p in self.predictors.items()}
-                s_next = torch.cat([y_next, *m_next.values()], 1).unsqueeze(1)
-                F_next, x_next = actor.evaluate(s_next)
-                a_next = actor.select(s_next, F_next, beta, self.generator, uniform[t + 1])
-                boot_off = terminated | ~active
-                delta = actor.td_error(r.unsqueeze(1), F_sa, F_next, a_next, beta, boot_off.unsqueeze(1))
-                delta = delta * active.unsqueeze(1)
-                actor.update(s, a, x_sa, self.guard.mask(delta), lr)
-                ret += active * (self.gamma ** t) * r
-                td_sum += delta.squeeze(1).abs()
-                last_r = torch.where(active, r, last_r)
-                td_steps.append(torch.where(active, delta.squeeze(1), torch.nan))
-                agent_steps += int(active.sum())
-                y, m, s, a = y_next, m_next, s_next, a_next
-                F_sa, x_sa = pick(F_next, a_next), pick(x_next, a_next)
-                if bool(env.done.all()):
-                    break
+            lr, beta = self.actor.learning_rate(k / N), self.actor.inverse_temperature(k / N)
+            episode = self.play_episode(k, lr, beta)
             active_time += time.perf_counter() - started
-            steps = env.t.cpu().numpy()
-            records["discounted_return"][:, k] = ret.cpu().numpy()
-            records["steps"][:, k] = steps
-            records["terminal_reward"][:, k] = last_r.cpu().numpy()
-            records["correct_goal"][:, k] = env.correct.cpu().numpy()
-            records["td_abs_mean"][:, k] = td_sum.cpu().numpy() / np.maximum(steps, 1)
-            records["condition"][:, k] = env.condition.cpu().numpy()
+            outcome = episode["outcome"].cpu().numpy()  # one host copy per episode
+            for i, key in enumerate(OUTCOMES):
+                records[key][:, k] = outcome[i]
+            agent_steps += int(outcome[OUTCOMES.index("steps")].sum())
+            if episode["junction"] is not None:
+                junction.append(episode["junction"])
             if k % cfg.trainer.td_sample_every == 0:
-                td = torch.stack(td_steps, 1).cpu().numpy()
+                td = episode["td"].T.cpu().numpy()
                 td_sampled[:, k // cfg.trainer.td_sample_every, : td.shape[1]] = td
             if (k + 1) % cfg.trainer.log_every == 0 or k + 1 == N:
                 checked = k + 1 - (k % cfg.trainer.log_every + 1)  # first episode not yet checked
@@ -350,24 +342,91 @@ class TMazeTraining:
             junction_arrays["steps_to_goal"] = records["steps"][junction_arrays["run"], junction_arrays["episode"]]
         episodes = {**records, "td_sampled": td_sampled, "td_sampled_episodes": np.asarray(sampled),
                     "gamma": np.float64(self.gamma), "optimal_return": np.float64(self.optimal_return),
-                    "optimal_steps": np.float64(env.optimal_steps)}
+                    "optimal_steps": np.float64(self.env.optimal_steps)}
         return {"episodes": episodes, "junction": junction_arrays, "actor_time": active_time,
                 "agent_steps": agent_steps}
+
+    def freeze_predictors(self) -> None:
+        """The frozen predictors' drive tables (``ElmanPredictor.drive_table``), the actor's
+        observation rows (times ``trainer.actor_obs_scale``) and the row offsets that address
+        run r's part of them."""
+        ids = self.env.observation_table.shape[0]
+        runs = torch.arange(self.R, device=self.device)
+        self.drive_tables = [p.drive_table(self.table).flatten(0, 1) for p in self.predictors.values()]
+        self.drive_offsets = runs * (ids * self.env.n_actions)
+        self.obs_rows = scaled(self.table.reshape(-1, self.table.shape[-1]), self.cfg.trainer.actor_obs_scale)
+        self.obs_offsets = runs * ids if self.table.dim() == 3 else None
+        self.initial_memories = [p.initial()[0] for p in self.predictors.values()]
+        self.discounts = self.gamma ** torch.arange(self.cfg.env.max_steps, device=self.device, dtype=torch.float32)
+
+    def state(self, obs_id: torch.Tensor, memories: list) -> torch.Tensor:
+        """The actor's state (R, 1, S): the (processed) observation, then every predictor's memory."""
+        rows = obs_id if self.obs_offsets is None else obs_id + self.obs_offsets
+        return torch.cat([self.obs_rows.index_select(0, rows), *memories], 1).unsqueeze(1)
+
+    def play_episode(self, k: int, lr: float, beta: float) -> dict:
+        """Episode k of every run, in lockstep, with SARSA(0) updates at every step (§4.2):
+        observe → memories m_t (Eq. 4.3) → F(s', ·) for every action → a' by Eq. (3.11) →
+        δ = r − γ F(s', a') + F(s, a) → θ ← θ + α δ (−∂F/∂θ) (Eq. 3.10). Runs whose episode has
+        ended wait with δ = 0. Returns the outcome (len(OUTCOMES), R), the TD errors (steps, R),
+        NaN where a run had ended, and the T-junction visits (or None)."""
+        env, actor = self.env, self.actor
+        env.reset()
+        (uniform,) = self.episode_uniforms.next()  # (T_max + 1, R, 1, 1)
+        m = self.initial_memories
+        s = self.state(env.obs_id, m)
+        F_all, x = actor.evaluate(s)
+        a = actor.select(s, F_all, beta, self.generator, uniform[0])
+        F_sa, x_sa = pick(F_all, a), pick(x, a)
+        rewards, deltas, visits = [], [], []
+        for t in range(self.cfg.env.max_steps):
+            active = ~env.done
+            visits.append((env.position, active, m, s, x_sa))
+            rows = torch.add(a.squeeze(1), env.obs_id, alpha=env.n_actions) + self.drive_offsets  # (y_{t−1}, a_{t−1})
+            r, terminated, _ = env.advance(a.squeeze(1))
+            m = [p.online_memory(table, rows, mem)
+                 for p, table, mem in zip(self.predictors.values(), self.drive_tables, m)]
+            s_next = self.state(env.obs_id, m)
+            F_next, x_next = actor.evaluate(s_next)
+            a_next = actor.select(s_next, F_next, beta, self.generator, uniform[t + 1])
+            delta = actor.td_error(r.unsqueeze(1), F_sa, F_next, a_next, beta, (terminated | ~active).unsqueeze(1))
+            delta = torch.where(active.unsqueeze(1), delta, 0.0)
+            actor.update(s, a, x_sa, self.guard.mask(delta), lr)
+            rewards.append(r)
+            deltas.append(delta.squeeze(1))
+            s, a, F_sa, x_sa = s_next, a_next, pick(F_next, a_next), pick(x_next, a_next)
+            if bool(env.done.all()):
+                break
+        rewards, deltas = torch.stack(rewards), torch.stack(deltas)  # (steps, R)
+        actives = torch.stack([v[1] for v in visits])
+        steps = env.t
+        outcome = torch.stack([
+            self.discounts[:len(rewards)] @ rewards,  # discounted return (done runs got r = 0)
+            steps.float(), rewards.gather(0, (steps - 1).unsqueeze(0)).squeeze(0),  # terminal reward
+            env.correct.float(), deltas.abs().sum(0) / steps.clamp(min=1), env.condition.float()])
+        return {"outcome": outcome, "td": torch.where(actives, deltas, torch.nan),
+                "junction": self.junction_visits(k, visits, actives)}
+
+    def junction_visits(self, k: int, visits: list, actives: torch.Tensor) -> dict | None:
+        """Activations at every T-junction visit of episode k after the action there was
+        selected (Figs. 4.14–4.19): memories, actor state and hidden nodes, with the condition."""
+        env = self.env
+        at = (torch.stack([v[0] for v in visits]) == env.corridor_length - 1) & actives  # (steps, R)
+        step, run = at.nonzero(as_tuple=True)
+        if len(run) == 0:
+            return None
+        gather = lambda xs: torch.stack(xs)[step, run]  # noqa: E731
+        return {"run": run.cpu(), "episode": torch.full_like(run, k).cpu(), "step": step.cpu(),
+                "condition": env.condition[run].cpu(), "initial_signal": env.initial_signal[run].cpu(),
+                "junction_signal": env.junction_signal[run].cpu(),
+                **{f"memory_{name}": gather([v[2][i] for v in visits]).half().cpu()
+                   for i, name in enumerate(self.predictors)},
+                "state": gather([v[3][:, 0] for v in visits]).half().cpu(),
+                "hidden": torch.sigmoid(gather([v[4][:, 0] for v in visits])).half().cpu()}
 
     @property
     def optimal_return(self) -> float:
         return self.env.optimal_discounted_return(self.gamma)
-
-    def junction_record(self, k, t, m, s, x_sa, active) -> dict:
-        """Activations at the T-junction after the action there was selected (Figs. 4.14–4.19)."""
-        env = self.env
-        where = (env.at_junction & active).nonzero().squeeze(1)
-        return {"run": where.cpu(), "episode": torch.full_like(where, k).cpu(), "step": torch.full_like(where, t).cpu(),
-                "condition": env.condition[where].cpu(), "initial_signal": env.initial_signal[where].cpu(),
-                "junction_signal": env.junction_signal[where].cpu(),
-                **{f"memory_{name}": mem[where].half().cpu() for name, mem in m.items()},
-                "state": s[where, 0].half().cpu(),
-                "hidden": torch.sigmoid(x_sa[where, 0]).half().cpu()}
 
     def log_actor(self, writer, step: int) -> None:
         """Run 0's weights: histograms, W_sh as a (state nodes × hidden) image and, where the
