@@ -12,6 +12,7 @@ Visible layer = state nodes s and action nodes a, hidden layer h (Fig. 4.1a).
 All parameters carry the run dimension first, ``W_sh`` (R, S, H); states are (R, B, S) with
 B = 1 in the online step loop and B = many for test images.
 """
+import copy
 import math
 
 import torch
@@ -69,6 +70,13 @@ class FERLActor(nn.Module):
         self.register_buffer("b_s", b_s.contiguous())
         self.register_buffer("b_a", b_a.contiguous())
         self.register_buffer("b_h", b_h.contiguous())
+
+    def runs(self, index: slice) -> "FERLActor":
+        """This actor restricted to a slice of its runs. The parameters are views, so updates
+        (Eq. 3.10) of the slice land in this actor's."""
+        part = copy.copy(self)
+        part._buffers = {name: b if name == "codes" else b[index] for name, b in self._buffers.items()}
+        return part
 
     @property
     def fan_in(self) -> int:
