@@ -21,7 +21,8 @@ def random_subsets(rows: int, n: int, k: int, generator: torch.Generator) -> tor
     device = generator.device
     u = torch.rand(rows, k, generator=generator, device=device, dtype=torch.float64)
     bounds = torch.arange(n - k, n, device=device)  # j of every draw
-    t = torch.minimum(u.mul_(bounds + 1).long(), bounds)  # t of every draw
+    # t of every draw; j + 1 as float64 (multiplying by an integer tensor takes a slow path)
+    t = torch.minimum(u.mul_(torch.arange(n - k + 1, n + 1, dtype=u.dtype, device=device)).long(), bounds)
     draws = torch.arange(k, dtype=torch.int16, device=device)  # k ≤ n pixels < 2^15
     first = torch.full((rows, n), k, dtype=torch.int16, device=device).scatter_reduce_(
         1, t, draws.expand(rows, k), "amin")  # the first draw of every value
