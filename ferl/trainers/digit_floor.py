@@ -62,7 +62,7 @@ def td_steps(actor, env, generator, s, a, F_sa, x_sa, alive, lrs, betas, uniform
 
 def td_steps_by_groups(steps, groups: list[slice]):
     """``steps`` (td_steps' signature) for one group of runs after another: temporal cache
-    blocking. A group's weights stay in the CPU's L2 cache for the whole chunk instead of every
+    blocking. A group's weights stay in the CPU's caches for the whole chunk instead of every
     step streaming all runs' weights from L3. Each group gets views of its runs (actor.runs,
     env.runs, slices of the per-run arguments), so its updates land in the whole batch; runs are
     independent, so the grouping does not change what a run computes."""
