@@ -4,11 +4,14 @@
 
 Both sides run the same algorithm (§3.2–3.5, SARSA(0) on the default floor) in one invocation;
 agent-steps/s = environment steps summed over runs / wall time of the step loop. The torch side
-runs eagerly and with `compile=true`; each actor phase runs twice and the second is timed, so
-the compiled rate excludes compilation, whose time (the first run's extra seconds) is reported
-beside it. Prints a table and writes benchmarks/results.json.
+runs eagerly and with `compile=true` (on a CPU by groups of trainer.compile_group_runs runs);
+each actor phase runs twice and the second is timed, so the compiled rate excludes compilation,
+whose time (the first run's extra seconds) is reported beside it: warm once inductor's on-disk
+cache holds the graphs, cold with TORCHINDUCTOR_CACHE_DIR=$(mktemp -d). Prints a table and writes
+benchmarks/results.json.
 """
 import argparse
+import os
 import sys
 import tempfile
 import time
@@ -16,6 +19,7 @@ from pathlib import Path
 
 import torch
 from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
 from torch.utils.tensorboard import SummaryWriter
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -27,6 +31,9 @@ from ferl.data import MnistEmbedded  # noqa: E402
 from ferl.run_dir import RunDir, StopRequest  # noqa: E402
 from ferl.schema import register_schemas  # noqa: E402
 from ferl.trainers.digit_floor import FloorTraining  # noqa: E402
+
+
+GROUP_RUNS = OmegaConf.load(ROOT / "conf" / "trainer" / "digit_floor.yaml").compile_group_runs
 
 
 def torch_actor_phase(runs: int, steps: int, device: str, compiled: bool) -> dict:
@@ -75,12 +82,13 @@ def main():
     reference = numpy_reference(args.steps)
     modes = {"both": [False, True], "false": [False], "true": [True]}[args.compile]
     rows = [torch_actor_phase(r, args.steps, args.device, c) for r in args.runs for c in modes]
-    print(f"digit floor actor phase, {args.steps} steps, device={args.device}, torch threads={args.threads}")
+    print(f"digit floor actor phase, {args.steps} steps, device={args.device}, torch threads={args.threads}, "
+          f"compile=true by groups of {GROUP_RUNS} runs on a CPU, load average {os.getloadavg()[0]:.2f}")
     print(f"NumPy per-step reference (1 run): {reference:10.0f} agent-steps/s")
     speedup_table(rows, "agent_steps_per_s", reference,
                   [("runs", "runs", "d"), ("compile", "compile", "d"), ("1st-pass +s", "first_pass_extra_s", ".1f")])
     save_results(args.out, "floor_actor", args.device, steps=args.steps,
-                 numpy_reference_steps_per_s=reference, torch=rows)
+                 numpy_reference_steps_per_s=reference, compile_group_runs=GROUP_RUNS, torch=rows)
 
 
 if __name__ == "__main__":

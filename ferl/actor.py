@@ -12,6 +12,7 @@ Visible layer = state nodes s and action nodes a, hidden layer h (Fig. 4.1a).
 All parameters carry the run dimension first, ``W_sh`` (R, S, H); states are (R, B, S) with
 B = 1 in the online step loop and B = many for test images.
 """
+import copy
 import math
 
 import torch
@@ -53,7 +54,7 @@ class FERLActor(nn.Module):
         self.td_rule, self.gamma = td_rule, gamma
         if lr_norm not in LR_NORMS:
             raise ValueError(f"actor.lr_norm must be one of {LR_NORMS}, got {lr_norm!r}")
-        self.lr_schedule, self.beta_schedule, self.lr_norm = lr, beta, lr_norm
+        self.lr_schedule, self.beta_schedule = lr, beta
         self.action_selection, self.gibbs_sweeps = action_selection, gibbs_sweeps
         codes = action_code_table(n_actions, action_code)
         n_bits = codes.shape[1]
@@ -69,22 +70,22 @@ class FERLActor(nn.Module):
         self.register_buffer("b_s", b_s.contiguous())
         self.register_buffer("b_a", b_a.contiguous())
         self.register_buffer("b_h", b_h.contiguous())
+        # α's divisor (learning_rate), fixed by the network's size: a hidden node's fan-in is its
+        # state + action nodes; the edges are those connections of every hidden node (§3.5)
+        fan_in = n_state + n_bits
+        self.lr_divisor = math.sqrt({"edges": fan_in * n_hidden, "fan_in": fan_in, "none": 1}[lr_norm])
 
-    @property
-    def fan_in(self) -> int:
-        """Connections into one hidden node: state + action nodes."""
-        return self.W_sh.shape[1] + self.W_ah.shape[1]
-
-    @property
-    def n_edges(self) -> int:
-        """Connections of the network (state + action nodes) × hidden nodes (§3.5)."""
-        return self.fan_in * self.W_sh.shape[2]
+    def runs(self, index: slice) -> "FERLActor":
+        """This actor restricted to a slice of its runs. The parameters are views, so updates
+        (Eq. 3.10) of the slice land in this actor's."""
+        part = copy.copy(self)
+        part._buffers = {name: b if name == "codes" else b[index] for name, b in self._buffers.items()}
+        return part
 
     def learning_rate(self, progress: float) -> float:
         """α of Eq. (3.10) divided by √(total edges) ("edges", §3.5), by √(fan-in of a hidden
         node) ("fan_in") or by nothing ("none")."""
-        alpha = self.lr_schedule(progress)
-        return alpha / math.sqrt({"edges": self.n_edges, "fan_in": self.fan_in, "none": 1}[self.lr_norm])
+        return self.lr_schedule(progress) / self.lr_divisor
 
     def inverse_temperature(self, progress: float) -> float:
         return self.beta_schedule(progress)

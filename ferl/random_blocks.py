@@ -11,22 +11,30 @@ import torch
 def random_subsets(rows: int, n: int, k: int, generator: torch.Generator) -> torch.Tensor:
     """Uniformly random k-subsets of range(n), one per row: (rows, k) indices.
 
-    Floyd's algorithm (Bentley & Floyd 1987): for j = n−k … n−1 draw t uniform in [0, j] and
-    take t, or j if t was already taken. Exact, k random numbers per row, vectorised over rows.
+    Floyd's algorithm (Bentley & Floyd 1987): for draw i = 0 … k−1, j = n−k+i, draw t uniform in
+    [0, j] and take t, or j if t was already taken. Exact, k random numbers per row. Vectorised
+    over the draws too: t_i was taken before draw i iff an earlier draw had the same t, or t_i is
+    the j of an earlier draw l that found its own t_l taken (and so took j_l). That second case
+    links i to l < i; following the links to a fixed point takes a few rounds, as a link needs
+    t_i ≥ n−k. The picks equal the draw-by-draw algorithm's (tests/test_random_blocks.py).
     """
     device = generator.device
     u = torch.rand(rows, k, generator=generator, device=device, dtype=torch.float64)
-    bounds = torch.arange(n - k, n, device=device)
-    candidates = (u * (bounds + 1)).long().minimum(bounds).T.contiguous()  # t for every j, (k, rows)
-    taken = torch.zeros(rows * n, dtype=torch.bool, device=device)  # flat (row, position) table
-    base = torch.arange(rows, device=device) * n
-    chosen = torch.empty(k, rows, dtype=torch.long, device=device)
-    for i, j in enumerate(bounds.tolist()):
-        t = candidates[i]
-        pick = torch.where(taken[base + t], j, t)
-        taken[base + pick] = True
-        chosen[i] = pick
-    return chosen.T
+    bounds = torch.arange(n - k, n, device=device)  # j of every draw
+    # t of every draw; j + 1 as float64 (multiplying by an integer tensor takes a slow path)
+    t = torch.minimum(u.mul_(torch.arange(n - k + 1, n + 1, dtype=u.dtype, device=device)).long(), bounds)
+    draws = torch.arange(k, dtype=torch.int16, device=device)  # k ≤ n pixels < 2^15
+    first = torch.full((rows, n), k, dtype=torch.int16, device=device).scatter_reduce_(
+        1, t, draws.expand(rows, k), "amin")  # the first draw of every value
+    repeated = first.gather(1, t) < draws
+    linked = (t >= n - k) & (t < bounds)  # t is the j of the earlier draw t − (n − k)
+    earlier = (t - (n - k)).clamp_(min=0)
+    taken = repeated
+    while True:
+        grown = repeated | (linked & taken.gather(1, earlier))
+        if torch.equal(grown, taken):
+            return torch.maximum(t, bounds * taken, out=t)  # j where t was taken (j ≥ t)
+        taken = grown
 
 
 class Blocks:

@@ -22,6 +22,10 @@ def hidden_input(v: torch.Tensor, W: torch.Tensor, b_h: torch.Tensor) -> torch.T
     """
     if v.dim() == 2:
         return torch.einsum("bv,rvh->rbh", v, W) + b_h.unsqueeze(1)
+    if torch.compiler.is_compiling() and v.shape[1] == 1:
+        # one state per run: inductor fuses this product and sum with the weight update before
+        # it into one pass over W; baddbmm would be an external kernel making a pass of its own
+        return (v.transpose(1, 2) * W).sum(1, keepdim=True) + b_h.unsqueeze(1)
     return torch.baddbmm(b_h.unsqueeze(1), v, W)
 
 

@@ -199,6 +199,7 @@ class DigitFloorTrainerSchema:
     test_noise_levels: List[float] = MISSING
     checkpoint_minutes: float = MISSING
     divergence_limit: float = MISSING
+    compile_group_runs: int = MISSING
 
 
 @dataclass

@@ -1,6 +1,6 @@
 """The digit floor's TD loop in chunks (ferl/trainers/digit_floor.py: td_steps): the chunk length
-does not change a run, and `compile=true` (torch.compile of the chunk) gives the eager results
-within floating-point tolerance."""
+does not change a run, `compile=true` (torch.compile of the chunk, run by groups of runs on a CPU)
+gives the eager results within floating-point tolerance, and the grouping changes no run."""
 import numpy as np
 import pytest
 import torch
@@ -46,7 +46,20 @@ def test_chunked_steps_equal_single_steps(compose_cfg, tmp_path, monkeypatch, td
 def test_compiled_chunks_equal_eager_ones(compose_cfg, tmp_path, monkeypatch):
     monkeypatch.setattr(digit_floor, "MAX_CHUNK", 4)  # a short unrolled graph compiles faster
     eager = run(compose_cfg, tmp_path, "eager")
-    compiled = run(compose_cfg, tmp_path, "compiled", "compile=true")
+    # 3 runs in groups of 2: a full group and a remainder group of 1, each its own graph
+    compiled = run(compose_cfg, tmp_path, "compiled", "compile=true", "trainer.compile_group_runs=2")
     np.testing.assert_array_equal(compiled[1], eager[1])  # the same actions, so the same rewards
     np.testing.assert_allclose(compiled[2], eager[2], rtol=1e-4, atol=1e-4)  # TD errors
     np.testing.assert_allclose(compiled[3], eager[3], rtol=1e-4, atol=1e-5)  # weights after training
+
+
+def test_run_groups_do_not_change_a_run(compose_cfg, tmp_path, monkeypatch):
+    """Identical, not just close: a compiled graph computes every run of its group with the same
+    loops (its sums run over one run's own pixels and hidden units, none across runs), so a run's
+    arithmetic does not depend on which group, or how large a group, it is in."""
+    monkeypatch.setattr(digit_floor, "MAX_CHUNK", 4)
+    pairs = run(compose_cfg, tmp_path, "pairs", "n_runs=5", "compile=true", "trainer.compile_group_runs=2")
+    triples = run(compose_cfg, tmp_path, "triples", "n_runs=5", "compile=true", "trainer.compile_group_runs=3")
+    assert pairs[0]["metrics"] == triples[0]["metrics"]
+    for got, want in zip(pairs[1:], triples[1:]):
+        np.testing.assert_array_equal(got, want)

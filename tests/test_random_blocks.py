@@ -49,3 +49,19 @@ def test_random_subsets_are_distinct_and_uniform():
     assert torch.allclose(counts, torch.full((n,), k / n, dtype=torch.float64), atol=0.01)
     subsets = {tuple(sorted(r)) for r in chosen.tolist()}
     assert len(subsets) == math.comb(n, k)
+
+
+@pytest.mark.parametrize("n, k, rows", [(784, 98, 300), (30, 20, 2000), (6, 3, 500), (5, 5, 50), (10, 1, 50), (4, 0, 5)])
+def test_random_subsets_are_floyds_draw_by_draw_picks(n, k, rows):
+    """The vectorised resolution picks what Floyd's loop picks from the same uniforms, in order."""
+    u = torch.rand(rows, k, generator=torch.Generator().manual_seed(n + k), dtype=torch.float64)
+    expected = []
+    for row in u.tolist():
+        taken = []
+        for i, x in enumerate(row):
+            j = n - k + i
+            t = min(int(x * (j + 1)), j)
+            taken.append(j if t in taken else t)
+        expected.append(taken)
+    chosen = random_subsets(rows, n, k, torch.Generator().manual_seed(n + k))
+    assert chosen.tolist() == expected

@@ -10,6 +10,8 @@ the goal the agent is moved to a uniformly random non-goal tile (P⁰ of §3.4).
 
 The dynamics are position tables over tiles (next tile, reward), so a step is a few gathers.
 """
+import copy
+
 import numpy as np
 import torch
 
@@ -163,6 +165,14 @@ class DigitFloor:
         self.bank = torch.cat(bank)
         self.tile_image = tile_image
 
+    def runs(self, index: slice) -> "DigitFloor":
+        """These floors restricted to a slice of the runs. Their positions are a view, so moves
+        (``step_with``) land in this batch's."""
+        part = copy.copy(self)
+        part.tile, part.tile_image = self.tile[index], self.tile_image[index]
+        part.n_runs = len(part.tile)
+        return part
+
     def _random_non_goal(self) -> torch.Tensor:
         k = torch.randint(len(self.non_goal_tiles), (self.n_runs,), generator=self.generator, device=self.device)
         return self.non_goal_tiles[k]
@@ -191,7 +201,7 @@ class DigitFloor:
         move = self.tile * self.n_actions + action
         reward = self.tile_reward.index_select(0, move)
         moved = self.next_tile.index_select(0, move)
-        self.tile = torch.where(self.lands_in_goal.index_select(0, move), transport, moved)
+        self.tile.copy_(torch.where(self.lands_in_goal.index_select(0, move), transport, moved))  # in place: see runs
         return self._observe(idx, values), reward
 
     def state_dict(self) -> dict:

@@ -6,7 +6,8 @@ One training step for every run:  observe s' → F(s', ·) for all actions → s
 → δ = r − γ F(s', a') + F(s, a) → θ ← θ + α δ (−∂F/∂θ) (Eq. 3.10).  F(s', a') and its hidden
 inputs are kept for the next step, so no free energy is computed twice.  ``td_steps`` runs a
 chunk of such steps on random numbers drawn beforehand; with ``compile=true`` it is one
-``torch.compile``d graph, so Python and per-op overhead is paid once per chunk, not per step.
+``torch.compile``d graph, so Python and per-op overhead is paid once per chunk, not per step,
+and on a CPU the chunk runs for one group of runs after another (``td_steps_by_groups``).
 """
 import math
 import time
@@ -59,6 +60,32 @@ def td_steps(actor, env, generator, s, a, F_sa, x_sa, alive, lrs, betas, uniform
     return s, a, F_sa, x_sa, torch.stack(rewards), torch.stack(deltas)
 
 
+def td_steps_by_groups(steps, groups: list[slice]):
+    """``steps`` (td_steps' signature) for one group of runs after another: temporal cache
+    blocking. A group's weights stay in the CPU's caches for the whole chunk instead of every
+    step streaming all runs' weights from L3. Each group gets views of its runs (actor.runs,
+    env.runs, slices of the per-run arguments), so its updates land in the whole batch; runs are
+    independent, so the grouping does not change what a run computes."""
+    def by_groups(actor, env, generator, s, a, F_sa, x_sa, alive, lrs, betas, uniforms, idx, values, transport):
+        parts = [steps(actor.runs(g), env.runs(g), generator, s[g], a[g], F_sa[g], x_sa[g], alive[g], lrs, betas,
+                       uniforms[:, g], idx[:, g], values[:, g], transport[:, g]) for g in groups]
+        # s, a, F_sa, x_sa carry the runs first, rewards and TD errors (K, R) second
+        return tuple(torch.cat(outs, 0 if i < 4 else 1) for i, outs in enumerate(zip(*parts)))
+    return by_groups
+
+
+def compiled_td_steps(n_runs: int, group_runs: int, device: torch.device):
+    """td_steps as one torch.compiled graph per chunk; on a CPU with its kernels called from C++
+    (no Python between the steps) and run by groups of ``group_runs`` runs (a smaller last group
+    compiles a second graph). fullgraph: a graph break would silently bring back per-op overhead."""
+    if device.type != "cpu":
+        return torch.compile(td_steps, fullgraph=True, dynamic=False)
+    steps = torch.compile(td_steps, fullgraph=True, dynamic=False, options={"cpp_wrapper": True})
+    if n_runs <= group_runs:
+        return steps
+    return td_steps_by_groups(steps, [slice(r, min(r + group_runs, n_runs)) for r in range(0, n_runs, group_runs)])
+
+
 def chunk_length(steps: int, *intervals: int) -> int:
     """The longest chunk ≤ MAX_CHUNK that divides the run length and every interval, so logging
     and periodic checkpoints fall on chunk ends."""
@@ -88,8 +115,13 @@ class FloorTraining:
         self.guard = DivergenceGuard(self.R, cfg.trainer.divergence_limit,
                                      [cfg.seed + r for r in range(self.R)], device)
         self.chunk = chunk_length(self.T, cfg.trainer.log_every, cfg.trainer.checkpoint_every)
-        # fullgraph: a graph break would silently fall back to per-op overhead
-        self.td_steps = torch.compile(td_steps, fullgraph=True, dynamic=False) if cfg.compile else td_steps
+        self.td_steps = td_steps
+        if cfg.compile:
+            # hidden-major weights: the compiled step's Wᵀs and rank-1 update (Eq. 3.10a) then both
+            # run along the contiguous visible axis, which inductor vectorises and fuses into one
+            # pass over W (eager's bmm is faster on the default layout, so eager keeps it)
+            self.actor.W_sh = self.actor.W_sh.transpose(1, 2).contiguous().transpose(1, 2)
+            self.td_steps = compiled_td_steps(self.R, cfg.trainer.compile_group_runs, device)
 
     def test_phase(self) -> dict:
         t = self.cfg.trainer
