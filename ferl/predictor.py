@@ -295,7 +295,7 @@ class ElmanPredictor(nn.Module):
         of each run's N sequences). Runs share nothing: each run's parameters move by the
         gradient of its own loss alone. With ``batch_size`` B > 1 a step follows every B
         sequences, on the mean of their losses (padded steps masked)."""
-        PredictorBatch([self]).train_epoch(y, a, [r], lengths, [order])
+        PredictorBatch([self], y, a, [r], lengths).train_epoch([order])
 
     @torch.no_grad()
     def prediction_errors(self, y, a, r, lengths) -> torch.Tensor:
@@ -340,26 +340,30 @@ class PredictorBatch:
     output heads (``head_gradients``) are separate. Every predictor still takes its own sequence
     order and plain SGD steps, so each one's training equals training it alone."""
 
-    def __init__(self, predictors: list):
+    def __init__(self, predictors: list, y, a, rs: list, lengths):
+        """Members and their training sequences: y (R, N, T+1, Y), a (R, N, T, A), lengths (R, N)
+        shared, targets rs[k] (R, N, T+1, ·) or None per member; the padding is zeroed once here."""
         keys = {(p.W_my.shape, p.W_ma.shape, p.gains, p.lr, p.time_average, p.batch_size) for p in predictors}
         if len(keys) != 1:
             raise ValueError("a PredictorBatch needs predictors with the same memory, gains, lr, objective and batch size")
         self.members = list(predictors)
         self.lead = predictors[0]
+        y, a, _ = self.lead.clean(y, a, None, lengths)
+        valid = valid_steps(lengths, y.shape[2]).unsqueeze(-1)
+        self.y, self.a, self.lengths = y, a, lengths
+        self.rs = [torch.where(valid, r, 0.0) if r is not None else None for r in rs]
 
     @torch.no_grad()
-    def train_epoch(self, y, a, rs: list, lengths, orders: list) -> None:
-        """One pattern-mode epoch (``ElmanPredictor.train_epoch``) of every member on the same
-        sequences y (R, N, T+1, Y), a, lengths (R, N), its targets rs[k] and order orders[k]."""
+    def train_epoch(self, orders: list) -> None:
+        """One pattern-mode epoch (``ElmanPredictor.train_epoch``) of every member, member k
+        taking the sequences in its order orders[k] (R, N)."""
         p, P = self.lead, len(self.members)
-        runs = torch.arange(lengths.shape[0], device=lengths.device).unsqueeze(1)
+        runs = torch.arange(self.lengths.shape[0], device=self.lengths.device).unsqueeze(1)
         R = runs.shape[0]
         cat = lambda xs: torch.cat(xs) if P > 1 else xs[0]  # noqa: E731
-        lengths_k = [lengths[runs, o] for o in orders]
-        L = cat(lengths_k)
-        y, a, _ = p.clean(cat([y[runs, o] for o in orders]), cat([a[runs, o] for o in orders]), None, L)
-        rs = [p.clean(y[k * R:(k + 1) * R], a[k * R:(k + 1) * R], r[runs, o], Lk)[2] if r is not None else None
-              for k, (r, o, Lk) in enumerate(zip(rs, orders, lengths_k))]
+        L = cat([self.lengths[runs, o] for o in orders])
+        y, a = cat([self.y[runs, o] for o in orders]), cat([self.a[runs, o] for o in orders])
+        rs = [r[runs, o] if r is not None else None for r, o in zip(self.rs, orders)]
         # the memories' parameters of all members in one (P·R, …) tensor each while training
         memory = p.memory_parameters() if P == 1 else [torch.cat(qs) for qs in zip(*(q.memory_parameters() for q in self.members))]
         params = memory + [q for member in self.members for q in member.head_parameters()]

@@ -229,7 +229,7 @@ def test_predictor_batch_equals_training_each_alone():
     g = torch.Generator().manual_seed(8)
     for _ in range(3):
         orders = [torch.rand(R, N, generator=g).argsort(1) for _ in batch]
-        PredictorBatch(batch).train_epoch(y, a, [None, r], lengths, orders)
+        PredictorBatch(batch, y, a, [None, r], lengths).train_epoch(orders)
         for p, target, order in zip(alone, (None, r), orders):
             p.train_epoch(y, a, target, lengths, order)
     for b, s in zip(batch, alone):
@@ -240,7 +240,7 @@ def test_predictor_batch_equals_training_each_alone():
 
 def test_predictor_batch_needs_the_same_memory():
     with pytest.raises(ValueError, match="same memory"):
-        PredictorBatch([make(R=2), make(R=2, c_y=0.5)])
+        PredictorBatch([make(R=2), make(R=2, c_y=0.5)], *data(2, 3, 4)[:2], [None, None], torch.ones(2, 3, dtype=torch.long))
 
 
 def test_runs_are_independent():

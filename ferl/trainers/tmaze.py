@@ -199,13 +199,12 @@ class TMazeTraining:
         t = self.cfg.trainer
         train = data["train"]
         members = [self.predictors[name] for name in names]
-        batch = PredictorBatch(members)
         # the training set proper: lengths T_min … T_min + L_training − 1; balancing laid the
         # lengths out in the same blocks in every run, so run 0's positions hold for all
         trainable = train.lengths[0] <= self.env.optimal_steps + t.l_training - 1
         fit = train.select(torch.nonzero(trainable).squeeze(1).expand(self.R, -1))
         y, a, _, lengths = self.tensors(fit, None)
-        targets = [p.reward_targets(self.env, fit.rewards) for p in members]
+        batch = PredictorBatch(members, y, a, [p.reward_targets(self.env, fit.rewards) for p in members], lengths)
         splits = {(name, s): self.tensors(data[s], p) for name, p in zip(names, members) for s in ("train", "test")}
         partial = progress.get("predictor_partial") or {}
         if partial.get("names") == names:
@@ -221,7 +220,7 @@ class TMazeTraining:
                                   unit="epoch", initial=start, total=t.n_epoch, mininterval=1.0)):
             orders = [torch.rand(self.R, y.shape[1], generator=self.generator, device=self.device).argsort(1)
                       for _ in members]
-            batch.train_epoch(y, a, targets, lengths, orders)
+            batch.train_epoch(orders)
             if epoch % t.error_every == 0 or epoch == t.n_epoch:
                 epochs.append(epoch)
                 for name, p in zip(names, members):
