@@ -71,7 +71,8 @@ def test_reduced_scale_regular_tmaze_is_learnt(tmp_path):
 def test_algorithm2_pixel_run_records_and_cached_preprocessor(tmp_path):
     """Algorithm 2: RBM preprocessor → separate predictors → actor on (y, m^y, m^r); a second run
     with the same settings reuses the fitted RBM from the cache."""
-    pixel = ["experiment=table5_1_pixel", *SMALL, "preprocessor.sweeps=2", f"preprocessor.cache_dir={tmp_path / 'cache'}"]
+    pixel = ["experiment=table5_1_pixel", *SMALL, "trainer.error_every=1", "preprocessor.sweeps=2",
+             f"preprocessor.cache_dir={tmp_path / 'cache'}"]
     for name in ("first", "second"):
         result = run_train(*pixel, f"hydra.run.dir={tmp_path / name}")
         assert result.returncode == 0, result.stderr[-2000:]
@@ -98,11 +99,12 @@ def test_algorithm2_bit_run_state_is_observation_and_both_memories(tmp_path):
 
 def test_reduced_scale_pixel_agent_beats_a_memoryless_one(tmp_path):
     """Algorithm 2 on the noisy digit maze at reduced scale (3 runs, a 30-sweep RBM, Table 5.1's
-    2 000 random episodes, 100 predictor epochs, 3 000 actor episodes): choosing the goal needs the initial signal from the reward
+    2 000 random episodes, 100 predictor epochs, 6 000 actor episodes; measured 0.685, 0.88, 0.615):
+    choosing the goal needs the initial signal from the reward
     predictor's memory, so a memoryless agent is right at most half of the time."""
     result = run_train("experiment=table5_1_pixel", "n_runs=3", "preprocessor.sweeps=30", "trainer.n_sample=2000",
                        f"preprocessor.cache_dir={tmp_path / 'cache'}", "trainer.n_epoch=100",
-                       "trainer.n_episodes=3000", f"hydra.run.dir={tmp_path / 'pixel'}")
+                       "trainer.n_episodes=6000", f"hydra.run.dir={tmp_path / 'pixel'}")
     assert result.returncode == 0, result.stderr[-2000:]
     rates = json.loads((tmp_path / "pixel" / "summary.json").read_text())["metrics"]["final_correct_goal_rate"]
     assert np.mean(rates) > 0.6 and min(rates) > 0.5, rates
