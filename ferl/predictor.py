@@ -161,6 +161,12 @@ class ElmanPredictor(nn.Module):
         """(c_y, c_a, β_m): what the memory equations take besides their parameters."""
         return self.c_y, self.c_a, self.beta_m
 
+    @property
+    def batch_key(self) -> tuple:
+        """Predictors with equal keys can train as one ``PredictorBatch``: the same form of
+        memory (sizes, gains) and the same α, objective and batch size."""
+        return self.W_my.shape, self.W_ma.shape, self.gains, self.lr, self.time_average, self.batch_size
+
     def head_inputs(self, m: torch.Tensor):
         """Output logits z_y = β_y (W_ym m + b_y), ŷ = σ(z_y) (Eqs. 4.2, 4.4), and z_r =
         β_r (W_rm m + b_r), r̂ = σ(z_r) (Eq. 4.5), or r̂ = z_r = W_rm m + b_r (linear, Eq. 5.2)."""
@@ -343,8 +349,7 @@ class PredictorBatch:
     def __init__(self, predictors: list, y, a, rs: list, lengths):
         """Members and their training sequences: y (R, N, T+1, Y), a (R, N, T, A), lengths (R, N)
         shared, targets rs[k] (R, N, T+1, ·) or None per member; the padding is zeroed once here."""
-        keys = {(p.W_my.shape, p.W_ma.shape, p.gains, p.lr, p.time_average, p.batch_size) for p in predictors}
-        if len(keys) != 1:
+        if len({p.batch_key for p in predictors}) != 1:
             raise ValueError("a PredictorBatch needs predictors with the same memory, gains, lr, objective and batch size")
         self.members = list(predictors)
         self.lead = predictors[0]

@@ -183,7 +183,7 @@ class TMazeTraining:
         records = progress.setdefault("predictor_records", {})
         groups = {}
         for name, p in self.predictors.items():
-            groups.setdefault((p.W_my.shape, p.W_ma.shape, p.gains, p.lr, p.time_average, p.batch_size), []).append(name)
+            groups.setdefault(p.batch_key, []).append(name)
         for names in groups.values():
             if any(f"predictor_{name}" not in progress["done"] for name in names):
                 records |= self.train_predictor_group(names, data, writer, progress, stop)
