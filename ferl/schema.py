@@ -200,6 +200,7 @@ class DigitFloorTrainerSchema:
     checkpoint_minutes: float = MISSING
     divergence_limit: float = MISSING
     compile_group_runs: int = MISSING
+    prefetch: int = MISSING
 
 
 @dataclass

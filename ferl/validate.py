@@ -119,6 +119,7 @@ RULES = [
     ("trainer.divergence_limit", positive, "a number > 0"),
     ("trainer.checkpoint_minutes", non_negative, "minutes ≥ 0 (0: checkpoints by count only)"),
     ("trainer.compile_group_runs", positive_int, "an integer ≥ 1 (runs per compiled group on a CPU)"),
+    ("trainer.prefetch", non_negative_int, "an integer ≥ 0 (chunks of random numbers drawn ahead)"),
     ("trainer.test_per_class", positive_int, "an integer ≥ 1"),
     ("trainer.test_noise_levels", noise_levels, "a non-empty list of noise levels in [0, 1]"),
     ("trainer.n_sample", positive_int, "an integer ≥ 1 (N_sample episodes)"),

@@ -1,6 +1,8 @@
 """The digit floor's TD loop in chunks (ferl/trainers/digit_floor.py: td_steps): the chunk length
 does not change a run, `compile=true` (torch.compile of the chunk, run by groups of runs on a CPU)
 gives the eager results within floating-point tolerance, and the grouping changes no run."""
+import threading
+
 import numpy as np
 import pytest
 import torch
@@ -40,6 +42,25 @@ def test_chunked_steps_equal_single_steps(compose_cfg, tmp_path, monkeypatch, td
     single = run(compose_cfg, tmp_path, "single", f"actor.td_rule={td_rule}")
     assert chunked[0]["metrics"] == single[0]["metrics"]
     for got, want in zip(chunked[1:], single[1:]):
+        np.testing.assert_array_equal(got, want)
+
+
+def test_prefetched_random_numbers_change_no_run(compose_cfg, tmp_path, monkeypatch):
+    """trainer.prefetch draws the next chunks' random numbers on a second thread while a chunk
+    runs: the same draws in the same order, so every run is bit-identical to drawing in turn."""
+    monkeypatch.setattr(digit_floor, "MAX_CHUNK", 4)  # many chunks, so many prefetches
+    threads = []
+    draw = digit_floor.FloorTraining.chunk_inputs
+    monkeypatch.setattr(digit_floor.FloorTraining, "chunk_inputs",
+                        lambda self: threads.append(threading.current_thread().name) or draw(self))
+    many = f"n_runs={digit_floor.PREFETCH_MIN_RUNS}"  # fewer runs draw in turn anyway
+    prefetched = run(compose_cfg, tmp_path, "prefetched", many, "trainer.prefetch=3")
+    assert threads and all(name.startswith("ferl-random") for name in threads)
+    threads.clear()
+    in_turn = run(compose_cfg, tmp_path, "in_turn", many, "trainer.prefetch=0")
+    assert threads and not any(name.startswith("ferl-random") for name in threads)
+    assert prefetched[0]["metrics"] == in_turn[0]["metrics"]
+    for got, want in zip(prefetched[1:], in_turn[1:]):
         np.testing.assert_array_equal(got, want)
 
 

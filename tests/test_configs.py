@@ -173,6 +173,7 @@ VALUE_ERRORS = [
     ("trainer.test_per_class=450", "trainer.test_per_class"),
     ("experiment=table4_1_matching actor.bias_init_std=-1", "actor.bias_init_std"),
     ("compile=true actor.action_selection=gibbs", "compile"),
+    ("trainer.prefetch=-1", "trainer.prefetch"),
 ]
 
 

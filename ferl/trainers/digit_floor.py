@@ -8,9 +8,17 @@ inputs are kept for the next step, so no free energy is computed twice.  ``td_st
 chunk of such steps on random numbers drawn beforehand; with ``compile=true`` it is one
 ``torch.compile``d graph, so Python and per-op overhead is paid once per chunk, not per step,
 and on a CPU the chunk runs for one group of runs after another (``td_steps_by_groups``).
+With ``trainer.prefetch`` > 0 the random numbers of that many chunks ahead are drawn on a second
+thread while a chunk runs: the same draws from the same generator in the same order, so the
+results do not change (a chunk itself draws nothing unless actions are Gibbs-sampled, which turns
+prefetching off).
 """
 import math
+import sys
 import time
+from collections import deque
+from contextlib import contextmanager
+from concurrent.futures import Future, ThreadPoolExecutor
 
 import numpy as np
 import torch
@@ -27,6 +35,13 @@ from ferl.tb_logging import as_images, flat_config, log_embedding, log_hparams, 
 hparams = flat_config  # the flattened config of the HParams tab (ferl.tb_logging)
 ACTION_NAMES = ("N", "E", "S", "W")
 MAX_CHUNK = 16  # steps per call of td_steps (a divisor of the logging and checkpoint intervals)
+# Prefetching pays from ~10 runs on (compile=true, agent-steps/s drawn in turn → ahead: 100 runs
+# 157 k → 240–265 k, 10 runs 160 k → 159–166 k); a single run's chunk is too short to hide the
+# thread handoff (48 k → 30 k).
+PREFETCH_MIN_RUNS = 10
+# How long a thread holds the GIL while the other waits for it: at Python's 5 ms default a
+# 10-run chunk (~1 ms) waited more than prefetching saved (156 k → 128 k agent-steps/s).
+SWITCH_INTERVAL_S = 2e-4
 EMBEDDED_PER_CLASS = 100  # test digits per class in the projector (TensorBoard tags: docs/records.md)
 
 
@@ -92,6 +107,24 @@ def chunk_length(steps: int, *intervals: int) -> int:
     return math.gcd(MAX_CHUNK, steps, *intervals)
 
 
+@contextmanager
+def switch_interval(seconds: float):
+    """Python's GIL switch interval set to ``seconds`` inside the block."""
+    before = sys.getswitchinterval()
+    sys.setswitchinterval(seconds)
+    try:
+        yield
+    finally:
+        sys.setswitchinterval(before)
+
+
+def done_future(value) -> Future:
+    """A future that already holds ``value``."""
+    future = Future()
+    future.set_result(value)
+    return future
+
+
 def json_values(x: np.ndarray) -> list:
     """Per-run values for summary.json; NaN (no optimal action to score, e.g. without reward) → null."""
     return [None if np.isnan(v) else float(v) for v in x]
@@ -122,6 +155,14 @@ class FloorTraining:
             # pass over W (eager's bmm is faster on the default layout, so eager keeps it)
             self.actor.W_sh = self.actor.W_sh.transpose(1, 2).contiguous().transpose(1, 2)
             self.td_steps = compiled_td_steps(self.R, cfg.trainer.compile_group_runs, device)
+        # chunks of random numbers drawn ahead on a second thread; not with Gibbs action selection,
+        # which draws from the generator inside the chunk, nor for batches too small to pay
+        drawn_ahead = self.actor.action_selection != "gibbs" and self.R >= PREFETCH_MIN_RUNS
+        self.prefetch = cfg.trainer.prefetch if drawn_ahead else 0
+
+    def chunk_inputs(self) -> tuple:
+        """The random numbers of one chunk: action uniforms, noisy pixels and values, transports."""
+        return (*self.action_uniforms.take(self.chunk), *self.env.noise_blocks.take(self.chunk))
 
     def test_phase(self) -> dict:
         t = self.cfg.trainer
@@ -152,6 +193,7 @@ class FloorTraining:
         self.action_uniforms.load_state_dict(saved.pop("action_uniforms"), self.device)
         self.guard.load_state_dict(saved.pop("guard"))
         self.generator.set_state(saved.pop("generator"))
+        saved["inputs"] = [tuple(x.to(self.device) for x in inputs) for inputs in saved.get("inputs", ())]
         return {k: v.to(self.device) if torch.is_tensor(v) and k != "W_sh_before" else v for k, v in saved.items()}
 
     def train(self, state: dict, writer: SummaryWriter, stop: StopRequest) -> dict:
@@ -163,31 +205,41 @@ class FloorTraining:
         clock = CheckpointTimer(t_cfg.checkpoint_minutes)
         bar = tqdm(total=T, initial=state["step"], desc="actor", unit="step", mininterval=1.0, dynamic_ncols=True)
         started = time.perf_counter()
-        for t in range(state["step"], T, self.chunk):
-            progress = [(t + k) / T for k in range(self.chunk)]
-            lrs = torch.tensor([actor.learning_rate(p) for p in progress], device=self.device)
-            betas = torch.tensor([actor.inverse_temperature(p) for p in progress], device=self.device)
-            s, a, F_sa, x_sa, r, delta = self.td_steps(
-                actor, env, self.generator, s, a, F_sa, x_sa, self.guard.alive, lrs, betas,
-                *self.action_uniforms.take(self.chunk), *env.noise_blocks.take(self.chunk))
-            rewards[t:t + self.chunk], td_errors[t:t + self.chunk] = r, delta
-            lr, beta = float(lrs[-1]), float(betas[-1])
+        # random inputs of the next chunks, in draw order; a checkpoint's were drawn before the
+        # generator state it saved
+        pending = deque(done_future(inputs) for inputs in state.pop("inputs", ()))
+        drawn_to = state["step"] + self.chunk * len(pending)  # the first step not yet drawn for
+        with ThreadPoolExecutor(1, thread_name_prefix="ferl-random") as worker, \
+                switch_interval(SWITCH_INTERVAL_S if self.prefetch else sys.getswitchinterval()):
+            for t in range(state["step"], T, self.chunk):
+                while drawn_to < min(T, t + (self.prefetch + 1) * self.chunk):
+                    pending.append(worker.submit(self.chunk_inputs) if self.prefetch else done_future(self.chunk_inputs()))
+                    drawn_to += self.chunk
+                inputs = pending.popleft().result()
+                progress = [(t + k) / T for k in range(self.chunk)]
+                lrs = torch.tensor([actor.learning_rate(p) for p in progress], device=self.device)
+                betas = torch.tensor([actor.inverse_temperature(p) for p in progress], device=self.device)
+                s, a, F_sa, x_sa, r, delta = self.td_steps(
+                    actor, env, self.generator, s, a, F_sa, x_sa, self.guard.alive, lrs, betas, *inputs)
+                rewards[t:t + self.chunk], td_errors[t:t + self.chunk] = r, delta
+                lr, beta = float(lrs[-1]), float(betas[-1])
 
-            done = t + self.chunk
-            if done % t_cfg.log_every == 0 or done == T:
-                self.guard.check(td_errors[state["checked"]:done], state["checked"])
-                state["checked"] = done
-                self.log_progress(writer, rewards, td_errors, done, lr, beta)
-                bar.set_postfix(reward_ma100=f"{rewards[max(0, done - 100):done].mean():.2f}", refresh=False)
-                bar.update(done - bar.n)
-            if done % t_cfg.checkpoint_every == 0 or stop.requested or done == T or clock.due():
-                state.update(step=done, s=s, a=a, F_sa=F_sa, x_sa=x_sa,
-                             actor_time=state["actor_time"] + time.perf_counter() - started)
-                started = time.perf_counter()
-                self.checkpoint(state, writer)
-                if stop.requested:
-                    bar.close()
-                    raise SystemExit(128 + stop.signal)
+                done = t + self.chunk
+                if done % t_cfg.log_every == 0 or done == T:
+                    self.guard.check(td_errors[state["checked"]:done], state["checked"])
+                    state["checked"] = done
+                    self.log_progress(writer, rewards, td_errors, done, lr, beta)
+                    bar.set_postfix(reward_ma100=f"{rewards[max(0, done - 100):done].mean():.2f}", refresh=False)
+                    bar.update(done - bar.n)
+                if done % t_cfg.checkpoint_every == 0 or stop.requested or done == T or clock.due():
+                    state.update(step=done, s=s, a=a, F_sa=F_sa, x_sa=x_sa, inputs=[f.result() for f in pending],
+                                 actor_time=state["actor_time"] + time.perf_counter() - started)
+                    started = time.perf_counter()
+                    self.checkpoint(state, writer)
+                    del state["inputs"]  # in the checkpoint only
+                    if stop.requested:
+                        bar.close()
+                        raise SystemExit(128 + stop.signal)
         bar.close()
         return state
 
