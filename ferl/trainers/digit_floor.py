@@ -36,11 +36,11 @@ hparams = flat_config  # the flattened config of the HParams tab (ferl.tb_loggin
 ACTION_NAMES = ("N", "E", "S", "W")
 MAX_CHUNK = 16  # steps per call of td_steps (a divisor of the logging and checkpoint intervals)
 # Prefetching pays from ~10 runs on (compile=true, agent-steps/s drawn in turn → ahead: 100 runs
-# 157 k → 240–265 k, 10 runs 160 k → 159–166 k); a single run's chunk is too short to hide the
+# 157 k → 225–280 k, 10 runs 160 k → 159–166 k); a single run's chunk is too short to hide the
 # thread handoff (48 k → 30 k).
 PREFETCH_MIN_RUNS = 10
 # How long a thread holds the GIL while the other waits for it: at Python's 5 ms default a
-# 10-run chunk (~1 ms) waited more than prefetching saved (156 k → 128 k agent-steps/s).
+# 10-run chunk (~1 ms) waited more than prefetching saved (156 k → 119–128 k agent-steps/s).
 SWITCH_INTERVAL_S = 2e-4
 EMBEDDED_PER_CLASS = 100  # test digits per class in the projector (TensorBoard tags: docs/records.md)
 
