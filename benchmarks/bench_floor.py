@@ -2,6 +2,9 @@
 
     python benchmarks/bench_floor.py [--steps 2000] [--runs 1 10 100 1000] [--device cpu]
 
+Each configuration steps at least MIN_AGENT_STEPS agent-steps (up to MAX_STEPS steps), so small
+batches are timed over ~1 s of stepping, not a tenth of one; the NumPy reference runs MAX_STEPS.
+
 Both sides run the same algorithm (§3.2–3.5, SARSA(0) on the default floor) in one invocation;
 agent-steps/s = environment steps summed over runs / wall time of the step loop. The torch side
 runs eagerly and with `compile=true` (on a CPU by groups of trainer.compile_group_runs runs);
@@ -33,6 +36,8 @@ from ferl.schema import register_schemas  # noqa: E402
 from ferl.trainers.digit_floor import FloorTraining  # noqa: E402
 
 
+MIN_AGENT_STEPS = 200_000
+MAX_STEPS = 20_000  # a multiple of the 16-step chunk
 GROUP_RUNS = OmegaConf.load(ROOT / "conf" / "trainer" / "digit_floor.yaml").compile_group_runs
 
 
@@ -59,8 +64,13 @@ def torch_actor_phase(runs: int, steps: int, device: str, compiled: bool) -> dic
                 if device == "cuda":
                     torch.cuda.synchronize()
                 seconds.append(time.perf_counter() - start)
-    return {"runs": runs, "compile": compiled, "agent_steps_per_s": runs * steps / seconds[1],
+    return {"runs": runs, "steps": steps, "compile": compiled, "agent_steps_per_s": runs * steps / seconds[1],
             "first_pass_extra_s": seconds[0] - seconds[1]}
+
+
+def steps_for(runs: int, steps: int) -> int:
+    """Steps to time ``runs`` runs for: at least ``steps``, and MIN_AGENT_STEPS over the batch."""
+    return max(steps, min(MAX_STEPS, MIN_AGENT_STEPS // runs))
 
 
 def numpy_reference(steps: int) -> float:
@@ -79,14 +89,15 @@ def main():
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results.json"))
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    reference = numpy_reference(args.steps)
+    reference = numpy_reference(max(args.steps, MAX_STEPS))
     modes = {"both": [False, True], "false": [False], "true": [True]}[args.compile]
-    rows = [torch_actor_phase(r, args.steps, args.device, c) for r in args.runs for c in modes]
-    print(f"digit floor actor phase, {args.steps} steps, device={args.device}, torch threads={args.threads}, "
+    rows = [torch_actor_phase(r, steps_for(r, args.steps), args.device, c) for r in args.runs for c in modes]
+    print(f"digit floor actor phase, ≥ {args.steps} steps and ≥ {MIN_AGENT_STEPS} agent-steps, device={args.device}, torch threads={args.threads}, "
           f"compile=true by groups of {GROUP_RUNS} runs on a CPU, load average {os.getloadavg()[0]:.2f}")
     print(f"NumPy per-step reference (1 run): {reference:10.0f} agent-steps/s")
     speedup_table(rows, "agent_steps_per_s", reference,
-                  [("runs", "runs", "d"), ("compile", "compile", "d"), ("1st-pass +s", "first_pass_extra_s", ".1f")])
+                  [("runs", "runs", "d"), ("steps", "steps", "d"), ("compile", "compile", "d"),
+                   ("1st-pass +s", "first_pass_extra_s", ".1f")])
     save_results(args.out, "floor_actor", args.device, steps=args.steps,
                  numpy_reference_steps_per_s=reference, compile_group_runs=GROUP_RUNS, torch=rows)
 

@@ -35,12 +35,13 @@ from ferl.tb_logging import as_images, flat_config, log_embedding, log_hparams, 
 hparams = flat_config  # the flattened config of the HParams tab (ferl.tb_logging)
 ACTION_NAMES = ("N", "E", "S", "W")
 MAX_CHUNK = 16  # steps per call of td_steps (a divisor of the logging and checkpoint intervals)
-# Prefetching pays from ~10 runs on (compile=true, agent-steps/s drawn in turn → ahead: 100 runs
-# 157 k → 225–280 k, 10 runs 160 k → 159–166 k); a single run's chunk is too short to hide the
-# thread handoff (48 k → 30 k).
-PREFETCH_MIN_RUNS = 10
-# How long a thread holds the GIL while the other waits for it: at Python's 5 ms default a
-# 10-run chunk (~1 ms) waited more than prefetching saved (156 k → 119–128 k agent-steps/s).
+# Prefetching pays from a few tens of runs on (compile=true, agent-steps/s drawn in turn → ahead:
+# 100 runs 157 k → 225–300 k, 30 runs 162–190 k → 230–257 k); at 10 runs it gains nothing and varies
+# (160 k → 141–169 k), and a single run's chunk is too short to hide the thread handoff (48 k → 30 k).
+PREFETCH_MIN_RUNS = 30
+# How long a thread holds the GIL while the other waits for it: at Python's 5 ms default, chunks of
+# 10 and 30 runs (1–3 ms) waited for it more than prefetching saved (10 runs: 156 k → 119–128 k
+# agent-steps/s; 30 runs, one chunk ahead: 162 k → 135 k).
 SWITCH_INTERVAL_S = 2e-4
 EMBEDDED_PER_CLASS = 100  # test digits per class in the projector (TensorBoard tags: docs/records.md)
 
