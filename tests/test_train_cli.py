@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from conftest import ROOT, TINY, assert_same_tb_log, run_train
+from ferl.trainers.digit_floor import PREFETCH_MIN_RUNS
 
 
 def summary(run_dir):
@@ -102,8 +103,10 @@ def interrupt_and_resume(tmp_path, args: list, steps: int, sig: int, expected_co
     assert_same_tb_log(cut, whole)
 
 
-def test_sigterm_then_resume_equals_uninterrupted(tmp_path):
-    args = [*TINY, "trainer.steps=20000", "trainer.checkpoint_every=500", "trainer.log_every=500"]
+@pytest.mark.parametrize("runs", [2, PREFETCH_MIN_RUNS])  # the second draws random numbers ahead
+def test_sigterm_then_resume_equals_uninterrupted(tmp_path, runs):
+    args = [*(a for a in TINY if not a.startswith("n_runs=")), f"n_runs={runs}",
+            "trainer.steps=20000", "trainer.checkpoint_every=500", "trainer.log_every=500"]
     interrupt_and_resume(tmp_path, args, 20000, signal.SIGTERM, 128 + signal.SIGTERM)
 
 
