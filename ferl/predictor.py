@@ -99,6 +99,23 @@ def backprop_memory(W_mm: torch.Tensor, gains: tuple, m, dm, y, a) -> list:
             torch.bmm(d_t, prev(m)), d_t.sum(2), d_init]
 
 
+def bptt(members: list, memory: list, y, a, rs: list, steps, reward_steps) -> list:
+    """BPTT of §2.4.1 written out for predictors that share the form of the memory, stacked along
+    the run axis (P·R, …): the gradients of Σ_b Σ_t steps_{b,t} E_t(b) with respect to ``memory``
+    (their memory parameters, concatenated) and then every member's head parameters. y, a as for
+    ``unroll``; rs[k] member k's targets (R, B, T+1, ·) or None; steps (P·R, B, T+1) the weight
+    of every step (0 on padding), reward_steps the same without t = 0."""
+    gains, R = members[0].gains, y.shape[0] // len(members)
+    m = unroll(memory, gains, y, a)
+    heads, dm = [], []
+    for k, member in enumerate(members):
+        part = slice(k * R, (k + 1) * R)
+        g, d = member.head_gradients(m[part], y[part], rs[k], steps[part], reward_steps[part])
+        heads += g
+        dm.append(d)
+    return backprop_memory(memory[2], gains, m, torch.cat(dm) if len(dm) > 1 else dm[0], y, a) + heads
+
+
 class ElmanPredictor(nn.Module):
     """Eqs. 4.1–4.6 (joint observation + encoded-reward predictor, ch. 4) and Eqs. 5.1/5.2 (ch. 5).
 
@@ -262,12 +279,10 @@ class ElmanPredictor(nn.Module):
     @torch.no_grad()
     def gradients(self, y, a, r, lengths, weight: torch.Tensor) -> list:
         """∂/∂θ of Σ_b weight_b · Σ_t E_t(b) for every parameter (in ``parameters()`` order): BPTT
-        of §2.4.1 written out, no autograd (``head_gradients``, then ``backprop_memory``).
+        of §2.4.1 written out, no autograd (``bptt``, as training runs it).
         Inputs as for ``loss``, already ``clean``ed; weight (R, B)."""
-        m = self.unroll(y, a)
         steps = valid_steps(lengths, y.shape[2]) * weight.unsqueeze(-1)
-        heads, dm = self.head_gradients(m, y, r, steps, steps * (torch.arange(y.shape[2], device=y.device) > 0))
-        return backprop_memory(self.W_mm, self.gains, m, dm, y, a) + heads
+        return bptt([self], self.memory_parameters(), y, a, [r], steps, steps * (torch.arange(y.shape[2], device=y.device) > 0))
 
     def head_gradients(self, m, y, r, steps: torch.Tensor, reward_steps: torch.Tensor):
         """The output heads' part of BPTT: their gradients (``head_parameters()`` order) and
@@ -342,8 +357,8 @@ class PredictorBatch:
     """Elman predictors that share the form of the memory (its size and inputs, c_y, c_a, β_m),
     α, the objective and the batch size, trained on the same sequences as one batch along the
     run axis — chapter 5's observation and reward predictors (§5.2). Their memories unroll and
-    backpropagate in the same batched products (``unroll``, ``backprop_memory``); only the
-    output heads (``head_gradients``) are separate. Every predictor still takes its own sequence
+    backpropagate in the same batched products (``bptt``); only the output heads
+    (``head_gradients``) are separate. Every predictor still takes its own sequence
     order and plain SGD steps, so each one's training equals training it alone."""
 
     def __init__(self, predictors: list, y, a, rs: list, lengths):
@@ -384,17 +399,9 @@ class PredictorBatch:
         longest = F.pad(L.max(0).values, (0, -n % B)).view(-1, B).max(1).values.tolist()
         for i, T in zip(range(0, n, B), longest):
             s = slice(i, i + B)
-            y_s, a_s = y[:, s, : T + 1], a[:, s, :T]
-            m = unroll(memory, p.gains, y_s, a_s)
-            w, w_r = steps[:, s, : T + 1], reward_steps[:, s, : T + 1]
-            heads, dm = [], []
-            for k, member in enumerate(self.members):
-                part = slice(k * R, (k + 1) * R)
-                g, d = member.head_gradients(m[part], y_s[part], rs[k][:, s, : T + 1] if rs[k] is not None else None,
-                                             w[part], w_r[part])
-                heads += g
-                dm.append(d)
-            grads = backprop_memory(memory[2], p.gains, m, cat(dm), y_s, a_s) + heads
+            grads = bptt(self.members, memory, y[:, s, : T + 1], a[:, s, :T],
+                         [r[:, s, : T + 1] if r is not None else None for r in rs],
+                         steps[:, s, : T + 1], reward_steps[:, s, : T + 1])
             torch._foreach_add_(params, grads, alpha=-p.lr)
         if P > 1:
             for k, member in enumerate(self.members):

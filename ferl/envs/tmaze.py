@@ -189,9 +189,13 @@ class TMaze:
         self.initial_signal = initial
         if junction is not None:
             self.junction_signal = junction
+        self._fix_episode()
+        self._draw_observation()
+
+    def _fix_episode(self) -> None:
+        """What the signals fix for the episode: the rewarded side and the signals' table column."""
         self._side = self.rewarded_side
         self._signals = 2 * self.initial_signal + self.junction_signal.clamp(min=0)
-        self._draw_observation()
 
     def advance(self, action: torch.Tensor):
         """Move every live run by its action (R,), fix the new observation id; returns (reward,
@@ -225,5 +229,4 @@ class TMaze:
     def load_state_dict(self, state: dict) -> None:
         for k in STATE_KEYS:
             setattr(self, k, state[k].to(self.device))
-        self._side = self.rewarded_side
-        self._signals = 2 * self.initial_signal + self.junction_signal.clamp(min=0)
+        self._fix_episode()

@@ -17,7 +17,7 @@ import math
 import sys
 import time
 from collections import deque
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from concurrent.futures import Future, ThreadPoolExecutor
 
 import numpy as np
@@ -211,7 +211,7 @@ class FloorTraining:
         pending = deque(done_future(inputs) for inputs in state.pop("inputs", ()))
         drawn_to = state["step"] + self.chunk * len(pending)  # the first step not yet drawn for
         with ThreadPoolExecutor(1, thread_name_prefix="ferl-random") as worker, \
-                switch_interval(SWITCH_INTERVAL_S if self.prefetch else sys.getswitchinterval()):
+                switch_interval(SWITCH_INTERVAL_S) if self.prefetch else nullcontext():
             for t in range(state["step"], T, self.chunk):
                 while drawn_to < min(T, t + (self.prefetch + 1) * self.chunk):
                     pending.append(worker.submit(self.chunk_inputs) if self.prefetch else done_future(self.chunk_inputs()))

@@ -380,7 +380,7 @@ class TMazeTraining:
         rewards, deltas, visits = [], [], []
         for t in range(self.cfg.env.max_steps):
             active = ~env.done
-            visits.append((env.position, active, m, s, x_sa))
+            visits.append((env.at_junction & active, active, m, s, x_sa))
             rows = torch.add(a.squeeze(1), env.obs_id, alpha=env.n_actions) + self.drive_offsets  # (y_{t−1}, a_{t−1})
             r, terminated, _ = env.advance(a.squeeze(1))
             m = [p.online_memory(table, rows, mem)
@@ -404,14 +404,13 @@ class TMazeTraining:
             steps.float(), rewards.gather(0, (steps - 1).unsqueeze(0)).squeeze(0),  # terminal reward
             env.correct.float(), deltas.abs().sum(0) / steps.clamp(min=1), env.condition.float()])
         return {"outcome": outcome, "td": torch.where(actives, deltas, torch.nan),
-                "junction": self.junction_visits(k, visits, actives)}
+                "junction": self.junction_visits(k, visits)}
 
-    def junction_visits(self, k: int, visits: list, actives: torch.Tensor) -> dict | None:
+    def junction_visits(self, k: int, visits: list) -> dict | None:
         """Activations at every T-junction visit of episode k after the action there was
         selected (Figs. 4.14–4.19): memories, actor state and hidden nodes, with the condition."""
         env = self.env
-        at = (torch.stack([v[0] for v in visits]) == env.corridor_length - 1) & actives  # (steps, R)
-        step, run = at.nonzero(as_tuple=True)
+        step, run = torch.stack([v[0] for v in visits]).nonzero(as_tuple=True)
         if len(run) == 0:
             return None
         gather = lambda xs: torch.stack(xs)[step, run]  # noqa: E731
