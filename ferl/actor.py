@@ -8,6 +8,8 @@ Visible layer = state nodes s and action nodes a, hidden layer h (Fig. 4.1a).
 * TD errors SARSA(0), Q(0), expected SARSA (§3.2, with Q = −F):
       δ = r − γ F(s', a') + F(s, a)
 * online update θ ← θ + α δ (−∂F/∂θ), Eqs. (3.5–3.10)
+* ``td_fresh``: F(s_t, a_t) of δ_t at the θ of F(s_{t+1}, a_{t+1}), as Eq. (3.2) writes δ_t(θ),
+  obtained from the value before the previous update by that update's rank-one effect
 
 All parameters carry the run dimension first, ``W_sh`` (R, S, H); states are (R, B, S) with
 B = 1 in the online step loop and B = many for test images.
@@ -49,9 +51,9 @@ class FERLActor(nn.Module):
     def __init__(self, n_runs: int, n_state: int, n_actions: int, n_hidden: int, td_rule: str,
                  gamma: float, lr, beta, lr_norm: str = "edges", init_std: float = 0.01,
                  bias_init_std: float = 0.0, action_code: str = "onehot", action_selection: str = "clamp",
-                 gibbs_sweeps: int = 20, seed: int = 0):
+                 gibbs_sweeps: int = 20, td_fresh: bool = False, seed: int = 0):
         super().__init__()
-        self.td_rule, self.gamma = td_rule, gamma
+        self.td_rule, self.gamma, self.td_fresh = td_rule, gamma, td_fresh
         if lr_norm not in LR_NORMS:
             raise ValueError(f"actor.lr_norm must be one of {LR_NORMS}, got {lr_norm!r}")
         self.lr_schedule, self.beta_schedule = lr, beta
@@ -148,6 +150,30 @@ class FERLActor(nn.Module):
         if terminal is not None:
             F_boot = F_boot * (~terminal)
         return reward - self.gamma * F_boot + F_sa
+
+    def next_pair(self, s, a, x_sa, delta, lr, s_next, a_next, F_next, x_next):
+        """F (R, B) and hidden input x (R, B, H) of the next pair (s', a') for the next TD error:
+        as evaluated before ``update(s, a, x_sa, delta, lr)``, or with ``td_fresh`` at the
+        parameters that update produced. The update (Eq. 3.10) adds g = α δ ĥ(s, a) to b_h, sᵀg
+        to W_sh and g to the rows of a's action nodes, α δ s to b_s and α δ a to b_a, so
+
+            x' = x + (s'·s + 1 + a'·a) g,   F' = F − α δ (s'·s + a'·a) − Σ_k [softplus(x'_k) − softplus(x_k)],
+
+        O(S + H) a pair instead of a second pass over W_sh (a'·a: the action codes' overlap).
+        """
+        if not self.td_fresh:
+            return F_next, x_next
+        step = lr * delta
+        overlap = (s_next * s).sum(-1) + self.codes_overlap(a, a_next)
+        x_new = x_next + (overlap + 1).unsqueeze(-1) * (step.unsqueeze(-1) * torch.sigmoid(x_sa))
+        F_new = F_next - step * overlap - (nn.functional.softplus(x_new) - nn.functional.softplus(x_next)).sum(-1)
+        return F_new, x_new
+
+    def codes_overlap(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        """Dot products of the action codes of a and b (R, B): 1 or 0 for one-hot codes."""
+        if self.onehot:
+            return (a == b).to(self.W_ah.dtype)
+        return (self.codes[a] * self.codes[b]).sum(-1)
 
     @torch.no_grad()
     def update(self, s, a, x_sa, delta, lr) -> None:

@@ -125,6 +125,7 @@ class FERLActorSchema:
     action_code: ActionCode = MISSING
     action_selection: ActionSelection = MISSING
     gibbs_sweeps: int = MISSING
+    td_fresh: bool = MISSING
 
 
 # ---- predictor: the group maps predictor name → ElmanPredictor ----------------------------------

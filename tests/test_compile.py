@@ -64,11 +64,13 @@ def test_prefetched_random_numbers_change_no_run(compose_cfg, tmp_path, monkeypa
         np.testing.assert_array_equal(got, want)
 
 
-def test_compiled_chunks_equal_eager_ones(compose_cfg, tmp_path, monkeypatch):
+@pytest.mark.parametrize("td_fresh", [False, True])
+def test_compiled_chunks_equal_eager_ones(compose_cfg, tmp_path, monkeypatch, td_fresh):
     monkeypatch.setattr(digit_floor, "MAX_CHUNK", 4)  # a short unrolled graph compiles faster
-    eager = run(compose_cfg, tmp_path, "eager")
+    fresh = f"actor.td_fresh={str(td_fresh).lower()}"
+    eager = run(compose_cfg, tmp_path, "eager", fresh)
     # 3 runs in groups of 2: a full group and a remainder group of 1, each its own graph
-    compiled = run(compose_cfg, tmp_path, "compiled", "compile=true", "trainer.compile_group_runs=2")
+    compiled = run(compose_cfg, tmp_path, "compiled", fresh, "compile=true", "trainer.compile_group_runs=2")
     np.testing.assert_array_equal(compiled[1], eager[1])  # the same actions, so the same rewards
     np.testing.assert_allclose(compiled[2], eager[2], rtol=1e-4, atol=1e-4)  # TD errors
     np.testing.assert_allclose(compiled[3], eager[3], rtol=1e-4, atol=1e-5)  # weights after training
