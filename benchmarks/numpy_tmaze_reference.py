@@ -19,7 +19,8 @@ Algorithm (Otsuka's dissertation, §4.2–4.3; Bakker 2002):
   pattern mode, one SGD step per sequence, on Σ_t E_t or its time average J(T).
 * actor: FERL RBM on the state (y_t, m_t) with one-hot action nodes; Q = −F; softmax policy with
   inverse temperature β (Eq. 3.11) linear 0 → 10 over the episodes; SARSA(0) online update
-  (Eq. 3.10) with α / √(fan-in of a hidden node) (conf/actor/ferl_tmaze.yaml, lr_norm=fan_in).
+  (Eq. 3.10) with α / √(fan-in of a hidden node) (conf/actor/ferl_tmaze.yaml, lr_norm=fan_in),
+  F(s_t, a_t) of the TD error at the current parameters (td_fresh).
 
 Parameter layouts follow the torch modules without the run axis: predictor weights (out, in),
 actor W_sh (S, H), W_ah (A, H).
@@ -223,6 +224,15 @@ def sarsa_update(params, s, a: int, h_hat, delta: float, alpha: float) -> None:
     b_h += gh
 
 
+def fresh_pair(s, a: int, h_hat, delta: float, alpha: float, s_next, a_next: int, F_next_a: float, x_next_a):
+    """F(s', a') and x(s', a') after ``sarsa_update(params, s, a, h_hat, delta, alpha)`` from their
+    values before it, by that update's rank-one effect (td_fresh, ferl/actor.py next_pair)."""
+    g = alpha * delta
+    overlap = float(s_next @ s) + float(a_next == a)
+    x_new = x_next_a + (overlap + 1.0) * g * h_hat
+    return F_next_a - g * overlap - float((softplus(x_new) - softplus(x_next_a)).sum()), x_new
+
+
 # ----------------------------------------------------------------------------
 # Actor phase
 # ----------------------------------------------------------------------------
@@ -230,9 +240,10 @@ def sarsa_update(params, s, a: int, h_hat, delta: float, alpha: float) -> None:
 
 def run_numpy_tmaze_reference(episodes: int, seed=0, corridor_length=3, max_steps=10, matching=True,
                               n_hidden=20, n_memory=20, gamma=0.95, lr=0.05, beta_start=0.0,
-                              beta_end=10.0, init_std=1.0, predictor=None, hp=JOINT) -> dict:
+                              beta_end=10.0, init_std=1.0, predictor=None, hp=JOINT, td_fresh=True) -> dict:
     """The actor phase of Algorithm 1 for one run: the state is (y_t, m_t) of a frozen joint
-    predictor (random unless ``predictor`` parameters are given)."""
+    predictor (random unless ``predictor`` parameters are given); ``td_fresh`` as the actor's
+    key of that name (conf/actor/ferl_tmaze.yaml)."""
     rng = np.random.default_rng(seed)
     P = predictor if predictor is not None else init_predictor(rng, n_memory=n_memory)
     n_state = N_OBS + P["b_m"].size
@@ -265,11 +276,14 @@ def run_numpy_tmaze_reference(episodes: int, seed=0, corridor_length=3, max_step
             F_next, x_next = free_energy_all_actions(s_next, *params)
             a_next = sample_action(F_next, beta, rng)
             delta = td_error(r, F_sa, float(F_next[a_next]), gamma, terminated)
-            sarsa_update(params, s, a, sigmoid(x_sa), delta, alpha)
+            h_sa = sigmoid(x_sa)
+            sarsa_update(params, s, a, h_sa, delta, alpha)
             ret += gamma ** t * r
             agent_steps += 1
-            y, m, s, a = y_next, m_next, s_next, a_next
             F_sa, x_sa = float(F_next[a_next]), x_next[a_next]
+            if td_fresh:
+                F_sa, x_sa = fresh_pair(s, a, h_sa, delta, alpha, s_next, a_next, F_sa, x_sa)
+            y, m, s, a = y_next, m_next, s_next, a_next
             if terminated:
                 ok = r > 0
                 break

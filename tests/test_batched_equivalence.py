@@ -437,6 +437,33 @@ def test_numpy_sarsa_step_matches_ferl_actor():
             np.testing.assert_allclose(getattr(actor, name)[0].numpy(), value, rtol=1e-12, atol=1e-15, err_msg=name)
 
 
+@pytest.mark.parametrize("a_next", [1, 2])  # another action than a = 2, and the same
+def test_numpy_fresh_pair_is_the_free_energy_after_the_update(a_next):
+    """td_fresh in the NumPy reference: fresh_pair(…) = a re-evaluation of (s', a') after
+    sarsa_update, and = FERLActor.next_pair."""
+    rng = np.random.default_rng(4)
+    n_state = ref.N_OBS + 20
+    params = ref.init_actor(rng, n_state, 20)
+    actor = FERLActor(1, n_state, ref.N_ACTIONS, 20, "sarsa", 0.95, Constant(0.05), Constant(1.0),
+                      lr_norm="fan_in", td_fresh=True).double()
+    for name, value in zip(ACTOR_KEYS, params):
+        getattr(actor, name).copy_(torch.from_numpy(value)[None])
+    s, s_next, a, delta, alpha = rng.random(n_state), rng.random(n_state), 2, -3.0, 0.01
+    F, x = ref.free_energy_all_actions(s, *params)
+    F_next, x_next = ref.free_energy_all_actions(s_next, *params)
+    ref.sarsa_update(params, s, a, ref.sigmoid(x[a]), delta, alpha)
+    F_after, x_after = ref.free_energy_all_actions(s_next, *params)
+    F_np, x_np = ref.fresh_pair(s, a, ref.sigmoid(x[a]), delta, alpha, s_next, a_next, float(F_next[a_next]), x_next[a_next])
+    np.testing.assert_allclose(F_np, F_after[a_next], rtol=1e-10)
+    np.testing.assert_allclose(x_np, x_after[a_next], rtol=1e-10)
+    assert abs(F_after[a_next] - F_next[a_next]) > 1e-3  # the update moved F(s', a')
+    t = lambda v: torch.as_tensor(np.asarray(v, dtype=np.float64)).reshape(1, 1, -1)  # noqa: E731
+    F_t, x_t = actor.next_pair(t(s), torch.tensor([[a]]), t(x[a]), torch.tensor([[delta]], dtype=torch.float64), alpha,
+                               t(s_next), torch.tensor([[a_next]]), t(F_next[a_next]).reshape(1, 1), t(x_next[a_next]))
+    np.testing.assert_allclose(float(F_t), F_np, rtol=1e-10)
+    np.testing.assert_allclose(x_t[0, 0].numpy(), x_np, rtol=1e-10)
+
+
 def test_numpy_actor_phase_runs_and_is_deterministic():
     out1 = ref.run_numpy_tmaze_reference(30, seed=2)
     out2 = ref.run_numpy_tmaze_reference(30, seed=2)
