@@ -226,7 +226,7 @@ def sarsa_update(params, s, a: int, h_hat, delta: float, alpha: float) -> None:
 
 def fresh_pair(s, a: int, h_hat, delta: float, alpha: float, s_next, a_next: int, F_next_a: float, x_next_a):
     """F(s', a') and x(s', a') after ``sarsa_update(params, s, a, h_hat, delta, alpha)`` from their
-    values before it, by that update's rank-one effect (td_fresh, ferl/actor.py next_pair)."""
+    values before it, by that update's rank-one effect (td_fresh, ferl/actor.py learn)."""
     g = alpha * delta
     overlap = float(s_next @ s) + float(a_next == a)
     x_new = x_next_a + (overlap + 1.0) * g * h_hat

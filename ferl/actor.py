@@ -9,7 +9,7 @@ Visible layer = state nodes s and action nodes a, hidden layer h (Fig. 4.1a).
       δ = r − γ F(s', a') + F(s, a)
 * online update θ ← θ + α δ (−∂F/∂θ), Eqs. (3.5–3.10)
 * ``td_fresh``: F(s_t, a_t) of δ_t at the θ of F(s_{t+1}, a_{t+1}), as Eq. (3.2) writes δ_t(θ),
-  obtained from the value before the previous update by that update's rank-one effect
+  obtained from the value before the previous update by that update's rank-one effect (``learn``)
 
 All parameters carry the run dimension first, ``W_sh`` (R, S, H); states are (R, B, S) with
 B = 1 in the online step loop and B = many for test images.
@@ -151,22 +151,22 @@ class FERLActor(nn.Module):
             F_boot = F_boot * (~terminal)
         return reward - self.gamma * F_boot + F_sa
 
-    def next_pair(self, s, a, x_sa, delta, lr, s_next, a_next, F_next, x_next):
-        """F (R, B) and hidden input x (R, B, H) of the next pair (s', a') for the next TD error:
-        as evaluated before ``update(s, a, x_sa, delta, lr)``, or with ``td_fresh`` at the
-        parameters that update produced. The update (Eq. 3.10) adds g = α δ ĥ(s, a) to b_h, sᵀg
-        to W_sh and g to the rows of a's action nodes, α δ s to b_s and α δ a to b_a, so
+    def learn(self, s, a, x_sa, delta, lr, s_next, a_next, F_next, x_next):
+        """The online update of (s, a) (``update``, Eq. 3.10), then F (R, B) and hidden input
+        x (R, B, H) of the next pair (s', a') for the next TD error: as evaluated before the
+        update, or with ``td_fresh`` at the parameters it produced. The update adds g = α δ ĥ(s, a)
+        to b_h, sᵀg to W_sh and g to the rows of a's action nodes, α δ s to b_s and α δ a to b_a, so
 
             x' = x + (s'·s + 1 + a'·a) g,   F' = F − α δ (s'·s + a'·a) − Σ_k [softplus(x'_k) − softplus(x_k)],
 
         O(S + H) a pair instead of a second pass over W_sh (a'·a: the action codes' overlap).
         """
+        g = self.update(s, a, x_sa, delta, lr)
         if not self.td_fresh:
             return F_next, x_next
-        step = lr * delta
         overlap = (s_next * s).sum(-1) + self.codes_overlap(a, a_next)
-        x_new = x_next + (overlap + 1).unsqueeze(-1) * (step.unsqueeze(-1) * torch.sigmoid(x_sa))
-        F_new = F_next - step * overlap - (nn.functional.softplus(x_new) - nn.functional.softplus(x_next)).sum(-1)
+        x_new = x_next + (overlap + 1).unsqueeze(-1) * g
+        F_new = F_next - lr * delta * overlap - (nn.functional.softplus(x_new) - nn.functional.softplus(x_next)).sum(-1)
         return F_new, x_new
 
     def codes_overlap(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -176,8 +176,9 @@ class FERLActor(nn.Module):
         return (self.codes[a] * self.codes[b]).sum(-1)
 
     @torch.no_grad()
-    def update(self, s, a, x_sa, delta, lr) -> None:
-        """θ ← θ + α δ (−∂F/∂θ) in place, Eq. (3.10a–e), summed over the B axis.
+    def update(self, s, a, x_sa, delta, lr) -> torch.Tensor:
+        """θ ← θ + α δ (−∂F/∂θ) in place, Eq. (3.10a–e), summed over the B axis; returns α δ ĥ
+        (R, B, H).
 
         s (R, B, S), a (R, B) action indices, x_sa (R, B, H) hidden inputs at (s, a), delta (R, B);
         lr a float or a 0-d tensor (so a compiled step does not recompile as α decays).
@@ -199,3 +200,4 @@ class FERLActor(nn.Module):
             code = self.codes[a]
             self.W_ah.baddbmm_(code.transpose(1, 2), g)
             self.b_a.add_(torch.bmm(step.unsqueeze(1), code).squeeze(1))
+        return g

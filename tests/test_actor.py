@@ -63,9 +63,9 @@ def test_update_is_minus_lr_delta_grad_free_energy(code):
 
 @pytest.mark.parametrize("code", ["onehot", "binary"])
 @pytest.mark.parametrize("fresh", [True, False])
-def test_next_pair_is_the_free_energy_after_the_update(code, fresh):
-    """td_fresh: F(s', a') and x(s', a') from next_pair equal a full re-evaluation with the
-    parameters update() produced (Eq. 3.2: one θ in δ); without it, the values from before."""
+def test_learn_returns_the_free_energy_after_the_update(code, fresh):
+    """td_fresh: F(s', a') and x(s', a') from learn() equal a full re-evaluation with the
+    parameters its update produced (Eq. 3.2: one θ in δ); without it, the values from before."""
     actor = make_actor(code=code, td_fresh=fresh)
     s, s_next = torch.rand(3, 1, 6, dtype=torch.float64), torch.rand(3, 1, 6, dtype=torch.float64)
     a, a_next = torch.tensor([[0], [3], [2]]), torch.tensor([[0], [1], [2]])  # same, other, same action
@@ -74,9 +74,8 @@ def test_next_pair_is_the_free_energy_after_the_update(code, fresh):
     _, x = actor.evaluate(s)
     F_next, x_next = actor.evaluate(s_next)
     before = F_next[rows, 0, a_next[:, 0]].unsqueeze(1), x_next[rows, 0, a_next[:, 0]].unsqueeze(1)
-    actor.update(s, a, x[rows, 0, a[:, 0]].unsqueeze(1), delta, lr=0.05)
+    got = actor.learn(s, a, x[rows, 0, a[:, 0]].unsqueeze(1), delta, 0.05, s_next, a_next, *before)
     F_after, x_after = actor.evaluate(s_next)
-    got = actor.next_pair(s, a, x[rows, 0, a[:, 0]].unsqueeze(1), delta, 0.05, s_next, a_next, *before)
     want = (F_after[rows, 0, a_next[:, 0]].unsqueeze(1), x_after[rows, 0, a_next[:, 0]].unsqueeze(1)) if fresh else before
     torch.testing.assert_close(got, want)
     assert not torch.allclose(F_after[rows, 0, a_next[:, 0]].unsqueeze(1), before[0])  # the update moved F(s', a')

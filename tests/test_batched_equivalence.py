@@ -440,7 +440,7 @@ def test_numpy_sarsa_step_matches_ferl_actor():
 @pytest.mark.parametrize("a_next", [1, 2])  # another action than a = 2, and the same
 def test_numpy_fresh_pair_is_the_free_energy_after_the_update(a_next):
     """td_fresh in the NumPy reference: fresh_pair(…) = a re-evaluation of (s', a') after
-    sarsa_update, and = FERLActor.next_pair."""
+    sarsa_update, and = what FERLActor.learn returns."""
     rng = np.random.default_rng(4)
     n_state = ref.N_OBS + 20
     params = ref.init_actor(rng, n_state, 20)
@@ -458,7 +458,7 @@ def test_numpy_fresh_pair_is_the_free_energy_after_the_update(a_next):
     np.testing.assert_allclose(x_np, x_after[a_next], rtol=1e-10)
     assert abs(F_after[a_next] - F_next[a_next]) > 1e-3  # the update moved F(s', a')
     t = lambda v: torch.as_tensor(np.asarray(v, dtype=np.float64)).reshape(1, 1, -1)  # noqa: E731
-    F_t, x_t = actor.next_pair(t(s), torch.tensor([[a]]), t(x[a]), torch.tensor([[delta]], dtype=torch.float64), alpha,
+    F_t, x_t = actor.learn(t(s), torch.tensor([[a]]), t(x[a]), torch.tensor([[delta]], dtype=torch.float64), alpha,
                                t(s_next), torch.tensor([[a_next]]), t(F_next[a_next]).reshape(1, 1), t(x_next[a_next]))
     np.testing.assert_allclose(float(F_t), F_np, rtol=1e-10)
     np.testing.assert_allclose(x_t[0, 0].numpy(), x_np, rtol=1e-10)

@@ -69,11 +69,10 @@ def td_steps(actor, env, generator, s, a, F_sa, x_sa, alive, lrs, betas, uniform
         F_next, x_next = actor.evaluate(s_next)
         a_next = actor.select(s_next, F_next, betas[k], generator, uniforms[k])
         delta = actor.td_error(r.unsqueeze(1), F_sa, F_next, a_next, betas[k])
-        applied = torch.where(alive, delta, 0.0)
-        actor.update(s, a, x_sa, applied, lrs[k])
+        F_sa, x_sa = actor.learn(s, a, x_sa, torch.where(alive, delta, 0.0), lrs[k], s_next, a_next,
+                                 pick(F_next, a_next), pick(x_next, a_next))
         rewards.append(r)
         deltas.append(delta.squeeze(1))
-        F_sa, x_sa = actor.next_pair(s, a, x_sa, applied, lrs[k], s_next, a_next, pick(F_next, a_next), pick(x_next, a_next))
         s, a = s_next, a_next
     return s, a, F_sa, x_sa, torch.stack(rewards), torch.stack(deltas)
 

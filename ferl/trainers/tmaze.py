@@ -390,11 +390,10 @@ class TMazeTraining:
             a_next = actor.select(s_next, F_next, beta, self.generator, uniform[t + 1])
             delta = actor.td_error(r.unsqueeze(1), F_sa, F_next, a_next, beta, (terminated | ~active).unsqueeze(1))
             delta = torch.where(active.unsqueeze(1), delta, 0.0)
-            applied = self.guard.mask(delta)
-            actor.update(s, a, x_sa, applied, lr)
+            F_sa, x_sa = actor.learn(s, a, x_sa, self.guard.mask(delta), lr, s_next, a_next,
+                                     pick(F_next, a_next), pick(x_next, a_next))
             rewards.append(r)
             deltas.append(delta.squeeze(1))
-            F_sa, x_sa = actor.next_pair(s, a, x_sa, applied, lr, s_next, a_next, pick(F_next, a_next), pick(x_next, a_next))
             s, a = s_next, a_next
             if bool(env.done.all()):
                 break
