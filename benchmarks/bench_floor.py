@@ -16,24 +16,19 @@ benchmarks/results.json.
 import argparse
 import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 import torch
-from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
-from torch.utils.tensorboard import SummaryWriter
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.jobs import bench_job, phase  # noqa: E402
 from benchmarks.numpy_reference import run_numpy_reference  # noqa: E402
 from benchmarks.report import save_results, speedup_table  # noqa: E402
 from ferl.data import MnistEmbedded  # noqa: E402
-from ferl.run_dir import RunDir, StopRequest  # noqa: E402
-from ferl.schema import register_schemas  # noqa: E402
-from ferl.trainers.digit_floor import FloorTraining  # noqa: E402
 
 
 MIN_AGENT_STEPS = 200_000
@@ -42,28 +37,22 @@ GROUP_RUNS = OmegaConf.load(ROOT / "conf" / "trainer" / "digit_floor.yaml").comp
 
 
 def torch_actor_phase(runs: int, steps: int, device: str, compiled: bool) -> dict:
-    """Agent-steps/s of FloorTraining.train (the actor phase only, as in summary.json), timed on
-    a second pass over the same job; and the seconds the first pass took beyond the second."""
-    register_schemas()  # the typed config groups (conf/*/*_schema), as train.py registers them
-    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-        cfg = compose("config", overrides=[f"n_runs={runs}", f"trainer.steps={steps}", "trainer.test_per_class=1",
-                                           f"trainer.log_every={steps}", f"trainer.checkpoint_every={steps}",
-                                           "experiment=ch3_floor", f"compile={str(compiled).lower()}"])
-    cfg.name = "bench"
-    with tempfile.TemporaryDirectory() as tmp:
-        run = RunDir(tmp)
-        run.save_checkpoint = lambda state, writer=None: None  # time the arithmetic, not the disk
-        job = FloorTraining(cfg, run, torch.device(device))
-        state = job.fresh_state()
+    """Agent-steps/s of the online TD phase (ferl/trainers/online.py; the actor phase only, as in
+    summary.json), timed on a second pass over the same job; and the seconds the first pass took
+    beyond the second."""
+    overrides = [f"n_runs={runs}", f"trainer.steps={steps}", "trainer.test_per_class=1", f"trainer.log_every={steps}",
+                 f"trainer.checkpoint_every={steps}", "experiment=ch3_floor", f"compile={str(compiled).lower()}"]
+    with bench_job(overrides, device) as (trainer, job):
+        online = phase(trainer, "actor")
+        state = online.fresh_state(job)
         seconds = []
-        with SummaryWriter(run.tb) as writer, StopRequest() as stop:
-            for _ in range(2):
-                state["step"] = 0
-                start = time.perf_counter()
-                job.train(state, writer, stop)
-                if device == "cuda":
-                    torch.cuda.synchronize()
-                seconds.append(time.perf_counter() - start)
+        for _ in range(2):
+            state["step"] = 0
+            start = time.perf_counter()
+            online.train(job, state)
+            if device == "cuda":
+                torch.cuda.synchronize()
+            seconds.append(time.perf_counter() - start)
     return {"runs": runs, "steps": steps, "compile": compiled, "agent_steps_per_s": runs * steps / seconds[1],
             "first_pass_extra_s": seconds[0] - seconds[1]}
 

@@ -21,31 +21,28 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from hydra import compose, initialize_config_dir
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.jobs import bench_job, phase  # noqa: E402
 from benchmarks.numpy_tmaze_reference import JOINT, run_numpy_bptt_reference  # noqa: E402
 from benchmarks.report import save_results, speedup_table  # noqa: E402
-from ferl.schema import register_schemas  # noqa: E402
-from ferl.trainers.tmaze import TMazeTraining  # noqa: E402
 
 EXPERIMENT = "table4_1_matching"
 
 
 def training_data(runs: int, device: str):
-    """The joint predictor and its training tensors y, a, r, lengths (R, N, …), as
-    TMazeTraining.train_predictor builds them."""
-    register_schemas()  # the typed config groups (conf/*/*_schema), as train.py registers them
-    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-        cfg = compose("config", overrides=[f"experiment={EXPERIMENT}", f"n_runs={runs}"])
-    job = TMazeTraining(cfg, run=None, device=torch.device(device))
-    train = job.collect()["train"]
-    trainable = train.lengths[0] <= job.env.optimal_steps + cfg.trainer.l_training - 1
+    """The joint predictor and its training tensors y, a, r, lengths (R, N, …), as the predictor
+    phase (ferl/trainers/predictor_training.py) builds them from the collected episodes."""
+    with bench_job([f"experiment={EXPERIMENT}", f"n_runs={runs}"], device) as (trainer, job):
+        phase(trainer, "collect").run(job, None)
+    training = phase(trainer, "predictors")
+    train = job.shared["episodes"]["train"]
+    trainable = train.lengths[0] <= job.env.optimal_steps + training.l_training - 1
     fit = train.select(torch.nonzero(trainable).squeeze(1).expand(runs, -1))
     predictor = job.predictors["joint"]
-    return predictor, job.tensors(fit, predictor), job.generator
+    return predictor, training.tensors(job, fit, predictor), job.generator
 
 
 def per_run(sequences: int, available: int) -> int:

@@ -17,7 +17,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from ferl.data import MnistEmbedded  # noqa: E402
-from ferl.preprocessor import RBMPreprocessor  # noqa: E402
+from ferl.preprocessors.rbm import RBMPreprocessor  # noqa: E402
 
 
 def main():
@@ -33,7 +33,7 @@ def main():
     images = train.repeat(-(-args.images // len(train)), 1)[: args.images].to(args.device)
     model = RBMPreprocessor(args.runs, sweeps=args.sweeps).to(args.device)
     start = time.perf_counter()
-    errors = model.fit(images, progress=False)
+    errors = model.train(images, progress=False)
     if args.device.startswith("cuda"):
         torch.cuda.synchronize()
     seconds = time.perf_counter() - start

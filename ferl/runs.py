@@ -8,9 +8,10 @@
     r.table()    # metrics joined with the config: one row per run × seed
 
 A run directory is one holding ``summary.json`` (CONTRACT §2); ``run`` is its path relative to
-the folder given ("." for the run itself), ``run_dir`` its absolute path. Nested config keys and
-per-level metrics are flattened with dots and slashes as in TensorBoard's HParams tab
-(``actor.n_hidden``, ``greedy_accuracy/0.125``). ``python -m ferl.runs DIR`` prints the tables.
+the folder given ("." for the run itself), ``run_dir`` its absolute path. Nested config keys are
+flattened with dots as in TensorBoard's HParams tab (``actor.n_hidden``), per-level metrics as
+``ferl.stats.flat_metrics`` names them (``greedy_accuracy/0.125``). ``python -m ferl.runs DIR``
+prints each run's metrics (mean ± s.d. over its runs, ``ferl.stats``) and the scalar tags.
 """
 import argparse
 import json
@@ -21,6 +22,8 @@ from pathlib import Path
 import pandas as pd
 from omegaconf import OmegaConf
 from tensorboard.backend.event_processing.event_accumulator import SCALARS, EventAccumulator
+
+from ferl import stats
 
 SUMMARY = "summary.json"
 
@@ -33,11 +36,12 @@ def find_runs(path) -> list[Path]:
     return sorted(p.parent for p in path.rglob(SUMMARY))
 
 
-def _flatten(node, prefix: str = "", sep: str = ".") -> dict:
+def _flatten(node, prefix: str = "") -> dict:
+    """A nested config as ``{"actor.n_hidden": 20}``."""
     flat = {}
     for key, value in node.items():
         if isinstance(value, dict):
-            flat.update(_flatten(value, f"{prefix}{key}{sep}", sep))
+            flat.update(_flatten(value, f"{prefix}{key}."))
         else:
             flat[f"{prefix}{key}"] = _hashable(value)
     return flat
@@ -102,7 +106,7 @@ def metrics(path) -> pd.DataFrame:
     rows = []
     for run_dir in find_runs(root):
         summary = load_summary(run_dir)
-        per_seed = _flatten(summary["metrics"], sep="/")
+        per_seed = stats.flat_metrics(summary["metrics"])
         for i, seed in enumerate(summary["seeds"]):
             rows.append({**_names(run_dir, root), "experiment": summary["experiment"], "task": summary["task"],
                          "seed": seed, **{name: _number(values[i]) for name, values in per_seed.items()},
@@ -164,17 +168,32 @@ def load(path, tags=None) -> Runs:
     return Runs(configs(path), metrics(path), scalars(path, tags))
 
 
+JOB_COLUMNS = ["run_dir", "seed", "experiment", "task", "wall_time_s", "agent_steps_per_s"]
+
+
+def summary_table(metrics_frame: pd.DataFrame) -> pd.DataFrame:
+    """One row per run directory × summary.json metric: mean ± s.d. over its runs and their
+    number (``ferl.stats``; runs without a value left out). The job's wall time and speed are
+    one number per job, not per run: they are left out."""
+    values = metrics_frame.drop(columns=JOB_COLUMNS)
+    rows = []
+    for run, group in values.groupby("run", sort=False):
+        for metric in group.columns.drop("run"):
+            mean, sd, n = stats.mean_sd(group[metric].to_numpy())
+            rows.append({"run": run, "metric": metric, "mean": mean, "sd": sd, "n_runs": n})
+    return pd.DataFrame(rows, columns=["run", "metric", "mean", "sd", "n_runs"])
+
+
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description="Print the runs at DIR: metrics (mean over seeds) and scalar tags.")
+    parser = argparse.ArgumentParser(description="Print the runs at DIR: metrics (mean ± s.d. over "
+                                                 "seeds) and scalar tags.")
     parser.add_argument("path", help="a run directory or any folder of runs")
     args = parser.parse_args(argv)
     try:
         r = load(args.path)
     except FileNotFoundError as e:
         raise SystemExit(f"ferl.runs: error: {e}") from None
-    numeric = r.metrics.drop(columns=["run_dir", "seed"]).groupby(["run", "experiment", "task"]).mean(numeric_only=True)
-    with pd.option_context("display.max_columns", None, "display.width", 200):
-        print(numeric.T.to_string())
+    print(summary_table(r.metrics).to_string())
     tags = r.scalars.groupby("tag")["step"].agg(["count", "max"]).rename(columns={"count": "points", "max": "last_step"})
     print(f"\nscalar tags ({len(tags)}):\n{tags.to_string()}")
 

@@ -6,25 +6,44 @@ from pathlib import Path
 import pytest
 from hydra import compose, initialize_config_dir
 
-from ferl.schema import register_schemas
-
 ROOT = Path(__file__).resolve().parents[1]
-register_schemas()  # conf/ extends ferl/schema.py's schemas, as in train.py
 EXPERIMENTS = sorted(p.stem for p in (ROOT / "conf" / "experiment").glob("*.yaml"))
+
+
+def compose_config(overrides=()):
+    """Compose the real configs as train.py does (hydra's runtime keys included)."""
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        return compose("config", overrides=list(overrides), return_hydra_config=True)
 
 
 @pytest.fixture
 def compose_cfg():
-    """Compose the real configs as train.py does (hydra's runtime keys included)."""
-    def _compose(overrides=()):
-        with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-            return compose("config", overrides=list(overrides), return_hydra_config=True)
-    return _compose
+    return compose_config
 
 
-def run_train(*overrides, cwd=ROOT, timeout=600, **popen):
-    """Run train.py in a subprocess; returns the CompletedProcess."""
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+def train_job(cfg, run_dir, resume: bool = False) -> dict:
+    """What train.py does with a composed config, in process on the CPU: the trainer of
+    ``cfg.trainer`` set up and fitted into ``run_dir``; returns the summary."""
+    import torch
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.utils import instantiate
+    from omegaconf import open_dict
+
+    from ferl.run.directory import RunDir
+
+    if "hydra" in cfg:
+        HydraConfig.instance().set_config(cfg)
+        with open_dict(cfg):  # what @hydra.main hands to train.py: the job's config only
+            del cfg["hydra"]
+    torch.set_num_threads(1)
+    trainer = instantiate(cfg.trainer)
+    trainer.setup(cfg, torch.device("cpu"))
+    return trainer.fit(RunDir(run_dir), resume)
+
+
+def run_train(*overrides, cwd=ROOT, timeout=600, env=None, **popen):
+    """Run train.py in a subprocess (in ``env``, by default this one's); returns the CompletedProcess."""
+    env = {**(env or os.environ), "PYTHONUNBUFFERED": "1"}
     return subprocess.run([sys.executable, str(ROOT / "train.py"), *overrides], cwd=cwd, env=env,
                           capture_output=True, text=True, timeout=timeout, **popen)
 

@@ -1,11 +1,13 @@
 """Synthetic run directories following docs/records.md, for analysis tests.
 
-The records are built so that the answers are known. Digit floor (`make_floor_run`):
-after training the greedy action is the optimal one for most test images, hidden
-activations cluster by optimal action (so every same-action pair forms its own
-cluster), and the image templates of "7" and "8" are near copies of "1" and "3"
-(low mutual information). T-maze (`make_tmaze_run`, chapter 4; `make_ch5_run`, chapter 5):
-see their docstrings.
+Each writes `records/run.json` as a real run does (what produced it: task, trainer,
+environment, preprocessor, predictors, actor) and the records its trainer would. The records
+are built so that the answers are known. Digit floor (`make_floor_run`): after training the
+greedy action is the optimal one for most test images, hidden activations cluster by optimal
+action (so every same-action pair forms its own cluster), and the image templates of "7" and
+"8" are near copies of "1" and "3" (low mutual information). T-maze (`make_tmaze_run`,
+chapter 4; `make_ch5_run`, chapter 5) and a run of an unknown task (`make_toy_run`): see their
+docstrings.
 """
 
 from __future__ import annotations
@@ -14,7 +16,8 @@ import json
 from pathlib import Path
 
 import numpy as np
-import yaml
+
+from ferl.analysis.records import Manifest, Run
 
 CLASSES = [str(d) for d in range(9)]
 ARRANGEMENT = np.array(CLASSES).reshape(3, 3)
@@ -23,6 +26,20 @@ CW_OPTIMAL = {"0": "E", "1": "S", "2": "S", "3": "E", "4": None, "5": "W", "6": 
               "7": "N", "8": "W", "N": "W"}
 NEAR_COPIES = {"7": "1", "8": "3"}
 PIXELS = 784
+
+
+def write_manifest(run_dir: Path, task: str, experiment: str, trainer: dict, env: dict,
+                   predictors: dict | None = None, preprocessor: dict | None = None,
+                   actor: dict | None = None) -> None:
+    """records/run.json (docs/records.md)."""
+    manifest = {"task": task, "experiment": experiment,
+                "trainer": {"class": "synthetic.Trainer", **trainer},
+                "env": {"class": "synthetic.Env", "n_actions": len(ACTIONS),
+                        "action_names": ACTIONS, **env},
+                "preprocessor": preprocessor, "predictors": predictors or {},
+                "actor": actor or {"class": "synthetic.Actor", "kind": "free_energy",
+                                   "n_hidden": 5, "gamma": 0.95}}
+    (run_dir / "records" / "run.json").write_text(json.dumps(manifest, indent=2))
 
 
 def _optimal_actions(classes: list[str]) -> np.ndarray:
@@ -100,7 +117,7 @@ def make_floor_run(run_dir: Path, *, n_runs: int = 2, steps: int = 500, n_images
     good = rng.random((n_runs, steps)) < p_good
     rewards = np.where(good, rng.choice([10.0, 4.0], size=good.shape, p=[1 / 3, 2 / 3]), -2.0)
     rewards = (rewards if reward else np.zeros_like(rewards)).astype(np.float32)
-    np.savez(records / "floor_train.npz", rewards=rewards,
+    np.savez(records / "steps.npz", rewards=rewards,
              td_errors=rng.normal(size=(n_runs, steps)).astype(np.float32))
 
     clean = _clean_images(rng, classes, n_images)
@@ -120,8 +137,16 @@ def make_floor_run(run_dir: Path, *, n_runs: int = 2, steps: int = 500, n_images
         test[f"hidden_marginal_{phase}"] = hidden if reward else 0.05 * hidden
     np.savez(records / "floor_test.npz", **test)
     np.savez(records / "weights.npz",
-             W_sh_before=rng.normal(0, 0.01, (n_runs, PIXELS, n_hidden)).astype(np.float32),
-             W_sh_after=rng.normal(0, 0.3, (n_runs, PIXELS, n_hidden)).astype(np.float32))
+             state_weights_before=rng.normal(0, 0.01, (n_runs, PIXELS, n_hidden)).astype(np.float32),
+             state_weights_after=rng.normal(0, 0.3, (n_runs, PIXELS, n_hidden)).astype(np.float32))
+    write_manifest(run_dir, "digit_floor", experiment,
+                   {"kind": "continuing", "phases": ["actor", "test"], "steps": steps},
+                   {"kind": "digit_floor", "episodic": False, "observation": "image",
+                    "observation_size": PIXELS, "noise": probe_noise,
+                    "reward_condition": "cw" if reward else "none", "patches": 1,
+                    "classes": classes},
+                   actor={"class": "synthetic.Actor", "kind": "free_energy",
+                          "n_hidden": n_hidden, "gamma": 0.95})
 
     scored = optimal >= 0
     after = test["greedy_counts_after"]
@@ -151,6 +176,12 @@ def make_floor_run(run_dir: Path, *, n_runs: int = 2, steps: int = 500, n_images
 TMAZE_OPTIMAL_STEPS, TMAZE_MAX_STEPS, TMAZE_GAMMA = 3, 10, 0.95
 TMAZE_OPTIMAL_RETURN = -0.1 - 0.1 * TMAZE_GAMMA + 5 * TMAZE_GAMMA ** 2  # 4.3175 (CONTRACT §7)
 N_OBS = 7
+PREDICTOR_FACTS = {  # what a predictor of each kind records in run.json
+    "joint": {"predicts_observation": True, "reward_output": "bits"},
+    "observation": {"predicts_observation": True, "reward_output": "none"},
+    "reward": {"predicts_observation": False, "reward_output": "linear"},
+    "other": {"predicts_observation": True, "reward_output": "linear"},  # no dissertation role
+}
 
 
 def _tmaze_episode(rng, success: bool) -> tuple[int, float, float, bool]:
@@ -179,10 +210,15 @@ def make_tmaze_run(run_dir: Path, *, n_runs: int = 2, n_episodes: int = 600,
                    matching: bool = True, hidden: str = "separable",
                    memory_keys: tuple[str, ...] = ("memory_joint",),
                    signal_memories: tuple[str, ...] | None = None,
-                   predictors: tuple[str, ...] = ("joint",),
+                   predictors: dict[str, str] | None = None,
                    steps_to_goal: bool = True, n_memory: int = 6, n_hidden: int = 5,
-                   seed: int = 0, experiment: str | None = None) -> Path:
+                   seed: int = 0, experiment: str | None = None, env: dict | None = None,
+                   preprocessor: dict | None = None) -> Path:
     """Write a synthetic T-maze run (docs/records.md, "T-mazes") into `run_dir` and return it.
+
+    `predictors` maps each predictor's name to what it predicts (`PREDICTOR_FACTS`: "joint",
+    "observation" or "reward"; default one "joint" predictor, Algorithm 1); `env` adds to or
+    overrides the environment's facts in run.json, `preprocessor` names one there.
 
     The truth: every run becomes optimal by 60 % of the episodes and its TD error decays
     ~100-fold; the memories in `signal_memories` (default: all) encode the initial signal
@@ -197,6 +233,7 @@ def make_tmaze_run(run_dir: Path, *, n_runs: int = 2, n_episodes: int = 600,
     records = run_dir / "records"
     records.mkdir(parents=True)
 
+    predictors = {"joint": "joint"} if predictors is None else predictors
     lengths = np.arange(TMAZE_OPTIMAL_STEPS, TMAZE_MAX_STEPS + 1)
     epochs = np.arange(0, 41, 2)
     predictor = {}
@@ -289,6 +326,23 @@ def make_tmaze_run(run_dir: Path, *, n_runs: int = 2, n_episodes: int = 600,
         "wall_time_s": 1.0, "agent_steps_per_s": 1000.0,
     }
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    junction_names = ("junction_0", "junction_1") if matching else ("junction",)
+    write_manifest(
+        run_dir, "tmaze", experiment,
+        {"kind": "phased", "phases": [*(["preprocessor"] if preprocessor else []), "collect",
+                                      "predictors", "actor"],
+         "l_training": 5, "final_window": 200, "n_episodes": n_episodes},
+        {"kind": "tmaze", "episodic": True, "observation": "bits", "observation_size": N_OBS,
+         "matching": matching, "corridor_length": TMAZE_OPTIMAL_STEPS,
+         "max_steps": TMAZE_MAX_STEPS, "goal_reward": 5.0, "reward_values": [5.0, -5.0, -1.0, -0.1],
+         "observation_names": ["start_0", "start_1", "corridor", *junction_names, "goal_left",
+                               "goal_right"],
+         "labels": ["condition", "initial_signal", "junction_signal"],
+         "outcomes": ["correct_goal", "condition"], **(env or {})},
+        {name: {"class": "synthetic.Predictor", "kind": "elman", "memory_size": n_memory,
+                **PREDICTOR_FACTS[kind]} for name, kind in predictors.items()},
+        preprocessor, {"class": "synthetic.Actor", "kind": "free_energy", "n_hidden": n_hidden,
+                       "gamma": TMAZE_GAMMA})
     (run_dir / "tb").mkdir()
     return run_dir
 
@@ -327,29 +381,76 @@ def _preprocessor_records(rng, n_runs: int, reservoir_size: int, n_hidden: int, 
                                                       ).astype(np.float16))
 
 
-def make_ch5_run(run_dir: Path, *, pixel: bool = True, signal_memory: str = "memory_reward",
-                 codes: str = "separable", reservoir_size: int = 20, n_rbm_hidden: int = 8,
-                 sweeps: int = 12, n_runs: int = 2, seed: int = 0) -> Path:
-    """A synthetic chapter-5 run (Algorithm 2): `make_tmaze_run` with the predictors
-    `observation` and `reward`, whose memories keep the initial signal only in
-    `signal_memory`, and a `.hydra/config.yaml` naming the environment. With `pixel`, a
-    digit maze (table5_1_pixel) whose records/preprocessor.npz holds `reservoir_size`
-    images per digit class and their processed codes (see `_preprocessor_records`)."""
+def make_ch5_run(run_dir: Path, *, pixel: bool = True, signal_role: str = "reward",
+                 names: tuple[str, str] = ("observation", "reward"), codes: str = "separable",
+                 reservoir_size: int = 20, n_rbm_hidden: int = 8, sweeps: int = 12,
+                 n_runs: int = 2, seed: int = 0) -> Path:
+    """A synthetic chapter-5 run (Algorithm 2): `make_tmaze_run` with an observation and a
+    reward predictor named `names`, whose memories keep the initial signal only in the one of
+    `signal_role`. With `pixel`, a digit maze (table5_1_pixel: image observations, an RBM
+    preprocessor) whose records/preprocessor.npz holds `reservoir_size` images per digit class
+    and their processed codes (see `_preprocessor_records`)."""
     experiment = f"table5_1_{'pixel' if pixel else 'bit'}_synthetic"
-    make_tmaze_run(run_dir, n_runs=n_runs, predictors=("observation", "reward"),
-                   memory_keys=CH5_MEMORIES, signal_memories=(signal_memory,), seed=seed,
-                   experiment=experiment)
-    env = {"_target_": "ferl.envs.tmaze.TMaze", "matching": True}
+    roles = dict(zip(("observation", "reward"), names))
+    env, preprocessor = {}, None
     if pixel:
-        env = {"_target_": "ferl.envs.digit_tmaze.DigitTMaze", "matching": True,
+        env = {"observation": "image", "observation_size": PIXELS,
                "digit_classes": DIGIT_CLASSES, "reservoir_size": reservoir_size}
+        preprocessor = {"class": "synthetic.RBM", "kind": "rbm", "n_visible": PIXELS,
+                        "n_hidden": n_rbm_hidden}
+    make_tmaze_run(run_dir, n_runs=n_runs, predictors={name: role for role, name in roles.items()},
+                   memory_keys=tuple(f"memory_{name}" for name in names),
+                   signal_memories=(f"memory_{roles[signal_role]}",), seed=seed,
+                   experiment=experiment, env=env, preprocessor=preprocessor)
+    if pixel:
         np.savez(run_dir / "records" / "preprocessor.npz", **_preprocessor_records(
             np.random.default_rng(seed + 1), n_runs, reservoir_size, n_rbm_hidden, sweeps, codes))
-    (run_dir / ".hydra").mkdir()
-    (run_dir / ".hydra" / "config.yaml").write_text(yaml.safe_dump(
-        {"experiment": experiment, "task": "tmaze", "seed": seed, "n_runs": n_runs, "env": env,
-         "trainer": {"l_training": 5}}, sort_keys=False))
     return run_dir
+
+
+def make_toy_run(run_dir: Path, *, n_episodes: int = 300, n_epochs: int = 5, seed: int = 0) -> Path:
+    """A run of a task no chapter knows (`task: toy`): an episodic environment of kind "toy"
+    with one boolean outcome (`reached`), one predictor of an unknown kind whose role is none
+    of the dissertation's, `episodes.npz` and `predictor.npz`, no junction records. The
+    truth: the discounted return of run r is r + episode/n_episodes; |δ| is 1 − episode/n;
+    the predictor's error is `n_epochs − epoch` everywhere."""
+    rng = np.random.default_rng(seed)
+    records = run_dir / "records"
+    records.mkdir(parents=True)
+    n_runs = 3  # the runs of the summary's metrics below
+    progress = np.arange(n_episodes) / n_episodes
+    shape = (n_runs, n_episodes)
+    np.savez(records / "episodes.npz",
+             discounted_return=(np.arange(n_runs)[:, None] + progress).astype(np.float32),
+             steps=rng.integers(1, 20, shape), terminal_reward=rng.normal(size=shape),
+             td_abs_mean=np.broadcast_to(1 - progress, shape).astype(np.float32),
+             reached=rng.random(shape) < progress, gamma=np.float64(0.9),
+             optimal_return=np.float64(2.0), optimal_steps=np.float64(1.0))
+    lengths, epochs = np.arange(2, 5), np.arange(n_epochs + 1)
+    error = np.full((n_runs, len(epochs), len(lengths), lengths.max() + 1), np.nan)
+    for k, T in enumerate(lengths):
+        error[:, :, k, :T + 1] = (n_epochs - epochs)[None, :, None]
+    np.savez(records / "predictor.npz", world_lengths=lengths, world_epochs=epochs,
+             world_error_train=error.astype(np.float32), world_error_test=error.astype(np.float32))
+    summary = {"experiment": "toy_experiment", "task": "toy",
+               "seeds": list(range(seed, seed + n_runs)),
+               "metrics": {"final_return": (np.arange(n_runs) + 1.0).tolist(),
+                           "score": {"easy": [1.0, 0.5, None], "hard": [0.2, 0.4, 0.9]}},
+               "wall_time_s": 1.0, "agent_steps_per_s": 10.0}
+    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    write_manifest(run_dir, "toy", "toy_experiment",
+                   {"kind": "phased", "phases": ["collect", "predictors", "actor"],
+                    "n_episodes": n_episodes},
+                   {"kind": "toy", "episodic": True, "observation": "vector",
+                    "observation_size": 3, "outcomes": ["reached"]},
+                   {"world": {"class": "tests.ToyPredictor", "kind": "toy",
+                              "predicts_observation": True, "reward_output": "linear"}})
+    return run_dir
+
+
+def load_run(run_dir: Path) -> Run:
+    """A synthetic run as the analysis reads it."""
+    return Run.load(run_dir, Manifest.load(run_dir))
 
 
 def assert_analysis_outputs(run_dir: Path, figures, data) -> str:

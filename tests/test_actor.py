@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from ferl import rbm
-from ferl.actor import FERLActor, action_code_table, sample_categorical
+from ferl.actors.free_energy import FERLActor, action_code_table, sample_categorical
 from ferl.schedules import Constant
 
 

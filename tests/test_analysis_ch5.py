@@ -8,11 +8,10 @@ import json
 
 import numpy as np
 
-from ferl.analysis import tmaze
+from ferl.analysis.claims import HELD, NOT_HELD
 from ferl.analysis.preprocessor import pcs_for_share
-from ferl.analysis.report import HELD, NOT_HELD, TMAZE_CLAIMS, evaluate
 from synthetic_runs import DIGIT_CLASSES, assert_analysis_outputs, make_ch5_run
-from test_analysis_tmaze import claim_verdicts
+from test_analysis_tmaze import claim_verdicts, judge, load_maze
 from test_analyze_cli import analyze
 
 LAYERS = ("memory_observation", "memory_reward", "state", "hidden")
@@ -21,7 +20,7 @@ FIGURES = ["prediction_errors_observation", "prediction_errors_reward", "learnin
            "td_errors", *JUNCTION, "junction_state_pca3d"]
 PREPROCESSOR = ["preprocessor_raw_pca", "preprocessor_processed_pca",
                 "preprocessor_reconstruction_error"]
-DATA = ["learning_curves.csv", "prediction_errors_observation.csv",
+DATA = ["summary.csv", "learning_curves.csv", "prediction_errors_observation.csv",
         "prediction_errors_reward.csv", "junction_separation.csv",
         "junction_explained_variance.csv", "claims.json"]
 PREPROCESSOR_DATA = ["preprocessor_explained_variance.csv",
@@ -91,16 +90,15 @@ def test_analyze_sweep_of_chapter5_pixel_and_bit_runs(tmp_path):
 
 
 def test_swapped_memories_fail_the_claim(tmp_path):
-    run = tmaze.TMazeRun.load(make_ch5_run(tmp_path / "run", signal_memory="memory_observation"))
-    verdicts = {r.claim.source: r.verdict for r in evaluate(TMAZE_CLAIMS, run)}
-    assert verdicts[MEMORY_CLAIM["pixel"]] == NOT_HELD
+    run = load_maze(make_ch5_run(tmp_path / "run", signal_role="observation"))
+    assert judge(run)[MEMORY_CLAIM["pixel"]] == NOT_HELD
     assert np.nanmean(run.separation["memory_observation", "initial_signal"]) > 0.7
     assert abs(np.nanmean(run.separation["memory_reward", "initial_signal"])) < 0.1
 
 
 def test_distinct_images_are_one_reservoir_per_digit_class(tmp_path):
     k = 4
-    pre = tmaze.TMazeRun.load(make_ch5_run(tmp_path / "run", reservoir_size=k)).preprocessing
+    pre = load_maze(make_ch5_run(tmp_path / "run", reservoir_size=k)).preprocessing
     names = list(DIGIT_CLASSES)
     assert pre.class_names == ["0", "1", "2", "3", "4"] and pre.reservoir_size == k
     first = [names.index(n) for n in ("start_0", "start_1", "corridor", "goal_left", "goal_right")]
@@ -112,11 +110,10 @@ def test_distinct_images_are_one_reservoir_per_digit_class(tmp_path):
 
 
 def test_shuffled_codes_lose_the_class_structure(tmp_path):
-    run = tmaze.TMazeRun.load(make_ch5_run(tmp_path / "run", codes="shuffled"))
+    run = load_maze(make_ch5_run(tmp_path / "run", codes="shuffled"))
     raw, processed = run.preprocessing.silhouettes
     assert raw > 0.5 and np.abs(processed).max() < 0.2  # random labels: slightly negative
-    verdicts = {r.claim.source: r.verdict for r in evaluate(TMAZE_CLAIMS, run)}
-    assert verdicts[CLASS_CLAIM] == NOT_HELD
+    assert judge(run)[CLASS_CLAIM] == NOT_HELD
 
 
 def test_pcs_for_share():

@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.distance import cdist
 
 from ferl.analysis import coding
-from ferl.evaluation import greedy_accuracy
+from ferl.stats import greedy_accuracy
 
 
 def test_median_firing_rates_hand_example():

@@ -8,16 +8,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ferl.analysis import coding, tmaze
-from ferl.analysis.report import HELD, NOT_HELD, TMAZE_CLAIMS, evaluate
-from synthetic_runs import assert_analysis_outputs, make_floor_run, make_tmaze_run
+from ferl.analysis import ch5, coding, dispatch, generic, tmaze
+from ferl.analysis.claims import HELD, NOT_HELD, evaluate
+from ferl.analysis.tmaze import TMazeRun
+from synthetic_runs import assert_analysis_outputs, load_run, make_floor_run, make_tmaze_run
 from test_analyze_cli import analyze, event_files
 
 FIGURES = ["prediction_errors_joint", "learning_curves", "td_errors",
            *(f"junction_{layer}_{kind}" for layer in ("memory_joint", "state", "hidden")
              for kind in ("activations", "pca")), "junction_hidden_pca3d"]
-DATA = ["learning_curves.csv", "prediction_errors_joint.csv", "junction_separation.csv",
-        "junction_explained_variance.csv", "claims.json"]
+DATA = ["summary.csv", "learning_curves.csv", "prediction_errors_joint.csv",
+        "junction_separation.csv", "junction_explained_variance.csv", "claims.json"]
 HIDDEN_CLAIM = "§4.3.2, Figs. 4.17–4.19"
 
 
@@ -58,15 +59,6 @@ def test_silhouette_known_cases():
     assert coding.silhouette_score(np.zeros((4, 2)), [0, 0, 1, 1]) == 0.0
 
 
-def test_moving_average_curve_matches_loop():
-    values = np.random.default_rng(2).normal(size=(3, 50))
-    episodes, mean, sem = tmaze.curve(values, window=7)
-    ma = np.array([[values[r, k - 7:k].mean() for k in range(7, 51)] for r in range(3)])
-    np.testing.assert_array_equal(episodes, np.arange(7, 51))
-    np.testing.assert_allclose(mean, ma.mean(axis=0))
-    np.testing.assert_allclose(sem, ma.std(axis=0, ddof=1) / np.sqrt(3))
-
-
 def test_pca_scores_and_explained_variance():
     rng = np.random.default_rng(3)
     x = rng.normal(size=(200, 2)) @ np.array([[3.0, 0, 0, 0], [0, 1.0, 0, 0]]) + 5
@@ -77,6 +69,16 @@ def test_pca_scores_and_explained_variance():
 
 
 # ---- runs ------------------------------------------------------------------------
+
+def load_maze(run_dir: Path) -> TMazeRun:
+    return TMazeRun.load(load_run(run_dir))
+
+
+def judge(maze: TMazeRun) -> dict[str, str]:
+    """source → verdict of the claims of the chapter that the run's facts select."""
+    chapter = dispatch.chapter_of(maze.run.manifest)
+    return {r.claim.source: r.verdict for r in evaluate(chapter.claims, maze)}
+
 
 def claim_verdicts(run_dir: Path) -> dict[str, str]:
     return {c["source"]: c["verdict"]
@@ -123,35 +125,53 @@ def test_analyze_sweep_of_a_floor_and_a_tmaze_run(tmp_path):
 
 
 def test_shuffled_hidden_activations_do_not_separate(tmp_path):
-    run = tmaze.TMazeRun.load(make_tmaze_run(tmp_path / "run", hidden="shuffled"))
-    verdicts = {r.claim.source: r.verdict for r in evaluate(TMAZE_CLAIMS, run)}
-    assert verdicts[HIDDEN_CLAIM] == NOT_HELD
+    run = load_maze(make_tmaze_run(tmp_path / "run", hidden="shuffled"))
+    assert judge(run)[HIDDEN_CLAIM] == NOT_HELD
     assert abs(np.nanmean(run.separation["hidden", "condition"])) < 0.1
 
 
 def test_regular_maze_gets_its_own_claims_and_steps_from_episodes(tmp_path):
-    run = tmaze.TMazeRun.load(make_tmaze_run(tmp_path / "run", matching=False,
-                                             steps_to_goal=False))
-    sources = {r.claim.source for r in evaluate(TMAZE_CLAIMS, run)}
+    run = load_maze(make_tmaze_run(tmp_path / "run", matching=False, steps_to_goal=False))
+    sources = set(judge(run))
     assert "§4.3.1, Fig. 4.6" in sources and HIDDEN_CLAIM not in sources
     j = run.junction
     np.testing.assert_array_equal(run.steps_to_goal, run.episodes["steps"][j["run"], j["episode"]])
     assert run.condition_names == ["0", "1"]
 
 
-def test_two_predictors_and_memories_of_chapter_5(tmp_path):
-    run = tmaze.TMazeRun.load(make_tmaze_run(tmp_path / "run", predictors=("obs", "reward"),
-                                             memory_keys=("memory_obs", "memory_reward")))
-    assert run.predictors == ["obs", "reward"]
-    assert run.layers == ["memory_obs", "memory_reward", "state", "hidden"]
-    assert {(m, "initial_signal") for m in ("memory_obs", "memory_reward")} <= set(run.separation)
-    figures = tmaze.make_figures(run)
-    assert {"prediction_errors_obs", "prediction_errors_reward",
-            "junction_memory_reward_pca"} <= set(figures)
-    # Chapter-5 figure numbers; names the dissertation does not use get the whole figure.
-    assert run.numbering is tmaze.CH5_BIT
-    assert figures["prediction_errors_obs"][1].startswith("Fig. 5.2: ")
-    assert figures["prediction_errors_reward"][1].startswith("Fig. 5.2(b): squared error")
-    assert figures["junction_memory_obs_pca"][1].startswith("Figs. 5.7–5.8(b): ")
-    # chapter-4 claims are about the joint predictor
-    assert not any(r.claim.source.startswith("§4") for r in evaluate(TMAZE_CLAIMS, run))
+def test_chapter_5_figures_follow_the_predictors_roles_not_their_names(tmp_path):
+    run = load_maze(make_tmaze_run(tmp_path / "run", predictors={"m_y": "observation",
+                                                                 "m_r": "reward"},
+                                   memory_keys=("memory_m_y", "memory_m_r"),
+                                   signal_memories=("memory_m_r",)))
+    assert [p.name for p in run.run.predictors] == ["m_y", "m_r"]
+    assert run.layers == ["memory_m_r", "memory_m_y", "state", "hidden"]
+    assert {(m, "initial_signal") for m in ("memory_m_y", "memory_m_r")} <= set(run.separation)
+    assert dispatch.chapter_of(run.run.manifest) is ch5.CHAPTER
+    num = ch5.CHAPTER.numbering(run.run.manifest)
+    assert num is ch5.BIT
+    figures = generic.analyze(run.run, num, tmp_path).figures | tmaze.make_figures(run, num)
+    assert figures["prediction_errors_m_y"][1].startswith("Fig. 5.2(a): absolute error")
+    assert figures["prediction_errors_m_r"][1].startswith("Fig. 5.2(b): squared error")
+    assert figures["junction_memory_m_y_pca"][1].startswith("Fig. 5.8(b): observation-predictor")
+    assert figures["junction_memory_m_r_pca"][1].startswith("Fig. 5.7(b): reward-predictor")
+    verdicts = judge(run)  # chapter-5 claims only; m^r (named m_r) keeps the signal, m^y not
+    assert verdicts and all(source.startswith("§5.3.1") for source in verdicts)
+    assert verdicts["§5.3.1, Figs. 5.7–5.8"] == HELD
+
+
+def test_a_maze_with_a_predictor_of_no_role_gets_no_claims_and_unnumbered_figures(tmp_path):
+    run_dir = make_tmaze_run(tmp_path / "run", predictors={"world": "other"},
+                             memory_keys=("memory_world",))
+    result = analyze(run_dir)
+    assert result.returncode == 0, result.stderr
+    report = (run_dir / "analysis" / "report.md").read_text()
+    assert "No dissertation claim applies to this run." in report
+    assert "no chapter's model matches this run" in report
+    assert ("[junction_memory_world_pca.png](junction_memory_world_pca.png) — predictor memory "
+            "(world) at the T-junction") in report
+    assert "Fig. " not in report
+    assert json.loads((run_dir / "analysis" / "claims.json").read_text()) == []
+    for name in ("learning_curves", "td_errors", "prediction_errors_world",
+                 "junction_memory_world_pca", "junction_hidden_pca"):
+        assert (run_dir / "analysis" / f"{name}.png").is_file(), name

@@ -8,15 +8,15 @@ from pathlib import Path
 
 import pytest
 
-from synthetic_runs import assert_analysis_outputs, make_floor_run
+from synthetic_runs import assert_analysis_outputs, load_run, make_floor_run
 
 REPO = Path(__file__).resolve().parents[1]
-FIGURES = ["fig3_4_reward", "fig3_5_weights", "fig3_6a_greedy_before", "fig3_6b_greedy_after",
+FIGURES = ["learning_curves", "td_errors", "fig3_5_weights", "fig3_6a_greedy_before", "fig3_6b_greedy_after",
            "fig3_6_accuracy_vs_noise", "fig3_7_outlier", "fig3_10_median_activation",
            "fig3_11_dendrogram_run0", "fig3_11_dendrogram_all_runs",
            "fig3_12_mutual_information"]
 DATA = ["greedy_accuracy.csv", "mfr_run0.csv", "mfr_run1.csv", "pair_clusters.json",
-        "mutual_information.csv", "reward_moving_average.csv", "claims.json"]
+        "mutual_information.csv", "learning_curves.csv", "summary.csv", "claims.json"]
 
 
 def analyze(*dirs: Path) -> subprocess.CompletedProcess:
@@ -54,6 +54,8 @@ def test_single_run_writes_figures_data_and_report(analyzed_run):
     assert claim_rows, report
     for name in FIGURES:
         assert f"]({name}.png)" in report
+    assert "[learning_curves.png](learning_curves.png) — Fig. 3.4: " in report
+    assert report.startswith("# Digit floor (chapter 3)")
     assert event_files(run_dir)
 
 
@@ -94,9 +96,9 @@ def test_sweep_analyzes_every_run_and_links_them(tmp_path):
     sweep = tmp_path / "sweep"
     runs = [make_floor_run(sweep / "0", seed=1),
             make_floor_run(sweep / "nested" / "1", classes=[*"01234N678"], reward=False, seed=2)]
-    other = sweep / "other_task_run"
-    other.mkdir()
-    (other / "summary.json").write_text(json.dumps({"task": "no_such_task", "experiment": "t"}))
+    older = sweep / "run_without_manifest"  # written before records/run.json existed
+    older.mkdir()
+    (older / "summary.json").write_text(json.dumps({"task": "tmaze", "experiment": "t"}))
 
     result = analyze(sweep)
     assert result.returncode == 0, result.stderr
@@ -105,7 +107,7 @@ def test_sweep_analyzes_every_run_and_links_them(tmp_path):
         assert (run / "analysis" / "report.md").is_file()
         assert (run / "analysis" / "fig3_12_mutual_information.png").is_file()
         assert f"]({Path('..', run.relative_to(sweep), 'analysis', 'report.md')})" in top
-    assert "skipped" in top and not (other / "analysis").exists()
+    assert "| skipped: no records/run.json |" in top and not (older / "analysis").exists()
     assert "Without reward" in (runs[1] / "analysis" / "report.md").read_text()
 
 
@@ -129,7 +131,7 @@ def test_a_diverged_run_is_left_out_of_the_clustering(tmp_path):
     for key in ("hidden_after", "hidden_marginal_after"):
         test[key][1] = np.nan
     np.savez(path, **test)
-    run = FloorRun.load(run_dir)
+    run = FloorRun.load(load_run(run_dir))
     assert run.mfr_linkages[1] is None and run.mfr_linkages[0] is not None
     assert all(len(run.cluster_hits(i, j)) == 2 for i, j in run.same_action_pairs)
     result = analyze(run_dir)

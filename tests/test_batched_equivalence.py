@@ -17,10 +17,10 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from ferl.actor import FERLActor, action_code_table
+from ferl.actors.free_energy import FERLActor, action_code_table
 from ferl.envs.tmaze import TMaze, maze_tables
-from ferl.predictor import ElmanPredictor
-from ferl.preprocessor import RBMPreprocessor, statistics
+from ferl.predictors.elman import ElmanPredictor
+from ferl.preprocessors.rbm import RBMPreprocessor, statistics
 from ferl.schedules import Constant
 
 _PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "numpy_tmaze_reference.py"
@@ -225,15 +225,19 @@ def test_predictor_forward_and_online_step_equal_single_runs(dtype):
     y_prev = torch.randint(0, 2, (R, Y), generator=g).to(dtype)
     a_prev = F.one_hot(torch.randint(0, A, (R,), generator=g), A).to(dtype)
 
-    m0, y0 = batched.initial()
-    m1, y1, r1 = batched.step(m0, y_prev, a_prev)
+    m0 = batched.initial_state()
+    y0 = batched.outputs(m0)[0]
+    m1 = batched.step(m0, y_prev, a_prev)
+    y1, r1 = batched.outputs(m1)
     y_hat, r_hat, m = batched.forward_sequences(y, a, lengths)
     err = batched.prediction_errors(y, a, r_, lengths)
     got = []
     for r, one in enumerate(singles):
         sl = slice(r, r + 1)
-        m0_r, y0_r = one.initial()
-        m1_r, y1_r, r1_r = one.step(m0_r, y_prev[sl], a_prev[sl])
+        m0_r = one.initial_state()
+        y0_r = one.outputs(m0_r)[0]
+        m1_r = one.step(m0_r, y_prev[sl], a_prev[sl])
+        y1_r, r1_r = one.outputs(m1_r)
         yh_r, rh_r, m_r = one.forward_sequences(y[sl], a[sl], lengths[sl])
         got.append({"m0": m0_r, "y0": y0_r, "m1": m1_r, "y1": y1_r, "r1": r1_r, "y_hat": yh_r, "r_hat": rh_r,
                     "m": m_r, "err": torch.nan_to_num(one.prediction_errors(y[sl], a[sl], r_[sl], lengths[sl]), -1.0)})
@@ -322,8 +326,8 @@ def test_rbm_fit_equals_single_run_fits(persistent):
     batched, make_single = rbms(dtype, cd_k=2, persistent=persistent, visible="binary")
     singles = [single_copy(make_single, batched, r, RBM_KEYS) for r in range(R)]
     images = torch.rand(R, 10, VIS, generator=torch.Generator().manual_seed(12), dtype=dtype)
-    errors = batched.fit(images, streams(range(50, 50 + R)), progress=False)
-    single_errors = [one.fit(images[r:r + 1], streams([50 + r]), progress=False) for r, one in enumerate(singles)]
+    errors = batched.train(images, streams(range(50, 50 + R)), progress=False)
+    single_errors = [one.train(images[r:r + 1], streams([50 + r]), progress=False) for r, one in enumerate(singles)]
     assert_runs_match({"errors": torch.as_tensor(errors)}, [{"errors": torch.as_tensor(e)} for e in single_errors],
                       torch.float32)  # fit returns float32 errors
     assert_runs_match(rbm_params(batched), [rbm_params(one) for one in singles], dtype)
@@ -393,7 +397,7 @@ def test_numpy_bptt_matches_torch_autograd_and_train_epoch(hp):
     assert loss_np == pytest.approx(float(loss.detach()), rel=1e-12)
     for name, g in grads.items():
         np.testing.assert_allclose(G[name], g[0].numpy(), rtol=1e-10, atol=1e-12, err_msg=name)
-    m1 = p.step(p.initial()[0], y[:, 0, 0], a[:, 0, 0])[0]
+    m1 = p.step(p.initial_state(), y[:, 0, 0], a[:, 0, 0])
     np.testing.assert_allclose(ref.predictor_step(P, ref.predictor_initial(P, hp), seqs[0][0][0], seqs[0][1][0], hp),
                                m1[0].numpy(), rtol=1e-12)
     order = rng.permutation(len(seqs))

@@ -1,32 +1,24 @@
-"""The digit floor's TD loop in chunks (ferl/trainers/digit_floor.py: td_steps): the chunk length
+"""The digit floor's TD loop in chunks (ferl/trainers/chunks.py: td_steps): the chunk length
 does not change a run, `compile=true` (torch.compile of the chunk, run by groups of runs on a CPU)
 gives the eager results within floating-point tolerance, and the grouping changes no run."""
 import threading
 
 import numpy as np
 import pytest
-import torch
-from hydra.core.hydra_config import HydraConfig
-from omegaconf import open_dict
 
-from ferl.run_dir import RunDir
-from ferl.trainers import digit_floor
-from ferl.trainers.digit_floor import chunk_length, train_digit_floor
+from conftest import train_job
+from ferl.trainers import chunks, online
+from ferl.trainers.chunks import chunk_length
 
 TINY = ["n_runs=3", "trainer.steps=480", "trainer.log_every=160", "trainer.checkpoint_every=160",
         "trainer.test_per_class=5", "trainer.test_noise_levels=[0.125]"]
 
 
 def run(compose_cfg, tmp_path, name, *overrides):
-    cfg = compose_cfg([*TINY, *overrides])
-    HydraConfig.instance().set_config(cfg)
-    with open_dict(cfg):
-        del cfg["hydra"]
-    torch.set_num_threads(1)
-    summary = train_digit_floor(cfg, RunDir(tmp_path / name), torch.device("cpu"))
-    with np.load(tmp_path / name / "records" / "floor_train.npz") as train, \
+    summary = train_job(compose_cfg([*TINY, *overrides]), tmp_path / name)
+    with np.load(tmp_path / name / "records" / "steps.npz") as train, \
             np.load(tmp_path / name / "records" / "weights.npz") as weights:
-        return summary, train["rewards"], train["td_errors"], weights["W_sh_after"]
+        return summary, train["rewards"], train["td_errors"], weights["state_weights_after"]
 
 
 def test_chunk_length_divides_the_run_and_the_intervals():
@@ -38,7 +30,7 @@ def test_chunk_length_divides_the_run_and_the_intervals():
 @pytest.mark.parametrize("td_rule", ["sarsa", "expected_sarsa"])
 def test_chunked_steps_equal_single_steps(compose_cfg, tmp_path, monkeypatch, td_rule):
     chunked = run(compose_cfg, tmp_path, "chunked", f"actor.td_rule={td_rule}")
-    monkeypatch.setattr(digit_floor, "MAX_CHUNK", 1)
+    monkeypatch.setattr(chunks, "MAX_CHUNK", 1)
     single = run(compose_cfg, tmp_path, "single", f"actor.td_rule={td_rule}")
     assert chunked[0]["metrics"] == single[0]["metrics"]
     for got, want in zip(chunked[1:], single[1:]):
@@ -48,12 +40,12 @@ def test_chunked_steps_equal_single_steps(compose_cfg, tmp_path, monkeypatch, td
 def test_prefetched_random_numbers_change_no_run(compose_cfg, tmp_path, monkeypatch):
     """trainer.prefetch draws the next chunks' random numbers on a second thread while a chunk
     runs: the same draws in the same order, so every run is bit-identical to drawing in turn."""
-    monkeypatch.setattr(digit_floor, "MAX_CHUNK", 4)  # many chunks, so many prefetches
+    monkeypatch.setattr(chunks, "MAX_CHUNK", 4)  # many chunks, so many prefetches
     threads = []
-    draw = digit_floor.FloorTraining.chunk_inputs
-    monkeypatch.setattr(digit_floor.FloorTraining, "chunk_inputs",
-                        lambda self: threads.append(threading.current_thread().name) or draw(self))
-    many = f"n_runs={digit_floor.PREFETCH_MIN_RUNS}"  # fewer runs draw in turn anyway
+    draw = online.OnlineTD.chunk_inputs
+    monkeypatch.setattr(online.OnlineTD, "chunk_inputs",
+                        lambda self, env: threads.append(threading.current_thread().name) or draw(self, env))
+    many = f"n_runs={online.PREFETCH_MIN_RUNS}"  # fewer runs draw in turn anyway
     prefetched = run(compose_cfg, tmp_path, "prefetched", many, "trainer.prefetch=3")
     assert threads and all(name.startswith("ferl-random") for name in threads)
     threads.clear()
@@ -66,7 +58,7 @@ def test_prefetched_random_numbers_change_no_run(compose_cfg, tmp_path, monkeypa
 
 @pytest.mark.parametrize("td_fresh", [False, True])
 def test_compiled_chunks_equal_eager_ones(compose_cfg, tmp_path, monkeypatch, td_fresh):
-    monkeypatch.setattr(digit_floor, "MAX_CHUNK", 4)  # a short unrolled graph compiles faster
+    monkeypatch.setattr(chunks, "MAX_CHUNK", 4)  # a short unrolled graph compiles faster
     fresh = f"actor.td_fresh={str(td_fresh).lower()}"
     eager = run(compose_cfg, tmp_path, "eager", fresh)
     # 3 runs in groups of 2: a full group and a remainder group of 1, each its own graph
@@ -80,7 +72,7 @@ def test_run_groups_do_not_change_a_run(compose_cfg, tmp_path, monkeypatch):
     """Identical, not just close: a compiled graph computes every run of its group with the same
     loops (its sums run over one run's own pixels and hidden units, none across runs), so a run's
     arithmetic does not depend on which group, or how large a group, it is in."""
-    monkeypatch.setattr(digit_floor, "MAX_CHUNK", 4)
+    monkeypatch.setattr(chunks, "MAX_CHUNK", 4)
     pairs = run(compose_cfg, tmp_path, "pairs", "n_runs=5", "compile=true", "trainer.compile_group_runs=2")
     triples = run(compose_cfg, tmp_path, "triples", "n_runs=5", "compile=true", "trainer.compile_group_runs=3")
     assert pairs[0]["metrics"] == triples[0]["metrics"]

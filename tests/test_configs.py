@@ -1,19 +1,19 @@
-"""Every experiment config composes, validates and instantiates its modules; a bad setting is
-rejected with one line naming its key, by the schemas (types) or by ferl.validate (values)."""
+"""Every experiment config composes, validates and builds its components; a bad setting is
+rejected with one line naming its key: by Hydra (unknown keys and options), by the checks of the
+constructors the config names (ferl/config/validate.py: types, ranges, cross-key rules), or by the
+trainer's setup (what involves two components)."""
 import pytest
 import torch
-from hydra.core.hydra_config import HydraConfig
 from hydra.errors import HydraException
+from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from conftest import EXPERIMENTS, ROOT, run_train
-from ferl.data import MnistSplit
-from ferl.hydra_support import condense_hydra_error
-from ferl.schema import SCHEMA_SUFFIX, SCHEMAS
-from ferl.trainers.tmaze import PREPROCESSOR_EXTRA_KEYS
-from ferl.validate import ConfigError, validate
-from test_digit_floor import tiny_split
+from ferl.config.hydra_glue import condense_hydra_error
+from ferl.config.params import ConfigError, check_node
+from ferl.config.validate import validate
+from ferl.trainers.job import Job, SeedOffsets
 
 
 def test_contract_experiments_exist():
@@ -22,34 +22,39 @@ def test_contract_experiments_exist():
 
 
 @pytest.mark.parametrize("name", EXPERIMENTS)
-def test_experiment_composes_validates_and_instantiates(compose_cfg, name):
+def test_experiment_composes_validates_and_builds(compose_cfg, name):
     cfg = compose_cfg([f"experiment={name}", "n_runs=2"])
     HydraConfig.instance().set_config(cfg)
     assert cfg.name == name
     validate(cfg)
-    split: MnistSplit = tiny_split()
-    needs_data = cfg.task == "digit_floor" or "digit_classes" in cfg.env
-    small_reservoir = {"reservoir_size": 10} if cfg.env.get("reservoir_size", 1) > 1 else {}  # tiny_split: 20 per class
-    env = instantiate(cfg.env, n_runs=2, generator=torch.Generator().manual_seed(0),
-                      **({"data": split} if needs_data else {}), **small_reservoir)
-    n_state = env.observation_size
-    if cfg.task == "tmaze":
-        n_obs = env.observation_size
-        if cfg.get("preprocessor"):
-            args = {k: v for k, v in cfg.preprocessor.items() if k not in PREPROCESSOR_EXTRA_KEYS}
-            pre = instantiate(args, n_runs=2, seed=0)
-            n_obs = pre.transform(env.observation_table).shape[-1]
-            assert n_obs == cfg.preprocessor.n_hidden and env.observation_size == cfg.preprocessor.n_visible
-        n_state = n_obs
-        for p_cfg in cfg.predictor.values():
-            predictor = instantiate(p_cfg, n_runs=2, n_obs=n_obs, n_actions=4, seed=0)
-            assert predictor.W_mm.shape == (2, p_cfg.n_memory, p_cfg.n_memory)
-            n_state += p_cfg.n_memory
-        assert env.optimal_discounted_return(cfg.actor.gamma) == pytest.approx(4.3175)
+    job = Job(cfg, torch.device("cpu"), SeedOffsets())
+    # the actor's state: the (processed) observation and every predictor's memory, as the YAML sizes it
+    n_obs = cfg.preprocessor.n_hidden if cfg.get("preprocessor") else job.env.observation_size
+    n_state = n_obs + sum(p.n_memory for p in (cfg.get("predictor") or {}).values())
+    assert job.actor.state_weights().shape == (2, n_state, cfg.actor.n_hidden)
+    for p_cfg, predictor in zip((cfg.get("predictor") or {}).values(), job.predictors.values()):
+        assert predictor.W_mm.shape == (2, p_cfg.n_memory, p_cfg.n_memory)
+    optimal = job.env.optimal(cfg.actor.gamma)
+    if job.env.task == "tmaze":
+        assert optimal["discounted_return"] == pytest.approx(4.3175)
     else:
-        assert env.optimal_reward_rate == pytest.approx({"none": 0.0}.get(cfg.env.reward_condition, 8.0))
-    actor = instantiate(cfg.actor, n_runs=2, n_state=n_state, n_actions=env.n_actions, seed=0)
-    assert actor.W_sh.shape == (2, n_state, cfg.actor.n_hidden)
+        assert optimal["reward_per_step"] == pytest.approx({"none": 0.0}.get(cfg.env.reward_condition, 8.0))
+    trainer = instantiate(cfg.trainer)
+    assert hasattr(trainer, "setup") and hasattr(trainer, "fit")
+
+
+def test_every_option_file_is_its_constructors_signature():
+    """Each option file of a component group names a constructor that takes every key it sets,
+    with the type and range the constructor declares (one place per parameter)."""
+    files = [p for p in (ROOT / "conf").glob("*/*.yaml") if p.parent.name not in ("experiment", "hparams_search")]
+    assert len(files) >= 12
+    for path in files:
+        node = OmegaConf.to_container(OmegaConf.load(path), resolve=False)
+        node.pop("defaults", None)
+        for name, part in (node.items() if "_target_" not in node else [(path.stem, node)]):
+            if path.parent.name == "data" and "???" in part.values():
+                continue  # mnist_idx: data.root is the user's
+            check_node(part, f"{path.parent.name}.")
 
 
 def test_table_4_1_and_4_2_parameters(compose_cfg):
@@ -102,9 +107,9 @@ def test_dissertation_parameters(compose_cfg):
 
 
 def config_error(compose_cfg, overrides) -> tuple[str, str]:
-    """Compose the config (Hydra checks the schemas' types) and validate it (ranges, cross-key
-    rules): ("compose" | "validate", the one-line message) of the step that rejects it, or
-    ("", "") when both accept it."""
+    """What train.py does before any work — compose, validate, build the trainer and set it up —
+    up to the step that rejects the config: ("compose" | "validate" | "setup", the one-line
+    message), or ("", "") when every step accepts it."""
     try:
         cfg = compose_cfg(overrides)
     except HydraException as e:  # what train.py's one_line_errors prints, without "ferl: error: "
@@ -114,28 +119,26 @@ def config_error(compose_cfg, overrides) -> tuple[str, str]:
         validate(cfg)
     except ConfigError as e:
         return "validate", str(e)
+    try:
+        instantiate(cfg.trainer).setup(cfg, torch.device("cpu"))
+    except ConfigError as e:
+        return "setup", str(e)
     return "", ""
 
 
-def test_every_option_file_extends_its_schema():
-    for (group, option), schema in SCHEMAS.items():
-        defaults = OmegaConf.load(ROOT / "conf" / group / f"{option}.yaml").defaults
-        assert list(defaults) == [f"{option}{SCHEMA_SUFFIX}", "_self_"], (group, option)
-    assert OmegaConf.load(ROOT / "conf" / "config.yaml").defaults[0] == f"config{SCHEMA_SUFFIX}"
-    options = {(p.parent.name, p.stem) for p in (ROOT / "conf").glob("*/*.yaml")
-               if p.parent.name not in ("experiment", "hparams_search")}
-    assert options == set(SCHEMAS)
+# a key that no config has, or a group option that does not exist: rejected while Hydra composes
+COMPOSE_ERRORS = [("actor.foo=1", "actor.foo"), ("task=maze", "task"), ("experiment=nope", "experiment"),
+                  ("experiment=table5_1_bit predictor.observation.rho_y=2", "predictor.observation.rho_y")]
 
-
-# a value of the wrong type or outside an enum: rejected while Hydra composes (ferl/schema.py)
+# a value of the wrong type or outside a set of values: rejected by the constructor's annotations
 TYPE_ERRORS = [
     ("env.noise=abc", "env.noise"), ("n_runs=2.5", "n_runs"), ("env.patches=x", "env.patches"),
     ("actor.td_rule=td_lambda", "actor.td_rule"), ("actor.lr_norm=sqrt", "actor.lr_norm"),
-    ("env.reward_condition=up", "env.reward_condition"), ("device=tpu", "device"), ("task=maze", "task"),
+    ("env.reward_condition=up", "env.reward_condition"), ("device=tpu", "device"),
     ("seed=first", "seed"), ("resume=maybe", "resume"), ("compile=maybe", "compile"),
     ("actor.gamma=high", "actor.gamma"),
     ("actor.action_code=gray", "actor.action_code"), ("actor.action_selection=argmax", "actor.action_selection"),
-    ("actor.foo=1", "actor.foo"), ("trainer.test_noise_levels=[a]", "trainer.test_noise_levels"),
+    ("+actor.foo=1", "actor.foo"), ("trainer.test_noise_levels=[a]", "trainer.test_noise_levels"),
     ("data.test_per_class=many", "data.test_per_class"),
     ("experiment=table4_1_matching env.matching=perhaps", "env.matching"),
     ("experiment=table4_1_matching predictor.joint.time_average=maybe", "predictor.joint.time_average"),
@@ -143,12 +146,12 @@ TYPE_ERRORS = [
     ("experiment=table4_1_matching trainer.n_episodes=lots", "trainer.n_episodes"),
     ("experiment=table4_2_digit env.digit_classes.start_0=one", "env.digit_classes.start_0"),
     ("experiment=table5_1_bit predictor.reward.reward_output=gaussian", "predictor.reward.reward_output"),
-    ("experiment=table5_1_bit predictor.observation.rho_y=2", "predictor.observation.rho_y"),
+    ("experiment=table5_1_bit +predictor.observation.n_memorys=2", "predictor.observation.n_memorys"),
     ("experiment=table5_1_pixel preprocessor.visible=gaussian", "preprocessor.visible"),
     ("experiment=table5_1_pixel preprocessor.persistent=maybe", "preprocessor.persistent"),
 ]
 
-# a value of the right type that cannot work: rejected by ferl.validate (ranges, cross-key rules)
+# a value of the right type that cannot work: rejected by the constructor's ranges and cross-key rules
 VALUE_ERRORS = [
     ("env.noise=1.5", "env.noise"), ("env.noise=-0.1", "env.noise"),
     ("actor.n_hidden=0", "actor.n_hidden"), ("actor.n_hidden=-3", "actor.n_hidden"),
@@ -166,28 +169,37 @@ VALUE_ERRORS = [
     ("experiment=table4_2_digit trainer.actor_obs_scale=0", "trainer.actor_obs_scale"),
     ("experiment=table5_1_pixel preprocessor.cd_k=0", "preprocessor.cd_k"),
     ("experiment=table5_1_pixel preprocessor.n_hidden=0", "preprocessor.n_hidden"),
-    ("experiment=table5_1_pixel preprocessor.n_visible=700", "preprocessor.n_visible"),
-    ("experiment=table5_1_bit preprocessor=rbm", "preprocessor"),
+    ("experiment=table4_1_matching actor.lr.value=-0.1", "actor.lr"),
+    ("experiment=table5_1_bit predictor.reward.reward_output=none", "predictor.reward.reward_output"),
     ("experiment=table5_1_pixel env.reservoir_size=0", "env.reservoir_size"),
     ("experiment=table5_1_pixel env.binarize_threshold=2", "env.binarize_threshold"),
-    ("trainer.test_per_class=450", "trainer.test_per_class"),
     ("experiment=table4_1_matching actor.bias_init_std=-1", "actor.bias_init_std"),
-    ("compile=true actor.action_selection=gibbs", "compile"),
     ("trainer.prefetch=-1", "trainer.prefetch"),
 ]
 
+# what involves two components: rejected by the trainer's setup, once they are built
+SETUP_ERRORS = [
+    ("experiment=table5_1_pixel preprocessor.n_visible=700", "preprocessor"),
+    ("experiment=table5_1_bit preprocessor=rbm", "preprocessor"),
+    ("trainer.test_per_class=450", "trainer.test_per_class"),
+    ("compile=true actor.action_selection=gibbs", "compile"),
+    ("optimized_metric=final_discounted_return", "optimized_metric"),
+    ("experiment=table5_1_pixel env.reservoir_size=101", "env.reservoir_size"),
+]
 
-@pytest.mark.parametrize("override,key", TYPE_ERRORS + VALUE_ERRORS)
+
+@pytest.mark.parametrize("override,key", COMPOSE_ERRORS + TYPE_ERRORS + VALUE_ERRORS + SETUP_ERRORS)
 def test_bad_values_name_their_key(compose_cfg, override, key):
     stage, message = config_error(compose_cfg, override.split())
-    assert stage == ("compose" if (override, key) in TYPE_ERRORS else "validate"), message
+    expected = {**{c: "compose" for c in COMPOSE_ERRORS}, **{c: "setup" for c in SETUP_ERRORS}}
+    assert stage == expected.get((override, key), "validate"), message
     assert key in message and "\n" not in message, message
-    if stage == "compose":
-        assert message.startswith(f"{key}"), message  # the full key first, then Hydra's reason
+    if stage == "validate":
+        assert message.startswith(f"{key}"), message  # the full key first, then the reason
 
 
 def test_enum_errors_list_the_allowed_values(compose_cfg):
-    from ferl.actor import TD_RULES
+    from ferl.actors.free_energy import TD_RULES
 
     _, message = config_error(compose_cfg, ["actor.td_rule=td_lambda"])
     assert all(rule in message for rule in TD_RULES), message
@@ -197,13 +209,13 @@ def test_enum_errors_list_the_allowed_values(compose_cfg):
                                       "actor.gamma=high", "trainer.steps=many",
                                       "experiment=table4_1_matching predictor.joint.time_average=maybe"])
 def test_type_errors_through_train_py(tmp_path, override):
-    """A wrong type stops train.py at composition: one line naming the full key, no traceback,
+    """A wrong type stops train.py before any work: one line naming the full key, no traceback,
     exit status ≠ 0, no run directory."""
     run_dir = tmp_path / "out" / "run"
     result = run_train(*override.split(), f"hydra.run.dir={run_dir}", timeout=120)
     assert result.returncode != 0
     lines = result.stderr.strip().splitlines()
     key = override.split()[-1].split("=")[0]
-    assert len(lines) == 1 and lines[0].startswith(f"ferl: error: {key}: "), result.stderr
+    assert len(lines) == 1 and lines[0].startswith(f"ferl: error: {key}"), result.stderr
     assert "Traceback" not in result.stderr + result.stdout
     assert not (tmp_path / "out").exists()

@@ -63,21 +63,21 @@ def test_optimal_action_tables(condition, expected):
 def test_step_rewards_moves_and_torus_wrap():
     env = make_env(R=1)
     put(env, 0, 0)  # class "0" of the top-left patch
-    obs, r = env.step(torch.tensor([E]))
+    obs, r, *_ = env.step(torch.tensor([E]))
     assert r.item() == 4 and class_of(obs) == ["1"]
-    obs, r = env.step(torch.tensor([N]))  # from "1" north leaves the patch: row 0 → row 11 ("7")
+    obs, r, *_ = env.step(torch.tensor([N]))  # from "1" north leaves the patch: row 0 → row 11 ("7")
     assert r.item() == -2 and class_of(obs) == ["7"] and env.tile.item() == 11 * 12 + 1
     put(env, 11, 11)  # "8" in the bottom-right corner: east wraps to column 0 ("6")
-    obs, r = env.step(torch.tensor([E]))
+    obs, r, *_ = env.step(torch.tensor([E]))
     assert r.item() == -2 and class_of(obs) == ["6"] and env.tile.item() == 11 * 12 + 0
-    obs, r = env.step(torch.tensor([S]))  # south wraps to row 0 ("0")
+    obs, r, *_ = env.step(torch.tensor([S]))  # south wraps to row 0 ("0")
     assert class_of(obs) == ["0"] and env.tile.item() == 0
 
 
 def test_goal_transports_to_uniform_non_goal_tile():
     env = DigitFloor(20_000, tiny_split(), torch.Generator().manual_seed(1), noise=0.0)
     put(env, 1, 0)  # "3", moving east enters the goal
-    obs, r = env.step(torch.full((env.n_runs,), E))
+    obs, r, *_ = env.step(torch.full((env.n_runs,), E))
     assert (r == 10).all()
     classes = class_of(obs)
     assert "4" not in classes

@@ -1,9 +1,9 @@
-"""The per-run divergence guard (ferl/guard.py): which run, at which step, why."""
+"""The per-run divergence guard (ferl/run/guard.py): which run, at which step, why."""
 import math
 
 import torch
 
-from ferl.guard import DivergenceGuard
+from ferl.run.guard import DivergenceGuard
 
 
 def test_first_bad_step_of_each_run_and_only_those_runs_frozen():
@@ -46,12 +46,8 @@ def test_healthy_runs_pass_unchanged_and_state_round_trips():
 # ---- a NaN injected into one run of a real batch ----------------------------------------------
 
 import pytest  # noqa: E402
-from hydra.core.hydra_config import HydraConfig  # noqa: E402
-from omegaconf import open_dict  # noqa: E402
 
-from ferl.run_dir import RunDir  # noqa: E402
-from ferl.trainers.digit_floor import train_digit_floor  # noqa: E402
-from ferl.trainers.tmaze import train_tmaze  # noqa: E402
+from conftest import train_job  # noqa: E402
 
 FLOOR = ["experiment=ch3_floor", "n_runs=3", "trainer.steps=600", "trainer.test_per_class=5",
          "trainer.log_every=100", "trainer.test_noise_levels=[0.125]"]
@@ -60,14 +56,6 @@ MAZE = ["experiment=table4_1_matching", "n_runs=3", "trainer.n_sample=300", "tra
 RESERVOIR = ["experiment=table5_1_pixel", "n_runs=3", "env.reservoir_size=5", "preprocessor.sweeps=20",
              "trainer.n_sample=300", "trainer.n_epoch=2", "trainer.n_episodes=200", "trainer.log_every=50",
              "trainer.final_window=50"]
-
-
-def job_config(compose_cfg, overrides):
-    cfg = compose_cfg(overrides)
-    HydraConfig.instance().set_config(cfg)
-    with open_dict(cfg):  # what @hydra.main hands to the trainers
-        del cfg["hydra"]
-    return cfg
 
 
 def poison_run_1_at(update, at: int):
@@ -82,23 +70,20 @@ def poison_run_1_at(update, at: int):
     return wrapped
 
 
-@pytest.mark.parametrize("task, overrides, train, unit, at", [
-    ("digit_floor", FLOOR, train_digit_floor, "step", 250),
-    ("tmaze", MAZE, train_tmaze, "episode", None),
-    ("tmaze", RESERVOIR, train_tmaze, "episode", None),  # images drawn from a reservoir every step
+@pytest.mark.parametrize("task, overrides, unit, at", [
+    ("digit_floor", FLOOR, "step", 250),
+    ("tmaze", MAZE, "episode", None),
+    ("tmaze", RESERVOIR, "episode", None),  # images drawn from a reservoir every step
 ])
-def test_injected_nan_marks_only_that_run(compose_cfg, tmp_path, monkeypatch, task, overrides,
-                                          train, unit, at):
-    from ferl.actor import FERLActor
-    torch.set_num_threads(1)
-    cfg = job_config(compose_cfg, overrides + (["preprocessor.cache_dir=" + str(tmp_path / "cache")]
-                                               if "experiment=table5_1_pixel" in overrides else []))
-    clean = train(cfg, RunDir(tmp_path / "clean"), torch.device("cpu"))
+def test_injected_nan_marks_only_that_run(compose_cfg, tmp_path, monkeypatch, task, overrides, unit, at):
+    from ferl.actors.free_energy import FERLActor
+    cache = ["preprocessor.cache_dir=" + str(tmp_path / "cache")] if "experiment=table5_1_pixel" in overrides else []
+    clean = train_job(compose_cfg(overrides + cache), tmp_path / "clean")
     assert clean["diverged"] == []
 
     at = at or 400  # T-maze: a few steps into episode ~100
     monkeypatch.setattr(FERLActor, "update", poison_run_1_at(FERLActor.update, at))
-    poisoned = train(cfg, RunDir(tmp_path / "poisoned"), torch.device("cpu"))
+    poisoned = train_job(compose_cfg(overrides + cache), tmp_path / "poisoned")
     [report] = poisoned["diverged"]
     assert (report["run"], report["seed"], report["reason"]) == (1, 1, "non-finite TD error")
     if task == "digit_floor":

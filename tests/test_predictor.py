@@ -7,7 +7,9 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from ferl.predictor import ElmanPredictor, PredictorBatch
+from ferl.predictors.elman import ElmanPredictor
+from ferl.predictors.heads import clean
+from ferl.predictors.training import PredictorBatch
 
 Y, A, M, NR = 4, 3, 5, 2
 GAINS = dict(c_y=0.7, c_a=1.3, beta_m=0.8, beta_y=1.2, beta_r=0.9, rho_y=1.5, rho_r=2.5)
@@ -68,16 +70,18 @@ def test_forward_matches_per_step_loop(kind):
 
 
 def test_online_step_matches_sequence_forward():
-    """initial() + step() reproduce forward_sequences, as the actor phase uses them."""
+    """initial_state() + step() reproduce forward_sequences, as the actor phase uses them."""
     p = make(R=3)
     y, a, r, _ = data(3, 1, 5)
     lengths = torch.full((3, 1), 5)
     y_hat, r_hat, m_seq = p.forward_sequences(y, a, lengths)
-    m, y0 = p.initial()
+    m = p.initial_state()
+    y0 = p.outputs(m)[0]
     torch.testing.assert_close(m, m_seq[:, 0, 0])
     torch.testing.assert_close(y0, y_hat[:, 0, 0])
     for t in range(5):
-        m, yh, rh = p.step(m, y[:, 0, t], a[:, 0, t])
+        m = p.step(m, y[:, 0, t], a[:, 0, t])
+        yh, rh = p.outputs(m)
         torch.testing.assert_close(m, m_seq[:, 0, t + 1])
         torch.testing.assert_close(yh, y_hat[:, 0, t + 1])
         torch.testing.assert_close(rh, r_hat[:, 0, t + 1])
@@ -163,7 +167,7 @@ def test_hand_written_bptt_equals_autograd(kind):
     pad = (torch.arange(8) > lengths.unsqueeze(-1)).unsqueeze(-1)
     y, a = torch.where(pad, torch.nan, y), torch.where(pad[:, :, 1:], torch.nan, a)
     r = torch.where(pad, torch.nan, r) if r is not None else None
-    hand = p.gradients(*p.clean(y, a, r, lengths), lengths, w)
+    hand = p.gradients(*clean(y, a, r, lengths), lengths, w)
     assert len(hand) == len(auto)
     for (name, _), want, got in zip(p.named_parameters(), auto, hand):
         assert want.abs().max() > 0, name
@@ -314,9 +318,9 @@ def test_reward_targets_bits_and_scalar():
     shifted so index t holds r_t; padding (reward 0) codes as all-zero bits."""
     env = SimpleNamespace(reward_values=(-5.0, -1.0, -0.1, 5.0))
     rewards = torch.tensor([[[-0.1, -1.0, 5.0, 0.0]]], dtype=torch.float64)
-    bits = ElmanPredictor(1, Y, A, reward_output="bits").reward_targets(env, rewards)
+    bits = ElmanPredictor(1, Y, A, reward_output="bits").reward_targets(env.reward_values, rewards)
     assert bits.shape == (1, 1, 5, 4)
     assert bits[0, 0].tolist() == [[0, 0, 0, 0], [0, 0, 1, 0], [0, 1, 0, 0], [0, 0, 0, 1], [0, 0, 0, 0]]
-    scalar = ElmanPredictor(1, Y, A, reward_output="linear").reward_targets(env, rewards)
+    scalar = ElmanPredictor(1, Y, A, reward_output="linear").reward_targets(env.reward_values, rewards)
     assert scalar[0, 0, :, 0].tolist() == [0.0, -0.1, -1.0, 5.0, 0.0]
-    assert ElmanPredictor(1, Y, A, reward_output="none").reward_targets(env, rewards) is None
+    assert ElmanPredictor(1, Y, A, reward_output="none").reward_targets(env.reward_values, rewards) is None

@@ -9,7 +9,8 @@ from omegaconf import OmegaConf
 
 from ferl import rbm
 from ferl.data import MnistEmbedded
-from ferl.preprocessor import Gradient, RBMPreprocessor, load_or_fit
+from ferl.preprocessors.cache import load_or_fit
+from ferl.preprocessors.rbm import Gradient, RBMPreprocessor
 
 V, H = 4, 3
 DATA = torch.tensor([[1, 1, 0, 0], [0, 0, 1, 1], [1, 0, 1, 0]], dtype=torch.float64)
@@ -114,7 +115,7 @@ def test_training_lowers_held_out_reconstruction_error(mnist):
     train, test = mnist
     model = RBMPreprocessor(2, sweeps=10, batch_size=50)
     before = model.reconstruction_error(test)
-    history = model.fit(train, progress=False)
+    history = model.train(train, progress=False)
     after = model.reconstruction_error(test)
     mean_image = (train.mean(0) - test).pow(2).mean()  # what the visible biases alone could reach
     print(f"held-out reconstruction error: before {before.tolist()}, after {after.tolist()}, "
@@ -127,8 +128,8 @@ def test_runs_are_independent_of_n_runs(mnist):
     """Run 0 of a 1-run batch and of a 3-run batch with the same seed train identically."""
     train = mnist[0][:200]
     one, three = (RBMPreprocessor(n, sweeps=2, batch_size=50, seed=3) for n in (1, 3))
-    one.fit(train, progress=False)
-    three.fit(train, progress=False)
+    one.train(train, progress=False)
+    three.train(train, progress=False)
     for a, b in zip(one.state_dict().values(), three.state_dict().values()):
         # same samples and order; bmm over 1 or 3 runs may round differently (≈ 1e-7)
         torch.testing.assert_close(a[0], b[0], rtol=1e-5, atol=1e-6)
@@ -149,33 +150,33 @@ def test_load_or_fit_caches_by_settings(tmp_path, monkeypatch):
     images = torch.rand(60, 16, generator=torch.Generator().manual_seed(0))
     settings = dict(n_visible=16, n_hidden=4, sweeps=2, batch_size=20)
     first = RBMPreprocessor(2, **settings)
-    errors, cached = load_or_fit(first, images, None, tmp_path, {"data": "random"})
+    errors, cached = load_or_fit(first, images, tmp_path)
     assert not cached and errors.shape == (2, 2)
 
     def no_training(*args, **kwargs):
-        raise AssertionError("fit called although a cached fit exists")
+        raise AssertionError("trained although a cached fit exists")
 
     with monkeypatch.context() as m:
-        m.setattr(RBMPreprocessor, "fit", no_training)
+        m.setattr(RBMPreprocessor, "train", no_training)
         second = RBMPreprocessor(2, **settings)
-        errors2, cached2 = load_or_fit(second, images, None, tmp_path, {"data": "random"})
+        errors2, cached2 = load_or_fit(second, images, tmp_path)
     assert cached2 and (errors2 == errors).all()
     torch.testing.assert_close(second.state_dict(), first.state_dict())
 
-    load_or_fit(RBMPreprocessor(2, **{**settings, "cd_k": 1}), images, None, tmp_path, {"data": "random"})
-    load_or_fit(RBMPreprocessor(2, **settings), images, None, tmp_path, {"data": "other"})
-    assert len(list(tmp_path.glob("rbm-*.pt"))) == 3 and not list(tmp_path.glob("*.tmp"))
+    load_or_fit(RBMPreprocessor(2, **{**settings, "cd_k": 1}), images, tmp_path)  # other settings
+    load_or_fit(RBMPreprocessor(2, **settings), images[:40], tmp_path)           # other images
+    load_or_fit(RBMPreprocessor(2, **settings, cache_dir="elsewhere"), images, tmp_path)  # where: not the key
+    assert len(list(tmp_path.glob("rbmpreprocessor-*.pt"))) == 3 and not list(tmp_path.glob("*.tmp"))
 
 
 @pytest.mark.parametrize("key, value", [("cd_k", 0), ("visible", "gaussian"), ("momentum", 1.0), ("batch_size", 0)])
 def test_bad_settings_name_the_key(key, value):
-    with pytest.raises(ValueError, match=f"preprocessor.{key}="):
+    with pytest.raises(ValueError, match=f"^{key}="):
         RBMPreprocessor(1, **{key: value})
 
 
 def test_config_instantiates_section_5_3_2_settings(compose_cfg):
     cfg = OmegaConf.to_container(compose_cfg(["experiment=table5_1_pixel"]).preprocessor, resolve=True)
-    cache_dir = cfg.pop("cache_dir")  # not a constructor argument: the trainer pops it
     model = instantiate(cfg, n_runs=2, seed=0)
-    assert isinstance(model, RBMPreprocessor) and cache_dir
+    assert isinstance(model, RBMPreprocessor) and model.cache_dir == cfg["cache_dir"]
     assert model.W.shape == (2, 784, 20) and model.cd_k == 3 and model.sweeps == 600

@@ -14,7 +14,8 @@ from omegaconf.errors import ValidationError
 
 from ferl.envs.digit_floor import DigitFloor
 from ferl.envs.tmaze import TMaze
-from ferl.validate import ConfigError, validate
+from ferl.config.params import ConfigError
+from ferl.config.validate import validate
 from test_digit_floor import tiny_split
 
 SETTINGS = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -58,7 +59,8 @@ def test_digit_floor_invariants(seed, patches, condition, actions):
                      reward_condition=condition)
     n_tiles = (3 * patches) ** 2
     for a in actions:
-        obs, reward = env.step(torch.full((R,), a))
+        obs, reward, terminated, truncated = env.step(torch.full((R,), a))
+        assert not (terminated | truncated).any()  # a continuing task (§3.4 fn. 1)
         assert set(reward.tolist()) <= ({0.0} if condition == "none" else FLOOR_REWARDS)
         assert ((env.tile >= 0) & (env.tile < n_tiles)).all()
         assert torch.isin(env.tile, env.non_goal_tiles).all()
@@ -79,8 +81,8 @@ def base_cfgs(compose_cfg):
 
 
 def _accepted(cfg, key: str, value) -> bool:
-    """Does the config take `key=value`: the typed schema (ferl/schema.py) on assignment, then
-    ferl/validate.py?"""
+    """Does the config take `key=value`: on assignment, then by ferl/config/validate.py (the
+    annotations of the constructors the config names)?"""
     cfg = copy.deepcopy(cfg)
     try:
         OmegaConf.update(cfg, key, value, force_add=False)

@@ -2,7 +2,7 @@
 import torch
 
 from ferl.envs.tmaze import TMaze
-from ferl.sequences import Episodes, balance_and_split, collect_random_episodes
+from ferl.trainers.episodes import Episodes, balance_and_split, collect_random_episodes
 
 
 def collect(R=3, n=600, copies=50, seed=0):

@@ -11,31 +11,35 @@ import numpy as np
 import pytest
 import yaml
 
+from ferl.analysis import ch3, ch4, dispatch
 from ferl.analysis import sweep as sw
+from ferl.analysis.claims import HELD, NOT_HELD, PARTLY, Claim, ClaimResult, Measured, evaluate
 from ferl.analysis.floor import FloorRun
-from ferl.analysis.report import (FLOOR_CLAIMS, HELD, NOT_HELD, PARTLY,
-                                  SAME_ACTION_PAIRS_SOURCE, SWEEP_CLAIMS, TMAZE_CLAIMS, Claim,
-                                  ClaimResult, Measured, RunOutcome, evaluate)
+from ferl.analysis.report import RunOutcome
+from ferl.analysis.sweep_claims import SWEEP_CLAIMS
 from ferl.analysis.tmaze import TMazeRun
-from synthetic_runs import make_floor_run, make_tmaze_run
+from synthetic_runs import load_run, make_floor_run, make_tmaze_run
 
 REPO = Path(__file__).resolve().parents[1]
 LEVELS = ["0", "0.5", "1"]
 
 
-def fake_job(run_dir: Path, experiment: str, metrics: dict, overrides=(), config=None,
+def fake_job(run_dir: Path, experiment: str, metrics: dict, overrides=(), facts=None,
              verdict: str | None = None, wall: float = 1.0) -> sw.Job:
-    """A job directory holding only summary.json and Hydra's overrides/config."""
+    """A job directory holding only summary.json, Hydra's overrides and records/run.json with
+    the parts' parameters in `facts` ({"env": {"noise": 0.5}})."""
     (run_dir / ".hydra").mkdir(parents=True)
+    (run_dir / "records").mkdir()
     summary = {"experiment": experiment, "task": "digit_floor", "metrics": metrics,
                "wall_time_s": wall, "agent_steps_per_s": 100.0}
     (run_dir / "summary.json").write_text(json.dumps(summary))
     (run_dir / ".hydra" / "overrides.yaml").write_text(
         yaml.safe_dump([f"experiment={experiment}", *overrides, "hydra/launcher=joblib"]))
-    (run_dir / ".hydra" / "config.yaml").write_text(yaml.safe_dump(config or {}))
+    (run_dir / "records" / "run.json").write_text(json.dumps(
+        {"task": "digit_floor", "experiment": experiment, **(facts or {})}))
     results = []
     if verdict is not None:
-        claim = Claim("pairs cluster", SAME_ACTION_PAIRS_SOURCE, lambda run: None, lambda v: v)
+        claim = Claim("pairs cluster", ch3.SAME_ACTION_PAIRS_SOURCE, lambda run: None, lambda v: v)
         results = [ClaimResult(claim, Measured(verdict, verdict), verdict)]
     return sw.Job(RunOutcome(run_dir, experiment, "digit_floor", "analyzed", results=results),
                   summary)
@@ -44,7 +48,7 @@ def fake_job(run_dir: Path, experiment: str, metrics: dict, overrides=(), config
 def noise_job(root: Path, k: int, train_noise: float, acc: dict) -> sw.Job:
     return fake_job(root / f"{k}", "floor", {"reward_per_step_last10pct": [1.0, 2.0],
                                              "greedy_accuracy": acc},
-                    overrides=[f"env.noise={train_noise}"], config={"env": {"noise": train_noise}})
+                    overrides=[f"env.noise={train_noise}"], facts={"env": {"noise": train_noise}})
 
 
 def test_aggregate_is_mean_and_sem_over_runs(tmp_path):
@@ -57,7 +61,7 @@ def test_aggregate_is_mean_and_sem_over_runs(tmp_path):
     reward = rows["floor", sw.DISSERTATION_SETTING, "reward_per_step_last10pct"]
     assert (reward.mean, reward.n) == (3.0, 3)
     assert reward.sem == pytest.approx(math.sqrt(7.0) / math.sqrt(3))  # s.d. √7 (ddof 1)
-    acc = rows["floor", sw.DISSERTATION_SETTING, "greedy_accuracy@0.5"]
+    acc = rows["floor", sw.DISSERTATION_SETTING, "greedy_accuracy/0.5"]
     assert acc.mean == pytest.approx(0.6) and acc.sem == pytest.approx(0.1)
     solved = rows["maze", "env.corridor_length=6", "solved"]
     assert solved.mean == 0.75 and solved.sem == pytest.approx(0.25)
@@ -79,7 +83,7 @@ def test_noise_grid_from_jobs_that_differ_only_in_training_noise(tmp_path):
     # A job with another override too belongs to another grid (here: a single level, no grid).
     jobs.append(fake_job(tmp_path / "x", "floor", {"greedy_accuracy": {"0": [0.0]}},
                          overrides=["env.noise=1.0", "actor.n_hidden=40"],
-                         config={"env": {"noise": 1.0}}))
+                         facts={"env": {"noise": 1.0}}))
     [grid] = sw.noise_grids(sw.Sweep(tmp_path, jobs))
     np.testing.assert_allclose(grid.train, [0.0, 0.5])
     np.testing.assert_allclose(grid.test, [0.0, 0.5, 1.0])
@@ -95,7 +99,7 @@ def test_noise_grid_from_jobs_that_differ_only_in_training_noise(tmp_path):
 ])
 def test_hidden_size_claim_flips_with_the_verdicts_per_size(tmp_path, verdicts, expected):
     jobs = [fake_job(tmp_path / str(n), "coding", {}, overrides=[f"actor.n_hidden={n}"],
-                     config={"actor": {"n_hidden": n}}, verdict=v) for n, v in verdicts.items()]
+                     facts={"actor": {"n_hidden": n}}, verdict=v) for n, v in verdicts.items()]
     [result] = evaluate(SWEEP_CLAIMS, sw.Sweep(tmp_path, jobs))
     assert result.verdict == expected
     assert all(f"{n} hidden: {v}" in result.measured.text for n, v in verdicts.items())
@@ -103,10 +107,11 @@ def test_hidden_size_claim_flips_with_the_verdicts_per_size(tmp_path, verdicts, 
 
 def test_claims_are_judged_on_the_job_with_fewest_overrides(tmp_path):
     jobs = [fake_job(tmp_path / "variant", "coding", {}, overrides=["actor.n_hidden=40"],
-                     config={"actor": {"n_hidden": 40}}, verdict=NOT_HELD),
-            fake_job(tmp_path / "main", "coding", {}, config={"actor": {"n_hidden": 20}},
+                     facts={"actor": {"n_hidden": 40}}, verdict=NOT_HELD),
+            fake_job(tmp_path / "main", "coding", {}, facts={"actor": {"n_hidden": 20}},
                      verdict=HELD)]
-    rows = sw.reproduction_rows(jobs, evaluate(SWEEP_CLAIMS, sw.Sweep(tmp_path, jobs)))
+    rows = sw.reproduction_rows(jobs, evaluate(SWEEP_CLAIMS, sw.Sweep(tmp_path, jobs)),
+                                dispatch.CLAIM_ORDER)
     [row] = [r for r in rows if r.job is not None]
     [across] = [r for r in rows if r.job is None]
     assert row.job.run_dir.name == "main" and row.result.verdict == HELD
@@ -129,7 +134,7 @@ def _verdict(results, source: str) -> str:
 def test_near_optimal_claim_flips_at_0_8_of_the_optimum(tmp_path, reward, expected):
     run_dir = make_floor_run(tmp_path / "run")
     _rewrite_summary(run_dir, reward_per_step_last10pct=[reward, reward])  # optimum 8
-    results = evaluate(FLOOR_CLAIMS, FloorRun.load(run_dir))
+    results = evaluate(ch3.CLAIMS, FloorRun.load(load_run(run_dir)))
     assert _verdict(results, "§3.5.1, Fig. 3.4, fn. 4") == expected
 
 
@@ -139,14 +144,14 @@ def test_near_optimal_claim_flips_at_0_8_of_the_optimum(tmp_path, reward, expect
 def test_solved_claim_flips_at_all_runs_and_at_8_in_10(tmp_path, solved, expected):
     run_dir = make_tmaze_run(tmp_path / "run", matching=False)
     _rewrite_summary(run_dir, solved=solved)
-    results = evaluate(TMAZE_CLAIMS, TMazeRun.load(run_dir))
+    results = evaluate(ch4.CLAIMS, TMazeRun.load(load_run(run_dir)))
     assert _verdict(results, "§4.3.1, Fig. 4.6") == expected
 
 
 def test_readme_block_is_replaced_and_nothing_else(tmp_path):
-    jobs = [fake_job(tmp_path / "job", "coding", {}, config={"actor": {"n_hidden": 20}},
+    jobs = [fake_job(tmp_path / "job", "coding", {}, facts={"actor": {"n_hidden": 20}},
                      verdict=PARTLY)]
-    rows = sw.reproduction_rows(jobs, [])
+    rows = sw.reproduction_rows(jobs, [], dispatch.CLAIM_ORDER)
     readme = tmp_path / "README.md"
     readme.write_text(f"# title\n\nbefore\n{sw.README_BEGIN}\nold table\n{sw.README_END}\nafter\n")
     sw.update_readme(readme, rows, {"training wall time": 12.0}, tmp_path / "report.md")
@@ -181,7 +186,7 @@ def test_smoke_sweep_through_train_and_analyze(tmp_path):
     assert len(jobs) == 4
     for job in jobs:
         assert (job / "analysis" / "report.md").is_file()
-        assert f"({Path('..', job.relative_to(sweep), 'analysis', 'fig3_4_reward.png')})" in report
+        assert f"({Path('..', job.relative_to(sweep), 'analysis', 'learning_curves.png')})" in report
     assert "### ch3_floor" in report and "### ch3_coding_cw" in report
     assert (out / "fig3_6_noise_grid_ch3_floor.png").is_file()
     grid = (out / "fig3_6_noise_grid_ch3_floor.csv").read_text().splitlines()
@@ -192,4 +197,4 @@ def test_smoke_sweep_through_train_and_analyze(tmp_path):
     assert "| claim | source | measured | verdict |" in readme.read_text()
     metrics = (out / "metrics.csv").read_text()
     assert f"ch3_coding_cw,{' '.join(tiny)},reward_per_step_last10pct," in metrics
-    assert f"ch3_floor,env.noise=0.5 {' '.join(tiny)},greedy_accuracy@0.5," in metrics
+    assert f"ch3_floor,env.noise=0.5 {' '.join(tiny)},greedy_accuracy/0.5," in metrics

@@ -199,7 +199,7 @@ def test_resume_rolls_the_event_files_back_to_the_checkpoint(tmp_path):
     from torch.utils.tensorboard import SummaryWriter
 
     from conftest import tb_scalars
-    from ferl.run_dir import RunDir
+    from ferl.run.directory import RunDir
 
     run = RunDir(tmp_path / "run")
     with SummaryWriter(run.tb) as writer:
@@ -220,7 +220,7 @@ def test_resume_rolls_the_event_files_back_to_the_checkpoint(tmp_path):
 def test_resume_without_a_checkpoint_starts_the_log_afresh(tmp_path):
     from torch.utils.tensorboard import SummaryWriter
 
-    from ferl.run_dir import RunDir
+    from ferl.run.directory import RunDir
 
     run = RunDir(tmp_path / "run")
     with SummaryWriter(run.tb) as writer:

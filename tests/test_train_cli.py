@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from conftest import ROOT, TINY, assert_same_tb_log, run_train
-from ferl.trainers.digit_floor import PREFETCH_MIN_RUNS
+from ferl.trainers.online import PREFETCH_MIN_RUNS
 
 
 def summary(run_dir):
@@ -36,7 +36,7 @@ def test_run_directory_and_summary_schema(tiny_run):
     assert all(len(v) == 2 for v in s["metrics"]["greedy_accuracy"].values())
     assert s["optimal"]["reward_per_step"] == pytest.approx(8.0)
     assert s["wall_time_s"] > 0 and s["agent_steps_per_s"] > 0
-    rewards = np.load(tiny_run / "records" / "floor_train.npz")["rewards"]
+    rewards = np.load(tiny_run / "records" / "steps.npz")["rewards"]
     assert rewards.shape == (2, 300)
     np.testing.assert_allclose(rewards[:, -30:].mean(1), s["metrics"]["reward_per_step_last10pct"], rtol=1e-5)
     test = np.load(tiny_run / "records" / "floor_test.npz")
@@ -80,23 +80,33 @@ def test_existing_run_is_never_overwritten(tiny_run):
     assert (tiny_run / "summary.json").read_text() == before
 
 
+def checkpointed_step(run_dir) -> int:
+    """The training step of the run's last checkpoint: 0 before the actor phase started, or
+    while no checkpoint exists (or one is being replaced)."""
+    try:
+        progress = torch.load(run_dir / "checkpoints" / "last.pt", weights_only=False)["progress"]
+    except (FileNotFoundError, RuntimeError, EOFError):
+        return 0
+    return (progress["partial"].get("actor") or {}).get("step", 0)
+
+
 def interrupt_and_resume(tmp_path, args: list, steps: int, sig: int, expected_code: int,
                          settle: float = 0.0) -> None:
-    """Run `args` whole; run them again and send `sig` once a checkpoint exists (after `settle`
-    seconds); check the checkpoint lies inside the run, resume, compare with the whole run."""
+    """Run `args` whole; run them again and send `sig` once a checkpoint within the training
+    phase exists (after `settle` seconds); check the checkpoint lies inside the run, resume,
+    compare with the whole run."""
     whole, cut = tmp_path / "whole", tmp_path / "cut"
     assert run_train(*args, f"hydra.run.dir={whole}").returncode == 0
     proc = subprocess.Popen([sys.executable, str(ROOT / "train.py"), *args, f"hydra.run.dir={cut}"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 120
-    while not (cut / "checkpoints" / "last.pt").exists() and time.time() < deadline:
+    while checkpointed_step(cut) == 0 and time.time() < deadline:
         time.sleep(0.05)
     time.sleep(settle)
     proc.send_signal(sig)
     assert proc.wait(timeout=120) == expected_code, "the run ended before it could be interrupted"
     assert not (cut / "summary.json").exists()
-    step = torch.load(cut / "checkpoints" / "last.pt", weights_only=False)["step"]
-    assert 0 < step < steps
+    assert 0 < checkpointed_step(cut) < steps
     result = run_train(*args, "resume=true", f"hydra.run.dir={cut}")
     assert result.returncode == 0, result.stderr[-2000:]
     assert summary(cut)["metrics"] == summary(whole)["metrics"]

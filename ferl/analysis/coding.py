@@ -2,14 +2,16 @@
 
 Pure numpy/scipy: median firing rates (Eq. 3.12), their Gram matrix and the
 derived distance D = g1ᵀ + 1gᵀ − 2G (§3.5.3), hierarchical clustering of D,
-the pixel–label mutual information behind Fig. 3.12, moving averages and the
-s.e.m. over runs, and the PCA with the silhouette of labelled points on the
-leading PCs that scores the separation of T-junction activations
-(Figs. 4.14–4.19, 5.7–5.13, 5.20–5.25) and of digit classes (Figs. 5.15–5.16).
+the pixel–label mutual information behind Fig. 3.12, moving averages, and the
+PCA with the silhouette of labelled points on the leading PCs that scores the
+separation of T-junction activations (Figs. 4.14–4.19, 5.7–5.13, 5.20–5.25)
+and of digit classes (Figs. 5.15–5.16). Summary statistics over runs are
+`ferl.stats`'.
 """
 
 from __future__ import annotations
 
+import warnings
 from itertools import combinations
 from typing import Sequence
 
@@ -116,14 +118,6 @@ def pairwise_mutual_information(images_by_class: Sequence[np.ndarray],
     return mi
 
 
-def sem_over_runs(values: np.ndarray) -> np.ndarray:
-    """Standard error of the mean over axis 0 (runs); 0 for a single run."""
-    values = np.asarray(values, dtype=np.float64)
-    if len(values) < 2:
-        return np.zeros(values.shape[1:])
-    return values.std(axis=0, ddof=1) / np.sqrt(len(values))
-
-
 def moving_average(values: np.ndarray, window: int = 100) -> np.ndarray:
     """Mean over the trailing `window` entries of the last axis (Fig. 3.4).
 
@@ -134,6 +128,14 @@ def moving_average(values: np.ndarray, window: int = 100) -> np.ndarray:
     csum = np.cumsum(values, axis=-1)
     csum = np.concatenate([np.zeros(values.shape[:-1] + (1,)), csum], axis=-1)
     return (csum[..., window:] - csum[..., :-window]) / window
+
+
+def nanmean(x: np.ndarray, axis=None) -> np.ndarray:
+    """np.nanmean without the warning for cells that are NaN in every run (a prediction error at
+    t > T, a silhouette undefined in every run)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.nanmean(x, axis=axis)
 
 
 # ---- PCA and the separation of labelled points (§4.3.2, §5.3) ----------------

@@ -1,58 +1,51 @@
-"""One digit-floor run (chapter 3) → its figures, data files and judged claims.
+"""One digit-floor run (chapter 3) → its chapter figures and data files.
 
-`FloorRun` loads the records of docs/records.md plus `summary.json` and derives
-what the figures and claims share: greedy accuracy (Fig. 3.6), median firing
-rates and their clustering (Eq. 3.12, Figs. 3.11/3.13) and the pixel–label
-mutual information (Fig. 3.12). `analyze` writes the numbers into the run's
-`analysis/` folder and returns the figures and claims for the report.
+`FloorRun` reads the digit floor's records (docs/records.md) of a run whose environment is the
+digit floor (`env.kind` in run.json) and derives what the figures and the claims of
+`ferl.analysis.ch3` share: greedy accuracy (Fig. 3.6), median firing rates and their clustering
+(Eq. 3.12, Figs. 3.11/3.13) and the pixel–label mutual information (Fig. 3.12). The reward
+curve of Fig. 3.4 is one of the generic figures (`ferl.analysis.generic`). `analyze` writes the
+numbers into the run's `analysis/` folder and returns the figures.
 """
 
 from __future__ import annotations
 
-import csv
 import json
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
+from ferl import stats
 from ferl.analysis import coding
-from ferl.analysis.coding import sem_over_runs
-from ferl.evaluation import greedy_accuracy
 from ferl.analysis import floor_figures as figs
-from ferl.analysis.report import FLOOR_CLAIMS, PERCEPTUAL_PAIRS, RunAnalysis, evaluate
+from ferl.analysis.io import fmt, write_csv
+from ferl.analysis.records import Run
+from ferl.analysis.report import RunAnalysis
 
-TASK = "digit_floor"
-WINDOW = 100           # moving-average window of Fig. 3.4
-MAX_CURVE_POINTS = 2000
+ENV_KIND = "digit_floor"
 MI_BINS = 2            # see coding.pairwise_mutual_information
 LINKAGE = "average"
 INCLUDE_GOAL_IN_CLUSTERING = False  # see FloorRun.cluster_classes
 PHASES = ("before", "after")
 NOISE_CLASS = "N"
-
-
-def _load_npz(path: Path) -> dict[str, np.ndarray]:
-    with np.load(path, allow_pickle=False) as data:
-        return {key: data[key] for key in data.files}
+PERCEPTUAL_PAIRS = (("1", "7"), ("3", "8"))  # grouped without reward, Fig. 3.11(c)
 
 
 @dataclass
 class FloorRun:
-    run_dir: Path
-    summary: dict
-    train: dict[str, np.ndarray]
-    test: dict[str, np.ndarray]
-    weights: dict[str, np.ndarray]
+    run: Run
+    test: dict[str, np.ndarray]      # records/floor_test.npz
+    weights: dict[str, np.ndarray]   # records/weights.npz
 
     @classmethod
-    def load(cls, run_dir: Path) -> FloorRun:
-        records = run_dir / "records"
-        return cls(run_dir, json.loads((run_dir / "summary.json").read_text()),
-                   _load_npz(records / "floor_train.npz"), _load_npz(records / "floor_test.npz"),
-                   _load_npz(records / "weights.npz"))
+    def load(cls, run: Run) -> FloorRun:
+        return cls(run, run.records("floor_test"), run.records("weights"))
+
+    @property
+    def summary(self) -> dict:
+        return self.run.summary
 
     # ---- layout of the floor and the test ----
     @cached_property
@@ -90,7 +83,7 @@ class FloorRun:
 
     @property
     def n_runs(self) -> int:
-        return self.train["rewards"].shape[0]
+        return self.test["greedy_counts_after"].shape[0]
 
     @property
     def chance(self) -> float:
@@ -104,15 +97,15 @@ class FloorRun:
     def has_optimal_actions(self) -> bool:
         return bool((self.optimal_action >= 0).any())
 
-    @cached_property
+    @property
     def reward_free(self) -> bool:
-        """No reward was ever delivered: the "without reward" condition of §3.5.3."""
-        return not self.train["rewards"].any()
+        """The "without reward" condition of §3.5.3: the floor delivers no reward."""
+        return self.run.manifest.env.get("reward_condition") == "none"
 
     # ---- behaviour (Figs. 3.4, 3.6) ----
     @cached_property
     def accuracy(self) -> dict[str, np.ndarray]:
-        return {p: greedy_accuracy(self.test[f"greedy_counts_{p}"], self.optimal_action)
+        return {p: stats.greedy_accuracy(self.test[f"greedy_counts_{p}"], self.optimal_action)
                 for p in PHASES}
 
     # ---- population coding (Figs. 3.10–3.13) ----
@@ -156,6 +149,11 @@ class FloorRun:
     def same_action_pairs(self) -> list[tuple[int, int]]:
         return coding.same_action_pairs(self.classes, self.optimal_action)
 
+    def named_pairs(self, names) -> list[tuple[int, int]]:
+        """Class-index pairs of the named pairs whose classes are both on this floor."""
+        return [(self.classes.index(a), self.classes.index(b)) for a, b in names
+                if a in self.classes and b in self.classes]
+
     def cluster_hits(self, i: int, j: int, source: str = "hidden") -> list[bool]:
         """Per run with finite activations: are classes i and j (indices into classes) merged
         directly in the dendrogram?"""
@@ -198,77 +196,50 @@ class FloorRun:
 
 # ---- data files ------------------------------------------------------------
 
-def _write_csv(path: Path, header: Sequence[str], rows) -> None:
-    with path.open("w", newline="") as f:
-        writer = csv.writer(f)
-        writer.writerow(header)
-        writer.writerows(rows)
-
-
-def _fmt(x) -> str:
-    return f"{x:.6g}"
-
-
-def _run_columns(n_runs: int) -> list[str]:
-    return [f"run_{r}" for r in range(n_runs)]
-
-
-def _reward_curve(run: FloorRun) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    rewards = run.train["rewards"]
-    window = min(WINDOW, rewards.shape[1])
-    ma = coding.moving_average(rewards, window)
-    stride = max(1, ma.shape[1] // MAX_CURVE_POINTS)  # plotting every step adds nothing visible
-    keep = np.arange(0, ma.shape[1], stride)
-    return keep + window, ma[:, keep].mean(axis=0), sem_over_runs(ma[:, keep]), window
-
-
 def write_tables(run: FloorRun, out: Path) -> list[str]:
     """Write the numbers behind the figures; return the file names."""
     written = []
 
     def table(name: str, header, rows) -> None:
-        _write_csv(out / name, header, rows)
+        write_csv(out / name, header, rows)
         written.append(name)
 
-    steps, mean, sem, window = _reward_curve(run)
-    table("reward_moving_average.csv", ["step", f"mean_ma{window}", f"sem_ma{window}"],
-          [(int(s), _fmt(m), _fmt(d)) for s, m, d in zip(steps, mean, sem)])
-
-    runs = _run_columns(run.n_runs)
+    runs = [f"run_{r}" for r in range(run.n_runs)]
     table("greedy_accuracy.csv", ["phase", "test_noise", "mean", "sem", *runs],
-          [(p, _fmt(x), _fmt(acc[:, l].mean()), _fmt(sem[l]), *map(_fmt, acc[:, l]))
-           for p, acc in run.accuracy.items() for sem in [coding.sem_over_runs(acc)]
-           for l, x in enumerate(run.noise_levels)])
+          [(p, fmt(x), fmt(mean), fmt(sem), *map(fmt, acc[:, l]))
+           for p, acc in run.accuracy.items() for l, x in enumerate(run.noise_levels)
+           for mean, sem, _ in [stats.mean_sem(acc[:, l])]])
 
     table("greedy_counts_probe_noise.csv",
           ["phase", "class", "action", "optimal", "mean", "sd", *runs],
-          [(p, name, act, int(run.optimal_action[c] == a),
-            _fmt(counts[:, c, a].mean()), _fmt(counts[:, c, a].std()), *counts[:, c, a].tolist())
+          [(p, name, act, int(run.optimal_action[c] == a), fmt(mean), fmt(sd),
+            *counts[:, c, a].tolist())
            for p in PHASES
            for counts in [run.test[f"greedy_counts_{p}"][:, run.probe_level]]
-           for c, name in enumerate(run.classes) for a, act in enumerate(run.action_names)])
+           for c, name in enumerate(run.classes) for a, act in enumerate(run.action_names)
+           for mean, sd, _ in [stats.mean_sd(counts[:, c, a])]])
 
     if run.outlier_class is not None:
         c = run.outlier_class
         a = run.optimal_action[c]
         probs = {p: run.test[f"probs_{p}"][0, c, :, a] for p in PHASES}
         table("outlier_probs_run0.csv", ["class", "image", "p_optimal_before", "p_optimal_after"],
-              [(run.classes[c], k, _fmt(b), _fmt(f))
+              [(run.classes[c], k, fmt(b), fmt(f))
                for k, (b, f) in enumerate(zip(probs["before"], probs["after"]))])
 
     units = [f"h{k + 1}" for k in range(run.mfr["after"].shape[2])]
     for p in PHASES:
         table(f"median_activation_{p}_run0.csv", ["class", *units],
-              [(name, *map(_fmt, row))
+              [(name, *map(fmt, row))
                for name, row in zip(run.classes, run.median_activation(p)[0])])
     for r, mfr in enumerate(run.mfr["after"]):
         table(f"mfr_run{r}.csv", ["class", *units],
-              [(name, *map(_fmt, row)) for name, row in zip(run.classes, mfr)])
+              [(name, *map(fmt, row)) for name, row in zip(run.classes, mfr)])
     _, distance = coding.gram_distance(run.mfr["after"][0])
     table("mfr_distance_run0.csv", ["class", *run.classes],
-          [(name, *map(_fmt, row)) for name, row in zip(run.classes, distance)])
+          [(name, *map(fmt, row)) for name, row in zip(run.classes, distance)])
     table("mutual_information.csv", ["class", *run.classes],
-          [(name, *map(_fmt, row)) for name, row in zip(run.classes, run.mutual_information)])
+          [(name, *map(fmt, row)) for name, row in zip(run.classes, run.mutual_information)])
 
     (out / "pair_clusters.json").write_text(json.dumps(_pair_clusters(run), indent=2) + "\n")
     written.append("pair_clusters.json")
@@ -283,14 +254,12 @@ def _pair_clusters(run: FloorRun) -> dict:
                 "n_runs": len(hits), "per_run": hits,
                 "runs_forming_cluster_fn6_activation": sum(marginal), "per_run_fn6_activation": marginal}
 
-    perceptual = [(run.classes.index(a), run.classes.index(b)) for a, b in PERCEPTUAL_PAIRS
-                  if a in run.classes and b in run.classes]
     return {
         "linkage": LINKAGE,
         "clustered_classes": run.cluster_classes,
         "same_action_pairs": [dict(entry(i, j), action=run.action_names[run.optimal_action[i]])
                               for i, j in run.same_action_pairs],
-        "perceptual_pairs": [entry(i, j) for i, j in perceptual],
+        "perceptual_pairs": [entry(i, j) for i, j in run.named_pairs(PERCEPTUAL_PAIRS)],
     }
 
 
@@ -298,14 +267,9 @@ def _pair_clusters(run: FloorRun) -> dict:
 
 def make_figures(run: FloorRun, n_outlier_images: int = 40) -> dict[str, tuple]:
     """name → (Figure, caption) for every chapter-3 figure this run's records support."""
-    out = {}
-    steps, mean, sem, window = _reward_curve(run)
-    out["fig3_4_reward"] = (figs.reward_curve(steps, mean, sem, run.optimal_reward, window,
-                                              run.n_runs),
-                            "Fig. 3.4: moving average of the reward, mean ± s.e.m. over runs")
-    out["fig3_5_weights"] = (figs.weight_images(run.weights["W_sh_before"][0],
-                                                run.weights["W_sh_after"][0]),
-                             "Fig. 3.5: observation→hidden weights before/after training (run 0)")
+    out = {"fig3_5_weights": (figs.weight_images(run.weights["state_weights_before"][0],
+                                                 run.weights["state_weights_after"][0]),
+                              "Fig. 3.5: observation→hidden weights before/after training (run 0)")}
     noise = f"{100 * run.probe_noise:g} %"
     for panel, p in zip("ab", PHASES):
         counts = run.test[f"greedy_counts_{p}"][:, run.probe_level]
@@ -333,7 +297,7 @@ def make_figures(run: FloorRun, n_outlier_images: int = 40) -> dict[str, tuple]:
         figs.median_activation(run.median_activation("before")[0],
                                run.median_activation("after")[0], run.classes),
         "Fig. 3.10: median hidden activation per class (run 0)")
-    what = f"{run.summary.get('experiment', '')}, {run.mfr['after'].shape[2]} hidden nodes"
+    what = f"{run.run.experiment}, {run.mfr['after'].shape[2]} hidden nodes"
     shown = next((r for r, z in enumerate(run.mfr_linkages) if z is not None), None)
     if shown is not None:  # the first run whose weights did not diverge
         out["fig3_11_dendrogram_run0"] = (
@@ -353,28 +317,21 @@ def make_figures(run: FloorRun, n_outlier_images: int = 40) -> dict[str, tuple]:
 
 
 def _header(run: FloorRun) -> list[tuple[str, str]]:
-    rewards = run.train["rewards"]
-    n_images = run.test["probs_after"].shape[2]
     return [
-        ("run directory", f"`{run.run_dir}`"),
-        ("experiment", str(run.summary.get("experiment", "?"))),
-        ("seeds", str(run.summary.get("seeds", "?"))),
-        ("runs × training steps", f"{rewards.shape[0]} × {rewards.shape[1]}"),
         ("floor patch", " / ".join(" ".join(row) for row in run.arrangement)),
         ("optimal actions", ", ".join(f"{c} {run.action_names[a] if a >= 0 else 'goal'}"
                                       for c, a in zip(run.classes, run.optimal_action))),
         ("reward", "none delivered (reward-free condition)" if run.reward_free
          else f"optimum {run.optimal_reward:g} per step"),
         ("training / probe noise", f"{100 * run.probe_noise:g} %"),
-        ("test images per class", str(n_images)),
+        ("test images per class", str(run.test["probs_after"].shape[2])),
         ("clustering", f"{LINKAGE} linkage; mutual information with {MI_BINS} intensity bins"),
     ]
 
 
-def analyze(run_dir: Path, out: Path) -> RunAnalysis:
-    """Analyze one digit-floor run; data files go to `out`, figures are returned."""
-    run = FloorRun.load(run_dir)
-    experiment = run.summary.get("experiment", run_dir.name)
-    return RunAnalysis(title=f"Digit floor (chapter 3): {experiment}",
-                       header=_header(run), figures=make_figures(run),
-                       data_files=write_tables(run, out), results=evaluate(FLOOR_CLAIMS, run))
+def analyze(run: Run, out: Path) -> tuple[FloorRun, RunAnalysis]:
+    """The chapter-3 figures and data files of a digit-floor run, and the run as the claims of
+    `ferl.analysis.ch3` read it."""
+    floor = FloorRun.load(run)
+    return floor, RunAnalysis(f"Digit floor (chapter 3): {run.experiment}", _header(floor),
+                              figures=make_figures(floor), data_files=write_tables(floor, out))

@@ -1,8 +1,9 @@
-"""Figures of chapter 3 (digit floor, Figs. 3.4–3.13), drawn from run records.
+"""Figures of chapter 3 (digit floor, Figs. 3.5–3.13), drawn from run records.
 
 Every function takes plain arrays and returns a `matplotlib.figure.Figure`
 built without pyplot (so no global figure state; rendered by the Agg canvas
-when saved). The numbers come from `ferl.analysis.coding`.
+when saved). The numbers come from `ferl.analysis.coding`; the reward curve of
+Fig. 3.4 is a generic figure (`ferl.analysis.figures`).
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 from scipy.cluster.hierarchy import dendrogram
 
-from ferl.analysis.coding import sem_over_runs
+from ferl import stats
 
 SIDE = 28  # MNIST tiles are 28 × 28 pixels (§3.4)
 OPTIMAL_COLOR, OTHER_COLOR, GOAL_COLOR = "tab:orange", "tab:blue", "lightgray"
@@ -35,23 +36,6 @@ def _mosaic(tiles: np.ndarray, ncols: int, pad_x: int = 2, pad_y: int = 2) -> np
 def _no_ticks(ax) -> None:
     ax.set_xticks([])
     ax.set_yticks([])
-
-
-def reward_curve(steps: np.ndarray, mean: np.ndarray, sem: np.ndarray,
-                 optimum: float | None, window: int, n_runs: int) -> Figure:
-    """Fig. 3.4: moving average of the reward, mean ± s.e.m. over runs."""
-    fig = Figure(figsize=(7, 4), layout="constrained")
-    ax = fig.add_subplot()
-    ax.plot(steps, mean, color="tab:blue", label=f"mean over {n_runs} runs")
-    ax.fill_between(steps, mean - sem, mean + sem, color="tab:blue", alpha=0.25,
-                    label="± s.e.m. over runs")
-    if optimum is not None:
-        ax.axhline(optimum, color="k", ls="--", label=f"optimum ({optimum:g} per step)")
-    ax.set_xlabel("training step")
-    ax.set_ylabel(f"reward per step ({window}-step moving average)")
-    ax.set_title(f"Fig. 3.4: moving average of the immediate reward over {window} steps")
-    ax.legend(loc="lower right")
-    return fig
 
 
 def weight_images(w_before: np.ndarray, w_after: np.ndarray, ncols: int = 10) -> Figure:
@@ -94,8 +78,8 @@ def greedy_count_grid(counts: np.ndarray, classes: Sequence[str], arrangement: n
         c = index[name]
         colors = [GOAL_COLOR if optimal_action[c] < 0 else
                   OPTIMAL_COLOR if a == optimal_action[c] else OTHER_COLOR for a in x]
-        ax.bar(x, counts[:, c].mean(axis=0), yerr=counts[:, c].std(axis=0),
-               color=colors, capsize=2)
+        mean, sd, _ = zip(*(stats.mean_sd(counts[:, c, a]) for a in x))
+        ax.bar(x, mean, yerr=sd, color=colors, capsize=2)
         ax.plot(x[None, :] + jitter[:, None], counts[:, c], "k.", ms=2)
         ax.set_xticks(x, action_names)
         ax.set_title(f'"{name}"' + (" (goal)" if optimal_action[c] < 0 else ""))
@@ -118,7 +102,7 @@ def accuracy_vs_noise(noise_levels: np.ndarray, acc_before: np.ndarray, acc_afte
     fig = Figure(figsize=(6.5, 4), layout="constrained")
     ax = fig.add_subplot()
     for phase, acc in (("before", acc_before), ("after", acc_after)):
-        ax.errorbar(100 * noise_levels, acc.mean(axis=0), yerr=sem_over_runs(acc), marker="o",
+        ax.errorbar(100 * noise_levels, acc.mean(axis=0), yerr=stats.sem(acc), marker="o",
                     capsize=3,
                     color=PHASE_COLOR[phase], label=f"{phase} training")
     ax.axhline(chance, color="k", ls=":", label=f"chance (1/{round(1 / chance)})")

@@ -1,6 +1,8 @@
 """The RBM observation preprocessor of chapter 5 (§5.2, §5.3.2; Figs. 5.15–5.16) in numbers.
 
-`Preprocessing` reads `records/preprocessor.npz` (docs/records.md) of a digit-maze run: the
+`Preprocessing` reads `records/preprocessor.npz` (docs/records.md) of a run with a preprocessor
+(`preprocessor` in run.json), the observation names of its environment and, where the
+environment records them, the digit class of each (`env.digit_classes`): the
 environment's observation table (every image of every observation's reservoir) and each
 run's RBM hidden expectations of it, the processed observations y. Observations of one digit
 class show the same reservoir, so one reservoir per distinct class is kept: the "500
@@ -20,9 +22,10 @@ from typing import Sequence
 
 import numpy as np
 
+from ferl import stats
 from ferl.analysis import tmaze_figures as figs
-from ferl.analysis.coding import pca, sem_over_runs, subsampled_silhouette
-from ferl.analysis.floor import _fmt, _write_csv
+from ferl.analysis.coding import pca, subsampled_silhouette
+from ferl.analysis.io import fmt, write_csv
 
 RAW_FIGURE, PROCESSED_FIGURE = "Fig. 5.15", "Fig. 5.16"
 FIRST_PCS = 20                # Fig. 5.15(c): the first 20 of the 784 PCs
@@ -123,15 +126,15 @@ def describe(pre: Preprocessing) -> str:
 def write_tables(pre: Preprocessing, out: Path) -> list[str]:
     """Write the numbers behind Figs. 5.15–5.16 and the training curve; return the file names."""
     ratios = pre.processed_ratios
-    _write_csv(out / "preprocessor_explained_variance.csv", ["data", "pc", "mean", "sem"],
-               [("raw", k + 1, _fmt(x), "") for k, x in enumerate(pre.raw[1])]
-               + [("processed", k + 1, _fmt(m), _fmt(s))
-                  for k, (m, s) in enumerate(zip(ratios.mean(axis=0), sem_over_runs(ratios)))])
+    write_csv(out / "preprocessor_explained_variance.csv", ["data", "pc", "mean", "sem"],
+              [("raw", k + 1, fmt(x), "") for k, x in enumerate(pre.raw[1])]
+              + [("processed", k + 1, fmt(m), fmt(s))
+                 for k, (m, s) in enumerate(zip(ratios.mean(axis=0), stats.sem(ratios)))])
     errors = pre.reconstruction
-    _write_csv(out / "preprocessor_reconstruction_error.csv",
-               ["sweep", "mean", "sem", *(f"run_{r}" for r in range(pre.n_runs))],
-               [(k + 1, _fmt(m), _fmt(s), *map(_fmt, errors[:, k]))
-                for k, (m, s) in enumerate(zip(errors.mean(axis=0), sem_over_runs(errors)))])
+    write_csv(out / "preprocessor_reconstruction_error.csv",
+              ["sweep", "mean", "sem", *(f"run_{r}" for r in range(pre.n_runs))],
+              [(k + 1, fmt(m), fmt(s), *map(fmt, errors[:, k]))
+               for k, (m, s) in enumerate(zip(errors.mean(axis=0), stats.sem(errors)))])
     raw, processed = pre.silhouettes
     numbers = {
         "classes": pre.class_names, "images_per_class": pre.reservoir_size,
@@ -179,7 +182,7 @@ def make_figures(pre: Preprocessing) -> dict[str, tuple]:
             f"{PROCESSED_FIGURE}: the same images processed by the RBM of run {FIGURE_RUN} on "
             f"PC1–3 by digit class, and the explained-variance ratio of all {n_hidden} PCs"),
         "preprocessor_reconstruction_error": (
-            figs.reconstruction_error(errors.mean(axis=0), sem_over_runs(errors), pre.n_runs,
+            figs.reconstruction_error(errors.mean(axis=0), stats.sem(errors), pre.n_runs,
                                       (pre.held_out("before").mean(), pre.held_out("after").mean()),
                                       f"RBM preprocessor training (§5.3.2), {n_raw} → {n_hidden}"),
             "§5.3.2 (no figure in the dissertation): the RBM's reconstruction error per training "

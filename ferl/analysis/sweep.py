@@ -5,11 +5,15 @@ Every job keeps its own `analysis/` (CONTRACT §4); the sweep's `analysis/` gets
 * `metrics.csv` and one table per experiment: mean ± s.e.m. over runs of every
   `summary.json` metric, one column per variant of the experiment (a variant is a job's
   overrides besides `experiment=…`; none = the dissertation's setting);
-* the training-noise × test-noise grid of Fig. 3.6 from the digit-floor jobs of one
-  experiment that differ only in `env.noise` (each job tests every noise level);
+* the training-noise × test-noise grid of Fig. 3.6 from the jobs of one experiment that
+  differ only in the environment's `noise` (run.json) and test every noise level (a
+  `greedy_accuracy` per level in summary.json);
 * the reproduction report: one row per dissertation claim, judged on the job that runs
   the experiment as the dissertation did (the fewest overrides), the verdicts of the other
-  jobs beside it, and the claims only a comparison of jobs can judge (`SWEEP_CLAIMS`).
+  jobs beside it, and the claims only a comparison of jobs can judge
+  (`ferl.analysis.sweep_claims`).
+
+Means and s.e.m. over runs are `ferl.stats`', metric names its flattening (`<metric>/<level>`).
 """
 
 from __future__ import annotations
@@ -23,11 +27,12 @@ from typing import Sequence
 
 import numpy as np
 
-from ferl import runs
-from ferl.analysis.floor import _fmt, _write_csv
+from ferl import runs, stats
+from ferl.analysis.claims import VERDICTS, Claim, ClaimResult
 from ferl.analysis.floor_figures import noise_grid_heatmap
-from ferl.analysis.report import (CLAIM_ORDER, SWEEP_CLAIMS, VERDICTS, ClaimResult, RunAnalysis, RunOutcome,
-                                  _cell, evaluate)
+from ferl.analysis.io import fmt, table_lines, write_csv
+from ferl.analysis.records import Manifest
+from ferl.analysis.report import RunAnalysis, RunOutcome
 
 SCALARS = ("wall_time_s", "agent_steps_per_s")   # summary.json figures besides `metrics`
 DISSERTATION_SETTING = "as in the dissertation"  # the variant of a job without overrides
@@ -56,10 +61,6 @@ class Job:
     def experiment(self) -> str:
         return str(self.summary.get("experiment", "?"))
 
-    @property
-    def task(self) -> str:
-        return str(self.summary.get("task", "?"))
-
     @cached_property
     def overrides(self) -> tuple[str, ...]:
         return _job_overrides(self.run_dir)
@@ -74,14 +75,14 @@ class Job:
         return f"`{' '.join((self.experiment, *self.overrides))}`"
 
     @cached_property
-    def config(self) -> dict:
-        """The flattened resolved config (`ferl.runs`), {} without `.hydra/config.yaml`."""
-        has_config = (self.run_dir / ".hydra" / "config.yaml").is_file()
-        return runs.load_config(self.run_dir) if has_config else {}
+    def manifest(self) -> Manifest | None:
+        return Manifest.load(self.run_dir)
 
-    def setting(self, group: str, key: str):
-        """A resolved config value, None without one."""
-        return self.config.get(f"{group}.{key}")
+    def setting(self, part: str, key: str):
+        """A parameter of a part of the run as records/run.json states it (`env.noise`,
+        `actor.n_hidden`), None without one."""
+        facts = None if self.manifest is None else getattr(self.manifest, part)
+        return (facts or {}).get(key)
 
     def verdict(self, source: str) -> ClaimResult | None:
         return next((r for r in self.outcome.results if r.claim.source == source), None)
@@ -96,43 +97,27 @@ class Sweep:
     def of(self, experiment: str) -> list[Job]:
         return [j for j in self.jobs if j.experiment == experiment]
 
-    def varying(self, experiment: str, group: str, key: str) -> list[dict]:
-        """The jobs of `experiment` that differ only in `group.key`, as sets {value: job};
-        one set per combination of the other overrides, fewest overrides first. The first
-        job of a value stands for it (the same config and seed give the same numbers)."""
-        override = f"{group}.{key}="
+    def varying(self, experiment: str, part: str, key: str) -> list[dict]:
+        """The jobs of `experiment` that differ only in `part.key` (the override of that
+        name), as sets {value: job}; one set per combination of the other overrides, fewest
+        overrides first. The first job of a value stands for it (the same config and seed give
+        the same numbers)."""
+        override = f"{part}.{key}="
         sets: dict[tuple[str, ...], dict] = {}
         for job in self.of(experiment):
-            value = job.setting(group, key)
+            value = job.setting(part, key)
             if value is not None:
                 rest = tuple(o for o in job.overrides if not o.startswith(override))
                 sets.setdefault(rest, {}).setdefault(value, job)
         return [sets[rest] for rest in sorted(sets, key=len)]
 
 
-def metric_values(summary: dict) -> dict[str, np.ndarray]:
-    """Every headline figure of a summary as per-seed values; an object metric
-    (`greedy_accuracy`: noise level → values) becomes one entry per key, `name@key`."""
-    out = {}
-    for name, values in summary.get("metrics", {}).items():
-        items = values.items() if isinstance(values, dict) else [(None, values)]
-        for key, v in items:
-            out[name if key is None else f"{name}@{key}"] = np.asarray(v, dtype=np.float64).ravel()
-    for name in SCALARS:
-        if name in summary:
-            out[name] = np.asarray([summary[name]], dtype=np.float64)
+def metric_values(summary: dict) -> dict[str, list]:
+    """Every headline figure of a summary as per-run values, named as `ferl.stats` flattens
+    them (`greedy_accuracy/0.5`), then the run-level `SCALARS`."""
+    out = stats.flat_metrics(summary.get("metrics", {}))
+    out |= {name: [summary[name]] for name in SCALARS if name in summary}
     return out
-
-
-def mean_sem(values: np.ndarray) -> tuple[float, float, int]:
-    """(mean, s.e.m., n) over the finite values (a diverged run's NaN is left out and
-    shows as a smaller n); the s.e.m. of a single value is NaN."""
-    finite = values[np.isfinite(values)]
-    n = len(finite)
-    if n == 0:
-        return math.nan, math.nan, 0
-    sem = float(finite.std(ddof=1) / math.sqrt(n)) if n > 1 else math.nan
-    return float(finite.mean()), sem, n
 
 
 @dataclass(frozen=True)
@@ -147,7 +132,7 @@ class Aggregate:
 
 def aggregate(jobs: Sequence[Job]) -> list[Aggregate]:
     """Mean ± s.e.m. over runs of every metric of every job, in job order."""
-    return [Aggregate(job.experiment, job.variant, metric, *mean_sem(values))
+    return [Aggregate(job.experiment, job.variant, metric, *stats.mean_sem(values))
             for job in jobs for metric, values in metric_values(job.summary).items()]
 
 
@@ -164,12 +149,10 @@ def experiment_tables(rows: Sequence[Aggregate]) -> dict[str, list[str]]:
         mine = [r for r in rows if r.experiment == experiment]
         variants = list(dict.fromkeys(r.variant for r in mine))
         metrics = list(dict.fromkeys(r.metric for r in mine))
-        cell = {(r.metric, r.variant): r for r in mine}
-        lines = [f"| metric | {' | '.join(f'`{v}`' for v in variants)} |",
-                 f"|{' --- |' * (len(variants) + 1)}"]
-        for m in metrics:
-            cells = [_cell_text(cell[m, v]) if (m, v) in cell else "—" for v in variants]
-            lines.append(f"| {m} | {' | '.join(cells)} |")
+        by_key = {(r.metric, r.variant): r for r in mine}
+        lines = table_lines(["metric", *(f"`{v}`" for v in variants)],
+                            [[m, *(_cell_text(by_key[m, v]) if (m, v) in by_key else "—"
+                                   for v in variants)] for m in metrics])
         tables[experiment] = lines
     return tables
 
@@ -186,9 +169,10 @@ class NoiseGrid:
 
 
 def noise_grids(sweep: Sweep) -> list[NoiseGrid]:
-    """One grid per set of digit-floor jobs that differ only in `env.noise`, at ≥ 2 levels."""
+    """One grid per set of jobs that differ only in `env.noise`, at ≥ 2 levels, and record a
+    greedy accuracy per test-noise level."""
     grids = []
-    for experiment in dict.fromkeys(j.experiment for j in sweep.jobs if j.task == "digit_floor"):
+    for experiment in dict.fromkeys(j.experiment for j in sweep.jobs):
         for by_level in sweep.varying(experiment, "env", "noise"):
             by_level = {float(k): j for k, j in by_level.items()
                         if "greedy_accuracy" in j.summary.get("metrics", {})}
@@ -205,7 +189,7 @@ def _noise_grid(experiment: str, by_level: dict[float, Job]) -> NoiseGrid:
     for t, level in enumerate(train):
         for key, values in accuracy[level].items():
             k = int(np.flatnonzero(np.isclose(test, float(key)))[0])
-            mean[t, k], sem[t, k], _ = mean_sem(np.asarray(values, dtype=np.float64))
+            mean[t, k], sem[t, k], _ = stats.mean_sem(values)
     return NoiseGrid(experiment, train, test, mean, sem)
 
 
@@ -218,9 +202,10 @@ class ReportRow:
     others: tuple[tuple[Job, ClaimResult], ...]  # other jobs that judged the same claim
 
 
-def reproduction_rows(jobs: Sequence[Job], sweep_results: Sequence[ClaimResult]) -> list[ReportRow]:
-    """One row per claim, in the dissertation's order: the job with the fewest overrides judges
-    it (ties: sweep order)."""
+def reproduction_rows(jobs: Sequence[Job], sweep_results: Sequence[ClaimResult],
+                      order: Sequence[Claim]) -> list[ReportRow]:
+    """One row per claim, in the given (the dissertation's) order: the job with the fewest
+    overrides judges it (ties: sweep order)."""
     answered: dict[tuple[str, str], list[tuple[Job, ClaimResult]]] = {}
     for job in jobs:
         for r in job.outcome.results:
@@ -231,8 +216,8 @@ def reproduction_rows(jobs: Sequence[Job], sweep_results: Sequence[ClaimResult])
         job, result = found[primary]
         rows.append(ReportRow(result, job, tuple(f for k, f in enumerate(found) if k != primary)))
     rows += [ReportRow(r, None, ()) for r in sweep_results]
-    order = {id(c): k for k, c in enumerate(CLAIM_ORDER)}
-    return sorted(rows, key=lambda row: order.get(id(row.result.claim), len(order)))
+    rank = {id(c): k for k, c in enumerate(order)}
+    return sorted(rows, key=lambda row: rank.get(id(row.result.claim), len(rank)))
 
 
 def _link(target: Path, start: Path) -> str:
@@ -240,8 +225,7 @@ def _link(target: Path, start: Path) -> str:
 
 
 def claims_rows_markdown(rows: Sequence[ReportRow], out: Path, links: bool = True) -> list[str]:
-    lines = ["| claim | source | measured | verdict | job | other jobs |",
-             "| --- | --- | --- | --- | --- | --- |"]
+    cells = []
     for row in rows:
         r = row.result
         if row.job is None:
@@ -251,36 +235,34 @@ def claims_rows_markdown(rows: Sequence[ReportRow], out: Path, links: bool = Tru
             job = (f"[{name}]({_link(row.job.run_dir / 'analysis' / 'report.md', out)})"
                    if links else name)
         others = "; ".join(f"{j.label}: {o.verdict}" for j, o in row.others) or "—"
-        cells = [r.claim.text, r.claim.source, r.measured.text]
-        lines.append("| " + " | ".join(map(_cell, cells))
-                     + f" | **{r.verdict}** | {job} | {others} |")
-    return lines
+        cells.append([r.claim.text, r.claim.source, r.measured.text, f"**{r.verdict}**", job,
+                      others])
+    return table_lines(["claim", "source", "measured", "verdict", "job", "other jobs"], cells)
 
 
 def verdict_counts(rows: Sequence[ReportRow]) -> str:
     return ", ".join(f"{sum(r.result.verdict == v for r in rows)} {v}" for v in VERDICTS)
 
 
-def analyze_sweep(sweep: Sweep, out: Path) -> tuple[RunAnalysis, list[ReportRow]]:
-    """Write metrics.csv and the noise grids' CSVs; return the figures, data files and report rows."""
-    analysis = RunAnalysis(f"Reproduction report: sweep `{sweep.root}`", [])
+def analyze_sweep(sweep: Sweep, out: Path) -> RunAnalysis:
+    """Write metrics.csv and the noise grids' CSVs; return the figures and data files."""
+    analysis = RunAnalysis(f"Reproduction report: sweep `{sweep.root}`")
     rows_data = aggregate(sweep.jobs)
-    _write_csv(out / "metrics.csv", ["experiment", "variant", "metric", "mean", "sem", "n_runs"],
-               [(a.experiment, a.variant, a.metric, _fmt(a.mean), _fmt(a.sem), a.n)
-                for a in rows_data])
+    write_csv(out / "metrics.csv", ["experiment", "variant", "metric", "mean", "sem", "n_runs"],
+              [(a.experiment, a.variant, a.metric, fmt(a.mean), fmt(a.sem), a.n)
+               for a in rows_data])
     analysis.data_files.append("metrics.csv")
 
     for g in noise_grids(sweep):
         name = f"fig3_6_noise_grid_{g.experiment}"
-        _write_csv(out / f"{name}.csv", ["train_noise", "test_noise", "accuracy_mean", "accuracy_sem"],
-                   [(_fmt(tr), _fmt(te), _fmt(g.mean[t, k]), _fmt(g.sem[t, k]))
-                    for t, tr in enumerate(g.train) for k, te in enumerate(g.test)])
+        write_csv(out / f"{name}.csv", ["train_noise", "test_noise", "accuracy_mean", "accuracy_sem"],
+                  [(fmt(tr), fmt(te), fmt(g.mean[t, k]), fmt(g.sem[t, k]))
+                   for t, tr in enumerate(g.train) for k, te in enumerate(g.test)])
         analysis.data_files.append(f"{name}.csv")
         analysis.figures[name] = (noise_grid_heatmap(g.train, g.test, g.mean, g.experiment),
                                   f"Fig. 3.6 (all panels' noise pairs): greedy accuracy after "
                                   f"training, `{g.experiment}`, training × test noise")
-    analysis.results = evaluate(SWEEP_CLAIMS, sweep)
-    return analysis, reproduction_rows(sweep.jobs, analysis.results)
+    return analysis
 
 
 def report_lines(sweep: Sweep, analysis: RunAnalysis, rows: Sequence[ReportRow],
@@ -293,7 +275,7 @@ def report_lines(sweep: Sweep, analysis: RunAnalysis, rows: Sequence[ReportRow],
     lines += claims_rows_markdown(rows, out)
     tables = experiment_tables(aggregate(sweep.jobs))
     lines += ["", "## Experiments", "",
-              "Mean ± s.e.m. over runs of every `summary.json` metric (`name@level`: greedy "
+              "Mean ± s.e.m. over runs of every `summary.json` metric (`name/level`: greedy "
               "accuracy at that test noise), one column per variant; `metrics.csv` holds them "
               "with the number of runs."]
     for experiment, table in tables.items():

@@ -1,9 +1,10 @@
-"""Figures of the T-mazes (chapter 4, Figs. 4.5–4.19; chapter 5, Figs. 5.2–5.25), drawn from
-run records.
+"""Figures of the T-junction (chapter 4, Figs. 4.14–4.19; chapter 5, Figs. 5.7–5.13, 5.20–5.25)
+and of the RBM preprocessor (Figs. 5.15–5.16), drawn from run records.
 
 Like `floor_figures`, every function takes plain arrays and returns a
 `matplotlib.figure.Figure` built without pyplot. The numbers come from
-`ferl.analysis.tmaze` and, for the RBM preprocessor of §5.3.2, `ferl.analysis.preprocessor`.
+`ferl.analysis.tmaze` and, for the RBM preprocessor of §5.3.2, `ferl.analysis.preprocessor`;
+learning curves, TD errors and prediction errors are generic figures (`ferl.analysis.figures`).
 """
 
 from __future__ import annotations
@@ -16,121 +17,13 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.ticker import MaxNLocator
 
-ERROR_UNITS = {  # predictor → its recorded error measure (Eq. 4.8; Figs. 5.2/5.17 (a) and (b))
-    "joint": "Eq. 4.8 weighted absolute error\nρ_y Σ|y − ŷ| + ρ_r Σ|r − r̂|",
-    "observation": "absolute error Σ|y − ŷ|\n(processed observations)",
-    "reward": "squared error (r − r̂)²\n(scalar reward)",
-}
+from ferl.analysis.figures import band
+
 MARKER_SIZES = (6.0, 60.0)  # scatter area of the shortest / longest episode (Fig. 4.14b)
-
-
-def _edges(centres: np.ndarray) -> np.ndarray:
-    """Cell edges around sorted centres (pcolormesh), for unevenly logged epochs/episodes."""
-    c = np.asarray(centres, dtype=np.float64)
-    if len(c) == 1:
-        return np.array([c[0] - 0.5, c[0] + 0.5])
-    mid = 0.5 * (c[1:] + c[:-1])
-    return np.concatenate([[2 * c[0] - mid[0]], mid, [2 * c[-1] - mid[-1]]])
 
 
 def _condition_colors(n: int) -> list:
     return [colormaps["tab10"](k) for k in range(n)]
-
-
-def prediction_errors(train: np.ndarray, test: np.ndarray, lengths: np.ndarray,
-                      epochs: np.ndarray, trained_max: int, units: str, title: str) -> Figure:
-    """Figs. 4.5/4.10/5.2/5.17: run-mean error (E, nT, Tmax+1); rows train/test, one column
-    per T; `units` names the error measure on the colour bar."""
-    n_lengths = len(lengths)
-    # The untrained epoch 0 can be many times the rest; a 99th-percentile top (epoch 0
-    # saturates) keeps the learning visible.
-    both = np.concatenate([train.ravel(), test.ravel()])
-    vmax = float(np.nanpercentile(both, 99))
-    extend = "max" if np.nanmax(both) > vmax else "neither"
-    fig = Figure(figsize=(1.6 * n_lengths + 1.5, 6), layout="constrained")
-    axes = fig.subplots(2, n_lengths, sharey=True, squeeze=False)
-    y_edges = _edges(epochs)
-    for row, (split, err) in enumerate((("train", train), ("test", test))):
-        for k, T in enumerate(lengths):
-            ax = axes[row, k]
-            im = ax.pcolormesh(np.arange(T + 2) - 0.5, y_edges, err[:, k, :T + 1],
-                               cmap="viridis", vmin=0, vmax=vmax)
-            ax.set_xticks(range(0, T + 1, 2 if T > 6 else 1))
-            ax.set_title(f"{split}, T = {T}" + ("" if T <= trained_max else "\n(not trained)"),
-                         fontsize="small")
-            if row == 1:
-                ax.set_xlabel("step t")
-        axes[row, 0].set_ylabel("predictor epoch")
-    fig.colorbar(im, ax=axes, label=units, shrink=0.8, extend=extend)
-    fig.suptitle(title)
-    return fig
-
-
-def _curve(ax, episodes: np.ndarray, mean: np.ndarray, sem: np.ndarray,
-           optimum: float | None, color: str = "tab:blue") -> None:
-    ax.plot(episodes, mean, color=color, lw=1)
-    ax.fill_between(episodes, mean - sem, mean + sem, color=color, alpha=0.3, lw=0)
-    if optimum is not None:
-        ax.axhline(optimum, color="k", ls=":", label=f"optimum {optimum:.5g}")
-        ax.legend(loc="best", fontsize="small")
-
-
-def learning_curves(episodes: np.ndarray, panels: Sequence[tuple], each_run: tuple,
-                    window: int, n_runs: int, title: str) -> Figure:
-    """Figs. 4.6–4.7 / 4.11–4.12 / 5.3–5.5 / 5.18–5.19(a–b): moving averages, mean ± s.e.m.
-    over runs, and one measure in every run (Figs. 4.6(b), 5.3(b), 5.18(b)).
-
-    `panels` holds (label, mean, sem, optimum or None) per measure, `each_run`
-    (label, moving averages (R, len(episodes)), optimum or None).
-    """
-    ncols = 2
-    nrows = -(-(len(panels) + 1) // ncols)
-    fig = Figure(figsize=(11, 3.4 * nrows), layout="constrained")
-    axes = fig.subplots(nrows, ncols, squeeze=False, sharex=True).ravel()
-    for ax, (label, mean, sem, optimum) in zip(axes, panels):
-        _curve(ax, episodes, mean, sem, optimum)
-        ax.set_ylabel(label)
-    label, per_run, optimum = each_run
-    ax = axes[len(panels)]
-    for r, values in enumerate(per_run):
-        ax.plot(episodes, values, lw=0.8, label=f"run {r}" if len(per_run) <= 10 else None)
-    if optimum is not None:
-        ax.axhline(optimum, color="k", ls=":")
-    ax.set_ylabel(f"{label}, each run")
-    if len(per_run) <= 10:
-        ax.legend(fontsize="x-small", ncols=2, loc="best")
-    for ax in axes[-ncols:]:
-        ax.set_xlabel("actor episode")
-    for k in range(len(panels) + 1, len(axes)):  # empty cells: label the panel above
-        axes[k].set_axis_off()
-        axes[k - ncols].xaxis.set_tick_params(labelbottom=True)
-        axes[k - ncols].set_xlabel("actor episode")
-    fig.suptitle(f"{title}\n{window}-episode moving average, mean ± s.e.m. over {n_runs} runs; "
-                 "dotted: optimum")
-    return fig
-
-
-def td_errors(episodes: np.ndarray, mean: np.ndarray, sem: np.ndarray, window: int,
-              n_runs: int, td_run0: np.ndarray, sampled_episodes: np.ndarray,
-              title: str) -> Figure:
-    """Figs. 4.8/4.13: (a) moving average of the episode-mean |δ|; (b) per-step δ of one run
-    (the dissertation's 1st run, run 0 here)."""
-    fig = Figure(figsize=(12, 4.2), layout="constrained")
-    ax_a, ax_b = fig.subplots(1, 2)
-    _curve(ax_a, episodes, mean, sem, None)
-    ax_a.set_xlabel("actor episode")
-    ax_a.set_ylabel(f"mean |δ| per episode ({window}-episode moving average)")
-    ax_a.set_title(f"(a) mean ± s.e.m. over {n_runs} runs")
-    # A signed δ: a symmetric diverging scale keeps 0 white.
-    vmax = float(np.nanmax(np.abs(td_run0))) if np.isfinite(td_run0).any() else 1.0
-    im = ax_b.pcolormesh(np.arange(td_run0.shape[1] + 1) - 0.5, _edges(sampled_episodes), td_run0,
-                         cmap="RdBu_r", vmin=-vmax, vmax=vmax)
-    ax_b.set_xlabel("step t of the episode (δ of the action at t)")
-    ax_b.set_ylabel("actor episode")
-    ax_b.set_title(f"(b) run 0, {len(sampled_episodes)} sampled episodes (blank: episode over)")
-    fig.colorbar(im, ax=ax_b, label="TD error δ")
-    fig.suptitle(title)
-    return fig
 
 
 def junction_activations(acts: np.ndarray, condition: np.ndarray, episode: np.ndarray,
@@ -257,7 +150,7 @@ def reconstruction_error(mean: np.ndarray, sem: np.ndarray, n_runs: int,
     fig = Figure(figsize=(7, 4.2), layout="constrained")
     ax = fig.add_subplot()
     sweeps = np.arange(1, len(mean) + 1)
-    _curve(ax, sweeps, mean, sem, None)
+    band(ax, sweeps, mean, sem, None)
     ax.plot([0, sweeps[-1]], held_out, "o", color="tab:red",
             label="held-out images: before / after training")
     ax.legend(fontsize="small")

@@ -11,10 +11,12 @@ the goal the agent is moved to a uniformly random non-goal tile (P⁰ of §3.4).
 The dynamics are position tables over tiles (next tile, reward), so a step is a few gathers.
 """
 import copy
+from typing import Annotated, Literal
 
 import numpy as np
 import torch
 
+from ferl.config.params import Allowed, ArgumentError, PositiveInt, UnitInterval, checked
 from ferl.data import MnistSplit, pixel_noise
 from ferl.random_blocks import Blocks, steps_per_block
 
@@ -91,19 +93,36 @@ def optimal_policy(rewards: np.ndarray, gamma: float = 0.9, tol: float = 1e-9):
     return mask, action, rate
 
 
-class DigitFloor:
-    """``n_runs`` digit floors (one per run) stepped together; positions are tile indices."""
+DIGITS = tuple(str(d) for d in range(10))
 
+
+def is_arrangement(rows) -> bool:
+    """3 rows of 3 distinct digit classes."""
+    labels = [str(c) for row in rows for c in row]
+    return len(rows) == 3 and all(len(r) == 3 for r in rows) and len(set(labels)) == 9 and \
+        all(c in DIGITS for c in labels)
+
+
+class DigitFloor:
+    """``n_runs`` digit floors (one per run) stepped together; positions are tile indices. A
+    continuing task (§3.4 fn. 1): no step terminates or truncates."""
+
+    task = "digit_floor"
+    action_names = ACTIONS
     n_actions = len(ACTIONS)
     observation_size = 784
 
-    def __init__(self, n_runs: int, data: MnistSplit, generator: torch.Generator,
-                 arrangement=(("0", "1", "2"), ("3", "4", "5"), ("6", "7", "8")), patches: int = 4,
-                 noise: float = 0.125, reward_condition: str = "cw", goal_reward: float = 10.0,
-                 boundary_reward: float = 4.0, other_reward: float = -2.0, noise_tile=None,
+    @checked
+    def __init__(self, n_runs: PositiveInt, data: MnistSplit, generator: torch.Generator,
+                 arrangement: Annotated[list[list[str | int]], Allowed(is_arrangement, "(3 × 3 distinct classes 0–9)")] =
+                 (("0", "1", "2"), ("3", "4", "5"), ("6", "7", "8")),
+                 patches: PositiveInt = 4, noise: UnitInterval = 0.125,
+                 reward_condition: Literal[REWARD_CONDITIONS] = "cw", goal_reward: float = 10.0,
+                 boundary_reward: float = 4.0, other_reward: float = -2.0,
+                 noise_tile: Annotated[str | int, Allowed(lambda c: str(c) in DIGITS, "(a class 0–9)")] | None = None,
                  device="cpu"):
         self.n_runs, self.noise, self.generator, self.device = n_runs, noise, generator, torch.device(device)
-        self.reward_condition = reward_condition
+        self.reward_condition, self.patches = reward_condition, patches
         layout = [str(c) for row in arrangement for c in row]
         if noise_tile is not None:
             layout = [NOISE_CLASS if c == str(noise_tile) else c for c in layout]
@@ -130,6 +149,30 @@ class DigitFloor:
         self.n_noisy = round(noise * self.observation_size)
         self.noise_blocks = Blocks(self._draw_noise, steps_per_block(n_runs * (2 * self.n_noisy + 1)))
         self.tile = self._random_non_goal()
+
+    @classmethod
+    def check_config(cls, args: dict) -> None:
+        """The noise tile replaces a class of the arrangement, but not the goal (§3.5.3)."""
+        tile, labels = args["noise_tile"], [str(c) for row in args["arrangement"] for c in row]
+        if tile is not None and str(tile) not in labels:
+            raise ArgumentError("noise_tile", f"null or a class of the arrangement {sorted(labels)}")
+        if tile is not None and str(tile) == labels[4]:
+            raise ArgumentError("noise_tile", "null or a class of the arrangement other than the goal (its centre)")
+
+    def describe(self) -> dict:
+        return {"kind": "digit_floor", "task": self.task, "episodic": False, "observation": "image",
+                "observation_size": self.observation_size, "n_actions": self.n_actions, "action_names": list(self.action_names),
+                "noise": self.noise, "reward_condition": self.reward_condition, "patches": self.patches,
+                "classes": list(self.classes)}
+
+    def optimal(self, gamma: float) -> dict:
+        """The long-run reward per step of the optimal policy (8 for the default floor)."""
+        return {"reward_per_step": self.optimal_reward_rate}
+
+    def step_inputs(self, steps: int) -> tuple:
+        """The random numbers of the next ``steps`` steps (noisy pixels and values, transports),
+        stacked, for ``step_with``: what a compiled chunk of steps takes as inputs."""
+        return self.noise_blocks.take(steps)
 
     def _draw_noise(self, steps: int):
         """Noisy-pixel positions and values plus transport targets for ``steps`` future steps."""
@@ -192,8 +235,11 @@ class DigitFloor:
         return self.observe()
 
     def step(self, action: torch.Tensor):
-        """Move every run by its action (R,); returns (observation (R, 784), reward (R,))."""
-        return self.step_with(action, *self.noise_blocks.next())
+        """Move every run by its action (R,); returns (observation (R, 784), reward (R,), terminated,
+        truncated), the last two always False."""
+        obs, reward = self.step_with(action, *self.noise_blocks.next())
+        never = torch.zeros(self.n_runs, dtype=torch.bool, device=self.device)
+        return obs, reward, never, never
 
     def step_with(self, action: torch.Tensor, idx, values, transport):
         """``step`` with its random numbers given (one step of ``noise_blocks``), so that a

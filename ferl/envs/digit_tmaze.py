@@ -8,19 +8,18 @@ noisy observations of chapter 5, drawn afresh at every visit, even within an epi
 binarized (> ``binarize_threshold`` → 1, §4.3.3 "binarized") or, with a null threshold, kept as
 intensities in [0, 1] for the mean-field visible units of the ch. 5 preprocessor.
 """
+from typing import Annotated
+
 import torch
 
+from ferl.config.params import (Allowed, ArgumentError, NonNegativeInt, PositiveInt, UnitInterval, checked)
 from ferl.data import MnistSplit
 from ferl.envs.tmaze import TMaze, observation_names
-
-__all__ = ["DigitTMaze", "observation_names"]
 
 
 def class_images(data: MnistSplit, digit_classes: dict, image_index: int, reservoir_size: int,
                  threshold: float | None) -> dict:
     """Observation name → (reservoir_size, 784) images of its digit class."""
-    if reservoir_size < 1:
-        raise ValueError(f"env.reservoir_size must be an integer ≥ 1, got {reservoir_size}")
     images = {}
     for name, label in digit_classes.items():
         pool = data.train_images[data.train_labels == int(label)]
@@ -32,9 +31,30 @@ def class_images(data: MnistSplit, digit_classes: dict, image_index: int, reserv
     return images
 
 
-def DigitTMaze(n_runs: int, generator: torch.Generator, data: MnistSplit, digit_classes: dict,
-               image_index: int = 0, reservoir_size: int = 1, binarize_threshold: float | None = 0.5,
-               device="cpu", **maze) -> TMaze:
-    """A T-maze whose observations are the digit images of ``digit_classes``."""
-    images = class_images(data, dict(digit_classes), image_index, reservoir_size, binarize_threshold)
-    return TMaze(n_runs, generator, images={k: v.to(device) for k, v in images.items()}, device=device, **maze)
+class DigitTMaze(TMaze):
+    """A (matching) T-maze whose observations are the digit images of ``digit_classes``; every
+    other argument is the T-maze's."""
+
+    @checked
+    def __init__(self, n_runs: PositiveInt, generator: torch.Generator, data: MnistSplit,
+                 digit_classes: dict[str, Annotated[int, Allowed(lambda c: 0 <= c <= 9, "a digit class 0–9")]],
+                 image_index: NonNegativeInt = 0, reservoir_size: PositiveInt = 1,
+                 binarize_threshold: UnitInterval | None = 0.5, device="cpu", **maze):
+        self.digit_classes = {name: int(label) for name, label in dict(digit_classes).items()}
+        images = class_images(data, self.digit_classes, image_index, reservoir_size, binarize_threshold)
+        super().__init__(n_runs, generator, images={k: v.to(device) for k, v in images.items()}, device=device, **maze)
+
+    def describe(self) -> dict:
+        return {**super().describe(), "digit_classes": self.digit_classes}
+
+    @classmethod
+    def check_config(cls, args: dict) -> None:
+        """Every observation of the maze has a digit class, and only those."""
+        TMaze.check_config(args)
+        names = observation_names(args["matching"])
+        unknown = sorted(set(args["digit_classes"]) - set(names))
+        if unknown:
+            raise ArgumentError(f"digit_classes.{unknown[0]}", f"the maze's observations are {', '.join(names)}")
+        missing = [n for n in names if n not in args["digit_classes"]]
+        if missing:
+            raise ArgumentError(f"digit_classes.{missing[0]}", "a class (every observation of the maze needs one)")

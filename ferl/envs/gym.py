@@ -35,15 +35,15 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from ferl.data import IMAGE_PIXELS, MnistEmbedded, MnistSplit
-from ferl.envs.digit_floor import ACTIONS, REWARD_CONDITIONS, DigitFloor
+from ferl.envs.digit_floor import ACTIONS, DigitFloor
 from ferl.envs.digit_tmaze import DigitTMaze
 from ferl.envs.tmaze import TMaze
+from ferl.images import IMAGE_SIDE
 
 FLOOR_EPISODE_STEPS = 1000  # the registered floor's cut-off: the dissertation has none (continuing task)
 # the observation → digit class map of conf/env/digit_tmaze.yaml (Fig. 4.20)
 DIGIT_CLASSES = {"start_0": 0, "start_1": 1, "corridor": 2, "junction_0": 3, "junction_1": 4,
                  "goal_left": 5, "goal_right": 6}
-IMAGE_SIDE = math.isqrt(IMAGE_PIXELS)  # 28: a tile, or a maze cell, of a rendered frame
 RENDER_FPS = 4
 WALL, FREE, AGENT, FRAME = (64, 64, 64), (255, 255, 255), (0, 0, 255), (255, 0, 0)
 REWARDED_GOAL, OTHER_GOAL = (0, 170, 0), (200, 0, 0)
@@ -95,9 +95,6 @@ class FloorBatch(Batch):
 
     def __init__(self, n_runs: int, noise: float = 0.125, reward_condition: str = "cw",
                  noise_tile: int | str | None = None, patches: int = 4, data: MnistSplit | None = None):
-        # DigitFloor reads any condition but "cw" and "none" as ccw
-        if reward_condition not in REWARD_CONDITIONS:
-            raise ValueError(f"reward_condition must be one of {REWARD_CONDITIONS}, got {reward_condition!r}")
         self.floor = dict(noise=noise, reward_condition=reward_condition, noise_tile=noise_tile, patches=patches)
         self.data = embedded_mnist() if data is None else data
         super().__init__(n_runs)
@@ -113,9 +110,7 @@ class FloorBatch(Batch):
         return obs
 
     def step(self, actions: torch.Tensor):
-        obs, reward = self.env.step(actions)
-        never = torch.zeros(self.n_runs, dtype=torch.bool)
-        return obs, reward, never, never
+        return self.env.step(actions)
 
     def info(self) -> dict:
         """Tile (row-major on the 3L×3L torus), its in-patch position (4 = goal), class label, and
@@ -220,6 +215,10 @@ class BatchView(gymnasium.Env):
     metadata = {"render_modes": ["rgb_array"], "render_fps": RENDER_FPS}
     batch_type: type[Batch]
 
+    def __init_subclass__(cls, batch_type: type[Batch], **kwargs):
+        super().__init_subclass__(**kwargs)
+        cls.batch_type = batch_type
+
     def __init__(self, render_mode: str | None = None, **kwargs):
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
@@ -256,6 +255,10 @@ class BatchVectorEnv(VectorEnv):
 
     metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": ["rgb_array"], "render_fps": RENDER_FPS}
     batch_type: type[Batch]
+
+    def __init_subclass__(cls, batch_type: type[Batch], **kwargs):
+        super().__init_subclass__(**kwargs)
+        cls.batch_type = batch_type
 
     def __init__(self, num_envs: int, max_episode_steps: int | None = None, render_mode: str | None = None,
                  **kwargs):
@@ -305,40 +308,28 @@ class BatchVectorEnv(VectorEnv):
         return tuple(self.batch.render(run) for run in range(self.num_envs))
 
 
-class DigitFloorEnv(BatchView):
+class DigitFloorEnv(BatchView, batch_type=FloorBatch):
     """``ferl/DigitFloor-v0``: the digit floor of §3.4 (kwargs: see ``FloorBatch``)."""
 
-    batch_type = FloorBatch
 
-
-class TMazeEnv(BatchView):
+class TMazeEnv(BatchView, batch_type=MazeBatch):
     """``ferl/TMaze-v0`` / ``ferl/MatchingTMaze-v0``: the bit T-mazes of §4.3.1 / §4.3.2."""
 
-    batch_type = MazeBatch
 
-
-class DigitTMazeEnv(BatchView):
+class DigitTMazeEnv(BatchView, batch_type=DigitMazeBatch):
     """``ferl/DigitMatchingTMaze-v0``: the digit matching T-maze of §4.3.3 / §5.3.2."""
 
-    batch_type = DigitMazeBatch
 
-
-class DigitFloorVectorEnv(BatchVectorEnv):
+class DigitFloorVectorEnv(BatchVectorEnv, batch_type=FloorBatch):
     """``gymnasium.make_vec("ferl/DigitFloor-v0", num_envs)``."""
 
-    batch_type = FloorBatch
 
-
-class TMazeVectorEnv(BatchVectorEnv):
+class TMazeVectorEnv(BatchVectorEnv, batch_type=MazeBatch):
     """``gymnasium.make_vec("ferl/TMaze-v0" or "ferl/MatchingTMaze-v0", num_envs)``."""
 
-    batch_type = MazeBatch
 
-
-class DigitTMazeVectorEnv(BatchVectorEnv):
+class DigitTMazeVectorEnv(BatchVectorEnv, batch_type=DigitMazeBatch):
     """``gymnasium.make_vec("ferl/DigitMatchingTMaze-v0", num_envs)``."""
-
-    batch_type = DigitMazeBatch
 
 
 # id → (class name stem in this module, registered kwargs, max_episode_steps)

@@ -13,8 +13,12 @@ fixed image per observation (the digit matching T-maze, §4.3.3), or a reservoir
 observation from which every visit draws one afresh (§5.3.2): observation n, image k has id
 n·K + k. The dynamics are (position, action) tables, so a step is a few gathers.
 """
+from typing import Annotated
+
 import numpy as np
 import torch
+
+from ferl.config.params import ArgumentError, PositiveInt, at_least, checked
 
 ACTIONS = ("N", "E", "S", "W")
 N, E, S, W = range(4)
@@ -71,17 +75,18 @@ def optimal_return(corridor_length: int, max_steps: int, gamma: float, goal: flo
 
 
 class TMaze:
-    """``n_runs`` T-mazes stepped together; ``done`` runs stay frozen until ``reset``."""
+    """``n_runs`` T-mazes stepped together; ``done`` runs stay frozen until ``reset``
+    (``ferl.interfaces.EpisodicEnvironment``)."""
 
+    task = "tmaze"
+    action_names = ACTIONS
     n_actions = len(ACTIONS)
 
-    def __init__(self, n_runs: int, generator: torch.Generator, corridor_length: int = 3,
-                 max_steps: int = 10, matching: bool = False, goal_reward: float = 5.0,
+    @checked
+    def __init__(self, n_runs: PositiveInt, generator: torch.Generator,
+                 corridor_length: Annotated[int, at_least(2, "start, corridor cells, junction")] = 3,
+                 max_steps: PositiveInt = 10, matching: bool = False, goal_reward: float = 5.0,
                  wall_reward: float = -1.0, step_reward: float = -0.1, images=None, device="cpu"):
-        if corridor_length < 2:
-            raise ValueError(f"env.corridor_length must be an integer ≥ 2, got {corridor_length}")
-        if max_steps < corridor_length:
-            raise ValueError(f"env.max_steps must be ≥ env.corridor_length ({corridor_length}), got {max_steps}")
         self.n_runs, self.generator, self.device = n_runs, generator, torch.device(device)
         self.corridor_length, self.max_steps, self.matching = corridor_length, max_steps, matching
         self.optimal_steps = corridor_length
@@ -90,6 +95,7 @@ class TMaze:
         self._reward_values = torch.tensor(self.reward_values, dtype=torch.float32, device=self.device)
 
         self.observation_names = observation_names(matching)
+        self.observation_kind = None if images is None else "image"
         if images is None:
             table = torch.as_tensor(np.stack([observation_bits(n) for n in self.observation_names]))
         else:
@@ -112,6 +118,20 @@ class TMaze:
         self.move_reward = torch.as_tensor(reward.reshape(-1), dtype=torch.float32, device=self.device)
         self.observation_id_table = torch.as_tensor(self._observation_ids().reshape(-1), device=self.device)
         self.reset()
+
+    @classmethod
+    def check_config(cls, args: dict) -> None:
+        if args["max_steps"] < args["corridor_length"]:
+            raise ArgumentError("max_steps", f"T_max ≥ corridor_length={args['corridor_length']} (T_min)")
+
+    def describe(self) -> dict:
+        return {"kind": "tmaze", "task": self.task, "episodic": True,
+                "observation": "bits" if self.observation_kind is None else self.observation_kind,
+                "observation_size": self.observation_size, "n_actions": self.n_actions, "action_names": list(self.action_names),
+                "matching": self.matching, "corridor_length": self.corridor_length, "max_steps": self.max_steps,
+                "goal_reward": self.rewards[0], "reward_values": list(self.reward_values),
+                "observation_names": list(self.observation_names), "reservoir_size": self.reservoir_size,
+                "labels": list(self.labels()), "outcomes": list(self.outcomes())}
 
     def _observation_ids(self) -> np.ndarray:
         """Observation id of every (position, s0, s1), shape (P, 2, 2)."""
@@ -158,6 +178,20 @@ class TMaze:
     @property
     def at_junction(self) -> torch.Tensor:
         return self.position == self.corridor_length - 1
+
+    @property
+    def probe(self) -> torch.Tensor:
+        """The records keep the activations at the T-junction (Figs. 4.14–4.19)."""
+        return self.at_junction
+
+    def labels(self) -> dict:
+        """What a junction visit is labelled with: the condition and both signals (−1: none)."""
+        return {"condition": self.condition, "initial_signal": self.initial_signal,
+                "junction_signal": self.junction_signal}
+
+    def outcomes(self) -> dict:
+        """Facts of an ended episode: whether it ended in the rewarded goal, and its condition."""
+        return {"correct_goal": self.correct, "condition": self.condition}
 
     @property
     def correct(self) -> torch.Tensor:
@@ -222,6 +256,9 @@ class TMaze:
 
     def optimal_discounted_return(self, gamma: float) -> float:
         return optimal_return(self.corridor_length, self.max_steps, gamma, *self.rewards)
+
+    def optimal(self, gamma: float) -> dict:
+        return {"discounted_return": self.optimal_discounted_return(gamma), "steps_to_goal": self.optimal_steps}
 
     def state_dict(self) -> dict:
         return {k: getattr(self, k).clone() for k in STATE_KEYS}

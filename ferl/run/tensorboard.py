@@ -7,7 +7,6 @@ tensor it is given, so logging never changes what a run computes; weights, image
 embeddings are run 0's, logged once per phase.
 """
 import json
-import math
 import time
 
 import numpy as np
@@ -17,8 +16,8 @@ from tensorboard.compat.proto import summary_pb2
 from tensorboard.plugins.hparams import api_pb2, metadata, plugin_data_pb2
 from tensorboard.plugins.hparams.summary_v2 import hparams_pb
 
-IMAGE_SIDE = 28  # MNIST images: 784 = 28 × 28 pixels
-
+from ferl.images import as_images
+from ferl.stats import flat_metrics, mean_sd
 
 # ---- hparams --------------------------------------------------------------------------------
 def flat_config(cfg) -> dict:
@@ -42,22 +41,14 @@ def flat_config(cfg) -> dict:
 
 
 def summary_metrics(summary: dict) -> dict:
-    """summary.json's headline figures as HParams metrics: ``hparam/<metric>`` (a per-level metric
-    as ``hparam/<metric>/<level>``, the name ``optimized_metric`` uses), each the mean over the
-    runs of the batch (null values, e.g. no optimal action to score, left out), plus the speed."""
+    """summary.json's headline figures as HParams metrics: ``hparam/<metric>`` for every flat
+    metric name (``ferl.stats.flat_metrics``, the name ``optimized_metric`` uses), each the mean
+    over the runs that have a value, plus the speed."""
     out = {}
-
-    def add(name, values):
-        finite = [v for v in values if v is not None and not math.isnan(v)]
-        if finite:
-            out[f"hparam/{name}"] = float(np.mean(finite))
-
-    for name, value in summary["metrics"].items():
-        if isinstance(value, dict):
-            for level, values in value.items():
-                add(f"{name}/{level}", values)
-        else:
-            add(name, value)
+    for name, values in flat_metrics(summary["metrics"]).items():
+        mean, _, n = mean_sd(values)
+        if n:
+            out[f"hparam/{name}"] = mean
     for name in ("agent_steps_per_s", "wall_time_s"):
         out[f"hparam/{name}"] = float(summary[name])
     return out
@@ -100,53 +91,6 @@ def log_weights(writer, phase: str, module: torch.nn.Module, step: int, skip=("c
             values = values[torch.isfinite(values)]
             if values.numel():
                 writer.add_histogram(f"{phase}/weights/{name}", values, step)
-
-
-# ---- images ---------------------------------------------------------------------------------
-def unit_range(x: torch.Tensor, dims) -> torch.Tensor:
-    """x scaled to [0, 1] over ``dims`` (each image or matrix on its own); non-finite entries
-    (a diverged run) count as 0."""
-    x = torch.where(torch.isfinite(x), x, torch.zeros_like(x))
-    lo, hi = x.amin(dims, keepdim=True), x.amax(dims, keepdim=True)
-    return (x - lo) / (hi - lo + 1e-12)
-
-
-def weight_images(W: torch.Tensor) -> torch.Tensor:
-    """Run 0's image→hidden weights W (R, 784, H) as H images (H, 1, 28, 28), each scaled to
-    [0, 1] (Fig. 3.5)."""
-    w = W[0].detach().float().cpu().T.reshape(-1, 1, IMAGE_SIDE, IMAGE_SIDE)
-    return unit_range(w, (1, 2, 3))
-
-
-def tile(images, n_cols: int | None = None, pad: int = 1) -> torch.Tensor:
-    """Images (N, h, w) — or (rows, cols, h, w), one row each — in [0, 1] as one grey image
-    (1, H, W) with ``pad`` white pixels between them."""
-    x = torch.as_tensor(np.asarray(images, dtype=np.float32)) if not torch.is_tensor(images) \
-        else images.detach().float().cpu()
-    if x.dim() == 3:
-        n_cols = n_cols or math.ceil(math.sqrt(x.shape[0]))
-        n_rows = math.ceil(x.shape[0] / n_cols)
-        x = torch.cat([x, torch.ones(n_rows * n_cols - x.shape[0], *x.shape[1:])]).view(n_rows, n_cols, *x.shape[1:])
-    n_rows, n_cols, h, w = x.shape
-    canvas = torch.ones(n_rows * (h + pad) + pad, n_cols * (w + pad) + pad)
-    for r in range(n_rows):
-        for c in range(n_cols):
-            canvas[pad + r * (h + pad):pad + r * (h + pad) + h, pad + c * (w + pad):pad + c * (w + pad) + w] = x[r, c]
-    return canvas.unsqueeze(0)
-
-
-def as_images(flat) -> torch.Tensor:
-    """(…, 784) pixel vectors → (…, 28, 28) float32."""
-    x = torch.as_tensor(np.asarray(flat, dtype=np.float32)) if not torch.is_tensor(flat) else flat.detach().float().cpu()
-    return x.reshape(*x.shape[:-1], IMAGE_SIDE, IMAGE_SIDE)
-
-
-def matrix_image(M: torch.Tensor, min_side: int = 200) -> torch.Tensor:
-    """A matrix (rows, cols) as a grey image (1, H, W) scaled to [0, 1], each entry a square of
-    pixels so that small matrices stay visible."""
-    m = unit_range(M.detach().float().cpu(), (0, 1))
-    k = max(1, math.ceil(min_side / max(m.shape)))
-    return m.repeat_interleave(k, 0).repeat_interleave(k, 1).unsqueeze(0)
 
 
 def log_embedding(writer, tag: str, points, columns: dict, step: int, images=None) -> None:

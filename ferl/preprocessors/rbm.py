@@ -34,11 +34,7 @@ training restricted Boltzmann machines", UTML TR 2010-003, cited by section):
 * the reconstruction error is the mean squared error of the one-step mean-field reconstruction
   σ(W σ(Wᵀv + b_h) + b_v) against v (the guide's §5 monitor, without sampling noise).
 """
-import hashlib
-import json
-import os
-from pathlib import Path
-from typing import NamedTuple, Sequence, Union
+from typing import Literal, NamedTuple, Sequence, Union
 
 import numpy as np
 import torch
@@ -46,44 +42,12 @@ from torch import nn
 from tqdm import tqdm
 
 from ferl import rbm
+from ferl.config.params import Momentum, NonNegative, NonNegativeInt, Positive, PositiveInt, checked
+from ferl.images import IMAGE_SIDE, as_images, tile, weight_images
+from ferl.preprocessors.cache import load_or_fit
 
 VISIBLE_MODES = ("mean_field", "binary")
 Generators = Union[torch.Generator, Sequence[torch.Generator]]
-
-
-def _int_at_least(low):
-    return lambda x: isinstance(x, int) and not isinstance(x, bool) and x >= low
-
-
-def _number(test):
-    return lambda x: isinstance(x, (int, float)) and not isinstance(x, bool) and test(x)
-
-
-# (key, test, what is allowed): one line per setting, as in ferl.validate.
-RULES = [
-    ("n_runs", _int_at_least(1), "an integer ≥ 1"),
-    ("preprocessor.n_visible", _int_at_least(1), "an integer ≥ 1"),
-    ("preprocessor.n_hidden", _int_at_least(1), "an integer ≥ 1"),
-    ("preprocessor.cd_k", _int_at_least(1), "an integer ≥ 1 (Gibbs steps of CD-k)"),
-    ("preprocessor.persistent", lambda x: isinstance(x, bool), "true or false"),
-    ("preprocessor.lr", _number(lambda x: x > 0), "a number > 0"),
-    ("preprocessor.momentum", _number(lambda x: 0 <= x < 1), "a number in [0, 1)"),
-    ("preprocessor.initial_momentum", _number(lambda x: 0 <= x < 1), "a number in [0, 1)"),
-    ("preprocessor.initial_momentum_sweeps", _int_at_least(0), "an integer ≥ 0"),
-    ("preprocessor.weight_decay", _number(lambda x: x >= 0), "a number ≥ 0"),
-    ("preprocessor.batch_size", _int_at_least(1), "an integer ≥ 1"),
-    ("preprocessor.sweeps", _int_at_least(1), "an integer ≥ 1"),
-    ("preprocessor.init_std", _number(lambda x: x >= 0), "a number ≥ 0"),
-    ("preprocessor.visible", lambda x: x in VISIBLE_MODES, " or ".join(VISIBLE_MODES)),
-    ("seed", _int_at_least(0), "an integer ≥ 0"),
-]
-
-
-def check(hparams: dict) -> None:
-    for key, test, allowed in RULES:
-        value = hparams[key.rsplit(".", 1)[-1]]
-        if not test(value):
-            raise ValueError(f"{key}={value!r}: must be {allowed}")
 
 
 class Gradient(NamedTuple):
@@ -133,15 +97,18 @@ class RBMPreprocessor(nn.Module):
     Run r's initial weights and its training stream come from seed + r.
     """
 
-    def __init__(self, n_runs: int, n_visible: int = 784, n_hidden: int = 20, cd_k: int = 3,
-                 persistent: bool = False, lr: float = 0.1, momentum: float = 0.9,
-                 initial_momentum: float = 0.5, initial_momentum_sweeps: int = 5,
-                 weight_decay: float = 2e-4, batch_size: int = 100, sweeps: int = 600,
-                 init_std: float = 0.01, visible: str = "mean_field", seed: int = 0):
+    @checked
+    def __init__(self, n_runs: PositiveInt, n_visible: PositiveInt = 784, n_hidden: PositiveInt = 20,
+                 cd_k: PositiveInt = 3, persistent: bool = False, lr: Positive = 0.1, momentum: Momentum = 0.9,
+                 initial_momentum: Momentum = 0.5, initial_momentum_sweeps: NonNegativeInt = 5,
+                 weight_decay: NonNegative = 2e-4, batch_size: PositiveInt = 100, sweeps: PositiveInt = 600,
+                 init_std: NonNegative = 0.01, visible: Literal[VISIBLE_MODES] = "mean_field", seed: NonNegativeInt = 0,
+                 cache_dir: str | None = None):
         super().__init__()
-        # Every constructor argument: the cache key of load_or_fit and the checks.
-        self.hparams = {k: v for k, v in locals().items() if k not in ("self", "__class__")}
-        check(self.hparams)
+        # Every constructor argument that the fit depends on: the cache key of load_or_fit.
+        self.hparams = {k: v for k, v in locals().items() if k not in ("self", "__class__", "cache_dir")}
+        self.cache_dir = cache_dir  # where fits are kept (None: never cached)
+        self.input_size, self.output_size = n_visible, n_hidden
         self.cd_k, self.persistent, self.visible = cd_k, persistent, visible
         self.lr, self.weight_decay, self.batch_size, self.sweeps = lr, weight_decay, batch_size, sweeps
         self.momentum, self.initial_momentum, self.initial_momentum_sweeps = momentum, initial_momentum, initial_momentum_sweeps
@@ -157,6 +124,10 @@ class RBMPreprocessor(nn.Module):
     @property
     def n_runs(self) -> int:
         return self.W.shape[0]
+
+    def describe(self) -> dict:
+        return {"kind": "rbm", "n_visible": self.input_size, "n_hidden": self.output_size, "cd_k": self.cd_k,
+                "sweeps": self.sweeps}
 
     def run_generators(self) -> list:
         """Run r's training stream (shuffles and Gibbs samples) on the weights' device."""
@@ -243,7 +214,7 @@ class RBMPreprocessor(nn.Module):
         return squared / (n * V)
 
     @torch.no_grad()
-    def fit(self, images: torch.Tensor, generator: Generators = None, writer=None, progress: bool = True) -> np.ndarray:
+    def train(self, images: torch.Tensor, generator: Generators = None, writer=None, progress: bool = True) -> np.ndarray:
         """Train for ``sweeps`` passes over images (N, V) shared by every run, or (R, N, V).
 
         ``generator``: None = each run's own stream from seed + r (runs independent of n_runs),
@@ -260,37 +231,34 @@ class RBMPreprocessor(nn.Module):
             errors[:, s] = self.sweep(images, gens, velocity, momentum).cpu().numpy()
             if writer is not None:
                 writer.add_scalar("preprocessor/reconstruction_error", float(errors[:, s].mean()), s + 1)
-        if writer is not None and self.W.shape[1] == 784:
-            from ferl.trainers.digit_floor import weight_images  # lazy: trainers import this module
+        if writer is not None and self.W.shape[1] == IMAGE_SIDE ** 2:
             writer.add_images("preprocessor/filters", weight_images(self.W), self.sweeps)
         return errors
 
-
-def tensor_digest(x: torch.Tensor) -> str:
-    """sha256 of a tensor's shape, dtype and values."""
-    digest = hashlib.sha256(f"{tuple(x.shape)} {x.dtype}".encode())
-    digest.update(x.detach().cpu().contiguous().numpy().data)
-    return digest.hexdigest()
-
-
-def load_or_fit(preprocessor: RBMPreprocessor, images: torch.Tensor, generator, cache_dir, key_parts: dict,
-                writer=None):
-    """Fit the preprocessor, or load the fit that identical settings saved in cache_dir before.
-
-    The file rbm-<sha256[:16]>.pt is keyed by the hyperparameters (n_runs and seed included),
-    the image tensor and key_parts, which must name anything else the fit depends on (e.g. the
-    seed of an explicit generator). Returns (reconstruction errors (R, sweeps), cached).
-    """
-    key = json.dumps({"hparams": preprocessor.hparams, "images": tensor_digest(images), "key_parts": key_parts},
-                     sort_keys=True, default=str)
-    path = Path(cache_dir) / f"rbm-{hashlib.sha256(key.encode()).hexdigest()[:16]}.pt"
-    if path.is_file():
-        saved = torch.load(path, map_location=preprocessor.W.device)
-        preprocessor.load_state_dict(saved["state_dict"])
-        return saved["errors"].numpy(), True
-    errors = preprocessor.fit(images, generator, writer)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")  # readers never see a half-written file
-    torch.save({"state_dict": preprocessor.state_dict(), "errors": torch.from_numpy(errors), "key": key}, tmp)
-    os.replace(tmp, path)
-    return errors, False
+    @torch.no_grad()
+    def fit(self, data, writer) -> dict:
+        """Algorithm 2's first phase (§5.3.2): CD-k on the training images of ``data`` (an
+        ``MnistSplit``), or the cached fit of the same settings and images (``cache_dir``); logs the
+        held-out reconstruction error before and after, and run 0's reconstructions σ(W ĥ + b_v) of
+        one test image per digit class (row 2) under the images (row 1). Returns the records: error
+        per run and sweep, held-out errors before / after, whether the fit came from the cache."""
+        test = data.test_images.to(self.W)
+        before = self.reconstruction_error(test)
+        # no generator: every run trains on its own stream (seed + r), so the cache key is complete
+        history, cached = load_or_fit(self, data.train_images.to(self.W), self.cache_dir, writer)
+        sweeps = history.shape[1]
+        if cached:  # the fit's own logging happened in the run that trained it
+            for sweep, value in enumerate(history.mean(0), 1):
+                writer.add_scalar("preprocessor/reconstruction_error", float(value), sweep)
+            if self.W.shape[1] == IMAGE_SIDE ** 2:
+                writer.add_images("preprocessor/filters", weight_images(self.W), sweeps)
+        after = self.reconstruction_error(test)
+        writer.add_scalar("preprocessor/test_reconstruction_error", float(before.mean()), 0)
+        writer.add_scalar("preprocessor/test_reconstruction_error", float(after.mean()), sweeps)
+        if test.shape[1] == IMAGE_SIDE ** 2:
+            labels = data.test_labels.cpu()
+            shown = test[[int(torch.nonzero(labels == c)[0]) for c in labels.unique().tolist()][:10]]
+            recon = self.visible_given(self.transform(shown))[0]
+            writer.add_image("preprocessor/reconstructions", tile(torch.stack([as_images(shown), as_images(recon)])), sweeps)
+        return {"reconstruction_error": history, "test_error_before": before.cpu().numpy(),
+                "test_error_after": after.cpu().numpy(), "cached": np.bool_(cached)}

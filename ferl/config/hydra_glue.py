@@ -1,17 +1,20 @@
-"""Hydra glue of train.py: the joblib launcher's job count, the metric that main() returns to a
-sweeper, the final summary table, and the config schemas in Hydra's ConfigStore.
+"""Hydra glue of train.py: the joblib launcher's job count, one-line composition errors, the
+device, the metric that main() returns to a sweeper, and the final summary table.
 
 Imported by train.py; joblib's worker processes import it too (main() refers to it), so the
-resolver, the schemas and the warning filter below are in place wherever a job's config is composed.
+resolver and the warning filter below are in place wherever a job's config is composed.
 """
-import math
+import io
 import os
+import sys
 import warnings
+from contextlib import contextmanager
 
+import torch
 from omegaconf import OmegaConf
 
-from ferl.schema import SCHEMA_SUFFIX, register_schemas
-from ferl.validate import ConfigError
+from ferl.config.params import ConfigError
+from ferl.stats import flat_metrics, mean_sd
 
 # conf/hydra/launcher/{joblib,submitit_slurm}.yaml set our defaults on top of the plugins' configs
 # of the same name, which Hydra merges with a deprecation notice meant for configs one owns.
@@ -25,48 +28,52 @@ def jobs_per_machine(cpu_threads) -> int:
     return max(1, cores // max(1, int(cpu_threads)))
 
 
-# The config groups' schemas (ferl/schema.py), for a worker that composes its job's config anew.
-register_schemas()
-
 # conf/hydra/launcher/joblib.yaml: n_jobs: ${ferl.jobs_per_machine:${cpu_threads}}
 OmegaConf.register_new_resolver("ferl.jobs_per_machine", jobs_per_machine, replace=True)
 
 
+def resolve_device(name: str) -> torch.device:
+    """``auto``: CUDA when present, else the CPU."""
+    return torch.device("cuda" if name == "auto" and torch.cuda.is_available() else ("cpu" if name == "auto" else name))
+
+
+@contextmanager
+def one_line_errors():
+    """Hydra reports a bad override or group choice on several lines before main() runs;
+    condense that report into one line (CONTRACT §6) unless HYDRA_FULL_ERROR=1."""
+    if os.environ.get("HYDRA_FULL_ERROR") == "1":
+        yield
+        return
+    real, sys.stderr = sys.stderr, io.StringIO()
+    try:
+        yield
+    except SystemExit as e:
+        captured, sys.stderr = sys.stderr, real
+        if e.code and isinstance(captured, io.StringIO):
+            print("ferl: error: " + condense_hydra_error(captured.getvalue()), file=sys.stderr)
+        raise
+    finally:
+        if isinstance(sys.stderr, io.StringIO):
+            sys.stderr = real
+
+
+def release_stderr() -> None:
+    """Hand stderr back once Hydra has composed the config (progress bars and errors go there)."""
+    sys.stderr = sys.__stderr__
+
+
 def condense_hydra_error(report: str) -> str:
     """Hydra's multi-line composition error as one line that starts with the full key when the
-    error names one (a schema's type or enum check, ferl/schema.py; the schemas themselves are
-    left out of the options a group offers):
+    error names one:
     ``env.noise: Value 'abc' of type 'str' could not be converted to Float | Error merging override env.noise=abc``."""
     lines = [ln.strip() for ln in report.split("Config search path:")[0].splitlines()
-             if ln.strip() and "HYDRA_FULL_ERROR" not in ln and not ln.strip().endswith(SCHEMA_SUFFIX)]
+             if ln.strip() and "HYDRA_FULL_ERROR" not in ln]
     key = next((ln.partition(":")[2].strip() for ln in lines if ln.startswith("full_key:")), "")
     rest = [ln for ln in lines if not ln.startswith(("full_key:", "object_type=", "reference_type="))]
     if key:  # the cause first, then which override or file it came from
         rest = [ln for ln in rest if not ln.startswith(("Error merging", "In '"))] + \
                [ln for ln in rest if ln.startswith(("Error merging", "In '"))]
     return (f"{key}: " if key else "") + " | ".join(rest)
-
-
-def flat_metrics(metrics: dict) -> dict[str, list]:
-    """summary.json metrics as name → per-run values; a metric per test level (a mapping
-    level → values, e.g. greedy_accuracy) becomes one entry per level, ``greedy_accuracy/0.125``."""
-    flat = {}
-    for name, values in metrics.items():
-        if isinstance(values, dict):
-            flat.update({f"{name}/{level}": v for level, v in values.items()})
-        else:
-            flat[name] = values
-    return flat
-
-
-def mean_sd(values: list) -> tuple[float, float, int]:
-    """Mean and sample s.d. over runs, skipping null (unscorable) runs; NaN when none is left."""
-    x = [float(v) for v in values if v is not None]
-    if not x:
-        return math.nan, math.nan, 0
-    mean = sum(x) / len(x)
-    sd = math.sqrt(sum((v - mean) ** 2 for v in x) / (len(x) - 1)) if len(x) > 1 else 0.0
-    return mean, sd, len(x)
 
 
 def optimized_value(summary: dict, metric: str | None) -> float | None:
@@ -82,7 +89,7 @@ def optimized_value(summary: dict, metric: str | None) -> float | None:
 
 
 def summary_table(summary: dict) -> str:
-    """The run's metrics, mean ± s.d. over runs, one line each; a metric's ``<name>_before``
+    """The run's metrics, mean ± s.d. over runs (``ferl.stats``), one line each; a metric's ``<name>_before``
     twin (the same test before training) goes into a second column."""
     flat = flat_metrics(summary["metrics"])
     before = {}
@@ -93,7 +100,7 @@ def summary_table(summary: dict) -> str:
 
     def cell(values):
         mean, sd, n = mean_sd(values)
-        return "n/a" if n == 0 else f"{mean:.3f} ± {sd:.3f}"
+        return "n/a" if n == 0 else f"{mean:.3f}" + (f" ± {sd:.3f}" if n > 1 else "")
 
     n_runs = len(summary["seeds"])
     rows = [(f"metric ({n_runs} run{'s' if n_runs != 1 else ''})", "mean ± s.d.", "before training" if before else "")]

@@ -7,12 +7,13 @@ predictor generalises (Fig. 4.5, right-hand columns).
 
 Episodes are stored padded: obs (R, N, T_max+1) observation ids, actions (R, N, T_max),
 rewards (R, N, T_max), lengths (R, N) — the same N for every run, so training batches over runs.
+An id stands for the (processed) observation in ``ObservationTable``.
 """
 from dataclasses import dataclass
 
 import torch
 
-from ferl.validate import ConfigError
+from ferl.config.params import ConfigError
 
 
 @dataclass
@@ -45,7 +46,7 @@ def collect_random_episodes(env, n_episodes_per_run: int, n_runs: int, generator
         rewards = torch.zeros(env.n_runs, T, device=env.device)
         obs[:, 0] = env.obs_id
         for t in range(T):
-            a = torch.randint(4, (env.n_runs,), generator=generator, device=env.device)
+            a = torch.randint(env.n_actions, (env.n_runs,), generator=generator, device=env.device)
             active = ~env.done
             _, r, _, _ = env.step(a)
             actions[:, t] = torch.where(active, a, 0)
@@ -83,3 +84,60 @@ def balance_and_split(episodes: Episodes, t_min: int, t_max: int, train_fraction
         test_idx.append(pick[:, n_train:])
     return (episodes.select(torch.cat(train_idx, 1)), episodes.select(torch.cat(test_idx, 1)),
             (n_train, n - n_train))
+
+
+class ObservationTable:
+    """The (processed) observation of every observation id: the environment's table (ids, Y),
+    shared by every run, or once a preprocessor has processed it, one per run (R, ids, Y)."""
+
+    def __init__(self, table: torch.Tensor):
+        self.table = table
+
+    @property
+    def per_run(self) -> bool:
+        return self.table.dim() == 3
+
+    def lookup(self, ids: torch.Tensor) -> torch.Tensor:
+        """Observation vectors of valid ids (R, …) → (R, …, Y)."""
+        if not self.per_run:
+            return self.table[ids]
+        runs = torch.arange(self.table.shape[0], device=ids.device).view(-1, *([1] * (ids.dim() - 1)))
+        return self.table[runs, ids]
+
+    def observations(self, ids: torch.Tensor) -> torch.Tensor:
+        """As ``lookup`` for padded episodes: the padding id −1 gives zeros."""
+        return torch.where((ids >= 0).unsqueeze(-1), self.lookup(ids.clamp(min=0)), 0.0)
+
+
+class CollectEpisodes:
+    """Algorithm 1's data (§4.3.1): ``n_sample`` random-policy episodes per run, balanced over the
+    lengths T_min … T_max and split ``train_fraction`` / rest into training and test data (handed
+    to the next phases as ``job.shared["episodes"]``). ``collect_batch`` episodes are stepped at
+    once (speed only: the draws do not depend on it)."""
+
+    name = "collect"
+
+    def __init__(self, n_sample: int, collect_batch: int, train_fraction: float):
+        self.n_sample, self.collect_batch, self.train_fraction = n_sample, collect_batch, train_fraction
+
+    def prepare(self, job) -> None:
+        pass
+
+    def metric_names(self, job) -> list[str]:
+        return []
+
+    def run(self, job, state) -> None:
+        copies = max(1, min(self.n_sample, self.collect_batch // job.R))
+        env = job.make_env(job.R * copies)
+        episodes = collect_random_episodes(env, self.n_sample, job.R, job.generator)
+        train, test, (n_train, n_test) = balance_and_split(
+            episodes, job.env.optimal_steps, job.env.max_steps, self.train_fraction, job.generator)
+        job.shared["episodes"] = {"train": train, "test": test, "n_train": n_train, "n_test": n_test}
+        job.writer.add_scalar("collect/train_sequences", train.lengths.shape[1], 0)
+        job.writer.add_scalar("collect/test_sequences", test.lengths.shape[1], 0)
+        job.writer.add_scalar("collect/train_per_length", n_train, 0)
+
+
+def observation_table(job) -> ObservationTable:
+    """The observations the predictors and the actor see: processed where a phase stored them."""
+    return ObservationTable(job.shared.get("observations", job.env.observation_table))

@@ -7,6 +7,7 @@ points a resumed run logs again appear once, not twice.
 """
 import json
 import os
+import shutil
 import signal
 import tempfile
 import time
@@ -18,6 +19,26 @@ import torch
 
 CHECKPOINT = "last.pt"
 TB_EVENTS = "events.out.tfevents.*"  # the run's own event files (tb/analysis/ is analyze.py's)
+HYDRA_OWN = {".hydra", "train.log"}  # what Hydra writes into a run directory before main()
+
+
+def check_run_dir(path: Path, resume: bool) -> str | None:
+    """Why ``path`` cannot take this run (None if it can): a new run never writes into a
+    directory that already holds one, and a resumed one needs its checkpoints."""
+    holds_run = any((path / p).exists() for p in ("summary.json", "checkpoints"))
+    if resume and not (path / "checkpoints").exists():
+        return f"resume=true but {path} holds no checkpoints/: pass hydra.run.dir=<an earlier run>"
+    if holds_run and not resume:
+        return f"hydra.run.dir={path} already holds a run: pass resume=true to continue it, or another directory"
+    return None
+
+
+def discard_if_new(path: Path) -> None:
+    """Remove a run directory that holds only Hydra's own files and empty folders (a config that failed)."""
+    if path.is_dir() and all(p.name in HYDRA_OWN or (p.is_dir() and not any(p.iterdir())) for p in path.iterdir()):
+        shutil.rmtree(path, ignore_errors=True)
+        if path.parent.is_dir() and not any(path.parent.iterdir()):
+            path.parent.rmdir()
 
 
 @contextmanager
@@ -49,6 +70,11 @@ class RunDir:
         with atomic_path(self.path / "records" / f"{name}.npz") as tmp:
             with open(tmp, "wb") as f:
                 np.savez_compressed(f, **arrays)
+
+    def save_json(self, name: str, content: dict) -> None:
+        """``records/<name>.json``."""
+        with atomic_path(self.path / "records" / f"{name}.json") as tmp:
+            tmp.write_text(json.dumps(content, indent=2) + "\n")
 
     def save_checkpoint(self, state: dict, writer=None) -> None:
         """Write ``state``; with the run's SummaryWriter, flush it first and record the length

@@ -12,15 +12,19 @@ Visible layer = state nodes s and action nodes a, hidden layer h (Fig. 4.1a).
   obtained from the value before the previous update by that update's rank-one effect (``learn``)
 
 All parameters carry the run dimension first, ``W_sh`` (R, S, H); states are (R, B, S) with
-B = 1 in the online step loop and B = many for test images.
+B = 1 in the online step loop and B = many for test images. The cache of ``evaluate`` is the
+hidden input x (R, B, nA, H), ĥ = σ(x).
 """
 import copy
 import math
+from typing import Literal
 
 import torch
+from hydra.utils import instantiate
 from torch import nn
 
 from ferl import rbm
+from ferl.config.params import ArgumentError, Discount, NonNegative, NonNegativeInt, PositiveInt, checked
 
 TD_RULES = ("sarsa", "q", "expected_sarsa")
 LR_NORMS = ("edges", "fan_in", "none")  # what α is divided by the square root of
@@ -47,15 +51,21 @@ def sample_categorical(probs: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
     return index.clamp_(max=probs.shape[-1] - 1)
 
 
+def schedule(node):
+    """A schedule given as an object, or as its config node (``_target_``: ``ferl.schedules``)."""
+    return instantiate(node) if isinstance(node, dict) else node
+
+
 class FERLActor(nn.Module):
-    def __init__(self, n_runs: int, n_state: int, n_actions: int, n_hidden: int, td_rule: str,
-                 gamma: float, lr, beta, lr_norm: str = "edges", init_std: float = 0.01,
-                 bias_init_std: float = 0.0, action_code: str = "onehot", action_selection: str = "clamp",
-                 gibbs_sweeps: int = 20, td_fresh: bool = False, seed: int = 0):
+    @checked
+    def __init__(self, n_runs: PositiveInt, n_state: PositiveInt, n_actions: PositiveInt, n_hidden: PositiveInt,
+                 td_rule: Literal[TD_RULES], gamma: Discount, lr, beta, lr_norm: Literal[LR_NORMS] = "edges",
+                 init_std: NonNegative = 0.01, bias_init_std: NonNegative = 0.0,
+                 action_code: Literal[ACTION_CODES] = "onehot", action_selection: Literal[ACTION_SELECTIONS] = "clamp",
+                 gibbs_sweeps: PositiveInt = 20, td_fresh: bool = False, seed: NonNegativeInt = 0):
         super().__init__()
         self.td_rule, self.gamma, self.td_fresh = td_rule, gamma, td_fresh
-        if lr_norm not in LR_NORMS:
-            raise ValueError(f"actor.lr_norm must be one of {LR_NORMS}, got {lr_norm!r}")
+        self.n_hidden, self.lr_norm = n_hidden, lr_norm
         self.lr_schedule, self.beta_schedule = lr, beta
         self.action_selection, self.gibbs_sweeps = action_selection, gibbs_sweeps
         codes = action_code_table(n_actions, action_code)
@@ -76,6 +86,42 @@ class FERLActor(nn.Module):
         # state + action nodes; the edges are those connections of every hidden node (§3.5)
         fan_in = n_state + n_bits
         self.lr_divisor = math.sqrt({"edges": fan_in * n_hidden, "fan_in": fan_in, "none": 1}[lr_norm])
+
+    @classmethod
+    def check_config(cls, args: dict) -> None:
+        """α and β of the schedules at the start and the end of training (both monotone)."""
+        lr, beta = schedule(args["lr"]), schedule(args["beta"])
+        if not all(lr(p) > 0 for p in (0.0, 1.0)):
+            raise ArgumentError("lr", "a schedule of learning rates > 0")
+        if not all(beta(p) >= 0 for p in (0.0, 1.0)):
+            raise ArgumentError("beta", "a schedule of inverse temperatures ≥ 0")
+
+    @property
+    def n_runs(self) -> int:
+        return self.W_sh.shape[0]
+
+    def describe(self) -> dict:
+        return {"kind": "free_energy", "n_hidden": self.n_hidden, "gamma": self.gamma, "td_rule": self.td_rule,
+                "action_selection": self.action_selection, "td_fresh": self.td_fresh}
+
+    @property
+    def samples_with_generator(self) -> bool:
+        """Gibbs sampling draws from the generator step by step (``gibbs_actions``)."""
+        return self.action_selection == "gibbs"
+
+    def state_weights(self) -> torch.Tensor:
+        """W_sh (R, S, H): what every state node feeds the hidden nodes (Figs. 3.5, 4.1a)."""
+        return self.W_sh
+
+    def hidden(self, x: torch.Tensor) -> torch.Tensor:
+        """ĥ = σ(x) of hidden inputs from ``evaluate`` (Eq. 3.1c)."""
+        return torch.sigmoid(x)
+
+    def use_hidden_major_layout(self) -> None:
+        """Store W_sh hidden-major (its values unchanged): in a compiled step Wᵀs and the rank-one
+        update (Eq. 3.10a) then both run along the contiguous state axis, which inductor
+        vectorises and fuses into one pass over W (eager's bmm is faster on the default layout)."""
+        self.W_sh = self.W_sh.transpose(1, 2).contiguous().transpose(1, 2)
 
     def runs(self, index: slice) -> "FERLActor":
         """This actor restricted to a slice of its runs. The parameters are views, so updates

@@ -1,0 +1,35 @@
+"""A trainer set up from the real configs, with a run directory that writes no checkpoints: what the
+benchmarks time, phase by phase, without the disk."""
+import tempfile
+from contextlib import contextmanager
+from pathlib import Path
+
+import torch
+from hydra import compose, initialize_config_dir
+from hydra.utils import instantiate
+from torch.utils.tensorboard import SummaryWriter
+
+from ferl.run.directory import RunDir, StopRequest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@contextmanager
+def bench_job(overrides: list, device: str):
+    """(trainer, job) of ``config`` with ``overrides``, set up on ``device``, its run in a
+    temporary directory whose checkpoints are not written (time the arithmetic, not the disk)."""
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose("config", overrides=overrides)
+    cfg.name = "bench"
+    trainer = instantiate(cfg.trainer)
+    trainer.setup(cfg, torch.device(device))
+    job = trainer.job
+    with tempfile.TemporaryDirectory() as tmp, SummaryWriter(str(Path(tmp) / "tb")) as writer, StopRequest() as stop:
+        job.run, job.writer, job.stop = RunDir(tmp), writer, stop
+        job.run.save_checkpoint = lambda state, writer=None: None
+        yield trainer, job
+
+
+def phase(trainer, name: str):
+    """The trainer's phase of that name."""
+    return next(p for p in trainer.phases if p.name == name)

@@ -1,0 +1,47 @@
+"""Reading records and writing the analysis' files: the helpers every analysis module shares.
+
+Numbers go to CSV with six significant digits (`fmt`), lists to JSON (`write_json`), and text
+into markdown table cells through `cell`, which escapes the cell separator.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+
+
+def load_npz(path: Path) -> dict[str, np.ndarray]:
+    """Every array of a records file (docs/records.md), read at once, no pickles."""
+    with np.load(path, allow_pickle=False) as data:
+        return {key: data[key] for key in data.files}
+
+
+def fmt(x) -> str:
+    """A number as CSV text: six significant digits (the records are float32 or coarser)."""
+    return f"{x:.6g}"
+
+
+def write_csv(path: Path, header: Sequence[str], rows: Iterable) -> None:
+    with path.open("w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(header)
+        writer.writerows(rows)
+
+
+def write_json(path: Path, value) -> None:
+    path.write_text(json.dumps(value, indent=2, ensure_ascii=False) + "\n")
+
+
+def cell(text: str) -> str:
+    """Text for one markdown table cell."""
+    return str(text).replace("|", "\\|").replace("\n", " ")
+
+
+def table_lines(header: Sequence[str], rows: Iterable[Sequence]) -> list[str]:
+    """A markdown table: the header row, the rule, one line per row (cells escaped)."""
+    lines = [f"| {' | '.join(map(cell, header))} |", f"|{' --- |' * len(header)}"]
+    return lines + [f"| {' | '.join(map(cell, row))} |" for row in rows]

@@ -1,0 +1,162 @@
+"""A run directory as the analysis sees it: what produced it (`records/run.json`), its
+`summary.json` and its records (docs/records.md).
+
+Every decision of the analysis is taken on the facts of `records/run.json` — the task, the
+environment's kind and observations, the trainer's phases and parameters, the preprocessor and
+each predictor's kind — never on experiment names or config `_target_`s. A predictor's *role*
+follows from what it predicts:
+
+* `joint`: the observation and the reward bits together (Algorithm 1, Eq. 4.8);
+* `observation`: the observation only (Algorithm 2's observation predictor, Eq. 5.1);
+* `reward`: a scalar reward only (Algorithm 2's reward predictor, Eq. 5.2).
+
+Any other predictor has no role: it gets the generic figures and no chapter's claims.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+
+from ferl.analysis.io import load_npz
+
+MANIFEST = Path("records") / "run.json"
+JOINT, OBSERVATION, REWARD = "joint", "observation", "reward"
+
+
+def predictor_role(facts: dict) -> str | None:
+    """The dissertation's role of a predictor from its recorded facts (module doc)."""
+    observation, reward = bool(facts.get("predicts_observation")), facts.get("reward_output")
+    if observation and reward == "bits":
+        return JOINT
+    if observation and reward == "none":
+        return OBSERVATION
+    if not observation and reward == "linear":
+        return REWARD
+    return None
+
+
+@dataclass(frozen=True)
+class Manifest:
+    """`records/run.json` (docs/records.md): what produced the run."""
+    task: str
+    experiment: str
+    trainer: dict
+    env: dict
+    preprocessor: dict | None
+    predictors: dict[str, dict]
+    actor: dict
+
+    @classmethod
+    def load(cls, run_dir: Path) -> Manifest | None:
+        """The run's manifest; None for a run without one (written before it existed)."""
+        path = Path(run_dir) / MANIFEST
+        if not path.is_file():
+            return None
+        facts = json.loads(path.read_text())
+        return cls(str(facts.get("task")), str(facts.get("experiment")),
+                   facts.get("trainer") or {}, facts.get("env") or {}, facts.get("preprocessor"),
+                   facts.get("predictors") or {}, facts.get("actor") or {})
+
+    @property
+    def env_kind(self) -> str:
+        return str(self.env.get("kind"))
+
+    @property
+    def episodic(self) -> bool:
+        return bool(self.env.get("episodic"))
+
+    @property
+    def image_observations(self) -> bool:
+        """Observations are images (the digit mazes of §4.3.3 and §5.3.2, the digit floor)."""
+        return self.env.get("observation") == "image"
+
+    @cached_property
+    def roles(self) -> dict[str, str | None]:
+        """Predictor name → its role (module doc), in the order of run.json."""
+        return {name: predictor_role(facts) for name, facts in self.predictors.items()}
+
+
+@dataclass(frozen=True)
+class PredictorErrors:
+    """One predictor's records of `predictor.npz`: Eq. (4.7)–(4.8) errors per epoch, step-length
+    T and step t (Figs. 4.5/4.10, 5.2/5.17)."""
+    name: str
+    role: str | None
+    lengths: np.ndarray   # (nT,) step-lengths T with data
+    epochs: np.ndarray    # (E,) epochs at which the errors were measured, 0 = before training
+    train: np.ndarray     # (R, E, nT, Tmax+1), NaN for t > T
+    test: np.ndarray
+    trained_max: int      # longest trained step-length
+
+    @property
+    def n_runs(self) -> int:
+        return self.train.shape[0]
+
+    def errors(self, split: str) -> np.ndarray:
+        return self.train if split == "train" else self.test
+
+
+@dataclass
+class Run:
+    """One run directory: its manifest, summary and records, each records file read once."""
+    run_dir: Path
+    summary: dict
+    manifest: Manifest
+
+    @classmethod
+    def load(cls, run_dir: Path, manifest: Manifest) -> Run:
+        return cls(Path(run_dir), json.loads((Path(run_dir) / "summary.json").read_text()),
+                   manifest)
+
+    @cached_property
+    def _files(self) -> dict:
+        return {}
+
+    def records(self, name: str) -> dict[str, np.ndarray] | None:
+        """`records/<name>.npz` as arrays; None where the run has no such file."""
+        if name not in self._files:
+            path = self.run_dir / "records" / f"{name}.npz"
+            self._files[name] = load_npz(path) if path.is_file() else None
+        return self._files[name]
+
+    @property
+    def experiment(self) -> str:
+        return str(self.summary.get("experiment", self.manifest.experiment))
+
+    @property
+    def task(self) -> str:
+        return str(self.summary.get("task", self.manifest.task))
+
+    @property
+    def l_training(self) -> int | None:
+        """L_training of Algorithms 1–2: the predictors train on T_min … T_min + L_training − 1."""
+        value = self.manifest.trainer.get("l_training")
+        return None if value is None else int(value)
+
+    @cached_property
+    def predictors(self) -> list[PredictorErrors]:
+        """The predictors named in run.json that have records, in its order."""
+        found = self.records("predictor") or {}
+        out = []
+        for name, role in self.manifest.roles.items():
+            if f"{name}_error_train" not in found:
+                continue
+            lengths = found[f"{name}_lengths"].astype(np.int64)
+            # Without L_training every recorded length counts as trained.
+            trained_max = (int(lengths.max()) if self.l_training is None
+                           else int(lengths.min()) + self.l_training - 1)
+            out.append(PredictorErrors(
+                name, role, lengths, found[f"{name}_epochs"].astype(np.int64),
+                found[f"{name}_error_train"].astype(np.float64),
+                found[f"{name}_error_test"].astype(np.float64), trained_max))
+        return out
+
+    def metric(self, name: str) -> np.ndarray:
+        """A summary.json metric as float per run (null → NaN)."""
+        return np.asarray([np.nan if v is None else v for v in self.summary["metrics"][name]],
+                          dtype=np.float64)

@@ -1,0 +1,195 @@
+"""`analyze.py`'s work: analyze run and sweep directories, write their `analysis/` folders.
+
+A directory holding `summary.json` is a run: its `analysis/` folder is rebuilt (PNG figures,
+CSV/JSON data, `report.md`) and the figures are logged to its TensorBoard under
+`tb/analysis/` (replaced on every analysis). What a run gets is decided on what it recorded
+(`records/run.json`, `ferl.analysis.dispatch`); a run without run.json is skipped with a
+message. Any other directory is a sweep: every run below it is analyzed, and `DIR/analysis/`
+gets the sweep's aggregate tables, the Fig. 3.6 noise grid and the reproduction report
+(`ferl.analysis.sweep`), its figures also logged to `DIR/analysis/tb/`.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ferl import runs
+from ferl.analysis import dispatch, generic
+from ferl.analysis import sweep as sw
+from ferl.analysis.claims import VERDICTS, ClaimResult, Numbering, evaluate
+from ferl.analysis.io import write_json
+from ferl.analysis.records import MANIFEST, Manifest, Run
+from ferl.analysis.report import RunAnalysis, RunOutcome, jobs_table, write_run_report
+from ferl.analysis.sweep_claims import SWEEP_CLAIMS
+
+PROG = "analyze.py"
+
+
+def publish_figures(figures: dict, out: Path, tb_dir: Path) -> None:
+    """Save every figure as PNG and log it to a fresh TensorBoard log `tb_dir` under
+    `analysis/<name>`.
+
+    Each figure is rendered once by the Agg canvas and the same pixels go to both,
+    which is what `SummaryWriter.add_figure` logs, without drawing it twice more.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.image import imsave
+    # imported here: torch's start-up is paid only by a call that writes figures
+    from torch.utils.tensorboard import SummaryWriter
+
+    shutil.rmtree(tb_dir, ignore_errors=True)
+    with SummaryWriter(str(tb_dir)) as writer:
+        for name, (fig, _) in figures.items():
+            canvas = FigureCanvasAgg(fig)
+            canvas.draw()
+            rgba = np.asarray(canvas.buffer_rgba())
+            imsave(out / f"{name}.png", rgba)
+            writer.add_image(f"analysis/{name}", rgba[..., :3], global_step=0, dataformats="HWC")
+
+
+def _claim_json(r: ClaimResult, **where) -> dict:
+    return {"claim": r.claim.text, "source": r.claim.source, "measured": r.measured.text,
+            "criterion": r.claim.criterion, "verdict": r.verdict, **where}
+
+
+def _fresh(out: Path) -> Path:
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir()
+    return out
+
+
+def run_analysis(run: Run, out: Path) -> RunAnalysis:
+    """The generic analysis of any run, its environment's figures and, where a chapter of the
+    dissertation applies, that chapter's figure numbers and claims (`dispatch`)."""
+    chapter = dispatch.chapter_of(run.manifest)
+    num = chapter.numbering(run.manifest) if chapter else Numbering()
+    analysis = generic.analyze(run, num, out)
+    analysis.header.append(("dissertation", chapter.model if chapter else
+                            "no chapter's model matches this run: generic figures, no claims"))
+    environment = dispatch.ENVIRONMENTS.get(run.manifest.env_kind)
+    if environment is None:
+        return analysis
+    view, own = environment(run, num, out)
+    analysis.title = own.title
+    analysis.add(own)
+    if chapter is not None:
+        analysis.results = evaluate(chapter.claims, view)
+    return analysis
+
+
+def analyze_run(run_dir: Path) -> RunOutcome:
+    """Rebuild `run_dir/analysis/`; return the run's line of a sweep report."""
+    summary = json.loads((run_dir / "summary.json").read_text())
+    task, experiment = str(summary.get("task")), str(summary.get("experiment", "?"))
+    manifest = Manifest.load(run_dir)
+    if manifest is None:
+        print(f"{run_dir}: skipped, no {MANIFEST}")
+        return RunOutcome(run_dir, experiment, task, f"skipped: no {MANIFEST}")
+
+    out = _fresh(run_dir / "analysis")
+    analysis = run_analysis(Run.load(run_dir, manifest), out)
+    publish_figures(analysis.figures, out, run_dir / "tb" / "analysis")
+    write_json(out / "claims.json", [_claim_json(r) for r in analysis.results])
+    analysis.data_files.append("claims.json")
+    write_run_report(out / "report.md", analysis)
+
+    verdicts = {v: sum(r.verdict == v for r in analysis.results) for v in VERDICTS}
+    print(f"{run_dir}: {len(analysis.figures)} figures, {len(analysis.results)} claims "
+          f"({', '.join(f'{n} {v}' for v, n in verdicts.items())}) -> {out / 'report.md'}")
+    return RunOutcome(run_dir, experiment, task, "analyzed", verdicts, analysis.results,
+                      [(name, caption) for name, (_, caption) in analysis.figures.items()])
+
+
+def _safe_analyze_run(run_dir: Path) -> RunOutcome:
+    """One failing run must not stop a sweep: report it in one line and go on."""
+    try:
+        return analyze_run(run_dir)
+    except Exception as exc:  # noqa: BLE001 — any failure is reported per run
+        print(f"{PROG}: error: {run_dir}: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return RunOutcome(run_dir, "?", "?", f"failed: {type(exc).__name__}: {exc}")
+
+
+def _read_summary(run_dir: Path) -> dict | None:
+    """A run's summary for the sweep tables, also where its own analysis failed; None if
+    unreadable."""
+    try:
+        return runs.load_summary(run_dir)
+    except (OSError, ValueError):
+        return None
+
+
+def analyze_sweep(sweep_dir: Path, readme: Path | None = None) -> list[RunOutcome]:
+    """Analyze every run below `sweep_dir`, then the sweep as a whole (`ferl.analysis.sweep`)."""
+    start = time.perf_counter()
+    found = runs.find_runs(sweep_dir)
+    outcomes = [_safe_analyze_run(r) for r in found]
+    jobs = [sw.Job(o, summary) for o in outcomes
+            if (summary := _read_summary(o.run_dir)) is not None]
+    sweep = sw.Sweep(sweep_dir, jobs)
+    out = _fresh(sweep_dir / "analysis")
+    analysis = sw.analyze_sweep(sweep, out)
+    rows = sw.reproduction_rows(jobs, evaluate(SWEEP_CLAIMS, sweep), dispatch.CLAIM_ORDER)
+    publish_figures(analysis.figures, out, out / "tb")
+    write_json(out / "claims.json",
+               [_claim_json(r.result, job=None if r.job is None else str(r.job.run_dir),
+                            variant=None if r.job is None else r.job.variant) for r in rows])
+    analysis.data_files.append("claims.json")
+
+    wall = {}
+    train_wall = sweep_dir / sw.TRAIN_WALL_TIME
+    if train_wall.is_file():
+        wall["training wall time (make reproduce)"] = float(train_wall.read_text())
+    wall["sum of the jobs' wall_time_s"] = sum(float(j.summary.get("wall_time_s", 0)) for j in jobs)
+    wall["analysis wall time"] = time.perf_counter() - start
+    lines = sw.report_lines(sweep, analysis, rows, out, wall)
+    lines += ["", "## Jobs", ""] + jobs_table(sweep_dir, out, outcomes)
+    (out / "report.md").write_text("\n".join(lines) + "\n")
+    if readme is not None:
+        sw.update_readme(readme, rows, wall, out / "report.md")
+        print(f"{readme}: reproduction table updated")
+    print(f"{sweep_dir}: sweep of {len(found)} runs, {len(rows)} claims "
+          f"({sw.verdict_counts(rows)}) -> {out / 'report.md'}")
+    return outcomes
+
+
+def _usage_error(dirs: list[Path], readme: Path | None) -> str | None:
+    """What is wrong with the command line, None when nothing is."""
+    missing = [str(d) for d in dirs if not d.is_dir()]
+    if missing:
+        return f"no such directory: {', '.join(missing)}"
+    single = [str(d) for d in dirs if (d / "summary.json").is_file()]
+    if readme is not None and single:
+        return f"--readme takes sweep directories only, not the run {', '.join(single)}"
+    text = readme.read_text() if readme is not None and readme.is_file() else ""
+    if readme is not None and not (sw.README_BEGIN in text and sw.README_END in text):
+        return (f"--readme {readme}: needs a file with the lines {sw.README_BEGIN!r} and "
+                f"{sw.README_END!r}")
+    return None
+
+
+def main(dirs: list[Path], readme: Path | None = None) -> int:
+    """Analyze each directory (a run or a sweep); the exit status: 2 for a usage error or a
+    directory without runs, 1 when a run's analysis failed, else 0."""
+    error = _usage_error(dirs, readme)
+    if error is not None:
+        print(f"{PROG}: error: {error}", file=sys.stderr)
+        return 2
+    status = 0
+    for d in dirs:
+        if (d / "summary.json").is_file():
+            outcomes = [_safe_analyze_run(d)]
+        elif not any(d.rglob("summary.json")):
+            print(f"{PROG}: error: {d}: no run (summary.json) found below it", file=sys.stderr)
+            status = 2
+            continue
+        else:
+            outcomes = analyze_sweep(d, readme)
+        if any(o.status.startswith("failed") for o in outcomes):
+            status = max(status, 1)
+    return status

@@ -1,0 +1,213 @@
+"""The interfaces the components of ferl meet through (docs/architecture.md).
+
+Data flows one way: environment → preprocessor → predictors → actor. Trainers and analysis talk
+to these protocols only, so a new environment, preprocessor, predictor, actor or trainer is one
+module with one YAML file whose ``_target_`` names it; nothing in ferl has to know its name.
+
+Every component is batched over R independent runs: its parameters and states carry the run
+dimension first, and one call advances or updates every run. Each component also says what it
+is (``describe``): the dict ``records/run.json`` keeps, from which analysis decides which
+figures and claims apply to a run.
+
+Constructors receive their YAML keys plus what the trainer supplies (``n_runs``, sizes, ``seed``,
+``generator``, ``device``, ``data`` where the constructor names it); the types and ranges of the
+YAML keys are the constructor's annotations (``ferl.config.params``), checked before any work.
+"""
+from typing import Hashable, Protocol, Sequence, runtime_checkable
+
+import torch
+from torch import Tensor
+
+# A predictor's recurrent state: one tensor (R, ·) or a tuple of them (an LSTM's (h, c)).
+State = Tensor | tuple[Tensor, ...]
+
+
+@runtime_checkable
+class Environment(Protocol):
+    """R environments stepped together with one action per run (R,) of ``n_actions`` discrete actions.
+
+    ``describe()`` holds at least ``task`` (the summary's task: which metrics a run reports),
+    ``kind``, ``episodic``, ``observation`` ("bits", "image" or "vector"), ``observation_size``
+    and ``n_actions``.
+    """
+
+    n_runs: int
+    n_actions: int
+    observation_size: int
+    task: str
+
+    def reset(self) -> Tensor:
+        """Start every run afresh; the observations (R, observation_size)."""
+
+    def step(self, action: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Act in every run: (observations (R, O), rewards (R,), terminated (R,), truncated (R,))."""
+
+    def optimal(self, gamma: float) -> dict[str, float]:
+        """The optimum a run is measured against, from the environment's definition
+        (``summary.json``'s ``optimal``)."""
+
+    def describe(self) -> dict: ...
+
+    def state_dict(self) -> dict: ...
+
+    def load_state_dict(self, state: dict) -> None: ...
+
+
+@runtime_checkable
+class EpisodicEnvironment(Environment, Protocol):
+    """An environment of episodes with a finite set of observations (the T-mazes), as the phased
+    algorithms of chapters 4–5 need it: observations are ids into ``observation_table``, so that
+    episodes are stored as ids and a frozen predictor's step is a table lookup.
+
+    A run's episode ends when it terminates or after ``max_steps`` actions; ``done`` runs stay put
+    (reward 0) until ``reset``. What the records keep besides returns and lengths is declared here,
+    not known to the trainer: ``outcomes`` (facts of an ended episode, e.g. ``correct_goal``;
+    boolean ones become ``final_<name>_rate`` metrics and count towards ``solved``), ``labels``
+    (what the episode's probes are labelled with, e.g. the maze's condition) and ``probe`` (the
+    runs whose present state is one whose activations the records keep, e.g. the T-junction).
+    """
+
+    max_steps: int
+    optimal_steps: int
+    reward_values: tuple[float, ...]
+    observation_table: Tensor   # (ids, O)
+    obs_id: Tensor              # (R,) the id of every run's present observation
+    done: Tensor                # (R,) bool
+    t: Tensor                   # (R,) actions taken in the episode
+
+    def advance(self, action: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """``step`` without building the observations: (rewards, terminated, truncated)."""
+
+    def outcomes(self) -> dict[str, Tensor]:
+        """Per-run facts of the episode (valid once ``done``), each (R,)."""
+
+    def labels(self) -> dict[str, Tensor]:
+        """Per-run labels of the present episode, each (R,)."""
+
+    @property
+    def probe(self) -> Tensor:
+        """(R,) bool: runs whose present state the records keep activations of."""
+
+
+@runtime_checkable
+class Preprocessor(Protocol):
+    """Maps raw observations (…, input_size) to processed ones (R, …, output_size), run by run
+    (chapter 5's RBM, §5.2). ``fit`` learns from training images before the agent acts."""
+
+    input_size: int
+    output_size: int
+
+    def fit(self, images: Tensor, writer=None) -> dict:
+        """Learn from images (N, input_size); returns the records of the fit (e.g. error curves)."""
+
+    def transform(self, observations: Tensor) -> Tensor:
+        """(B, input_size) shared by all runs, or (R, B, input_size) → (R, B, output_size)."""
+
+    def describe(self) -> dict: ...
+
+
+@runtime_checkable
+class TrainingBatch(Protocol):
+    """Predictors that train together on the same sequences (``Predictor.training_batch``)."""
+
+    def train_epoch(self, orders: Sequence[Tensor]) -> None:
+        """One epoch, member k taking the sequences in its order orders[k] (R, N)."""
+
+
+@runtime_checkable
+class Predictor(Protocol):
+    """A recurrent model of the history (§2.4, §4.2, §5.2) whose memory the actor sees.
+
+    Sequences are padded batches: y (R, B, T+1, Y) observations, a (R, B, T, A) one-hot actions,
+    r (R, B, T+1, ·) reward targets (``reward_targets``), lengths (R, B) the actions of each.
+    """
+
+    memory_size: int        # what ``memory`` hands the actor per run
+    batch_key: Hashable     # predictors with equal keys train as one ``training_batch``
+
+    def initial_state(self) -> State:
+        """The state before the first observation, m_0 (Eq. 4.1)."""
+
+    def memory(self, state: State) -> Tensor:
+        """What the actor sees of a state: (R, memory_size)."""
+
+    def step(self, state: State, y_prev: Tensor, a_prev: Tensor) -> State:
+        """One step from y_{t−1} (R, Y) and one-hot a_{t−1} (R, A) (Eq. 4.3)."""
+
+    def frozen_step(self, table: Tensor, n_actions: int):
+        """The step of the frozen predictor on observation ids: a function
+        (state, obs_id_prev (R,), action_prev (R,)) → state, where ``table`` (ids, Y) or per run
+        (R, ids, Y) holds the (processed) observation of every id. A predictor may precompute
+        what does not depend on the state (the Elman predictor's drive table)."""
+
+    def reward_targets(self, reward_values: Sequence[float], rewards: Tensor) -> Tensor | None:
+        """Targets (R, B, T+1, ·) of rewards r_1 … r_T (R, B, T), or None without a reward output."""
+
+    @classmethod
+    def training_batch(cls, members: list, y: Tensor, a: Tensor, rs: list, lengths: Tensor) -> TrainingBatch:
+        """Members with one ``batch_key`` and their training sequences, ready to train."""
+
+    def prediction_errors(self, y: Tensor, a: Tensor, r: Tensor | None, lengths: Tensor) -> Tensor:
+        """Prediction error of every step (R, B, T+1), NaN where there is none (Eq. 4.8)."""
+
+    def describe(self) -> dict: ...
+
+
+@runtime_checkable
+class Actor(Protocol):
+    """Chooses actions from a state (R, B, S) and learns from TD errors (§3.2).
+
+    ``evaluate`` gives every action's value as an energy F (lower is better: Q = −F) and a cache
+    of what ``learn`` reuses; ``ferl.actors.td.td_step`` is the one online step that every trainer
+    takes with any actor.
+    """
+
+    n_runs: int
+    gamma: float  # the discount of its TD errors (and of the returns the optimum is measured in)
+
+    def learning_rate(self, progress: float) -> float: ...
+
+    def inverse_temperature(self, progress: float) -> float: ...
+
+    def evaluate(self, s: Tensor) -> tuple[Tensor, Tensor]:
+        """F (R, B, nA) of every action and the per-action cache (R, B, nA, ·)."""
+
+    def select(self, s: Tensor, F: Tensor, beta: float, generator: torch.Generator,
+               uniform: Tensor | None = None) -> Tensor:
+        """An action (R, B) per state; ``uniform`` (R, B, 1) pre-drawn U(0, 1) numbers."""
+
+    def td_error(self, reward: Tensor, F_sa: Tensor, F_next: Tensor, a_next: Tensor, beta: float,
+                 terminal: Tensor | None = None) -> Tensor: ...
+
+    def learn(self, s, a, cache_sa, delta, lr, s_next, a_next, F_next, cache_next) -> tuple[Tensor, Tensor]:
+        """Update on (s, a) with TD errors delta (R, B); returns F and the cache of (s', a') for
+        the next TD error (at the updated parameters where the actor's reading says so)."""
+
+    def hidden(self, cache: Tensor) -> Tensor:
+        """The actor's hidden activations from a cache entry (R, B, ·), for the records."""
+
+    def state_weights(self) -> Tensor:
+        """Weights from the state nodes (R, S, ·), for images of what the actor attends to."""
+
+    @property
+    def samples_with_generator(self) -> bool:
+        """True when ``select`` draws from the generator itself (then a step's random numbers
+        cannot be drawn ahead, and a step cannot be compiled)."""
+
+    def runs(self, index: slice) -> "Actor":
+        """A view of a slice of the runs whose updates land in this actor."""
+
+    def describe(self) -> dict: ...
+
+
+class Trainer(Protocol):
+    """A training procedure: built from ``conf/trainer/*.yaml`` (``_target_``), then ``setup``
+    builds the components from the composed config and ``fit`` trains them into a run directory."""
+
+    def setup(self, cfg, device: torch.device) -> None: ...
+
+    def metric_names(self) -> list[str]:
+        """The flat names (``ferl.stats.flat_metrics``) of the summary.json metrics ``fit`` writes."""
+
+    def fit(self, run, resume: bool) -> dict:
+        """Train; returns the summary.json dict (CONTRACT §2)."""

@@ -1,0 +1,67 @@
+"""Pattern-mode BPTT training of predictors, batched over runs and over predictors (§4.3.1, §5.2).
+
+One SGD step per sequence (``batch_size`` = 1, the dissertation's pattern mode) or per
+``batch_size`` sequences on their mean loss, every run on its own sequence order. Predictors that
+share the form of the memory (their ``batch_key``: chapter 5's observation and reward predictors)
+train as one batch along the run axis: their memories unroll and backpropagate in the same
+batched products (the predictor class's ``bptt``), only the output heads apart. Every predictor
+still takes its own order and its own plain SGD steps, so each one's training equals training it
+alone (tested).
+"""
+import torch
+import torch.nn.functional as F
+
+from ferl.predictors.heads import clean, valid_steps
+
+
+class PredictorBatch:
+    """Predictors with one ``batch_key`` and their training sequences (``Predictor.training_batch``)."""
+
+    def __init__(self, predictors: list, y, a, rs: list, lengths):
+        """Members and their training sequences: y (R, N, T+1, Y), a (R, N, T, A), lengths (R, N)
+        shared, targets rs[k] (R, N, T+1, ·) or None per member; the padding is zeroed once here."""
+        if len({p.batch_key for p in predictors}) != 1:
+            raise ValueError("a PredictorBatch needs predictors with the same memory, gains, lr, objective and batch size")
+        self.members = list(predictors)
+        self.lead = predictors[0]
+        y, a, _ = clean(y, a, None, lengths)
+        valid = valid_steps(lengths, y.shape[2]).unsqueeze(-1)
+        self.y, self.a, self.lengths = y, a, lengths
+        self.rs = [torch.where(valid, r, 0.0) if r is not None else None for r in rs]
+
+    @torch.no_grad()
+    def train_epoch(self, orders: list) -> None:
+        """One epoch of every member, member k taking the sequences in its order orders[k] (R, N),
+        a permutation of each run's N sequences: for i = 1 … N every run takes a plain SGD step
+        θ ← θ − α ∇_θ J on its sequence orders[k][:, i] (or on the mean over the next B). Runs
+        share nothing: each run's parameters move by the gradient of its own loss alone."""
+        p, P = self.lead, len(self.members)
+        runs = torch.arange(self.lengths.shape[0], device=self.lengths.device).unsqueeze(1)
+        R = runs.shape[0]
+        cat = lambda xs: torch.cat(xs) if P > 1 else xs[0]  # noqa: E731
+        L = cat([self.lengths[runs, o] for o in orders])
+        y, a = cat([self.y[runs, o] for o in orders]), cat([self.a[runs, o] for o in orders])
+        rs = [r[runs, o] if r is not None else None for r, o in zip(self.rs, orders)]
+        # the memories' parameters of all members in one (P·R, …) tensor each while training
+        memory = p.memory_parameters() if P == 1 else [torch.cat(qs) for qs in zip(*(q.memory_parameters() for q in self.members))]
+        params = memory + [q for member in self.members for q in member.head_parameters()]
+        B, n = p.batch_size, L.shape[1]
+        # the weight of every step in its update's loss: 1/(T+1) under J(T), over the sequences
+        # of the update (B, fewer in a last short one), 0 on padding; rewards count from t = 1
+        chunk = torch.arange(n, device=L.device) // B
+        scale = (1.0 / (L + 1).to(y.dtype) if p.time_average else torch.ones_like(L, dtype=y.dtype)) / chunk.bincount()[chunk]
+        steps = valid_steps(L, y.shape[2]) * scale.unsqueeze(-1)
+        reward_steps = steps * (torch.arange(y.shape[2], device=L.device) > 0)
+        # T of every step: the longest sequence of its B positions over all runs, read once (one
+        # host sync per epoch); it trims the padding all runs and sequences of the step share
+        longest = F.pad(L.max(0).values, (0, -n % B)).view(-1, B).max(1).values.tolist()
+        for i, T in zip(range(0, n, B), longest):
+            s = slice(i, i + B)
+            grads = type(p).bptt(self.members, memory, y[:, s, : T + 1], a[:, s, :T],
+                                 [r[:, s, : T + 1] if r is not None else None for r in rs],
+                                 steps[:, s, : T + 1], reward_steps[:, s, : T + 1])
+            torch._foreach_add_(params, grads, alpha=-p.lr)
+        if P > 1:
+            for k, member in enumerate(self.members):
+                for q, merged in zip(member.memory_parameters(), memory):
+                    q.copy_(merged[k * R:(k + 1) * R])

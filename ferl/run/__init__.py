@@ -1,0 +1,2 @@
+"""The plumbing of a run being trained: its directory and checkpoints (``directory``), the
+divergence guard (``guard``) and TensorBoard logging (``tensorboard``)."""

@@ -1,0 +1,243 @@
+"""Algorithm 1's actor phase (§4.2, §4.3.1): episodes of the actor on the frozen predictors' memory.
+
+All runs of the batch play their episodes in lockstep: episode k of every run starts together,
+runs whose episode has ended wait (their TD errors are masked) until the slowest has finished.
+The action uniforms of an episode are drawn for all T_max + 1 choices when it starts, so no run's
+episode length shifts another run's random stream. The actor's state is the (processed)
+observation, scaled by ``actor_obs_scale``, followed by every predictor's memory; the frozen
+predictors step on observation ids (``Predictor.frozen_step``).
+
+What the records keep besides returns, lengths and TD errors is the environment's: its episode
+``outcomes`` (per episode, in ``episodes.npz``; the boolean ones give ``final_<name>_rate`` and
+count towards ``solved``) and the activations at its ``probe`` states with its ``labels``
+(``junction.npz``, the T-junction in the T-mazes, Figs. 4.14–4.19).
+"""
+import time
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from ferl.actors.td import first_action, td_step
+from ferl.images import IMAGE_SIDE, matrix_image, tile, weight_images
+from ferl.predictors.heads import scaled
+from ferl.random_blocks import Blocks, steps_per_block
+from ferl.run.directory import CheckpointTimer
+from ferl.run.tensorboard import log_embedding, log_weights
+from ferl.trainers.episodes import observation_table
+
+EMBEDDED_PROBES = 2000  # run 0's last probe visits in the projector (docs/records.md)
+SOLVED_SHARE = 0.95     # solved: return ≥ 0.95 × optimum and every outcome rate ≥ 0.95 (CONTRACT §2)
+
+
+class ActorEpisodes:
+    """``n_episodes`` SARSA(0) episodes (α, β by the actor's schedules over the episodes), logged
+    every ``log_every`` episodes, checkpointed every ``checkpoint_every`` (and by the clock);
+    every ``td_sample_every``-th episode keeps its per-step TD errors; the metrics are taken over
+    the last ``final_window`` episodes."""
+
+    name = "actor"
+
+    def __init__(self, n_episodes: int, actor_obs_scale: float, log_every: int, td_sample_every: int,
+                 final_window: int, checkpoint_every: int, checkpoint_minutes: float):
+        self.N, self.obs_scale, self.log_every = n_episodes, actor_obs_scale, log_every
+        self.td_sample_every, self.final_window = td_sample_every, final_window
+        self.checkpoint_every, self.checkpoint_minutes = checkpoint_every, checkpoint_minutes
+
+    def prepare(self, job) -> None:
+        steps = job.env.max_steps + 1  # an episode's action draws: a_0 … a_{T_max}
+        self.uniforms = Blocks(
+            lambda n: (torch.rand(n, steps, job.R, 1, 1, generator=job.generator, device=job.device),),
+            steps_per_block(steps * job.R))
+        job.unit = "episode"
+        outcomes = job.env.outcomes()
+        self.outcome_names = ("discounted_return", "steps", "terminal_reward", "td_abs_mean", *outcomes)
+        self.rates = [name for name, v in outcomes.items() if v.dtype == torch.bool]  # e.g. correct_goal
+
+    def metric_names(self, job) -> list[str]:
+        return ["final_discounted_return", "final_steps_to_goal", *(f"final_{name}_rate" for name in self.rates), "solved"]
+
+    def fresh_state(self, job) -> dict:
+        """Records of the phase before its first episode: one value per run and episode."""
+        R, N, T_max = job.R, self.N, job.env.max_steps
+        dtypes = {"discounted_return": np.float32, "steps": np.int64, "terminal_reward": np.float32,
+                  "td_abs_mean": np.float32,
+                  **{k: {torch.bool: bool}.get(v.dtype, np.int64) for k, v in job.env.outcomes().items()}}
+        n_sampled = len(range(0, N, self.td_sample_every))
+        return {"episode": 0, "records": {k: np.zeros((R, N), dtype=dtypes[k]) for k in self.outcome_names},
+                "probes": [], "active_time": 0.0, "agent_steps": 0,
+                "td_sampled": np.full((R, n_sampled, T_max), np.nan, dtype=np.float32)}
+
+    def run(self, job, state) -> None:
+        """Episodes from where a checkpoint left them."""
+        if state is None:
+            self.log_actor(job, 0)
+            state = self.fresh_state(job)
+        else:
+            self.uniforms.load_state_dict(state.pop("uniforms"), job.device)
+        records, td_sampled, probes = state["records"], state["td_sampled"], state["probes"]
+        self.freeze(job)
+        clock = CheckpointTimer(self.checkpoint_minutes)
+        bar = tqdm(range(state["episode"], self.N), desc="actor", unit="episode", initial=state["episode"],
+                   total=self.N, mininterval=1.0)
+        for k in bar:
+            started = time.perf_counter()
+            lr, beta = job.actor.learning_rate(k / self.N), job.actor.inverse_temperature(k / self.N)
+            episode = self.play_episode(job, k, lr, beta)
+            state["active_time"] += time.perf_counter() - started
+            outcome = episode["outcome"].cpu().numpy()  # one host copy per episode
+            for i, key in enumerate(self.outcome_names):
+                records[key][:, k] = outcome[i]
+            state["agent_steps"] += int(outcome[1].sum())
+            if episode["probes"] is not None:
+                probes.append(episode["probes"])
+            if k % self.td_sample_every == 0:
+                td = episode["td"].T.cpu().numpy()
+                td_sampled[:, k // self.td_sample_every, : td.shape[1]] = td
+            if (k + 1) % self.log_every == 0 or k + 1 == self.N:
+                checked = k + 1 - (k % self.log_every + 1)  # first episode not yet checked
+                job.guard.check(torch.as_tensor(records["td_abs_mean"][:, checked:k + 1].T), checked, "episode")
+            if (k + 1) % self.log_every == 0:
+                self.log_episodes(job.writer, records, k + 1, lr, beta)
+                recent = slice(max(0, k - 199), k + 1)
+                bar.set_postfix(return_ma200=f"{records['discounted_return'][:, recent].mean():.3f}",
+                                **{f"{n}_ma200": f"{records[n][:, recent].mean():.2f}" for n in self.rates}, refresh=False)
+            if ((k + 1) % self.checkpoint_every == 0 or job.stop.requested or clock.due()) and k + 1 < self.N:
+                state["probes"] = probes = [concat_records(probes)] if probes else []
+                state["episode"] = k + 1
+                job.checkpoint(self.name, {**state, "uniforms": self.uniforms.state_dict()})
+        bar.close()
+        self.finish(job, state)
+
+    def freeze(self, job) -> None:
+        """The frozen predictors' steps on observation ids, the actor's observation rows (times
+        ``actor_obs_scale``) and the row offsets that address run r's part of them."""
+        table = observation_table(job).table
+        ids = job.env.observation_table.shape[0]
+        self.steps = [p.frozen_step(table, job.env.n_actions) for p in job.predictors.values()]
+        self.obs_rows = scaled(table.reshape(-1, table.shape[-1]), self.obs_scale)
+        self.obs_offsets = torch.arange(job.R, device=job.device) * ids if table.dim() == 3 else None
+        self.initial_states = [p.initial_state() for p in job.predictors.values()]
+        self.discounts = job.actor.gamma ** torch.arange(job.env.max_steps, device=job.device, dtype=torch.float32)
+
+    def state(self, job, obs_id: torch.Tensor, memories: list) -> torch.Tensor:
+        """The actor's state (R, 1, S): the (processed) observation, then every predictor's memory."""
+        rows = obs_id if self.obs_offsets is None else obs_id + self.obs_offsets
+        return torch.cat([self.obs_rows.index_select(0, rows), *memories], 1).unsqueeze(1)
+
+    def play_episode(self, job, k: int, lr: float, beta: float) -> dict:
+        """Episode k of every run, with SARSA(0) updates at every step (``td_step``): observe →
+        memories m_t (Eq. 4.3) → a' by Eq. (3.11) → δ → θ update (Eq. 3.10). Runs whose episode
+        has ended wait with δ = 0. Returns the outcome (len(outcome_names), R), the TD errors
+        (steps, R), NaN where a run had ended, and the probe visits (or None)."""
+        env, actor, predictors = job.env, job.actor, list(job.predictors.values())
+        env.reset()
+        (uniform,) = self.uniforms.next()  # (T_max + 1, R, 1, 1)
+        m = self.initial_states
+        memories = [p.memory(x) for p, x in zip(predictors, m)]
+        s = self.state(job, env.obs_id, memories)
+        a, F_sa, x_sa = first_action(actor, s, beta, job.generator, uniform[0])
+        rewards, deltas, visits = [], [], []
+        for t in range(env.max_steps):
+            active = ~env.done
+            visits.append((env.probe & active, active, memories, s, x_sa))
+            obs_prev = env.obs_id
+            r, terminated, _ = env.advance(a.squeeze(1))
+            m = [step(x, obs_prev, a.squeeze(1)) for step, x in zip(self.steps, m)]
+            memories = [p.memory(x) for p, x in zip(predictors, m)]
+            s_next = self.state(job, env.obs_id, memories)
+            a, F_sa, x_sa, delta = td_step(actor, s, a, F_sa, x_sa, r, s_next, lr, beta, job.generator, uniform[t + 1],
+                                           job.guard.alive, (terminated | ~active).unsqueeze(1), active.unsqueeze(1))
+            rewards.append(r)
+            deltas.append(delta.squeeze(1))
+            s = s_next
+            if bool(env.done.all()):
+                break
+        rewards, deltas = torch.stack(rewards), torch.stack(deltas)  # (steps, R)
+        actives = torch.stack([v[1] for v in visits])
+        steps = env.t
+        outcome = torch.stack([
+            self.discounts[:len(rewards)] @ rewards,  # discounted return (done runs got r = 0)
+            steps.float(), rewards.gather(0, (steps - 1).unsqueeze(0)).squeeze(0),  # terminal reward
+            deltas.abs().sum(0) / steps.clamp(min=1), *(v.float() for v in env.outcomes().values())])
+        return {"outcome": outcome, "td": torch.where(actives, deltas, torch.nan),
+                "probes": self.probe_visits(job, k, visits)}
+
+    def probe_visits(self, job, k: int, visits: list) -> dict | None:
+        """Activations at every probe visit of episode k after the action there was selected
+        (Figs. 4.14–4.19): memories, actor state and hidden nodes, with the episode's labels."""
+        step, run = torch.stack([v[0] for v in visits]).nonzero(as_tuple=True)
+        if len(run) == 0:
+            return None
+        gather = lambda xs: torch.stack(xs)[step, run]  # noqa: E731
+        return {"run": run.cpu(), "episode": torch.full_like(run, k).cpu(), "step": step.cpu(),
+                **{key: v[run].cpu() for key, v in job.env.labels().items()},
+                **{f"memory_{name}": gather([v[2][i] for v in visits]).half().cpu()
+                   for i, name in enumerate(job.predictors)},
+                "state": gather([v[3][:, 0] for v in visits]).half().cpu(),
+                "hidden": job.actor.hidden(gather([v[4][:, 0] for v in visits])).half().cpu()}
+
+    def finish(self, job, state: dict) -> None:
+        """Records, metrics, the final TensorBoard points; the phase's steps for the speed."""
+        records = state["records"]
+        self.log_actor(job, self.N)
+        probes = {key: v.numpy() for key, v in concat_records(state["probes"]).items()} if state["probes"] else {}
+        if probes:
+            probes["steps_to_goal"] = records["steps"][probes["run"], probes["episode"]]
+        sampled = np.asarray(list(range(0, self.N, self.td_sample_every)))
+        optimal = job.env.optimal(job.actor.gamma)
+        job.run.save_records("episodes", **records, td_sampled=state["td_sampled"], td_sampled_episodes=sampled,
+                             gamma=np.float64(job.actor.gamma), optimal_return=np.float64(optimal["discounted_return"]),
+                             optimal_steps=np.float64(job.env.optimal_steps))
+        job.run.save_records("junction", **probes)
+        self.log_probes(job, probes, records)
+        job.metrics.update(final_metrics(records, optimal["discounted_return"], self.final_window, self.rates))
+        job.count_agent_steps(state["agent_steps"], state["active_time"])
+
+    def log_actor(self, job, step: int) -> None:
+        """Run 0's weights: histograms, the state weights as a (state nodes × hidden) image and,
+        where the observation is an unprocessed image, its rows as 28 × 28 tiles."""
+        log_weights(job.writer, "actor", job.actor, step)
+        W = job.actor.state_weights()
+        job.writer.add_image("actor/W_sh_matrix", matrix_image(W[0]), step)
+        if job.preprocessor is None and job.env.observation_size == IMAGE_SIDE ** 2:
+            job.writer.add_image("actor/W_sh_images", tile(weight_images(W[:, :IMAGE_SIDE ** 2])[:, 0]), step)
+
+    def log_probes(self, job, probes: dict, records: dict) -> None:
+        """Run 0's actor hidden activations at its last probe visits in the projector, labelled
+        with the episode's labels and outcome (Figs. 4.14–4.19)."""
+        visits = np.flatnonzero(probes["run"] == 0)[-EMBEDDED_PROBES:] if probes else []
+        if len(visits) == 0:
+            return
+        episode = probes["episode"][visits]
+        log_embedding(job.writer, "actor/hidden_at_junction", probes["hidden"][visits], {
+            **{key: probes[key][visits] for key in job.env.labels()},
+            "episode": episode, "steps_to_goal": probes["steps_to_goal"][visits],
+            **{key: records[key][0, episode].astype(int) for key in self.rates}}, self.N)
+
+    def log_episodes(self, writer, records, done: int, lr: float, beta: float) -> None:
+        """Moving averages over the last 200 episodes, mean over runs (Figs. 4.6–4.8, 4.11–4.13)."""
+        window = slice(max(0, done - 200), done)
+        for name in ("discounted_return", "steps", "terminal_reward", "td_abs_mean", *self.rates):
+            writer.add_scalar(f"actor/{name}_ma200", float(records[name][:, window].mean()), done)
+        writer.add_scalar("schedule/learning_rate", lr, done)
+        writer.add_scalar("schedule/beta", beta, done)
+
+
+def concat_records(parts: list) -> dict:
+    """Probe records gathered episode by episode (a list of dicts of tensors) → one dict."""
+    return {key: torch.cat([p[key] for p in parts]) for key in parts[0]}
+
+
+def final_metrics(episodes: dict, optimal_return: float, window: int, rates: list) -> dict:
+    """CONTRACT §2 episodic metrics over the last ``window`` (200) episodes, one value per run:
+    return, steps, the rate of every boolean outcome (``final_correct_goal_rate``) and solved."""
+    last = slice(-window, None)
+    ret = episodes["discounted_return"][:, last].mean(1)
+    rate = {name: episodes[name][:, last].mean(1) for name in rates}
+    solved = ret >= SOLVED_SHARE * optimal_return
+    for values in rate.values():
+        solved &= values >= SOLVED_SHARE
+    return {"final_discounted_return": ret.tolist(), "final_steps_to_goal": episodes["steps"][:, last].mean(1).tolist(),
+            **{f"final_{name}_rate": values.tolist() for name, values in rate.items()},
+            "solved": solved.astype(int).tolist()}

@@ -1,0 +1,90 @@
+"""Online TD steps in chunks: a chunk of K steps of every run is one call, optionally one compiled graph.
+
+A chunk runs on random numbers drawn beforehand (action uniforms, the environment's
+``step_inputs``), so with ``compile=true`` it is one ``torch.compile``d graph: Python and
+per-operation overhead is paid once per chunk, not per step, and on a CPU the chunk runs for one
+group of runs after another (``td_steps_by_groups``). With prefetching the random numbers of the
+next chunks are drawn on a second thread while a chunk runs: the same draws from the same
+generator in the same order, so the results do not change.
+"""
+import math
+import sys
+from concurrent.futures import Future
+from contextlib import contextmanager
+
+import torch
+
+from ferl.actors.td import td_step
+
+MAX_CHUNK = 16  # steps per call of td_steps (a divisor of the logging and checkpoint intervals)
+
+
+def td_steps(actor, env, generator, s, a, F_sa, x_sa, alive, lrs, betas, uniforms, *inputs):
+    """len(lrs) online TD steps of every run (``td_step``, §3.2); step k uses α = lrs[k],
+    β = betas[k], the action uniforms (R, 1, 1) and the environment's random inputs of index k
+    (``env.step_inputs``; Gibbs action selection draws from ``generator`` instead, and is not compiled).
+
+    s (R, 1, S), a (R, 1), F_sa (R, 1), x_sa (R, 1, ·): the state, action, its free energy and
+    cache before the chunk; returns them after it, with rewards and TD errors (K, R).
+    Runs with ``alive`` False (R, 1) keep their parameters (the divergence guard).
+    """
+    rewards, deltas = [], []
+    for k in range(lrs.shape[0]):
+        obs, r = env.step_with(a.squeeze(1), *(x[k] for x in inputs))
+        s_next = obs.unsqueeze(1)
+        a, F_sa, x_sa, delta = td_step(actor, s, a, F_sa, x_sa, r, s_next, lrs[k], betas[k], generator,
+                                       uniforms[k], alive)
+        rewards.append(r)
+        deltas.append(delta.squeeze(1))
+        s = s_next
+    return s, a, F_sa, x_sa, torch.stack(rewards), torch.stack(deltas)
+
+
+def td_steps_by_groups(steps, groups: list[slice]):
+    """``steps`` (td_steps' signature) for one group of runs after another: temporal cache
+    blocking. A group's weights stay in the CPU's caches for the whole chunk instead of every
+    step streaming all runs' weights from L3. Each group gets views of its runs (actor.runs,
+    env.runs, slices of the per-run arguments), so its updates land in the whole batch; runs are
+    independent, so the grouping does not change what a run computes."""
+    def by_groups(actor, env, generator, s, a, F_sa, x_sa, alive, lrs, betas, uniforms, *inputs):
+        parts = [steps(actor.runs(g), env.runs(g), generator, s[g], a[g], F_sa[g], x_sa[g], alive[g], lrs, betas,
+                       uniforms[:, g], *(x[:, g] for x in inputs)) for g in groups]
+        # s, a, F_sa, x_sa carry the runs first, rewards and TD errors (K, R) second
+        return tuple(torch.cat(outs, 0 if i < 4 else 1) for i, outs in enumerate(zip(*parts)))
+    return by_groups
+
+
+def compiled_td_steps(n_runs: int, group_runs: int, device: torch.device):
+    """td_steps as one torch.compiled graph per chunk; on a CPU with its kernels called from C++
+    (no Python between the steps) and run by groups of ``group_runs`` runs (a smaller last group
+    compiles a second graph). fullgraph: a graph break would silently bring back per-op overhead."""
+    if device.type != "cpu":
+        return torch.compile(td_steps, fullgraph=True, dynamic=False)
+    steps = torch.compile(td_steps, fullgraph=True, dynamic=False, options={"cpp_wrapper": True})
+    if n_runs <= group_runs:
+        return steps
+    return td_steps_by_groups(steps, [slice(r, min(r + group_runs, n_runs)) for r in range(0, n_runs, group_runs)])
+
+
+def chunk_length(steps: int, *intervals: int) -> int:
+    """The longest chunk ≤ MAX_CHUNK that divides the run length and every interval, so logging
+    and periodic checkpoints fall on chunk ends."""
+    return math.gcd(MAX_CHUNK, steps, *intervals)
+
+
+@contextmanager
+def switch_interval(seconds: float):
+    """Python's GIL switch interval set to ``seconds`` inside the block."""
+    before = sys.getswitchinterval()
+    sys.setswitchinterval(seconds)
+    try:
+        yield
+    finally:
+        sys.setswitchinterval(before)
+
+
+def done_future(value) -> Future:
+    """A future that already holds ``value``."""
+    future = Future()
+    future.set_result(value)
+    return future

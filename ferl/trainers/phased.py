@@ -1,0 +1,116 @@
+"""A training procedure as a sequence of phases (``Phase``), run in order on one ``Job``.
+
+Chapter 3's procedure is test → online TD training → test (§3.5); Algorithms 1 and 2 are
+[preprocessor fit →] random collection → predictor training → actor training (§4.3.1, §5.2).
+A phase does one thing to the job's components, may draw from the job's generator, writes its
+own records and metrics, and checkpoints itself (``Job.checkpoint``) where it is long. After
+every phase the job is checkpointed; ``resume`` skips the finished phases and hands an
+unfinished one the state its last checkpoint saved, so a resumed run computes exactly what an
+uninterrupted one does.
+"""
+import time
+from typing import Protocol
+
+import torch
+from torch.utils.tensorboard import SummaryWriter
+
+from ferl.config.params import ConfigError
+from ferl.run.directory import RunDir, StopRequest
+from ferl.run.tensorboard import log_hparams
+from ferl.trainers.job import Job, SeedOffsets
+
+
+class Phase(Protocol):
+    name: str
+
+    def prepare(self, job: Job) -> None:
+        """What the phase needs before any phase runs (drawn in this order at every start, so a
+        resumed run draws it again the same way): e.g. a test set, or nothing."""
+
+    def metric_names(self, job: Job) -> list[str]:
+        """The flat summary.json metrics it writes into ``job.metrics``."""
+
+    def run(self, job: Job, state) -> None:
+        """Do the phase, from ``state`` (what its last checkpoint saved) or from the start (None)."""
+
+
+class PhasedTrainer:
+    """Runs ``phases`` in order (``Trainer`` of ``ferl.interfaces``). ``checkpoint_minutes`` adds
+    checkpoints by the clock to the long phases' own; ``divergence_limit`` is the |TD error| beyond
+    which a run is frozen and reported (``ferl.run.guard``)."""
+
+    seed_offsets = SeedOffsets()
+    kind = "phased"
+    params: dict = {}  # the trainer's arguments, for records/run.json
+    last_step = 0      # the step of the final TensorBoard points (the HParams session)
+
+    def __init__(self, phases: list, checkpoint_minutes: float, divergence_limit: float):
+        self.all_phases, self.checkpoint_minutes, self.divergence_limit = phases, checkpoint_minutes, divergence_limit
+        self.job: Job | None = None
+
+    def phases_for(self, job: Job) -> list:
+        """The phases that apply to the job's components (all, unless a subclass says otherwise)."""
+        return self.all_phases
+
+    def setup(self, cfg, device: torch.device) -> None:
+        """Build the components and what each phase prepares; check the run's optimized metric."""
+        self.started = time.perf_counter()  # wall_time_s counts the building too
+        self.job = Job(cfg, device, self.seed_offsets)
+        self.job.make_guard(self.divergence_limit)
+        self.phases = self.phases_for(self.job)
+        for phase in self.phases:
+            phase.prepare(self.job)
+        metric = cfg.get("optimized_metric")
+        if metric is not None and metric not in self.metric_names():
+            raise ConfigError(f"optimized_metric={metric!r} is not allowed: expected null or a summary.json metric "
+                              f"of this run: {', '.join(self.metric_names())}")
+
+    def metric_names(self) -> list[str]:
+        return [name for phase in self.phases for name in phase.metric_names(self.job)]
+
+    def describe(self) -> dict:
+        return {"class": f"{type(self).__module__}.{type(self).__qualname__}", "kind": self.kind,
+                "phases": [p.name for p in self.phases], **self.params}
+
+    def fit(self, run: RunDir, resume: bool) -> dict:
+        """Every phase not yet done; returns the summary.json dict (CONTRACT §2)."""
+        job = self.job
+        job.run = run
+        saved = run.resume() if resume else None
+        if saved:
+            job.restore(saved)
+        self.write_manifest(run)
+        with SummaryWriter(run.tb) as job.writer, StopRequest() as job.stop:
+            if not job.progress["done"]:
+                self.start(job)
+            for phase in self.phases:
+                if phase.name in job.progress["done"]:
+                    continue
+                phase.run(job, job.progress["partial"].pop(phase.name, None))
+                job.progress["partial"].pop(phase.name, None)  # its in-phase checkpoints' state
+                job.progress["done"].append(phase.name)
+                if phase is self.phases[-1]:
+                    job.stop = StopRequest()  # finished: a late signal no longer stops it
+                    job.progress["shared"] = {}  # the finished run keeps parameters, not the data
+                job.checkpoint()
+            summary = self.summary(job, time.perf_counter() - self.started)
+            log_hparams(job.writer, job.cfg, summary, self.last_step)
+        return summary
+
+    def start(self, job: Job) -> None:
+        """What a fresh run logs before its first phase (nothing here)."""
+
+    def write_manifest(self, run: RunDir) -> None:
+        """``records/run.json``: what produced the run, for analysis to read (docs/records.md)."""
+        manifest = {"task": self.job.env.task, "experiment": self.job.cfg.name,
+                    "trainer": self.describe(), **self.job.describe()}
+        run.save_json("run", manifest)
+
+    def summary(self, job: Job, wall_time: float) -> dict:
+        return {
+            "experiment": job.cfg.name, "task": job.env.task, "seeds": job.seeds, "metrics": job.metrics,
+            "optimal": job.env.optimal(job.actor.gamma),
+            "wall_time_s": wall_time,
+            "agent_steps_per_s": job.progress["agent_steps"] / max(job.progress["actor_time"], 1e-9),
+            "diverged": job.guard.report(job.unit),
+        }

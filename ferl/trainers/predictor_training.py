@@ -1,0 +1,120 @@
+"""Algorithm 1's predictor phase (§4.3.1, Eqs. 4.1–4.8; §5.2 for Algorithm 2's several predictors).
+
+Every predictor trains on the collected episodes (``job.shared["episodes"]``) for N_epoch epochs,
+each in its own shuffled order per epoch; those with one ``batch_key`` train as one
+``training_batch``. The prediction error of Eq. (4.7) — per step t and episode length T, mean
+over the sequences, on the training and the test data — is measured every ``error_every``
+epochs (Figs. 4.5, 4.10, 5.2, 5.17). Only lengths T_min … T_min + L_training − 1 are trained on.
+"""
+import numpy as np
+import torch
+import torch.nn.functional as F
+from tqdm import tqdm
+
+from ferl.run.directory import CheckpointTimer
+from ferl.run.tensorboard import log_weights
+from ferl.trainers.episodes import Episodes, observation_table
+
+
+class TrainPredictors:
+    """``n_epoch`` epochs of every predictor on lengths up to T_min + ``l_training`` − 1, errors
+    every ``error_every`` epochs, a checkpoint every ``checkpoint_every_epochs`` (and by the
+    clock, ``checkpoint_minutes``). Records ``predictor.npz``."""
+
+    name = "predictors"
+
+    def __init__(self, l_training: int, n_epoch: int, error_every: int, checkpoint_every_epochs: int,
+                 checkpoint_minutes: float):
+        self.l_training, self.n_epoch, self.error_every = l_training, n_epoch, error_every
+        self.checkpoint_every_epochs, self.checkpoint_minutes = checkpoint_every_epochs, checkpoint_minutes
+
+    def prepare(self, job) -> None:
+        pass
+
+    def metric_names(self, job) -> list[str]:
+        return []
+
+    def run(self, job, state) -> None:
+        """Every group of predictors not yet trained; a finished group is checkpointed."""
+        state = state or {"records": {}, "done": [], "group": None}
+        groups = {}
+        for name, p in job.predictors.items():
+            groups.setdefault(p.batch_key, []).append(name)
+        for names in groups.values():
+            if names[0] not in state["done"]:
+                state["records"] |= self.train_group(job, names, state)
+                state["done"] += names
+                state["group"] = None
+                job.checkpoint(self.name, state)
+        job.run.save_records("predictor", **state["records"])
+
+    def lengths(self, job) -> range:
+        """The episode lengths T_min … T_max that the data hold."""
+        return range(job.env.optimal_steps, job.env.max_steps + 1)
+
+    def tensors(self, job, ep: Episodes, predictor):
+        """Episodes → predictor inputs y (R,B,T+1,Y), a (R,B,T,A), r targets (R,B,T+1,·) of
+        ``predictor`` (None without one), lengths."""
+        y = observation_table(job).observations(ep.obs)
+        a = F.one_hot(ep.actions, job.env.n_actions).float()
+        r = predictor.reward_targets(job.env.reward_values, ep.rewards) if predictor is not None else None
+        return y, a, r, ep.lengths
+
+    def prediction_errors(self, job, tensors: tuple, predictor) -> np.ndarray:
+        """(R, nT, Tmax+1) Eq. (4.7): mean over the sequences of each length of Eq. (4.8) per step;
+        ``tensors`` (y, a, r, lengths) of a data split."""
+        lengths = tensors[3]
+        err = predictor.prediction_errors(*tensors)  # (R, B, Tmax+1), NaN on padding
+        out = [torch.nanmean(torch.where((lengths == T).unsqueeze(-1), err, torch.nan), dim=1) for T in self.lengths(job)]
+        return torch.stack(out, 1).cpu().numpy().astype(np.float32)
+
+    def train_group(self, job, names: list, state: dict) -> dict:
+        """The named predictors for N_epoch epochs, from the epoch a checkpoint left them at."""
+        data, R = job.shared["episodes"], job.R
+        train = data["train"]
+        members = [job.predictors[name] for name in names]
+        # the training set proper: lengths T_min … T_min + L_training − 1; balancing laid the
+        # lengths out in the same blocks in every run, so run 0's positions hold for all
+        trainable = train.lengths[0] <= job.env.optimal_steps + self.l_training - 1
+        fit = train.select(torch.nonzero(trainable).squeeze(1).expand(R, -1))
+        y, a, _, lengths = self.tensors(job, fit, None)
+        batch = type(members[0]).training_batch(
+            members, y, a, [p.reward_targets(job.env.reward_values, fit.rewards) for p in members], lengths)
+        splits = {(name, s): self.tensors(job, data[s], p) for name, p in zip(names, members) for s in ("train", "test")}
+        partial = state["group"] or {}
+        if partial.get("names") == names:
+            errors, epochs, start = partial["errors"], partial["epochs"], partial["epoch"]
+        else:
+            errors = {name: {s: [self.prediction_errors(job, splits[name, s], p)] for s in ("train", "test")}
+                      for name, p in zip(names, members)}
+            epochs, start = [0], 0
+            for name, p in zip(names, members):
+                log_weights(job.writer, f"predictor_{name}", p, 0)
+        clock = CheckpointTimer(self.checkpoint_minutes)
+        for epoch in (bar := tqdm(range(start + 1, self.n_epoch + 1), desc=f"predictor {'+'.join(names)}",
+                                  unit="epoch", initial=start, total=self.n_epoch, mininterval=1.0)):
+            orders = [torch.rand(R, y.shape[1], generator=job.generator, device=job.device).argsort(1) for _ in members]
+            batch.train_epoch(orders)
+            if epoch % self.error_every == 0 or epoch == self.n_epoch:
+                epochs.append(epoch)
+                for name, p in zip(names, members):
+                    self.log_errors(job, name, p, errors[name], splits, epoch)
+                bar.set_postfix(error_test=" ".join(f"{np.nanmean(errors[n]['test'][-1]):.4f}" for n in names), refresh=False)
+            if (epoch % self.checkpoint_every_epochs == 0 or job.stop.requested or clock.due()) and epoch < self.n_epoch:
+                state["group"] = {"names": names, "epoch": epoch, "errors": errors, "epochs": epochs}
+                job.checkpoint(self.name, state)
+        lengths_all = np.arange(job.env.optimal_steps, job.env.max_steps + 1)
+        records = {}
+        for name, p in zip(names, members):
+            log_weights(job.writer, f"predictor_{name}", p, self.n_epoch)
+            records |= {f"{name}_lengths": lengths_all, f"{name}_epochs": np.asarray(epochs),
+                        **{f"{name}_error_{s}": np.stack(errors[name][s], 1) for s in ("train", "test")}}
+        return records
+
+    def log_errors(self, job, name: str, predictor, errors: dict, splits: dict, epoch: int) -> None:
+        """Append the Eq. 4.7 errors of both splits to ``errors`` and log them (mean, and test per T)."""
+        for split in ("train", "test"):
+            errors[split].append(self.prediction_errors(job, splits[name, split], predictor))
+            job.writer.add_scalar(f"predictor_{name}/error_{split}", float(np.nanmean(errors[split][-1])), epoch)
+        for T, value in zip(self.lengths(job), np.nanmean(errors["test"][-1], axis=(0, 2))):
+            job.writer.add_scalar(f"predictor_{name}/error_test_T{T}", float(value), epoch)

@@ -1,0 +1,141 @@
+"""The analysis every run gets (ferl.analysis.generic) and the dispatch on what a run recorded
+(ferl.analysis.dispatch), on synthetic runs: a run of a task no chapter knows, a digit-floor
+run, T-mazes with predictors of every role, and a run without records/run.json."""
+
+import csv
+import json
+import math
+import statistics
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ferl.analysis import ch3, ch4, ch5, dispatch, generic, runner
+from ferl.analysis.records import Manifest, predictor_role
+from synthetic_runs import (assert_analysis_outputs, load_run, make_floor_run, make_tmaze_run,
+                            make_toy_run)
+from test_analyze_cli import analyze, event_files
+
+WINDOW = 200  # episodes: the moving average of Figs. 4.6–4.8
+
+
+def rows(path: Path) -> list[dict]:
+    with path.open() as f:
+        return list(csv.DictReader(f))
+
+
+def trailing_means(values: np.ndarray, window: int) -> np.ndarray:
+    """Each run's mean over every `window` consecutive entries, one window at a time."""
+    return np.array([[row[k - window:k].mean() for k in range(window, len(row) + 1)]
+                     for row in np.asarray(values, dtype=np.float64)])
+
+
+def test_a_run_of_an_unknown_task_gets_the_generic_figures_and_no_claims(tmp_path):
+    run_dir = make_toy_run(tmp_path / "toy", n_episodes=300, n_epochs=5)
+    result = analyze(run_dir)
+    assert result.returncode == 0, result.stderr
+    report = assert_analysis_outputs(
+        run_dir, ["learning_curves", "td_errors", "prediction_errors_world"],
+        ["summary.csv", "learning_curves.csv", "prediction_errors_world.csv", "claims.json"])
+    assert report.startswith("# toy_experiment (task `toy`)")
+    assert "No dissertation claim applies to this run." in report
+    assert "no chapter's model matches this run" in report and "Fig. " not in report
+    assert json.loads((run_dir / "analysis" / "claims.json").read_text()) == []
+    assert event_files(run_dir)
+
+    # summary table: mean ± s.d. (ddof 1) over the runs with a value
+    summary = {r["metric"]: r for r in rows(run_dir / "analysis" / "summary.csv")}
+    assert set(summary) == {"final_return", "score/easy", "score/hard"}
+    for name, values in (("final_return", [1.0, 2.0, 3.0]), ("score/easy", [1.0, 0.5]),
+                         ("score/hard", [0.2, 0.4, 0.9])):
+        assert float(summary[name]["mean"]) == pytest.approx(statistics.mean(values), rel=1e-5)
+        assert float(summary[name]["sd"]) == pytest.approx(statistics.stdev(values), rel=1e-5)
+        assert int(summary[name]["n_runs"]) == len(values)
+    assert "| score/easy | 0.75 | 0.35 | 2 |" in report
+
+    # learning curves: the return of run r is r + episode/300, |δ| is 1 − episode/300
+    curves = rows(run_dir / "analysis" / "learning_curves.csv")
+    assert [int(r["episode"]) for r in curves] == list(range(WINDOW, 301))
+    progress = np.arange(300) / 300
+    returns = trailing_means(np.arange(3)[:, None] + progress, WINDOW)
+    for k in (0, 50, -1):
+        r = curves[k]
+        assert float(r["discounted_return_ma200_mean"]) == pytest.approx(returns[:, k].mean(),
+                                                                         rel=1e-5)
+        assert float(r["discounted_return_ma200_sem"]) == pytest.approx(
+            statistics.stdev(returns[:, k]) / math.sqrt(3), rel=1e-5)
+        assert float(r["td_abs_mean_ma200_mean"]) == pytest.approx(
+            trailing_means((1 - progress)[None], WINDOW)[0, k], rel=1e-5)
+        assert float(r["discounted_return_ma200_run_2"]) == pytest.approx(returns[2, k], rel=1e-5)
+    assert "reached_ma200_mean" in curves[0]  # the environment's boolean outcome, as a rate
+
+    # prediction errors: n_epochs − epoch everywhere, so 5 at epoch 0 and 0 at the last
+    errors = rows(run_dir / "analysis" / "prediction_errors_world.csv")
+    assert {(r["split"], int(r["T"])) for r in errors} == {(s, T) for s in ("train", "test")
+                                                           for T in (2, 3, 4)}
+    assert all(float(r["epoch0_mean"]) == 5.0 and float(r["epoch5_mean"]) == 0.0 for r in errors)
+    assert all(r["trained_length"] == "1" for r in errors)  # no L_training: all trained
+
+
+def test_continuing_runs_get_reward_and_td_curves_from_steps_npz(tmp_path):
+    run = load_run(make_floor_run(tmp_path / "floor", n_runs=3, steps=400))
+    c = generic.curves(run)
+    steps = run.records("steps")
+    assert (c.unit, c.window, c.length) == ("step", 100, 400)
+    np.testing.assert_array_equal(c.x, np.arange(100, 401))
+    np.testing.assert_allclose(c.series["reward"], trailing_means(steps["rewards"], 100), rtol=1e-6)
+    np.testing.assert_allclose(c.series["td_abs"], trailing_means(np.abs(steps["td_errors"]), 100),
+                               rtol=1e-6)
+    mean, sem = c.mean_sem("reward")
+    k = 123
+    assert sem[k] == pytest.approx(statistics.stdev(c.series["reward"][:, k]) / math.sqrt(3))
+    assert c.optima["reward"] == 8.0
+
+
+def test_episodic_curves_take_the_optimum_from_the_records_and_the_environment(tmp_path):
+    c = generic.curves(load_run(make_tmaze_run(tmp_path / "maze")))
+    assert list(c.series) == ["discounted_return", "steps", "terminal_reward", "correct_goal",
+                              "td_abs_mean"]
+    assert c.optima["discounted_return"] == pytest.approx(4.3175)
+    assert (c.optima["steps"], c.optima["terminal_reward"]) == (3.0, 5.0)  # env.goal_reward
+
+
+@pytest.mark.parametrize("facts, role", [
+    ({"predicts_observation": True, "reward_output": "bits"}, "joint"),
+    ({"predicts_observation": True, "reward_output": "none"}, "observation"),
+    ({"predicts_observation": False, "reward_output": "linear"}, "reward"),
+    ({"predicts_observation": True, "reward_output": "linear"}, None),
+    ({"predicts_observation": False, "reward_output": "bits"}, None),
+])
+def test_a_predictor_role_follows_what_it_predicts(facts, role):
+    assert predictor_role({"kind": "anything", **facts}) == role
+
+
+def manifest(kind: str, predictors: dict, **env) -> Manifest:
+    facts = {"joint": {"predicts_observation": True, "reward_output": "bits"},
+             "obs": {"predicts_observation": True, "reward_output": "none"},
+             "rew": {"predicts_observation": False, "reward_output": "linear"}}
+    return Manifest("t", "e", {}, {"kind": kind, **env}, None,
+                    {name: facts[f] for name, f in predictors.items()}, {})
+
+
+def test_chapters_are_chosen_by_recorded_facts_not_names():
+    assert dispatch.chapter_of(manifest("digit_floor", {})) is ch3.CHAPTER
+    assert dispatch.chapter_of(manifest("tmaze", {"anything": "joint"})) is ch4.CHAPTER
+    assert dispatch.chapter_of(manifest("tmaze", {"a": "obs", "b": "rew"})) is ch5.CHAPTER
+    assert dispatch.chapter_of(manifest("tmaze", {"j1": "joint", "j2": "joint"})) is None
+    assert dispatch.chapter_of(manifest("tmaze", {"a": "obs"})) is None
+    assert dispatch.chapter_of(manifest("toy", {"joint": "joint"})) is None
+    assert ch4.CHAPTER.numbering(manifest("tmaze", {}, matching=True)) is ch4.MATCHING
+    assert ch5.CHAPTER.numbering(manifest("tmaze", {}, observation="image")) is ch5.DIGIT
+    assert ch5.CHAPTER.numbering(manifest("tmaze", {}, observation="bits")) is ch5.BIT
+
+
+def test_a_run_without_a_manifest_is_skipped(tmp_path, capsys):
+    run_dir = make_floor_run(tmp_path / "older")
+    (run_dir / "records" / "run.json").unlink()
+    outcome = runner.analyze_run(run_dir)
+    assert outcome.status == "skipped: no records/run.json"
+    assert not (run_dir / "analysis").exists()
+    assert "skipped, no records/run.json" in capsys.readouterr().out
