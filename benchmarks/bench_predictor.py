@@ -3,10 +3,10 @@
     python benchmarks/bench_predictor.py [--epochs 2] [--sequences 0] [--runs 1 10 100] [--device cpu] [--threads 1]
 
 The data are those of the trainer (experiment table4_1_matching): N_sample random-policy episodes
-per run collected, balanced and split by TMazeTraining.collect, of which the training lengths
+per run collected, balanced and split by its collect phase, of which the training lengths
 T_min … T_min + L_training − 1 (3 … 7 actions) are trained on.  The torch side times
 ElmanPredictor.train_epoch (the joint predictor, one SGD step per sequence for every run at once,
-autograd BPTT) for ``--epochs`` epochs over the whole training set of each run (265 sequences
+hand-written BPTT) for ``--epochs`` epochs over the whole training set of each run (265 sequences
 with the default N_sample), or over ``--sequences`` of them, each epoch in a fresh random order;
 sequences/s = sequences summed over runs / wall time.  The NumPy side
 (benchmarks/numpy_tmaze_reference.py, hand-written BPTT) trains one run on the same number of

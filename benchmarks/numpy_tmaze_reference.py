@@ -1,7 +1,7 @@
 """Plain per-step, single-run NumPy reference of the T-maze agent (Algorithm 1, chapter 4).
 
-The *speed reference* that the batched torch implementation (``ferl/trainers/tmaze.py``,
-``ferl/predictor.py``, ``ferl/actor.py``) is compared against: one Python iteration per
+The *speed reference* that the batched torch implementation (``ferl/trainers/actor_episodes.py``,
+``ferl/predictors/``, ``ferl/actors/free_energy.py``) is compared against: one Python iteration per
 environment step (actor phase) or per sequence (predictor training), one run, numpy-vectorised
 over nodes only.  No torch.
 

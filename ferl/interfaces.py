@@ -33,8 +33,10 @@ class Environment(Protocol):
 
     n_runs: int
     n_actions: int
+    action_names: Sequence[str]
     observation_size: int
     task: str
+    device: torch.device
 
     def reset(self) -> Tensor:
         """Start every run afresh; the observations (R, observation_size)."""
@@ -54,6 +56,21 @@ class Environment(Protocol):
 
 
 @runtime_checkable
+class ContinuingEnvironment(Environment, Protocol):
+    """A continuing task stepped by the online TD phase (the digit floor, §3.4): a step's random
+    numbers can be drawn ahead, so that a chunk of steps is one call (and can be compiled)."""
+
+    def step_inputs(self, steps: int) -> tuple:
+        """The random numbers of the next ``steps`` steps, each (steps, R, …)."""
+
+    def step_with(self, action: Tensor, *inputs) -> tuple[Tensor, Tensor]:
+        """``step`` on one step's slice of ``step_inputs``: (observations, rewards)."""
+
+    def runs(self, index: slice) -> "ContinuingEnvironment":
+        """A view of a slice of the runs whose steps land in this batch."""
+
+
+@runtime_checkable
 class EpisodicEnvironment(Environment, Protocol):
     """An environment of episodes with a finite set of observations (the T-mazes), as the phased
     algorithms of chapters 4–5 need it: observations are ids into ``observation_table``, so that
@@ -70,7 +87,8 @@ class EpisodicEnvironment(Environment, Protocol):
     max_steps: int
     optimal_steps: int
     reward_values: tuple[float, ...]
-    observation_table: Tensor   # (ids, O)
+    observation_names: Sequence[str]
+    observation_table: Tensor   # (ids, O): with a reservoir, several ids per name
     obs_id: Tensor              # (R,) the id of every run's present observation
     done: Tensor                # (R,) bool
     t: Tensor                   # (R,) actions taken in the episode
@@ -92,13 +110,14 @@ class EpisodicEnvironment(Environment, Protocol):
 @runtime_checkable
 class Preprocessor(Protocol):
     """Maps raw observations (…, input_size) to processed ones (R, …, output_size), run by run
-    (chapter 5's RBM, §5.2). ``fit`` learns from training images before the agent acts."""
+    (chapter 5's RBM, §5.2). ``fit`` learns from the data's training images before the agent acts."""
 
     input_size: int
     output_size: int
 
-    def fit(self, images: Tensor, writer=None) -> dict:
-        """Learn from images (N, input_size); returns the records of the fit (e.g. error curves)."""
+    def fit(self, data, writer) -> dict:
+        """Learn from ``data`` (train_images, test_images, test_labels, e.g. an ``MnistSplit``),
+        logging to the TensorBoard ``writer``; returns the records of the fit (e.g. error curves)."""
 
     def transform(self, observations: Tensor) -> Tensor:
         """(B, input_size) shared by all runs, or (R, B, input_size) → (R, B, output_size)."""
@@ -196,6 +215,9 @@ class Actor(Protocol):
 
     def runs(self, index: slice) -> "Actor":
         """A view of a slice of the runs whose updates land in this actor."""
+
+    def prepare_for_compile(self) -> None:
+        """Lay the parameters out for a compiled step (their values unchanged)."""
 
     def describe(self) -> dict: ...
 

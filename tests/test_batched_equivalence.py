@@ -367,7 +367,7 @@ def torch_predictor_from(P: dict, hp=ref.JOINT, lr=0.05) -> ElmanPredictor:
 
 
 def pad(seqs, T_max=10):
-    """Sequences → padded torch tensors (1, B, …) as ferl.sequences stores them."""
+    """Sequences → padded torch tensors (1, B, …) as ferl/trainers/episodes.py stores them."""
     B = len(seqs)
     y = torch.zeros(1, B, T_max + 1, ref.N_OBS, dtype=torch.float64)
     a = torch.zeros(1, B, T_max, ref.N_ACTIONS, dtype=torch.float64)

@@ -13,6 +13,7 @@ from conftest import EXPERIMENTS, ROOT, run_train
 from ferl.config.hydra_glue import condense_hydra_error
 from ferl.config.params import ConfigError, check_node
 from ferl.config.validate import validate
+from ferl.data import DataError
 from ferl.trainers.job import Job, SeedOffsets
 
 
@@ -121,7 +122,7 @@ def config_error(compose_cfg, overrides) -> tuple[str, str]:
         return "validate", str(e)
     try:
         instantiate(cfg.trainer).setup(cfg, torch.device("cpu"))
-    except ConfigError as e:
+    except (ConfigError, DataError) as e:  # train.py reports both alike
         return "setup", str(e)
     return "", ""
 
@@ -185,6 +186,7 @@ SETUP_ERRORS = [
     ("compile=true actor.action_selection=gibbs", "compile"),
     ("optimized_metric=final_discounted_return", "optimized_metric"),
     ("experiment=table5_1_pixel env.reservoir_size=101", "env.reservoir_size"),
+    ("data.test_per_class=500", "data.test_per_class"),  # the embedded data hold 500 images a class
 ]
 
 

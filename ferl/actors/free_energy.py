@@ -117,7 +117,7 @@ class FERLActor(nn.Module):
         """ĥ = σ(x) of hidden inputs from ``evaluate`` (Eq. 3.1c)."""
         return torch.sigmoid(x)
 
-    def use_hidden_major_layout(self) -> None:
+    def prepare_for_compile(self) -> None:
         """Store W_sh hidden-major (its values unchanged): in a compiled step Wᵀs and the rank-one
         update (Eq. 3.10a) then both run along the contiguous state axis, which inductor
         vectorises and fuses into one pass over W (eager's bmm is faster on the default layout)."""

@@ -75,7 +75,7 @@ class Algorithm(PhasedTrainer):
             CollectEpisodes(n_sample, collect_batch, train_fraction),
             TrainPredictors(l_training, n_epoch, error_every, checkpoint_every_epochs, checkpoint_minutes),
             ActorEpisodes(n_episodes, actor_obs_scale, log_every, td_sample_every, final_window, checkpoint_every,
-                          checkpoint_minutes)], checkpoint_minutes, divergence_limit)
+                          checkpoint_minutes)], divergence_limit)
 
     def phases_for(self, job) -> list:
         return [p for p in self.all_phases if not isinstance(p, FitPreprocessor) or job.preprocessor is not None]

@@ -18,8 +18,9 @@ def noise_levels(levels) -> bool:
 
 
 class DigitFloorTrainer(PhasedTrainer):
-    """``steps`` online TD steps between the test phases. Its own run is the actor's (seed + r),
-    as the dissertation's results were measured. ``compile`` (a root key) compiles the chunks."""
+    """``steps`` online TD steps between the test phases; run r's actor weights come from seed + r
+    (no offset: the numbers of the reproduction were measured so). ``compile`` (a root key)
+    compiles the chunks of steps."""
 
     @checked
     def __init__(self, steps: PositiveInt, log_every: PositiveInt, checkpoint_every: PositiveInt,
@@ -34,7 +35,7 @@ class DigitFloorTrainer(PhasedTrainer):
         tests = dict(test_per_class=test_per_class, test_noise_levels=test_noise_levels, last_step=steps)
         super().__init__([GreedyTests("before", **tests),
                           OnlineTD(steps, log_every, checkpoint_every, checkpoint_minutes, compile_group_runs, prefetch),
-                          GreedyTests("after", **tests)], checkpoint_minutes, divergence_limit)
+                          GreedyTests("after", **tests)], divergence_limit)
 
     def setup(self, cfg, device) -> None:
         super().setup(cfg, device)

@@ -52,7 +52,7 @@ class OnlineTD:
             steps_per_block(R))
         self.td_steps = td_steps
         if job.cfg.compile:
-            actor.use_hidden_major_layout()
+            actor.prepare_for_compile()
             self.td_steps = compiled_td_steps(R, self.compile_group_runs, job.device)
         drawn_ahead = not actor.samples_with_generator and R >= PREFETCH_MIN_RUNS
         self.prefetch = self.prefetch_chunks if drawn_ahead else 0

@@ -35,17 +35,16 @@ class Phase(Protocol):
 
 
 class PhasedTrainer:
-    """Runs ``phases`` in order (``Trainer`` of ``ferl.interfaces``). ``checkpoint_minutes`` adds
-    checkpoints by the clock to the long phases' own; ``divergence_limit`` is the |TD error| beyond
-    which a run is frozen and reported (``ferl.run.guard``)."""
+    """Runs ``phases`` in order (``Trainer`` of ``ferl.interfaces``); ``divergence_limit`` is the
+    |TD error| beyond which a run is frozen and reported (``ferl.run.guard``)."""
 
     seed_offsets = SeedOffsets()
     kind = "phased"
     params: dict = {}  # the trainer's arguments, for records/run.json
     last_step = 0      # the step of the final TensorBoard points (the HParams session)
 
-    def __init__(self, phases: list, checkpoint_minutes: float, divergence_limit: float):
-        self.all_phases, self.checkpoint_minutes, self.divergence_limit = phases, checkpoint_minutes, divergence_limit
+    def __init__(self, phases: list, divergence_limit: float):
+        self.all_phases, self.divergence_limit = phases, divergence_limit
         self.job: Job | None = None
 
     def phases_for(self, job: Job) -> list:

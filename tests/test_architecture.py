@@ -1,0 +1,66 @@
+"""The architecture's rules (docs/architecture.md), checked on the code: ferl's own components meet
+the protocols of ferl/interfaces.py, and imports follow the data flow — models never import
+trainers or analysis, trainers never import each other, analysis imports no model."""
+import ast
+from pathlib import Path
+
+import pytest
+import torch
+
+from conftest import ROOT
+from ferl import interfaces
+from ferl.actors.free_energy import FERLActor
+from ferl.envs.digit_floor import DigitFloor
+from ferl.envs.digit_tmaze import DigitTMaze
+from ferl.envs.tmaze import TMaze
+from ferl.predictors.elman import ElmanPredictor
+from ferl.preprocessors.rbm import RBMPreprocessor
+from ferl.schedules import Constant
+from test_digit_floor import tiny_split
+
+FERL = ROOT / "ferl"
+MODELS = ("envs", "preprocessors", "predictors", "actors")
+TRAINERS = ("floor", "algorithm")  # the procedures; the phases and the job are what they share
+
+
+def test_components_meet_their_protocols():
+    gen = torch.Generator().manual_seed(0)
+    digits = {n: i for i, n in enumerate(("start_0", "start_1", "corridor", "junction_0", "junction_1",
+                                          "goal_left", "goal_right"))}
+    assert isinstance(DigitFloor(2, tiny_split(), gen), interfaces.ContinuingEnvironment)
+    assert isinstance(TMaze(2, gen), interfaces.EpisodicEnvironment)
+    assert isinstance(DigitTMaze(2, gen, tiny_split(), digits, matching=True), interfaces.EpisodicEnvironment)
+    assert isinstance(RBMPreprocessor(2, n_visible=16, n_hidden=4), interfaces.Preprocessor)
+    assert isinstance(ElmanPredictor(2, 7, 4), interfaces.Predictor)
+    actor = FERLActor(2, 27, 4, 20, "sarsa", 0.95, Constant(0.05), Constant(1.0))
+    assert isinstance(actor, interfaces.Actor)
+
+
+def imports(path: Path) -> set[str]:
+    """The ferl modules a file imports."""
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module:
+            names.add(node.module)
+        elif isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names)
+    return {n for n in names if n.startswith("ferl")}
+
+
+@pytest.mark.parametrize("package", MODELS)
+def test_models_import_no_trainer_and_no_analysis(package):
+    for path in (FERL / package).glob("*.py"):
+        bad = {n for n in imports(path) if n.startswith(("ferl.trainers", "ferl.analysis"))}
+        assert not bad, (path, bad)
+
+
+def test_trainers_never_import_each_other():
+    for name in TRAINERS:
+        bad = {n for n in imports(FERL / "trainers" / f"{name}.py") if n.rsplit(".", 1)[-1] in TRAINERS}
+        assert not bad, (name, bad)
+
+
+def test_analysis_reads_records_not_models():
+    for path in (FERL / "analysis").glob("*.py"):
+        bad = {n for n in imports(path) if n.startswith(tuple(f"ferl.{p}" for p in (*MODELS, "trainers")))}
+        assert not bad, (path, bad)
