@@ -144,7 +144,7 @@ def make_floor_run(run_dir: Path, *, n_runs: int = 2, steps: int = 500, n_images
                    {"kind": "digit_floor", "episodic": False, "observation": "image",
                     "observation_size": PIXELS, "noise": probe_noise,
                     "reward_condition": "cw" if reward else "none", "patches": 1,
-                    "classes": classes},
+                    "classes": classes, "noise_class": "N"},
                    actor={"class": "synthetic.Actor", "kind": "free_energy",
                           "n_hidden": n_hidden, "gamma": 0.95})
 

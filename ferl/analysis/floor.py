@@ -29,7 +29,6 @@ MI_BINS = 2            # see coding.pairwise_mutual_information
 LINKAGE = "average"
 INCLUDE_GOAL_IN_CLUSTERING = False  # see FloorRun.cluster_classes
 PHASES = ("before", "after")
-NOISE_CLASS = "N"
 PERCEPTUAL_PAIRS = (("1", "7"), ("3", "8"))  # grouped without reward, Fig. 3.11(c)
 
 
@@ -54,7 +53,9 @@ class FloorRun:
 
     @cached_property
     def digit_classes(self) -> list[str]:
-        return [c for c in self.classes if c != NOISE_CLASS]
+        """The classes shown as digits: all but the floor's noise tiles (§3.5.3), whose label the
+        environment records."""
+        return [c for c in self.classes if c != self.run.manifest.env.get("noise_class")]
 
     @cached_property
     def optimal_action(self) -> np.ndarray:

@@ -16,8 +16,9 @@ from matplotlib.patches import Patch
 from scipy.cluster.hierarchy import dendrogram
 
 from ferl import stats
+from ferl.images import IMAGE_SIDE
 
-SIDE = 28  # MNIST tiles are 28 × 28 pixels (§3.4)
+SIDE = IMAGE_SIDE  # MNIST tiles are 28 × 28 pixels (§3.4)
 OPTIMAL_COLOR, OTHER_COLOR, GOAL_COLOR = "tab:orange", "tab:blue", "lightgray"
 PHASE_COLOR = {"before": "tab:gray", "after": "tab:red"}
 

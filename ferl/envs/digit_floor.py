@@ -18,9 +18,9 @@ import torch
 
 from ferl.config.params import Allowed, ArgumentError, PositiveInt, UnitInterval, checked
 from ferl.data import MnistSplit, pixel_noise
+from ferl.envs.compass import ACTIONS
 from ferl.random_blocks import Blocks, steps_per_block
 
-ACTIONS = ("N", "E", "S", "W")
 MOVES = ((-1, 0), (0, 1), (1, 0), (0, -1))
 GOAL = 4  # the patch centre (Fig. 3.3)
 CW_CYCLE = (0, 1, 2, 5, 8, 7, 6, 3)
@@ -163,7 +163,7 @@ class DigitFloor:
         return {"kind": "digit_floor", "task": self.task, "episodic": False, "observation": "image",
                 "observation_size": self.observation_size, "n_actions": self.n_actions, "action_names": list(self.action_names),
                 "noise": self.noise, "reward_condition": self.reward_condition, "patches": self.patches,
-                "classes": list(self.classes)}
+                "classes": list(self.classes), "noise_class": NOISE_CLASS}
 
     def optimal(self, gamma: float) -> dict:
         """The long-run reward per step of the optimal policy (8 for the default floor)."""

@@ -35,7 +35,8 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from ferl.data import IMAGE_PIXELS, MnistEmbedded, MnistSplit
-from ferl.envs.digit_floor import ACTIONS, DigitFloor
+from ferl.envs.compass import ACTIONS
+from ferl.envs.digit_floor import DigitFloor
 from ferl.envs.digit_tmaze import DigitTMaze
 from ferl.envs.tmaze import TMaze
 from ferl.images import IMAGE_SIDE

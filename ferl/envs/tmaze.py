@@ -19,9 +19,8 @@ import numpy as np
 import torch
 
 from ferl.config.params import ArgumentError, PositiveInt, at_least, checked
+from ferl.envs.compass import ACTIONS, E, N, S, W
 
-ACTIONS = ("N", "E", "S", "W")
-N, E, S, W = range(4)
 POSITION_BITS = ("start", "corridor", "junction", "goal_left", "goal_right")
 STATE_KEYS = ("position", "t", "done", "initial_signal", "junction_signal", "obs_id")
 
