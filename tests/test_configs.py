@@ -28,7 +28,7 @@ def test_experiment_composes_validates_and_builds(compose_cfg, name):
     HydraConfig.instance().set_config(cfg)
     assert cfg.name == name
     validate(cfg)
-    job = Job(cfg, torch.device("cpu"), SeedOffsets())
+    job = Job(cfg, torch.device("cpu"), SeedOffsets(), cfg.trainer.divergence_limit)
     # the actor's state: the (processed) observation and every predictor's memory, as the YAML sizes it
     n_obs = cfg.preprocessor.n_hidden if cfg.get("preprocessor") else job.env.observation_size
     n_state = n_obs + sum(p.n_memory for p in (cfg.get("predictor") or {}).values())

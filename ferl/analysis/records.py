@@ -16,13 +16,14 @@ Any other predictor has no role: it gets the generic figures and no chapter's cl
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
 
 import numpy as np
 
 from ferl.analysis.io import load_npz
+from ferl.runs import load_summary
 
 MANIFEST = Path("records") / "run.json"
 JOINT, OBSERVATION, REWARD = "joint", "observation", "reward"
@@ -107,22 +108,18 @@ class Run:
     run_dir: Path
     summary: dict
     manifest: Manifest
+    files: dict = field(default_factory=dict, init=False, repr=False)  # records read so far
 
     @classmethod
     def load(cls, run_dir: Path, manifest: Manifest) -> Run:
-        return cls(Path(run_dir), json.loads((Path(run_dir) / "summary.json").read_text()),
-                   manifest)
-
-    @cached_property
-    def _files(self) -> dict:
-        return {}
+        return cls(Path(run_dir), load_summary(run_dir), manifest)
 
     def records(self, name: str) -> dict[str, np.ndarray] | None:
         """`records/<name>.npz` as arrays; None where the run has no such file."""
-        if name not in self._files:
+        if name not in self.files:
             path = self.run_dir / "records" / f"{name}.npz"
-            self._files[name] = load_npz(path) if path.is_file() else None
-        return self._files[name]
+            self.files[name] = load_npz(path) if path.is_file() else None
+        return self.files[name]
 
     @property
     def experiment(self) -> str:

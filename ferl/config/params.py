@@ -176,12 +176,14 @@ def check_node(node: dict, prefix: str) -> None:
 def checked(init):
     """Check a constructor's arguments against its annotations and ``check_config`` when called,
     as the config's validation does (ValueError naming the argument)."""
+    sig = inspect.signature(init)
+    extra = next((n for n, p in sig.parameters.items() if p.kind == p.VAR_KEYWORD), "")  # **kwargs, if any
+
     @functools.wraps(init)
     def wrapper(self, *args, **kwargs):
-        bound = inspect.signature(init).bind(self, *args, **kwargs)
+        bound = sig.bind(self, *args, **kwargs)
         values = {k: plain(v) for k, v in list(bound.arguments.items())[1:]}
-        values.update(values.pop(next((n for n, p in inspect.signature(init).parameters.items()
-                                       if p.kind == p.VAR_KEYWORD), ""), {}))
+        values.update(values.pop(extra, {}))
         owner = next(c for c in type(self).__mro__ if c.__dict__.get("__init__") is wrapper)
         try:
             check_arguments(owner, values)

@@ -94,7 +94,7 @@ class TMaze:
         self._reward_values = torch.tensor(self.reward_values, dtype=torch.float32, device=self.device)
 
         self.observation_names = observation_names(matching)
-        self.observation_kind = None if images is None else "image"
+        self.observation_kind = "bits" if images is None else "image"
         if images is None:
             table = torch.as_tensor(np.stack([observation_bits(n) for n in self.observation_names]))
         else:
@@ -125,7 +125,7 @@ class TMaze:
 
     def describe(self) -> dict:
         return {"kind": "tmaze", "task": self.task, "episodic": True,
-                "observation": "bits" if self.observation_kind is None else self.observation_kind,
+                "observation": self.observation_kind,
                 "observation_size": self.observation_size, "n_actions": self.n_actions, "action_names": list(self.action_names),
                 "matching": self.matching, "corridor_length": self.corridor_length, "max_steps": self.max_steps,
                 "goal_reward": self.rewards[0], "reward_values": list(self.reward_values),

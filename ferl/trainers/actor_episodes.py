@@ -25,12 +25,13 @@ from ferl.random_blocks import Blocks, steps_per_block
 from ferl.run.directory import CheckpointTimer
 from ferl.run.tensorboard import log_embedding, log_weights
 from ferl.trainers.episodes import observation_table
+from ferl.trainers.phased import Phase
 
 EMBEDDED_PROBES = 2000  # run 0's last probe visits in the projector (docs/records.md)
 SOLVED_SHARE = 0.95     # solved: return ≥ 0.95 × optimum and every outcome rate ≥ 0.95 (CONTRACT §2)
 
 
-class ActorEpisodes:
+class ActorEpisodes(Phase):
     """``n_episodes`` SARSA(0) episodes (α, β by the actor's schedules over the episodes), logged
     every ``log_every`` episodes, checkpointed every ``checkpoint_every`` (and by the clock);
     every ``td_sample_every``-th episode keeps its per-step TD errors; the metrics are taken over
@@ -53,6 +54,8 @@ class ActorEpisodes:
         outcomes = job.env.outcomes()
         self.outcome_names = ("discounted_return", "steps", "terminal_reward", "td_abs_mean", *outcomes)
         self.rates = [name for name, v in outcomes.items() if v.dtype == torch.bool]  # e.g. correct_goal
+        self.dtypes = {"discounted_return": np.float32, "steps": np.int64, "terminal_reward": np.float32,
+                       "td_abs_mean": np.float32, **{k: bool if k in self.rates else np.int64 for k in outcomes}}
 
     def metric_names(self, job) -> list[str]:
         return ["final_discounted_return", "final_steps_to_goal", *(f"final_{name}_rate" for name in self.rates), "solved"]
@@ -60,11 +63,8 @@ class ActorEpisodes:
     def fresh_state(self, job) -> dict:
         """Records of the phase before its first episode: one value per run and episode."""
         R, N, T_max = job.R, self.N, job.env.max_steps
-        dtypes = {"discounted_return": np.float32, "steps": np.int64, "terminal_reward": np.float32,
-                  "td_abs_mean": np.float32,
-                  **{k: {torch.bool: bool}.get(v.dtype, np.int64) for k, v in job.env.outcomes().items()}}
         n_sampled = len(range(0, N, self.td_sample_every))
-        return {"episode": 0, "records": {k: np.zeros((R, N), dtype=dtypes[k]) for k in self.outcome_names},
+        return {"episode": 0, "records": {k: np.zeros((R, N), dtype=self.dtypes[k]) for k in self.outcome_names},
                 "probes": [], "active_time": 0.0, "agent_steps": 0,
                 "td_sampled": np.full((R, n_sampled, T_max), np.nan, dtype=np.float32)}
 

@@ -22,22 +22,19 @@ from ferl.run.tensorboard import log_weights
 from ferl.trainers.actor_episodes import ActorEpisodes
 from ferl.trainers.episodes import CollectEpisodes
 from ferl.trainers.job import SeedOffsets
-from ferl.trainers.phased import PhasedTrainer
+from ferl.trainers.phased import Phase, PhasedTrainer
 from ferl.trainers.predictor_training import TrainPredictors
 
 
-class FitPreprocessor:
+class FitPreprocessor(Phase):
     """Algorithm 2's first phase (§5.3.2): the preprocessor learns from the training images, then
     processes the table of every observation, per run: what the predictors and the actor see
     from now on (``job.shared["observations"]``). Records ``preprocessor.npz``."""
 
     name = "preprocessor"
 
-    def prepare(self, job) -> None:
-        pass
-
-    def metric_names(self, job) -> list[str]:
-        return []
+    def applies(self, job) -> bool:
+        return job.preprocessor is not None
 
     def run(self, job, state) -> None:
         pre = job.preprocessor
@@ -76,9 +73,6 @@ class Algorithm(PhasedTrainer):
             TrainPredictors(l_training, n_epoch, error_every, checkpoint_every_epochs, checkpoint_minutes),
             ActorEpisodes(n_episodes, actor_obs_scale, log_every, td_sample_every, final_window, checkpoint_every,
                           checkpoint_minutes)], divergence_limit)
-
-    def phases_for(self, job) -> list:
-        return [p for p in self.all_phases if not isinstance(p, FitPreprocessor) or job.preprocessor is not None]
 
     def start(self, job) -> None:
         """What the agent observes: up to 8 images of every observation's reservoir (one row per

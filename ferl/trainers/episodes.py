@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import torch
 
 from ferl.config.params import ConfigError
+from ferl.trainers.phased import Phase
 
 
 @dataclass
@@ -109,7 +110,7 @@ class ObservationTable:
         return torch.where((ids >= 0).unsqueeze(-1), self.lookup(ids.clamp(min=0)), 0.0)
 
 
-class CollectEpisodes:
+class CollectEpisodes(Phase):
     """Algorithm 1's data (§4.3.1): ``n_sample`` random-policy episodes per run, balanced over the
     lengths T_min … T_max and split ``train_fraction`` / rest into training and test data (handed
     to the next phases as ``job.shared["episodes"]``). ``collect_batch`` episodes are stepped at
@@ -119,12 +120,6 @@ class CollectEpisodes:
 
     def __init__(self, n_sample: int, collect_batch: int, train_fraction: float):
         self.n_sample, self.collect_batch, self.train_fraction = n_sample, collect_batch, train_fraction
-
-    def prepare(self, job) -> None:
-        pass
-
-    def metric_names(self, job) -> list[str]:
-        return []
 
     def run(self, job, state) -> None:
         copies = max(1, min(self.n_sample, self.collect_batch // job.R))

@@ -7,7 +7,7 @@ as phases (``ferl.trainers.floor_tests.GreedyTests``, ``ferl.trainers.online.Onl
 """
 from typing import Annotated
 
-from ferl.config.params import Allowed, ConfigError, NonNegative, NonNegativeInt, Positive, PositiveInt, checked
+from ferl.config.params import Allowed, NonNegative, NonNegativeInt, Positive, PositiveInt, checked
 from ferl.trainers.floor_tests import GreedyTests
 from ferl.trainers.online import OnlineTD
 from ferl.trainers.phased import PhasedTrainer
@@ -36,9 +36,3 @@ class DigitFloorTrainer(PhasedTrainer):
         super().__init__([GreedyTests("before", **tests),
                           OnlineTD(steps, log_every, checkpoint_every, checkpoint_minutes, compile_group_runs, prefetch),
                           GreedyTests("after", **tests)], divergence_limit)
-
-    def setup(self, cfg, device) -> None:
-        super().setup(cfg, device)
-        if cfg.compile and self.job.actor.samples_with_generator:
-            raise ConfigError("compile=true is not allowed with an actor that samples inside a step "
-                              "(actor.action_selection=gibbs): use compile=false")

@@ -18,6 +18,7 @@ from ferl.envs.digit_floor import NOISE_CLASS
 from ferl.images import as_images, tile, weight_images
 from ferl.run.tensorboard import log_embedding, log_weights
 from ferl.stats import greedy_accuracy
+from ferl.trainers.phased import Phase
 
 EMBEDDED_PER_CLASS = 100  # test digits per class in the projector (TensorBoard tags: docs/records.md)
 
@@ -65,7 +66,7 @@ def json_values(x: np.ndarray) -> list:
     return [None if np.isnan(v) else float(v) for v in x]
 
 
-class GreedyTests:
+class GreedyTests(Phase):
     """The test phase ``when`` = "before" or "after" training: the actor's responses to the same
     ``test_per_class`` held-out images per class at every level of ``test_noise_levels`` (drawn
     once, when the trainer is set up), at β of the end of training. After training it writes

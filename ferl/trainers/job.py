@@ -20,7 +20,6 @@ from hydra.utils import instantiate
 
 from ferl.config.params import ConfigError, signature, target
 from ferl.run.guard import DivergenceGuard
-from ferl.run.tensorboard import log_weights
 
 
 @dataclass(frozen=True)
@@ -51,9 +50,8 @@ def build(node, **runtime):
 class Job:
     """The components of one batch of runs and the run it writes (see the module docstring)."""
 
-    def __init__(self, cfg, device: torch.device, seeds: SeedOffsets):
-        self.cfg, self.device = cfg, device
-        self.R, self.seed = cfg.n_runs, cfg.seed
+    def __init__(self, cfg, device: torch.device, seeds: SeedOffsets, divergence_limit: float):
+        self.cfg, self.device, self.R = cfg, device, cfg.n_runs
         self.seeds = [cfg.seed + r for r in range(self.R)]
         self.generator = torch.Generator(device).manual_seed(cfg.seed)
         pre_cfg, predictor_cfg = cfg.get("preprocessor"), cfg.get("predictor") or {}
@@ -72,7 +70,7 @@ class Job:
         n_state = n_obs + sum(p.memory_size for p in self.predictors.values())
         self.actor = build(cfg.actor, n_runs=self.R, n_state=n_state, n_actions=self.env.n_actions,
                            seed=cfg.seed + seeds.actor).to(device)
-        self.guard = None
+        self.guard = DivergenceGuard(self.R, divergence_limit, self.seeds, device)
         self.run = self.writer = self.stop = None
         # what a checkpoint saves of the run's course: finished phases, an unfinished one's state,
         # data one phase hands the next, the summary's metrics so far, the acting phases' steps and time
@@ -99,9 +97,6 @@ class Job:
         extra = {"data": self.data} if takes(self.cfg.env, "data") else {}
         return build(self.cfg.env, n_runs=n_runs, generator=self.generator, device=self.device, **extra)
 
-    def make_guard(self, divergence_limit: float) -> None:
-        self.guard = DivergenceGuard(self.R, divergence_limit, self.seeds, self.device)
-
     def components(self) -> dict:
         """Every component that has parameters or state, by the name its checkpoint entry has."""
         parts = {"env": self.env, "preprocessor": self.preprocessor, "actor": self.actor,
@@ -114,12 +109,6 @@ class Job:
             return {"class": f"{type(part).__module__}.{type(part).__qualname__}", **part.describe()}
         return {"env": entry(self.env), "preprocessor": entry(self.preprocessor) if self.preprocessor else None,
                 "predictors": {name: entry(p) for name, p in self.predictors.items()}, "actor": entry(self.actor)}
-
-    def log_weights(self, step: int) -> None:
-        """Histograms of run 0's weights of every learning component."""
-        for name, part in self.components().items():
-            if name != "env":
-                log_weights(self.writer, name, part, step)
 
     # ---- checkpoints ----------------------------------------------------------------------------
     def checkpoint(self, phase: str | None = None, state=None) -> None:

@@ -15,9 +15,11 @@ import torch
 from tqdm import tqdm
 
 from ferl.actors.td import first_action
+from ferl.config.params import ConfigError
 from ferl.random_blocks import Blocks, steps_per_block
 from ferl.run.directory import CheckpointTimer
 from ferl.trainers.chunks import chunk_length, compiled_td_steps, done_future, switch_interval, td_steps
+from ferl.trainers.phased import Phase
 
 # Prefetching pays from a few tens of runs on (compile=true, agent-steps/s drawn in turn → ahead:
 # 100 runs 157 k → 225–300 k, 30 runs 162–190 k → 230–257 k); at 10 runs it gains nothing and varies
@@ -29,7 +31,7 @@ PREFETCH_MIN_RUNS = 30
 SWITCH_INTERVAL_S = 2e-4
 
 
-class OnlineTD:
+class OnlineTD(Phase):
     """``steps`` online TD steps of every run, logged every ``log_every`` and checkpointed every
     ``checkpoint_every`` steps. ``compile``: the chunk as one torch.compiled graph, by groups of
     ``compile_group_runs`` runs on a CPU; ``prefetch``: chunks of random numbers drawn ahead on a
@@ -52,6 +54,9 @@ class OnlineTD:
             steps_per_block(R))
         self.td_steps = td_steps
         if job.cfg.compile:
+            if actor.samples_with_generator:
+                raise ConfigError("compile=true is not allowed with an actor that samples inside a step "
+                                  "(actor.action_selection=gibbs): use compile=false")
             actor.prepare_for_compile()
             self.td_steps = compiled_td_steps(R, self.compile_group_runs, job.device)
         drawn_ahead = not actor.samples_with_generator and R >= PREFETCH_MIN_RUNS

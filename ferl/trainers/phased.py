@@ -9,7 +9,6 @@ unfinished one the state its last checkpoint saved, so a resumed run computes ex
 uninterrupted one does.
 """
 import time
-from typing import Protocol
 
 import torch
 from torch.utils.tensorboard import SummaryWriter
@@ -20,8 +19,14 @@ from ferl.run.tensorboard import log_hparams
 from ferl.trainers.job import Job, SeedOffsets
 
 
-class Phase(Protocol):
+class Phase:
+    """One step of a training procedure; a subclass names itself and implements ``run``."""
+
     name: str
+
+    def applies(self, job: Job) -> bool:
+        """Whether the job's components call for this phase (a preprocessor's fit needs one)."""
+        return True
 
     def prepare(self, job: Job) -> None:
         """What the phase needs before any phase runs (drawn in this order at every start, so a
@@ -29,9 +34,11 @@ class Phase(Protocol):
 
     def metric_names(self, job: Job) -> list[str]:
         """The flat summary.json metrics it writes into ``job.metrics``."""
+        return []
 
     def run(self, job: Job, state) -> None:
         """Do the phase, from ``state`` (what its last checkpoint saved) or from the start (None)."""
+        raise NotImplementedError
 
 
 class PhasedTrainer:
@@ -47,16 +54,11 @@ class PhasedTrainer:
         self.all_phases, self.divergence_limit = phases, divergence_limit
         self.job: Job | None = None
 
-    def phases_for(self, job: Job) -> list:
-        """The phases that apply to the job's components (all, unless a subclass says otherwise)."""
-        return self.all_phases
-
     def setup(self, cfg, device: torch.device) -> None:
         """Build the components and what each phase prepares; check the run's optimized metric."""
         self.started = time.perf_counter()  # wall_time_s counts the building too
-        self.job = Job(cfg, device, self.seed_offsets)
-        self.job.make_guard(self.divergence_limit)
-        self.phases = self.phases_for(self.job)
+        self.job = Job(cfg, device, self.seed_offsets, self.divergence_limit)
+        self.phases = [phase for phase in self.all_phases if phase.applies(self.job)]
         for phase in self.phases:
             phase.prepare(self.job)
         metric = cfg.get("optimized_metric")

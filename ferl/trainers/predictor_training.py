@@ -14,9 +14,10 @@ from tqdm import tqdm
 from ferl.run.directory import CheckpointTimer
 from ferl.run.tensorboard import log_weights
 from ferl.trainers.episodes import Episodes, observation_table
+from ferl.trainers.phased import Phase
 
 
-class TrainPredictors:
+class TrainPredictors(Phase):
     """``n_epoch`` epochs of every predictor on lengths up to T_min + ``l_training`` − 1, errors
     every ``error_every`` epochs, a checkpoint every ``checkpoint_every_epochs`` (and by the
     clock, ``checkpoint_minutes``). Records ``predictor.npz``."""
@@ -27,12 +28,6 @@ class TrainPredictors:
                  checkpoint_minutes: float):
         self.l_training, self.n_epoch, self.error_every = l_training, n_epoch, error_every
         self.checkpoint_every_epochs, self.checkpoint_minutes = checkpoint_every_epochs, checkpoint_minutes
-
-    def prepare(self, job) -> None:
-        pass
-
-    def metric_names(self, job) -> list[str]:
-        return []
 
     def run(self, job, state) -> None:
         """Every group of predictors not yet trained; a finished group is checkpointed."""
