@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup run test bench reproduce clean
+.PHONY: setup run test bench reproduce beyond clean
 
 setup: $(STAMP)
 
@@ -46,6 +46,30 @@ reproduce: $(STAMP)
 	echo $$(( $$(date +%s) - start )) > $$dir/train_wall_time_s && \
 	$(PY) analyze.py $$dir --readme README.md && \
 	echo "  reproduced in $$(( $$(date +%s) - start )) s; report: $$dir/analysis/report.md"
+
+# Beyond the dissertation (§5.4; CONTRACT §3): (b) sample efficiency on three tasks, each by its
+# phased algorithm, online, and online with curiosity; (a) the memory-length curve: the regular
+# T-maze trained online with every memory at corridor lengths 3 … 50 (T_max = 2 T_min + 4), with
+# BEYOND_EPISODES episodes (the curve compares memories, not budgets; fewer replayed episodes
+# per update for the same reason). Then the sweep's report with its "beyond" section.
+BEYOND_EPISODES ?= 2000
+BEYOND_ETA      ?= 0.1
+MEMORIES        := elman,lstm,gru,esn
+
+beyond: $(STAMP)
+	@dir=outputs/beyond/$$(date +%Y-%m-%d_%H-%M-%S); start=$$(date +%s); \
+	jobs="hydra/launcher=joblib hydra.launcher.n_jobs=$(REPRO_JOBS)"; \
+	$(PY) train.py -m experiment=table5_1_pixel,table5_1_bit,table4_1_matching $$jobs hydra.sweep.dir=$$dir/phased && \
+	$(PY) train.py -m experiment=table5_1_pixel,table5_1_bit,table4_1_matching trainer=online trainer.curiosity=0,$(BEYOND_ETA) \
+	  $$jobs hydra.sweep.dir=$$dir/online && \
+	for c in 50 20 10 5 3; do \
+	  $(PY) train.py -m experiment=table4_1_regular trainer=online predictor.joint.memory=$(MEMORIES) \
+	    env.corridor_length=$$c env.max_steps=$$((2 * c + 4)) trainer.n_episodes=$(BEYOND_EPISODES) \
+	    trainer.replay_sample=16 $$jobs hydra.sweep.dir=$$dir/memory_length/corridor_$$c || exit 1; \
+	done && \
+	echo $$(( $$(date +%s) - start )) > $$dir/train_wall_time_s && \
+	$(PY) analyze.py $$dir && \
+	echo "  beyond in $$(( $$(date +%s) - start )) s; report: $$dir/analysis/report.md"
 
 bench: $(STAMP)
 	$(PY) benchmarks/bench_floor.py

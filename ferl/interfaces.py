@@ -163,8 +163,11 @@ class Predictor(Protocol):
         """Targets (R, B, T+1, ·) of rewards r_1 … r_T (R, B, T), or None without a reward output."""
 
     @classmethod
-    def training_batch(cls, members: list, y: Tensor, a: Tensor, rs: list, lengths: Tensor) -> TrainingBatch:
-        """Members with one ``batch_key`` and their training sequences, ready to train."""
+    def training_batch(cls, members: list, y: Tensor, a: Tensor, rs: list, lengths: Tensor,
+                       batch_size: int | None = None, summed: bool = False) -> TrainingBatch:
+        """Members with one ``batch_key`` and their training sequences, ready to train; one SGD
+        step per ``batch_size`` sequences (the members' own when None) on their mean loss, or
+        their summed loss when ``summed``."""
 
     def prediction_errors(self, y: Tensor, a: Tensor, r: Tensor | None, lengths: Tensor) -> Tensor:
         """Prediction error of every step (R, B, T+1), NaN where there is none (Eq. 4.8)."""

@@ -50,7 +50,10 @@ def test_every_option_file_is_its_constructors_signature():
     files = [p for p in (ROOT / "conf").glob("*/*.yaml") if p.parent.name not in ("experiment", "hparams_search")]
     assert len(files) >= 12
     for path in files:
-        node = OmegaConf.to_container(OmegaConf.load(path), resolve=False)
+        own = OmegaConf.load(path)
+        # an option that extends another of its group (trainer/algorithm2_pixel → algorithm1)
+        bases = [OmegaConf.load(path.parent / f"{d}.yaml") for d in own.get("defaults", []) if d != "_self_"]
+        node = OmegaConf.to_container(OmegaConf.merge(*bases, own), resolve=False)
         node.pop("defaults", None)
         for name, part in (node.items() if "_target_" not in node else [(path.stem, node)]):
             if path.parent.name == "data" and "???" in part.values():

@@ -62,7 +62,12 @@ def test_same_seed_same_numbers(tmp_path, tiny_run):
                                       "data=mnist_idx", "actor.foo=1", "experiment=nope",
                                       # found once the data are loaded: the embedded subset has 100 per class
                                       "experiment=table5_1_pixel env.reservoir_size=101",
-                                      "experiment=table5_1_pixel preprocessor.cd_k=0"])
+                                      "experiment=table5_1_pixel preprocessor.cd_k=0",
+                                      # issue 2/8: an unknown memory, a negative curiosity, a corridor T_max cannot hold
+                                      "experiment=table4_1_regular predictor.joint.memory=tcn",
+                                      "experiment=table4_1_matching trainer=online trainer.curiosity=-0.5",
+                                      "experiment=table4_1_regular env.max_steps=10 env.corridor_length"
+                                      "=20"])
 def test_bad_input_one_line_nothing_written(tmp_path, override):
     run_dir = tmp_path / "out" / "run"
     result = run_train(*override.split(), f"hydra.run.dir={run_dir}")

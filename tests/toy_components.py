@@ -107,7 +107,7 @@ class TracePredictor(OutputHeads):
         return id(self)  # nothing to share: it trains alone
 
     @classmethod
-    def training_batch(cls, members, y, a, rs, lengths):
+    def training_batch(cls, members, y, a, rs, lengths, batch_size=None, summed=False):
         (member,), (r,) = members, rs
         return TraceBatch(member, y, a, r, lengths)
 

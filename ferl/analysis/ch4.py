@@ -105,7 +105,8 @@ CLAIMS: list[Claim] = _maze_results(_REGULAR, [
 
 
 def applies(manifest: Manifest) -> bool:
-    return manifest.env_kind == ENV_KIND and list(manifest.roles.values()) == [JOINT]
+    return (manifest.env_kind == ENV_KIND and list(manifest.roles.values()) == [JOINT]
+            and manifest.dissertation_algorithm)
 
 
 CHAPTER = Chapter("Algorithm 1, one joint predictor (chapter 4)", applies,

@@ -221,7 +221,7 @@ CLAIMS: list[Claim] = [
 
 def applies(manifest: Manifest) -> bool:
     roles = manifest.roles.values()
-    return manifest.env_kind == ENV_KIND and OBSERVATION in roles and REWARD in roles
+    return manifest.env_kind == ENV_KIND and OBSERVATION in roles and REWARD in roles and manifest.dissertation_algorithm
 
 
 CHAPTER = Chapter("Algorithm 2, separate observation and reward predictors (chapter 5)", applies,

@@ -76,6 +76,14 @@ class Manifest:
         """Observations are images (the digit mazes of §4.3.3 and §5.3.2, the digit floor)."""
         return self.env.get("observation") == "image"
 
+    @property
+    def dissertation_algorithm(self) -> bool:
+        """The predictors are the dissertation's (Elman memories) and trained in their own phase
+        before the actor (Algorithms 1–2): only then do chapters 4–5's claims speak to the run.
+        The online trainer and other memories (§5.4) are findings of ours, not claims to judge."""
+        return ("predictors" in self.trainer.get("phases", ())
+                and all(facts.get("kind") == "elman" for facts in self.predictors.values()))
+
     @cached_property
     def roles(self) -> dict[str, str | None]:
         """Predictor name → its role (module doc), in the order of run.json."""

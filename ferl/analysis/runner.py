@@ -6,7 +6,8 @@ CSV/JSON data, `report.md`) and the figures are logged to its TensorBoard under
 (`records/run.json`, `ferl.analysis.dispatch`); a run without run.json is skipped with a
 message. Any other directory is a sweep: every run below it is analyzed, and `DIR/analysis/`
 gets the sweep's aggregate tables, the Fig. 3.6 noise grid and the reproduction report
-(`ferl.analysis.sweep`), its figures also logged to `DIR/analysis/tb/`.
+(`ferl.analysis.sweep`), with the findings beyond the dissertation where the sweep has such
+jobs (`ferl.analysis.beyond`), its figures also logged to `DIR/analysis/tb/`.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ferl import runs
-from ferl.analysis import dispatch, generic
+from ferl.analysis import beyond, dispatch, generic
 from ferl.analysis import sweep as sw
 from ferl.analysis.claims import VERDICTS, ClaimResult, Numbering, evaluate
 from ferl.analysis.io import write_json
@@ -135,6 +136,7 @@ def analyze_sweep(sweep_dir: Path, readme: Path | None = None) -> list[RunOutcom
     out = _fresh(sweep_dir / "analysis")
     analysis = sw.analyze_sweep(sweep, out)
     rows = sw.reproduction_rows(jobs, evaluate(SWEEP_CLAIMS, sweep), dispatch.CLAIM_ORDER)
+    findings = beyond.report(jobs, out, analysis.figures, analysis.data_files)
     publish_figures(analysis.figures, out, out / "tb")
     write_json(out / "claims.json",
                [_claim_json(r.result, job=None if r.job is None else str(r.job.run_dir),
@@ -147,7 +149,7 @@ def analyze_sweep(sweep_dir: Path, readme: Path | None = None) -> list[RunOutcom
         wall["training wall time (make reproduce)"] = float(train_wall.read_text())
     wall["sum of the jobs' wall_time_s"] = sum(float(j.summary.get("wall_time_s", 0)) for j in jobs)
     wall["analysis wall time"] = time.perf_counter() - start
-    lines = sw.report_lines(sweep, analysis, rows, out, wall)
+    lines = sw.report_lines(sweep, analysis, rows, out, wall) + findings
     lines += ["", "## Jobs", ""] + jobs_table(sweep_dir, out, outcomes)
     (out / "report.md").write_text("\n".join(lines) + "\n")
     if readme is not None:

@@ -133,7 +133,14 @@ def check_arguments(fn, values: dict, prefix: str = "") -> None:
     """Raise ConfigError for the first of ``values`` that ``fn``'s signature does not take or
     whose annotation it breaks, then for the class's own cross-key rules (``check_config``).
     Keys are reported as ``prefix + key``; a value that is itself a node with a ``_target_``
-    is checked against its target in turn."""
+    is checked against its target in turn. A callable that chooses the class it builds from one
+    of its keys (``resolve(values)`` → class, the other values) is checked as that class."""
+    resolve = getattr(fn, "resolve", None)
+    if resolve is not None:
+        try:
+            fn, values = resolve(values)
+        except ArgumentError as e:
+            raise ConfigError(f"{prefix}{e.key}={values.get(e.key)!r} is not allowed: {e.expected}") from None
     params, hints, takes_any = signature(fn)
     for key, value in values.items():
         if key not in params and not takes_any:
@@ -184,7 +191,11 @@ def checked(init):
         bound = sig.bind(self, *args, **kwargs)
         values = {k: plain(v) for k, v in list(bound.arguments.items())[1:]}
         values.update(values.pop(extra, {}))
-        owner = next(c for c in type(self).__mro__ if c.__dict__.get("__init__") is wrapper)
+        # the class whose constructor this is; a subclass that inherits it is checked as itself
+        # (its own check_config), one that calls it through super() already checked its values
+        first = next(c for c in type(self).__mro__ if "__init__" in c.__dict__)
+        owner = type(self) if first.__dict__["__init__"] is wrapper else \
+            next(c for c in type(self).__mro__ if c.__dict__.get("__init__") is wrapper)
         try:
             check_arguments(owner, values)
         except ConfigError as e:

@@ -17,14 +17,10 @@ All parameters carry the run dimension first, W_mm (R, M, M). Sequences are padd
 y (R, B, T+1, Y), a (R, B, T, A) one-hot, r (R, B, T+1, ·) with r[:, :, 0] unused, and lengths (R, B),
 the number of actions T of each sequence; steps beyond a sequence's length are masked.
 """
-from typing import Literal
-
 import torch
-from torch import nn
 
-from ferl.config.params import ArgumentError, NonNegative, NonNegativeInt, Positive, PositiveInt, checked
-from ferl.predictors.heads import REWARD_OUTPUTS, OutputHeads, affine, clean, linear, scaled, valid_steps
-from ferl.predictors.training import PredictorBatch
+from ferl.predictors.heads import affine, linear, scaled
+from ferl.predictors.recurrent import RecurrentPredictor
 
 MEMORY_PARAMETERS = ("W_my", "W_ma", "W_mm", "b_m", "b_init")
 
@@ -87,46 +83,17 @@ def bptt(members: list, memory: list, y, a, rs: list, steps, reward_steps) -> li
     return backprop_memory(memory[2], gains, m, torch.cat(dm) if len(dm) > 1 else dm[0], y, a) + heads
 
 
-class ElmanPredictor(OutputHeads):
-    """Eqs. 4.1–4.6 (joint observation + encoded-reward predictor, ch. 4) and Eqs. 5.1/5.2 (ch. 5).
+class ElmanPredictor(RecurrentPredictor):
+    """Eqs. 4.1–4.6 (joint observation + encoded-reward predictor, ch. 4) and Eqs. 5.1/5.2 (ch. 5):
+    the memory ``memory: elman`` of ``ferl.predictors.recurrent.predictor``, with its BPTT written
+    out. β_m is the gain of the memory's sigmoid (Eq. 4.3)."""
 
-    ``reward_output``: "bits" (sigmoid + cross entropy, Eqs. 4.5–4.6, n_reward bits), "linear"
-    (one linear scalar output + squared error, Eq. 5.2; n_reward is then ignored) or "none" (no
-    reward head: the observation predictor of ch. 5). ``predict_obs=False`` drops the observation
-    head (the reward predictor of ch. 5); its output is then None, as is r̂ for "none".
-    """
+    kind, uses_beta_m = "elman", True
 
-    @checked
-    def __init__(self, n_runs: PositiveInt, n_obs: PositiveInt, n_actions: PositiveInt, n_memory: PositiveInt = 20,
-                 n_reward: PositiveInt = 4, reward_output: Literal[REWARD_OUTPUTS] = "bits", c_y: NonNegative = 1.0,
-                 c_a: NonNegative = 1.0, beta_m: Positive = 1.0, beta_y: Positive = 1.0, beta_r: Positive = 1.0,
-                 rho_y: NonNegative = 1.0, rho_r: NonNegative = 1.0, lr: Positive = 0.05, init_std: NonNegative = 1.0,
-                 predict_obs: bool = True, time_average: bool = False, batch_size: PositiveInt = 1,
-                 seed: NonNegativeInt = 0):
-        super().__init__()
-        self.c_y, self.c_a, self.beta_m = c_y, c_a, beta_m
-        self.lr, self.time_average, self.batch_size = lr, time_average, batch_size
-        self.memory_size = n_memory
-        # Each run is initialised from its own seed, so run r does not depend on n_runs (§4.3.1:
-        # all weights and biases from a spherical Gaussian of variance init_std²), the memory's
-        # parameters first, then the heads'.
-        gens = [torch.Generator().manual_seed(seed + r) for r in range(n_runs)]
-
-        def gaussian(*shape):
-            return nn.Parameter(torch.stack([torch.randn(*shape, generator=g) for g in gens]) * init_std)
-
+    def init_memory(self, gaussian, generators: list, n_obs: int, n_actions: int, n_memory: int) -> None:
         M = n_memory
         self.W_my, self.W_ma, self.W_mm = gaussian(M, n_obs), gaussian(M, n_actions), gaussian(M, M)
         self.b_m, self.b_init = gaussian(M), gaussian(M)
-        self.init_heads(gaussian, n_obs, M, n_reward, reward_output, predict_obs, (beta_y, beta_r), (rho_y, rho_r))
-
-    @classmethod
-    def check_config(cls, args: dict) -> None:
-        if not args["predict_obs"] and args["reward_output"] == "none":
-            raise ArgumentError("reward_output", "bits or linear when predict_obs is false (a predictor needs an output)")
-
-    def describe(self) -> dict:
-        return {"kind": "elman", "memory_size": self.memory_size, **self.describe_heads()}
 
     # ---- network equations ------------------------------------------------------------------
     def memory_parameters(self) -> list:
@@ -137,16 +104,6 @@ class ElmanPredictor(OutputHeads):
     def gains(self) -> tuple:
         """(c_y, c_a, β_m): what the memory equations take besides their parameters."""
         return self.c_y, self.c_a, self.beta_m
-
-    @property
-    def batch_key(self) -> tuple:
-        """Predictors with equal keys can train as one ``PredictorBatch``: the same form of
-        memory (sizes, gains) and the same α, objective and batch size."""
-        return self.W_my.shape, self.W_ma.shape, self.gains, self.lr, self.time_average, self.batch_size
-
-    @classmethod
-    def training_batch(cls, members: list, y, a, rs: list, lengths) -> PredictorBatch:
-        return PredictorBatch(members, y, a, rs, lengths)
 
     @staticmethod
     def bptt(members: list, memory: list, y, a, rs: list, steps, reward_steps) -> list:
@@ -197,24 +154,3 @@ class ElmanPredictor(OutputHeads):
     def unroll(self, y: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
         """Memories m_0 … m_T (R, B, T+1, M) of padded sequences y (R, B, T+1, Y), a (R, B, T, A)."""
         return unroll(self.memory_parameters(), self.gains, y, a)
-
-    def loss(self, y, a, r, lengths) -> torch.Tensor:
-        """Σ_t E_t, or J(T) = Σ_t E_t / (T + 1) with ``time_average``, per (run, sequence), (R, B)
-        (``OutputHeads.step_errors``). Training uses ``gradients``, BPTT written out; this loss is
-        what it differentiates, and autograd's reverse pass through it is the independent check
-        (tests/test_predictor.py). Padded steps are masked and contribute nothing."""
-        y, a, r = clean(y, a, r, lengths)
-        E = self.step_errors(self.unroll(y, a), y, r, lengths)
-        return E.sum(-1) / (lengths + 1) if self.time_average else E.sum(-1)
-
-    @torch.no_grad()
-    def gradients(self, y, a, r, lengths, weight: torch.Tensor) -> list:
-        """∂/∂θ of Σ_b weight_b · Σ_t E_t(b) for every parameter (in ``parameters()`` order): BPTT
-        of §2.4.1 written out, no autograd (``bptt``, as training runs it).
-        Inputs as for ``loss``, already cleaned; weight (R, B)."""
-        steps = valid_steps(lengths, y.shape[2]) * weight.unsqueeze(-1)
-        return bptt([self], self.memory_parameters(), y, a, [r], steps, steps * (torch.arange(y.shape[2], device=y.device) > 0))
-
-    def train_epoch(self, y, a, r, lengths, order: torch.Tensor) -> None:
-        """One epoch of BPTT in pattern mode (§4.3.1) on this predictor alone (``PredictorBatch``)."""
-        PredictorBatch([self], y, a, [r], lengths).train_epoch([order])

@@ -104,6 +104,19 @@ class OutputHeads(nn.Module):
             E = E + self.rho_r * torch.where(reward_steps(valid), E_r, 0.0)
         return E
 
+    def weighted_errors(self, m, y, r, steps: torch.Tensor, reward_steps: torch.Tensor) -> torch.Tensor:
+        """Σ_b Σ_t steps_{b,t} E_t(b), the loss whose gradients ``head_gradients`` writes out
+        (Eqs. 4.6, 5.1, 5.2): a scalar to differentiate by autograd. Arguments as there."""
+        z_y, z_r = self.head_inputs(m)
+        loss = 0.0
+        if self.predict_obs:
+            loss = self.rho_y * (F.binary_cross_entropy_with_logits(z_y, y, reduction="none").sum(-1) * steps).sum()
+        if self.reward_output != "none":
+            E_r = (F.binary_cross_entropy_with_logits(z_r, r, reduction="none") if self.reward_output == "bits"
+                   else 0.5 * (r - z_r).square()).sum(-1)
+            loss = loss + self.rho_r * (E_r * reward_steps).sum()
+        return loss
+
     def head_gradients(self, m, y, r, steps: torch.Tensor, reward_steps: torch.Tensor):
         """The output heads' part of BPTT: their gradients (``head_parameters()`` order) and
         ∂J/∂m_t from them, (R, B, T+1, M). m from ``unroll``, y and r the targets, steps (R, B, T+1)

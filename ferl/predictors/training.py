@@ -17,13 +17,17 @@ from ferl.predictors.heads import clean, valid_steps
 class PredictorBatch:
     """Predictors with one ``batch_key`` and their training sequences (``Predictor.training_batch``)."""
 
-    def __init__(self, predictors: list, y, a, rs: list, lengths):
+    def __init__(self, predictors: list, y, a, rs: list, lengths, batch_size: int | None = None, summed: bool = False):
         """Members and their training sequences: y (R, N, T+1, Y), a (R, N, T, A), lengths (R, N)
-        shared, targets rs[k] (R, N, T+1, ·) or None per member; the padding is zeroed once here."""
+        shared, targets rs[k] (R, N, T+1, ·) or None per member; the padding is zeroed once here.
+        ``batch_size``: sequences per SGD step, the members' own ``batch_size`` unless given;
+        ``summed``: a step on their summed loss (the first-order sum of as many pattern-mode
+        steps) instead of their mean."""
         if len({p.batch_key for p in predictors}) != 1:
             raise ValueError("a PredictorBatch needs predictors with the same memory, gains, lr, objective and batch size")
         self.members = list(predictors)
         self.lead = predictors[0]
+        self.batch_size, self.summed = batch_size or self.lead.batch_size, summed
         y, a, _ = clean(y, a, None, lengths)
         valid = valid_steps(lengths, y.shape[2]).unsqueeze(-1)
         self.y, self.a, self.lengths = y, a, lengths
@@ -45,11 +49,13 @@ class PredictorBatch:
         # the memories' parameters of all members in one (P·R, …) tensor each while training
         memory = p.memory_parameters() if P == 1 else [torch.cat(qs) for qs in zip(*(q.memory_parameters() for q in self.members))]
         params = memory + [q for member in self.members for q in member.head_parameters()]
-        B, n = p.batch_size, L.shape[1]
+        B, n = self.batch_size, L.shape[1]
         # the weight of every step in its update's loss: 1/(T+1) under J(T), over the sequences
-        # of the update (B, fewer in a last short one), 0 on padding; rewards count from t = 1
+        # of the update (B, fewer in a last short one) unless summed, 0 on padding; rewards from t = 1
         chunk = torch.arange(n, device=L.device) // B
-        scale = (1.0 / (L + 1).to(y.dtype) if p.time_average else torch.ones_like(L, dtype=y.dtype)) / chunk.bincount()[chunk]
+        scale = 1.0 / (L + 1).to(y.dtype) if p.time_average else torch.ones_like(L, dtype=y.dtype)
+        if not self.summed:
+            scale = scale / chunk.bincount()[chunk]
         steps = valid_steps(L, y.shape[2]) * scale.unsqueeze(-1)
         reward_steps = steps * (torch.arange(y.shape[2], device=L.device) > 0)
         # T of every step: the longest sequence of its B positions over all runs, read once (one

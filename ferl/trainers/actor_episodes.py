@@ -58,7 +58,8 @@ class ActorEpisodes(Phase):
                        "td_abs_mean": np.float32, **{k: bool if k in self.rates else np.int64 for k in outcomes}}
 
     def metric_names(self, job) -> list[str]:
-        return ["final_discounted_return", "final_steps_to_goal", *(f"final_{name}_rate" for name in self.rates), "solved"]
+        return ["final_discounted_return", "final_steps_to_goal", *(f"final_{name}_rate" for name in self.rates), "solved",
+                "env_steps_total", "env_steps_to_solve", "episodes_to_solve"]
 
     def fresh_state(self, job) -> dict:
         """Records of the phase before its first episode: one value per run and episode."""
@@ -82,8 +83,9 @@ class ActorEpisodes(Phase):
                    total=self.N, mininterval=1.0)
         for k in bar:
             started = time.perf_counter()
-            lr, beta = job.actor.learning_rate(k / self.N), job.actor.inverse_temperature(k / self.N)
+            lr, beta = job.actor.learning_rate(k / self.N), self.begin_episode(job, k, state)
             episode = self.play_episode(job, k, lr, beta)
+            self.after_episode(job, k, episode, state)
             state["active_time"] += time.perf_counter() - started
             outcome = episode["outcome"].cpu().numpy()  # one host copy per episode
             for i, key in enumerate(self.outcome_names):
@@ -98,7 +100,7 @@ class ActorEpisodes(Phase):
                 checked = k + 1 - (k % self.log_every + 1)  # first episode not yet checked
                 job.guard.check(torch.as_tensor(records["td_abs_mean"][:, checked:k + 1].T), checked, "episode")
             if (k + 1) % self.log_every == 0:
-                self.log_episodes(job.writer, records, k + 1, lr, beta)
+                self.log_episodes(job.writer, records, k + 1, lr, float(torch.as_tensor(beta).mean()))
                 recent = slice(max(0, k - 199), k + 1)
                 bar.set_postfix(return_ma200=f"{records['discounted_return'][:, recent].mean():.3f}",
                                 **{f"{n}_ma200": f"{records[n][:, recent].mean():.2f}" for n in self.rates}, refresh=False)
@@ -108,6 +110,17 @@ class ActorEpisodes(Phase):
                 job.checkpoint(self.name, {**state, "uniforms": self.uniforms.state_dict()})
         bar.close()
         self.finish(job, state)
+
+    def begin_episode(self, job, k: int, state: dict):
+        """β of episode k: the actor's schedule (§4.3.1)."""
+        return job.actor.inverse_temperature(k / self.N)
+
+    def after_episode(self, job, k: int, episode: dict, state: dict) -> None:
+        """What learns from episode k besides the actor: nothing while the predictors are frozen."""
+
+    def reward_bonus(self, job, states: list, obs_id: torch.Tensor):
+        """What is added to the raw reward the actor learns from after a step: nothing here."""
+        return 0.0
 
     def freeze(self, job) -> None:
         """The frozen predictors' steps on observation ids, the actor's observation rows (times
@@ -129,7 +142,8 @@ class ActorEpisodes(Phase):
         """Episode k of every run, with SARSA(0) updates at every step (``td_step``): observe →
         memories m_t (Eq. 4.3) → a' by Eq. (3.11) → δ → θ update (Eq. 3.10). Runs whose episode
         has ended wait with δ = 0. Returns the outcome (len(outcome_names), R), the TD errors
-        (steps, R), NaN where a run had ended, and the probe visits (or None)."""
+        (steps, R), NaN where a run had ended, the probe visits (or None) and the trajectory:
+        observation ids (steps + 1, R), actions and raw rewards (steps, R)."""
         env, actor, predictors = job.env, job.actor, list(job.predictors.values())
         env.reset()
         (uniform,) = self.uniforms.next()  # (T_max + 1, R, 1, 1)
@@ -137,16 +151,19 @@ class ActorEpisodes(Phase):
         memories = [p.memory(x) for p, x in zip(predictors, m)]
         s = self.state(job, env.obs_id, memories)
         a, F_sa, x_sa = first_action(actor, s, beta, job.generator, uniform[0])
-        rewards, deltas, visits = [], [], []
+        rewards, deltas, visits, obs, actions = [], [], [], [env.obs_id], []
         for t in range(env.max_steps):
             active = ~env.done
             visits.append((env.probe & active, active, memories, s, x_sa))
             obs_prev = env.obs_id
+            actions.append(a.squeeze(1))
             r, terminated, _ = env.advance(a.squeeze(1))
+            obs.append(env.obs_id)
             m = [step(x, obs_prev, a.squeeze(1)) for step, x in zip(self.steps, m)]
             memories = [p.memory(x) for p, x in zip(predictors, m)]
             s_next = self.state(job, env.obs_id, memories)
-            a, F_sa, x_sa, delta = td_step(actor, s, a, F_sa, x_sa, r, s_next, lr, beta, job.generator, uniform[t + 1],
+            a, F_sa, x_sa, delta = td_step(actor, s, a, F_sa, x_sa, r + self.reward_bonus(job, m, env.obs_id), s_next,
+                                           lr, beta, job.generator, uniform[t + 1],
                                            job.guard.alive, (terminated | ~active).unsqueeze(1), active.unsqueeze(1))
             rewards.append(r)
             deltas.append(delta.squeeze(1))
@@ -161,7 +178,8 @@ class ActorEpisodes(Phase):
             steps.float(), rewards.gather(0, (steps - 1).unsqueeze(0)).squeeze(0),  # terminal reward
             deltas.abs().sum(0) / steps.clamp(min=1), *(v.float() for v in env.outcomes().values())])
         return {"outcome": outcome, "td": torch.where(actives, deltas, torch.nan),
-                "probes": self.probe_visits(job, k, visits)}
+                "probes": self.probe_visits(job, k, visits),
+                "trajectory": (torch.stack(obs), torch.stack(actions), rewards)}
 
     def probe_visits(self, job, k: int, visits: list) -> dict | None:
         """Activations at every probe visit of episode k after the action there was selected
@@ -192,6 +210,8 @@ class ActorEpisodes(Phase):
         job.run.save_records("junction", **probes)
         self.log_probes(job, probes, records)
         job.metrics.update(final_metrics(records, optimal["discounted_return"], self.final_window, self.rates))
+        job.metrics.update(sample_efficiency(records, job.shared.get("random_steps", np.zeros(job.R, np.int64)),
+                                             optimal["discounted_return"], self.final_window, self.rates))
         job.count_agent_steps(state["agent_steps"], state["active_time"])
 
     def log_actor(self, job, step: int) -> None:
@@ -229,15 +249,43 @@ def concat_records(parts: list) -> dict:
     return {key: torch.cat([p[key] for p in parts]) for key in parts[0]}
 
 
+def meets_solved(returns: np.ndarray, rates: dict, optimal_return: float) -> np.ndarray:
+    """The ``solved`` criterion (CONTRACT §2) on window means: return ≥ 0.95 × optimum and every
+    outcome rate (the correct-goal rate) ≥ 0.95."""
+    solved = returns >= SOLVED_SHARE * optimal_return
+    for values in rates.values():
+        solved &= values >= SOLVED_SHARE
+    return solved
+
+
+def window_means(x: np.ndarray, window: int) -> np.ndarray:
+    """Means of every full window of ``window`` episodes (R, N) → (R, N − window + 1), in float64."""
+    c = np.cumsum(np.pad(x.astype(np.float64), ((0, 0), (1, 0))), 1)
+    return (c[:, window:] - c[:, :-window]) / window
+
+
+def sample_efficiency(episodes: dict, random_steps: np.ndarray, optimal_return: float, window: int,
+                      rates: list) -> dict:
+    """Environment steps per run (random collection included: ``random_steps`` (R,)): all of them,
+    and those until the first window of ``window`` episodes that meets the ``solved`` criterion
+    (its last episode included; None if none does), with that episode's number (1-based)."""
+    steps = episodes["steps"].astype(np.int64)
+    used = np.asarray(random_steps)[:, None] + np.cumsum(steps, 1)  # (R, N) steps after each episode
+    solved = meets_solved(window_means(episodes["discounted_return"], window),
+                          {n: window_means(episodes[n], window) for n in rates}, optimal_return)
+    first = [int(np.argmax(row)) + window - 1 if row.any() else None for row in solved]
+    return {"env_steps_total": used[:, -1].tolist(),
+            "env_steps_to_solve": [int(used[r, k]) if k is not None else None for r, k in enumerate(first)],
+            "episodes_to_solve": [k + 1 if k is not None else None for k in first]}
+
+
 def final_metrics(episodes: dict, optimal_return: float, window: int, rates: list) -> dict:
     """CONTRACT §2 episodic metrics over the last ``window`` (200) episodes, one value per run:
     return, steps, the rate of every boolean outcome (``final_correct_goal_rate``) and solved."""
     last = slice(-window, None)
     ret = episodes["discounted_return"][:, last].mean(1)
     rate = {name: episodes[name][:, last].mean(1) for name in rates}
-    solved = ret >= SOLVED_SHARE * optimal_return
-    for values in rate.values():
-        solved &= values >= SOLVED_SHARE
+    solved = meets_solved(ret, rate, optimal_return)
     return {"final_discounted_return": ret.tolist(), "final_steps_to_goal": episodes["steps"][:, last].mean(1).tolist(),
             **{f"final_{name}_rate": values.tolist() for name, values in rate.items()},
             "solved": solved.astype(int).tolist()}

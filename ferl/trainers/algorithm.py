@@ -5,7 +5,7 @@
     → train every predictor by BPTT in pattern mode (Eqs. 4.1–4.6; 5.1–5.2)
     → freeze them and train the actor on the state (y_t, m_t of every predictor) by SARSA(0)
 
-as phases of a ``PhasedTrainer`` (``FitPreprocessor``, ``ferl.trainers.episodes.CollectEpisodes``,
+as phases of a ``PhasedTrainer`` (``ferl.trainers.observations.FitPreprocessor``, ``ferl.trainers.episodes.CollectEpisodes``,
 ``ferl.trainers.predictor_training.TrainPredictors``, ``ferl.trainers.actor_episodes.ActorEpisodes``).
 Chapter 4 has one joint predictor; chapter 5 an observation and a reward predictor (§5.2), each
 with its own memory, and (§5.3.2) an RBM preprocessor: Algorithm 2 is Algorithm 1 with the
@@ -13,38 +13,13 @@ preprocessor's phase first, which runs when the config has a preprocessor.
 """
 from typing import Annotated
 
-import numpy as np
-import torch
-
 from ferl.config.params import Allowed, NonNegative, NonNegativeInt, Positive, PositiveInt, checked
-from ferl.images import IMAGE_SIDE, as_images, matrix_image, tile
-from ferl.run.tensorboard import log_weights
 from ferl.trainers.actor_episodes import ActorEpisodes
 from ferl.trainers.episodes import CollectEpisodes
 from ferl.trainers.job import SeedOffsets
-from ferl.trainers.phased import Phase, PhasedTrainer
+from ferl.trainers.observations import FitPreprocessor, log_observations
+from ferl.trainers.phased import PhasedTrainer
 from ferl.trainers.predictor_training import TrainPredictors
-
-
-class FitPreprocessor(Phase):
-    """Algorithm 2's first phase (§5.3.2): the preprocessor learns from the training images, then
-    processes the table of every observation, per run: what the predictors and the actor see
-    from now on (``job.shared["observations"]``). Records ``preprocessor.npz``."""
-
-    name = "preprocessor"
-
-    def applies(self, job) -> bool:
-        return job.preprocessor is not None
-
-    def run(self, job, state) -> None:
-        pre = job.preprocessor
-        records = pre.fit(job.data, job.writer)
-        log_weights(job.writer, "preprocessor", pre, records["reconstruction_error"].shape[1])
-        raw = job.env.observation_table
-        with torch.no_grad():
-            job.shared["observations"] = processed = pre.transform(raw)
-        job.run.save_records("preprocessor", **records, raw_observations=raw.cpu().numpy().astype(np.float16),
-                             processed_observations=processed.cpu().numpy().astype(np.float16))
 
 
 class Algorithm(PhasedTrainer):
@@ -75,11 +50,4 @@ class Algorithm(PhasedTrainer):
                           checkpoint_minutes)], divergence_limit)
 
     def start(self, job) -> None:
-        """What the agent observes: up to 8 images of every observation's reservoir (one row per
-        observation of the environment's table), or the table of bit codes itself."""
-        table, names = job.env.observation_table.float().cpu(), job.env.observation_names
-        if table.shape[1] == IMAGE_SIDE ** 2:
-            per_name = table.view(len(names), -1, table.shape[1])
-            job.writer.add_image("env/observations", tile(as_images(per_name[:, :8])), 0)
-        else:
-            job.writer.add_image("env/observations", matrix_image(table), 0)
+        log_observations(job)

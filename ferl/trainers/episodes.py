@@ -12,6 +12,7 @@ An id stands for the (processed) observation in ``ObservationTable``.
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 
 from ferl.config.params import ConfigError
 from ferl.trainers.phased import Phase
@@ -113,7 +114,7 @@ class ObservationTable:
 class CollectEpisodes(Phase):
     """Algorithm 1's data (§4.3.1): ``n_sample`` random-policy episodes per run, balanced over the
     lengths T_min … T_max and split ``train_fraction`` / rest into training and test data (handed
-    to the next phases as ``job.shared["episodes"]``). ``collect_batch`` episodes are stepped at
+    to the next phases as ``job.shared["episodes"]``, with the steps they took, ``"random_steps"``). ``collect_batch`` episodes are stepped at
     once (speed only: the draws do not depend on it)."""
 
     name = "collect"
@@ -125,6 +126,7 @@ class CollectEpisodes(Phase):
         copies = max(1, min(self.n_sample, self.collect_batch // job.R))
         env = job.make_env(job.R * copies)
         episodes = collect_random_episodes(env, self.n_sample, job.R, job.generator)
+        job.shared["random_steps"] = episodes.lengths.sum(1).cpu().numpy()  # env steps the data cost each run
         train, test, (n_train, n_test) = balance_and_split(
             episodes, job.env.optimal_steps, job.env.max_steps, self.train_fraction, job.generator)
         job.shared["episodes"] = {"train": train, "test": test, "n_train": n_train, "n_test": n_test}
@@ -136,3 +138,12 @@ class CollectEpisodes(Phase):
 def observation_table(job) -> ObservationTable:
     """The observations the predictors and the actor see: processed where a phase stored them."""
     return ObservationTable(job.shared.get("observations", job.env.observation_table))
+
+
+def episode_tensors(job, ep: Episodes, predictor):
+    """Episodes → predictor inputs y (R,B,T+1,Y), a (R,B,T,A), the reward targets (R,B,T+1,·) of
+    ``predictor`` (None without one or without a reward output), lengths."""
+    y = observation_table(job).observations(ep.obs)
+    a = F.one_hot(ep.actions, job.env.n_actions).float()
+    r = predictor.reward_targets(job.env.reward_values, ep.rewards) if predictor is not None else None
+    return y, a, r, ep.lengths

@@ -8,12 +8,11 @@ epochs (Figs. 4.5, 4.10, 5.2, 5.17). Only lengths T_min … T_min + L_training �
 """
 import numpy as np
 import torch
-import torch.nn.functional as F
 from tqdm import tqdm
 
 from ferl.run.directory import CheckpointTimer
 from ferl.run.tensorboard import log_weights
-from ferl.trainers.episodes import Episodes, observation_table
+from ferl.trainers.episodes import episode_tensors
 from ferl.trainers.phased import Phase
 
 
@@ -47,14 +46,6 @@ class TrainPredictors(Phase):
         """The episode lengths T_min … T_max that the data hold."""
         return range(job.env.optimal_steps, job.env.max_steps + 1)
 
-    def tensors(self, job, ep: Episodes, predictor):
-        """Episodes → predictor inputs y (R,B,T+1,Y), a (R,B,T,A), r targets (R,B,T+1,·) of
-        ``predictor`` (None without one), lengths."""
-        y = observation_table(job).observations(ep.obs)
-        a = F.one_hot(ep.actions, job.env.n_actions).float()
-        r = predictor.reward_targets(job.env.reward_values, ep.rewards) if predictor is not None else None
-        return y, a, r, ep.lengths
-
     def prediction_errors(self, job, tensors: tuple, predictor) -> np.ndarray:
         """(R, nT, Tmax+1) Eq. (4.7): mean over the sequences of each length of Eq. (4.8) per step;
         ``tensors`` (y, a, r, lengths) of a data split."""
@@ -72,10 +63,10 @@ class TrainPredictors(Phase):
         # lengths out in the same blocks in every run, so run 0's positions hold for all
         trainable = train.lengths[0] <= job.env.optimal_steps + self.l_training - 1
         fit = train.select(torch.nonzero(trainable).squeeze(1).expand(R, -1))
-        y, a, _, lengths = self.tensors(job, fit, None)
+        y, a, _, lengths = episode_tensors(job, fit, None)
         batch = type(members[0]).training_batch(
             members, y, a, [p.reward_targets(job.env.reward_values, fit.rewards) for p in members], lengths)
-        splits = {(name, s): self.tensors(job, data[s], p) for name, p in zip(names, members) for s in ("train", "test")}
+        splits = {(name, s): episode_tensors(job, data[s], p) for name, p in zip(names, members) for s in ("train", "test")}
         partial = state["group"] or {}
         if partial.get("names") == names:
             errors, epochs, start = partial["errors"], partial["epochs"], partial["epoch"]

@@ -1,0 +1,171 @@
+"""What every recurrent predictor shares, whatever its memory (§2.4, §4.2, §5.2, §5.4).
+
+A predictor is a memory — Elman (the dissertation), LSTM, GRU or an echo-state reservoir (§5.4's
+"memories that last") — with the output heads of ``ferl.predictors.heads`` on top. The config
+chooses the memory by name (``predictor.<name>.memory``); ``predictor`` builds the class whose
+``kind`` it is, or the class a dotted path names, so a new memory is one module with a
+``RecurrentPredictor`` subclass and no list to extend.
+
+All parameters carry the run dimension first. A subclass draws its memory's parameters in
+``init_memory`` (before the heads, from the same per-run generators), and provides ``unroll``
+(the memories of padded sequences), ``step`` (one online step), ``initial_state``, ``memory``
+and the staticmethod ``bptt`` that ``PredictorBatch`` calls for the gradients of a batch.
+"""
+import importlib
+import pkgutil
+from typing import Literal
+
+import torch
+from torch import nn
+
+from ferl.config.params import ArgumentError, NonNegative, NonNegativeInt, Positive, PositiveInt, checked
+from ferl.predictors.heads import REWARD_OUTPUTS, OutputHeads, clean, valid_steps
+from ferl.predictors.training import PredictorBatch
+
+
+def lookup_step(predictor, table: torch.Tensor, n_actions: int):
+    """A step on observation ids with the predictor's current weights: the observation rows of
+    ``table`` (ids, Y) or (R, ids, Y), the one-hot action, then ``predictor.step``."""
+    eye = torch.eye(n_actions, device=table.device)
+    runs = torch.arange(table.shape[0], device=table.device) if table.dim() == 3 else None
+
+    @torch.no_grad()
+    def step(state, obs_id: torch.Tensor, action: torch.Tensor):
+        return predictor.step(state, table[obs_id] if runs is None else table[runs, obs_id], eye[action])
+    return step
+
+
+class RecurrentPredictor(OutputHeads):
+    """A memory of ``n_memory`` units and the output heads (``reward_output``: "bits", "linear",
+    "none"; ``predict_obs``). c_y, c_a scale the previous observation and action into the memory
+    (§4.3.3); β_y, β_r the heads' gains and ρ_y, ρ_r their error weights (Eq. 4.6); ``lr`` is α of
+    plain SGD on J(T) (``time_average``) or Σ_t E_t, one step per ``batch_size`` sequences;
+    ``init_std`` the spread of the Gaussian initial weights (§4.3.1)."""
+
+    kind = ""
+    uses_beta_m = False  # β_m is the gain of the Elman memory's sigmoid (Eq. 4.3); others keep it 1
+
+    @checked
+    def __init__(self, n_runs: PositiveInt, n_obs: PositiveInt, n_actions: PositiveInt, n_memory: PositiveInt = 20,
+                 n_reward: PositiveInt = 4, reward_output: Literal[REWARD_OUTPUTS] = "bits", c_y: NonNegative = 1.0,
+                 c_a: NonNegative = 1.0, beta_m: Positive = 1.0, beta_y: Positive = 1.0, beta_r: Positive = 1.0,
+                 rho_y: NonNegative = 1.0, rho_r: NonNegative = 1.0, lr: Positive = 0.05, init_std: NonNegative = 1.0,
+                 predict_obs: bool = True, time_average: bool = False, batch_size: PositiveInt = 1,
+                 seed: NonNegativeInt = 0):
+        super().__init__()
+        self.c_y, self.c_a, self.beta_m = c_y, c_a, beta_m
+        self.lr, self.time_average, self.batch_size = lr, time_average, batch_size
+        self.memory_size = n_memory
+        # Each run is initialised from its own seed, so run r does not depend on n_runs (§4.3.1:
+        # weights and biases from a spherical Gaussian of variance init_std²), memory then heads.
+        gens = [torch.Generator().manual_seed(seed + r) for r in range(n_runs)]
+
+        def gaussian(*shape, std=init_std):
+            return nn.Parameter(torch.stack([torch.randn(*shape, generator=g) for g in gens]) * std)
+
+        self.init_memory(gaussian, gens, n_obs, n_actions, n_memory)
+        self.init_heads(gaussian, n_obs, n_memory, n_reward, reward_output, predict_obs, (beta_y, beta_r), (rho_y, rho_r))
+
+    @classmethod
+    def check_config(cls, args: dict) -> None:
+        if not args["predict_obs"] and args["reward_output"] == "none":
+            raise ArgumentError("reward_output", "bits or linear when predict_obs is false (a predictor needs an output)")
+        if not cls.uses_beta_m and args["beta_m"] != 1:
+            raise ArgumentError("beta_m", f"1 with memory={cls.kind} (β_m is the gain of the Elman memory's sigmoid)")
+
+    def init_memory(self, gaussian, generators: list, n_obs: int, n_actions: int, n_memory: int) -> None:
+        """Draw the memory's parameters: ``gaussian(*shape, std=…)`` (R, *shape) per run."""
+        raise NotImplementedError
+
+    def describe(self) -> dict:
+        return {"kind": self.kind, "memory_size": self.memory_size, **self.describe_heads()}
+
+    def memory_parameters(self) -> list:
+        """The memory's trained parameters, in ``parameters()`` order (heads after them)."""
+        raise NotImplementedError
+
+    @property
+    def gains(self) -> tuple:
+        """The memory's scalars besides its parameters (c_y, c_a, …)."""
+        return self.c_y, self.c_a
+
+    @property
+    def batch_key(self) -> tuple:
+        """Predictors with equal keys train as one ``PredictorBatch``: one kind and form of
+        memory (sizes, gains) and the same α, objective and batch size."""
+        return (self.kind, self.memory_size, tuple(q.shape for q in self.memory_parameters()), self.gains, self.lr, self.time_average,
+                self.batch_size)
+
+    @classmethod
+    def training_batch(cls, members: list, y, a, rs: list, lengths, batch_size: int | None = None,
+                       summed: bool = False) -> PredictorBatch:
+        return PredictorBatch(members, y, a, rs, lengths, batch_size, summed)
+
+    def frozen_step(self, table: torch.Tensor, n_actions: int):
+        return lookup_step(self, table, n_actions)
+
+    def loss(self, y, a, r, lengths) -> torch.Tensor:
+        """Σ_t E_t, or J(T) = Σ_t E_t / (T + 1) with ``time_average``, per (run, sequence), (R, B):
+        what BPTT differentiates (Eqs. 4.6, 5.1, 5.2). Padded steps are masked."""
+        y, a, r = clean(y, a, r, lengths)
+        E = self.step_errors(self.unroll(y, a), y, r, lengths)
+        return E.sum(-1) / (lengths + 1) if self.time_average else E.sum(-1)
+
+    @torch.no_grad()
+    def gradients(self, y, a, r, lengths, weight: torch.Tensor) -> list:
+        """∂/∂θ of Σ_b weight_b · Σ_t E_t(b) for every trained parameter (``parameters()`` order),
+        as training computes them (the class's ``bptt``). Inputs cleaned; weight (R, B)."""
+        steps = valid_steps(lengths, y.shape[2]) * weight.unsqueeze(-1)
+        return type(self).bptt([self], self.memory_parameters(), y, a, [r], steps,
+                               steps * (torch.arange(y.shape[2], device=y.device) > 0))
+
+    def train_epoch(self, y, a, r, lengths, order: torch.Tensor) -> None:
+        """One epoch of pattern-mode SGD (§4.3.1) on this predictor alone (``PredictorBatch``)."""
+        PredictorBatch([self], y, a, [r], lengths).train_epoch([order])
+
+
+def autograd_bptt(members: list, memory: list, y, a, rs: list, steps, reward_steps) -> list:
+    """The gradients ``PredictorBatch`` asks for, through autograd: members stacked along the run
+    axis (P·R, …) share ``memory`` (their memory parameters, concatenated); the loss is
+    Σ steps · E_t of every member's heads (``OutputHeads.weighted_errors``). Memories whose BPTT is
+    not written out (LSTM, GRU) use this; tests check it against finite differences."""
+    lead, R = members[0], y.shape[0] // len(members)
+    with torch.enable_grad():
+        leaves = [q.detach().requires_grad_() for q in memory]
+        heads = [q for member in members for q in member.head_parameters()]
+        m = lead.unroll_with(leaves, y, a)
+        total = sum(member.weighted_errors(m[k * R:(k + 1) * R], y[k * R:(k + 1) * R], rs[k],
+                                           steps[k * R:(k + 1) * R], reward_steps[k * R:(k + 1) * R])
+                    for k, member in enumerate(members))
+        return list(torch.autograd.grad(total, leaves + heads))
+
+
+def memory_class(name: str):
+    """The predictor class of a memory: the ``RecurrentPredictor`` subclass whose ``kind`` is
+    ``name`` (every module of ``ferl.predictors`` is imported to find it), or the class a dotted
+    path names (a user's own memory)."""
+    if "." in name:
+        from ferl.config.params import target
+        return target(name)
+    import ferl.predictors as package
+    for module in pkgutil.iter_modules(package.__path__):
+        importlib.import_module(f"{package.__name__}.{module.name}")
+    kinds = {}
+    stack = list(RecurrentPredictor.__subclasses__())
+    while stack:
+        cls = stack.pop()
+        kinds[cls.kind] = cls
+        stack += cls.__subclasses__()
+    if name not in kinds:
+        raise ArgumentError("memory", f"one of {', '.join(sorted(k for k in kinds if k))} or a class's dotted path")
+    return kinds[name]
+
+
+def predictor(memory: str = "elman", **kwargs) -> RecurrentPredictor:
+    """The predictor whose memory is ``memory`` (CONTRACT §2 ``predictor.<name>.memory``)."""
+    return memory_class(memory)(**kwargs)
+
+
+# ``check_arguments`` checks the other keys against the chosen class's signature
+predictor.resolve = lambda values: (memory_class(values.get("memory", "elman")),
+                                    {k: v for k, v in values.items() if k != "memory"})

@@ -1,0 +1,40 @@
+"""What the agent observes in episodic tasks with finite observation sets (chapters 4–5): the
+preprocessor's fit (Algorithm 2, §5.3.2) and the observations as TensorBoard images."""
+import numpy as np
+import torch
+
+from ferl.images import IMAGE_SIDE, as_images, matrix_image, tile
+from ferl.run.tensorboard import log_weights
+from ferl.trainers.phased import Phase
+
+
+class FitPreprocessor(Phase):
+    """Algorithm 2's first phase (§5.3.2): the preprocessor learns from the training images, then
+    processes the table of every observation, per run: what the predictors and the actor see
+    from now on (``job.shared["observations"]``). Records ``preprocessor.npz``."""
+
+    name = "preprocessor"
+
+    def applies(self, job) -> bool:
+        return job.preprocessor is not None
+
+    def run(self, job, state) -> None:
+        pre = job.preprocessor
+        records = pre.fit(job.data, job.writer)
+        log_weights(job.writer, "preprocessor", pre, records["reconstruction_error"].shape[1])
+        raw = job.env.observation_table
+        with torch.no_grad():
+            job.shared["observations"] = processed = pre.transform(raw)
+        job.run.save_records("preprocessor", **records, raw_observations=raw.cpu().numpy().astype(np.float16),
+                             processed_observations=processed.cpu().numpy().astype(np.float16))
+
+
+def log_observations(job) -> None:
+    """What the agent observes: up to 8 images of every observation's reservoir (one row per
+    observation of the environment's table), or the table of bit codes itself."""
+    table, names = job.env.observation_table.float().cpu(), job.env.observation_names
+    if table.shape[1] == IMAGE_SIDE ** 2:
+        per_name = table.view(len(names), -1, table.shape[1])
+        job.writer.add_image("env/observations", tile(as_images(per_name[:, :8])), 0)
+    else:
+        job.writer.add_image("env/observations", matrix_image(table), 0)

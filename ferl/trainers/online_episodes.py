@@ -1,0 +1,183 @@
+"""Online training (§5.4): predictors and actor learn together from the first episode.
+
+§5.4 proposes to "mix the training phase of a predictor and an actor": instead of Algorithm 1/2's
+random collection → predictor training → actor training, the agent acts on its predictors' current
+memory from its first episode, and after every episode
+
+* the episode goes into a replay of each run's last K episodes (``replay_episodes``), and every
+  predictor takes BPTT steps (its own ``lr`` and objective, §4.3.1) on ``replay_sample`` episodes
+  drawn uniformly from it, one step on the summed loss of every ``replay_batch_size`` of them
+  (the first-order sum of as many pattern-mode steps at its ``lr``; its own ``batch_size`` when
+  null);
+* its prediction error e_k (Eq. 4.8 per step, mean over the episode's steps, summed over the
+  predictors) is measured *before* the predictors train on it — a held-out error — and tracked as
+  ē_k = (1 − λ) ē_{k−1} + λ e_k (``error_ema`` λ; ē_0 = e_0).
+
+The inverse temperature follows the predictor (§5.4: "When the predictor's performance is not
+satisfactory, an actor can explore … with a low inverse temperature β"), per run:
+
+    β_k = β_actor(k / N) · clip((1 − ē_k / e_0) / (1 − τ), 0, 1)
+
+with β_actor the actor's own schedule, e_0 the untrained predictor's error of the first episode and
+τ = ``beta_error_ratio``: β stays 0 (random actions, as Algorithm 1's collection) until the error
+falls, and reaches the actor's schedule once ē_k ≤ τ e_0.
+
+Curiosity (§5.4: "Prediction errors can also be added to the raw reward to boost exploration"):
+the actor learns from r_t + η_k e^y_t, with e^y_t = Σ ρ_y Σ_i |y_{i,t} − ŷ_{i,t}| the observation
+prediction error of the observation-predicting predictors at the step's new observation, and
+η_k = η · max(0, 1 − k / (``curiosity_anneal`` · N)) (η = ``curiosity``; 0 = off). Returns and
+every metric are measured on the raw reward.
+"""
+import time
+
+import numpy as np
+import torch
+
+from ferl.config.params import Momentum, NonNegative, Positive, PositiveInt, UnitInterval, checked
+from ferl.predictors.recurrent import lookup_step
+from ferl.trainers.actor_episodes import ActorEpisodes
+from ferl.trainers.episodes import Episodes, episode_tensors, observation_table
+from ferl.trainers.job import SeedOffsets
+from ferl.trainers.observations import FitPreprocessor, log_observations
+from ferl.trainers.phased import PhasedTrainer
+
+
+class OnlineEpisodes(ActorEpisodes):
+    """``ActorEpisodes`` on live predictors that learn from a replay after every episode, with
+    β following their held-out error and the curiosity bonus (module docstring). Records
+    ``online.npz``: per run and episode the held-out error, β and η, and the phase's time split."""
+
+    name = "online"
+
+    def __init__(self, *args, replay_episodes: int, replay_sample: int, replay_batch_size: int | None,
+                 beta_error_ratio: float, error_ema: float, curiosity: float, curiosity_anneal: float):
+        super().__init__(*args)
+        self.K, self.n_replay, self.replay_batch = replay_episodes, replay_sample, replay_batch_size
+        self.tau, self.ema, self.eta, self.anneal = beta_error_ratio, error_ema, curiosity, curiosity_anneal
+        self.eta_now = 0.0
+
+    def prepare(self, job) -> None:
+        super().prepare(job)
+        groups = {}
+        for p in job.predictors.values():
+            groups.setdefault(p.batch_key, []).append(p)
+        self.groups = list(groups.values())
+        self.observers = [p for p in job.predictors.values() if getattr(p, "predict_obs", False)]
+
+    def fresh_state(self, job) -> dict:
+        R, K, T = job.R, self.K, job.env.max_steps
+        zeros = lambda *shape, **kw: torch.zeros(R, K, *shape, device=job.device, **kw)  # noqa: E731
+        return {**super().fresh_state(job),
+                "replay": {"obs": zeros(T + 1, dtype=torch.long) - 1, "actions": zeros(T, dtype=torch.long),
+                           "rewards": zeros(T), "lengths": zeros(dtype=torch.long)},
+                "error_first": None, "error_ema": None, "predictor_time": 0.0,
+                "online": {k: np.zeros((R, self.N), np.float32) for k in ("prediction_error", "beta", "curiosity")}}
+
+    def freeze(self, job) -> None:
+        """As the frozen phase, but the predictors step with their current weights."""
+        super().freeze(job)
+        table = observation_table(job).table
+        self.steps = [lookup_step(p, table, job.env.n_actions) for p in job.predictors.values()]
+        self.table = observation_table(job)
+
+    def play_episode(self, job, k: int, lr: float, beta) -> dict:
+        """As the frozen phase's, from the memories' current initial state (m_0 learns too)."""
+        self.initial_states = [p.initial_state() for p in job.predictors.values()]
+        return super().play_episode(job, k, lr, beta)
+
+    def begin_episode(self, job, k: int, state: dict):
+        """β_k per run (R, 1, 1) from the error so far, and η_k (module docstring)."""
+        self.eta_now = self.eta * max(0.0, 1.0 - k / (self.anneal * self.N)) if self.anneal > 0 else self.eta
+        base = job.actor.inverse_temperature(k / self.N)
+        if state["error_first"] is None:
+            return torch.zeros(job.R, 1, 1, device=job.device)
+        share = (1 - state["error_ema"] / state["error_first"].clamp(min=1e-12)) / (1 - self.tau)
+        return (base * share.clamp(0, 1)).view(-1, 1, 1)
+
+    @torch.no_grad()
+    def reward_bonus(self, job, states: list, obs_id: torch.Tensor):
+        """η_k e^y_t: the observation prediction error at the new observation (module docstring)."""
+        if self.eta_now == 0 or not self.observers:
+            return 0.0
+        y = self.table.lookup(obs_id)
+        by_name = dict(zip(job.predictors.values(), states))
+        error = sum(p.rho_y * (p.outputs(p.memory(by_name[p]))[0] - y).abs().sum(-1) for p in self.observers)
+        return self.eta_now * error
+
+    def after_episode(self, job, k: int, episode: dict, state: dict) -> None:
+        """Held-out error of episode k, then into the replay, then the predictors' BPTT steps."""
+        started = time.perf_counter()
+        ep = self.as_episodes(job, episode)
+        with torch.no_grad():
+            error = sum(torch.nanmean(p.prediction_errors(*episode_tensors(job, ep, p)).flatten(1), 1)
+                        for p in job.predictors.values())
+        if state["error_first"] is None:
+            state["error_first"] = state["error_ema"] = error
+        else:
+            state["error_ema"] = torch.lerp(state["error_ema"], error, self.ema)
+        online = state["online"]
+        online["prediction_error"][:, k] = error.cpu().numpy()
+        online["beta"][:, k] = self.begin_episode(job, k, state).flatten().cpu().numpy()
+        online["curiosity"][:, k] = self.eta_now
+        replay, slot = state["replay"], k % self.K
+        for key, value in zip(("obs", "actions", "rewards", "lengths"), (ep.obs, ep.actions, ep.rewards, ep.lengths)):
+            replay[key][:, slot] = value[:, 0]
+        filled = min(k + 1, self.K)
+        pick = torch.randint(filled, (job.R, self.n_replay), generator=job.generator, device=job.device)
+        sample = Episodes(replay["obs"], replay["actions"], replay["rewards"], replay["lengths"]).select(pick)
+        order = torch.arange(self.n_replay, device=job.device).expand(job.R, -1)
+        for members in self.groups:
+            y, a, _, lengths = episode_tensors(job, sample, None)
+            rs = [p.reward_targets(job.env.reward_values, sample.rewards) for p in members]
+            batch = type(members[0]).training_batch(members, y, a, rs, lengths, self.replay_batch, summed=True)
+            batch.train_epoch([order] * len(members))
+        state["predictor_time"] += time.perf_counter() - started
+        if (k + 1) % self.log_every == 0:
+            window = slice(max(0, k - 199), k + 1)
+            for key, values in online.items():
+                job.writer.add_scalar(f"online/{key}_ma200", float(values[:, window].mean()), k + 1)
+
+    def as_episodes(self, job, episode: dict) -> Episodes:
+        """The trajectory of ``play_episode`` as one padded episode per run, (R, 1, …)."""
+        obs, actions, rewards = episode["trajectory"]
+        T, lengths = job.env.max_steps, episode["outcome"][1].long()
+        steps = torch.arange(T + 1, device=job.device).unsqueeze(1)
+        pad = lambda x, fill: torch.nn.functional.pad(x, (0, 0, 0, T + 1 - x.shape[0]), value=fill)  # noqa: E731
+        obs = torch.where(steps <= lengths, pad(obs, -1), -1)
+        actions = torch.where(steps[:-1] < lengths, pad(actions, 0)[:-1], 0)
+        rewards = torch.where(steps[:-1] < lengths, pad(rewards, 0.0)[:-1], 0.0)
+        return Episodes(obs.T.unsqueeze(1), actions.T.unsqueeze(1), rewards.T.unsqueeze(1), lengths.unsqueeze(1))
+
+    def finish(self, job, state: dict) -> None:
+        super().finish(job, state)
+        job.run.save_records("online", **state["online"], predictor_time_s=np.float64(state["predictor_time"]),
+                             actor_time_s=np.float64(state["active_time"] - state["predictor_time"]))
+
+
+class OnlineAlgorithm(PhasedTrainer):
+    """``trainer=online`` (CONTRACT §2): [the preprocessor's fit, as Algorithm 2's first phase,
+    when the config has one →] ``OnlineEpisodes``. Arguments as in conf/trainer/online.yaml."""
+
+    seed_offsets = SeedOffsets(actor=100_000)
+    kind = "online"
+
+    @checked
+    def __init__(self, n_episodes: PositiveInt, actor_obs_scale: Positive, replay_episodes: PositiveInt,
+                 replay_sample: PositiveInt, replay_batch_size: PositiveInt | None, beta_error_ratio: Momentum, error_ema: UnitInterval,
+                 curiosity: NonNegative, curiosity_anneal: NonNegative, log_every: PositiveInt,
+                 td_sample_every: PositiveInt, final_window: PositiveInt, checkpoint_every: PositiveInt,
+                 checkpoint_minutes: NonNegative, divergence_limit: Positive):
+        self.params = dict(n_episodes=n_episodes, actor_obs_scale=actor_obs_scale, replay_episodes=replay_episodes,
+                           replay_sample=replay_sample, replay_batch_size=replay_batch_size, beta_error_ratio=beta_error_ratio, error_ema=error_ema,
+                           curiosity=curiosity, curiosity_anneal=curiosity_anneal, final_window=final_window)
+        self.last_step = n_episodes
+        super().__init__([
+            FitPreprocessor(),
+            OnlineEpisodes(n_episodes, actor_obs_scale, log_every, td_sample_every, final_window, checkpoint_every,
+                           checkpoint_minutes, replay_episodes=replay_episodes, replay_sample=replay_sample,
+                           replay_batch_size=replay_batch_size,
+                           beta_error_ratio=beta_error_ratio, error_ema=error_ema, curiosity=curiosity,
+                           curiosity_anneal=curiosity_anneal)], divergence_limit)
+
+    def start(self, job) -> None:
+        log_observations(job)
