@@ -6,7 +6,8 @@ the discounted return, the steps, the terminal reward and each boolean outcome t
 declares (`env.outcomes`, e.g. the T-maze's `correct_goal`), and of the episode-mean |δ|, with
 the per-step δ of the sampled episodes. Continuing runs are read from `steps.npz`: the moving
 average of the reward and of |δ| per step. Every predictor named in run.json gets its error
-heatmaps from `predictor.npz`. The summary table is mean ± s.d. over runs of every
+heatmaps from `predictor.npz`; an online run (`online.npz`) its predictors' held-out error, β and
+curiosity per episode. The summary table is mean ± s.d. over runs of every
 `summary.json` metric (`ferl.stats`). Where a chapter of the dissertation applies, its
 `Numbering` puts the dissertation's figure numbers into the captions.
 """
@@ -186,6 +187,24 @@ def _prediction_figure(run: Run, p: PredictorErrors, num: Numbering) -> tuple:
                             "step, train (top) / test (bottom) by step-length T"))
 
 
+ONLINE_LABELS = {"prediction_error": "held-out prediction error\n(Eq. 4.8, summed over predictors)",
+                 "beta": "inverse temperature β", "curiosity": "curiosity weight η"}
+
+
+def _online_figure(run: Run, online: dict) -> tuple:
+    """The online trainer's course (`online.npz`): the predictors' held-out error and the β and η
+    that follow from it, per episode."""
+    window = min(EPISODE_WINDOW, online["beta"].shape[1])
+    series = {k: _moving(online[k].astype(np.float64), window, None) for k in ONLINE_LABELS if k in online}
+    x = next(iter(series.values()))[0]
+    panels = [(ONLINE_LABELS[k], ma.mean(0), stats.sem(ma), None) for k, (_, ma) in series.items()]
+    error = series["prediction_error"][1]
+    return (figs.learning_curves(x, panels, ("held-out prediction error", error, None), window, error.shape[0],
+                                 "episode", f"online training, {run.experiment}"),
+            "Online trainer: the predictors' held-out error (measured on every episode before they "
+            "train on it), β following it, and the curiosity weight η; moving averages, mean ± s.e.m.")
+
+
 def _facts(what: dict | None, *keys: str) -> str:
     if not what:
         return "none"
@@ -220,6 +239,9 @@ def analyze(run: Run, num: Numbering, out: Path) -> RunAnalysis:
     if c is not None:
         analysis.figures |= _curve_figures(run, c, num)
         analysis.data_files.append(_curves_table(c, out))
+    online = run.records("online")
+    if online is not None:
+        analysis.figures["online_learning"] = _online_figure(run, online)
     for p in run.predictors:
         analysis.figures[f"prediction_errors_{p.name}"] = _prediction_figure(run, p, num)
         analysis.data_files.append(_prediction_table(p, out))

@@ -54,7 +54,7 @@ class OnlineEpisodes(ActorEpisodes):
         super().__init__(*args)
         self.K, self.n_replay, self.replay_batch = replay_episodes, replay_sample, replay_batch_size
         self.tau, self.ema, self.eta, self.anneal = beta_error_ratio, error_ema, curiosity, curiosity_anneal
-        self.eta_now = 0.0
+        self.eta_now, self.beta_now = 0.0, None
 
     def prepare(self, job) -> None:
         super().prepare(job)
@@ -90,9 +90,11 @@ class OnlineEpisodes(ActorEpisodes):
         self.eta_now = self.eta * max(0.0, 1.0 - k / (self.anneal * self.N)) if self.anneal > 0 else self.eta
         base = job.actor.inverse_temperature(k / self.N)
         if state["error_first"] is None:
-            return torch.zeros(job.R, 1, 1, device=job.device)
-        share = (1 - state["error_ema"] / state["error_first"].clamp(min=1e-12)) / (1 - self.tau)
-        return (base * share.clamp(0, 1)).view(-1, 1, 1)
+            self.beta_now = torch.zeros(job.R, 1, 1, device=job.device)
+        else:
+            share = (1 - state["error_ema"] / state["error_first"].clamp(min=1e-12)) / (1 - self.tau)
+            self.beta_now = (base * share.clamp(0, 1)).view(-1, 1, 1)
+        return self.beta_now
 
     @torch.no_grad()
     def reward_bonus(self, job, states: list, obs_id: torch.Tensor):
@@ -117,7 +119,7 @@ class OnlineEpisodes(ActorEpisodes):
             state["error_ema"] = torch.lerp(state["error_ema"], error, self.ema)
         online = state["online"]
         online["prediction_error"][:, k] = error.cpu().numpy()
-        online["beta"][:, k] = self.begin_episode(job, k, state).flatten().cpu().numpy()
+        online["beta"][:, k] = self.beta_now.flatten().cpu().numpy()  # the β episode k acted with
         online["curiosity"][:, k] = self.eta_now
         replay, slot = state["replay"], k % self.K
         for key, value in zip(("obs", "actions", "rewards", "lengths"), (ep.obs, ep.actions, ep.rewards, ep.lengths)):
