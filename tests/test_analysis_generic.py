@@ -112,12 +112,15 @@ def test_a_predictor_role_follows_what_it_predicts(facts, role):
     assert predictor_role({"kind": "anything", **facts}) == role
 
 
-def manifest(kind: str, predictors: dict, **env) -> Manifest:
+PHASED = {"kind": "phased", "phases": ["collect", "predictors", "actor"]}
+
+
+def manifest(kind: str, predictors: dict, trainer: dict = PHASED, memory: str = "elman", **env) -> Manifest:
     facts = {"joint": {"predicts_observation": True, "reward_output": "bits"},
              "obs": {"predicts_observation": True, "reward_output": "none"},
              "rew": {"predicts_observation": False, "reward_output": "linear"}}
-    return Manifest("t", "e", {}, {"kind": kind, **env}, None,
-                    {name: facts[f] for name, f in predictors.items()}, {})
+    return Manifest("t", "e", trainer, {"kind": kind, **env}, None,
+                    {name: {"kind": memory, **facts[f]} for name, f in predictors.items()}, {})
 
 
 def test_chapters_are_chosen_by_recorded_facts_not_names():
@@ -127,6 +130,10 @@ def test_chapters_are_chosen_by_recorded_facts_not_names():
     assert dispatch.chapter_of(manifest("tmaze", {"j1": "joint", "j2": "joint"})) is None
     assert dispatch.chapter_of(manifest("tmaze", {"a": "obs"})) is None
     assert dispatch.chapter_of(manifest("toy", {"joint": "joint"})) is None
+    # the dissertation's claims speak to its procedure and memory only (§5.4's are findings of ours)
+    online = {"kind": "online", "phases": ["online"]}
+    assert dispatch.chapter_of(manifest("tmaze", {"anything": "joint"}, trainer=online)) is None
+    assert dispatch.chapter_of(manifest("tmaze", {"a": "obs", "b": "rew"}, memory="lstm")) is None
     assert ch4.CHAPTER.numbering(manifest("tmaze", {}, matching=True)) is ch4.MATCHING
     assert ch5.CHAPTER.numbering(manifest("tmaze", {}, observation="image")) is ch5.DIGIT
     assert ch5.CHAPTER.numbering(manifest("tmaze", {}, observation="bits")) is ch5.BIT

@@ -54,7 +54,8 @@ def test_trains_end_to_end_and_learns(toy_run):
     assert manifest["predictors"]["trace"]["class"] == "toy_components.TracePredictor"
     assert manifest["trainer"]["phases"] == ["collect", "predictors", "actor"]
     metrics = summary["metrics"]
-    assert set(metrics) == {"final_discounted_return", "final_steps_to_goal", "final_correct_rate", "solved"}
+    assert set(metrics) == {"final_discounted_return", "final_steps_to_goal", "final_correct_rate", "solved",
+                            "env_steps_total", "env_steps_to_solve", "episodes_to_solve"}
     assert summary["optimal"]["discounted_return"] == pytest.approx(0.95 ** 2)
     # the cue is only in the trace at the choice: an actor without memory is right half the time
     assert min(metrics["final_correct_rate"]) > 0.9, metrics

@@ -146,7 +146,7 @@ def analyze_sweep(sweep_dir: Path, readme: Path | None = None) -> list[RunOutcom
     wall = {}
     train_wall = sweep_dir / sw.TRAIN_WALL_TIME
     if train_wall.is_file():
-        wall["training wall time (make reproduce)"] = float(train_wall.read_text())
+        wall["training wall time (make reproduce / make beyond)"] = float(train_wall.read_text())
     wall["sum of the jobs' wall_time_s"] = sum(float(j.summary.get("wall_time_s", 0)) for j in jobs)
     wall["analysis wall time"] = time.perf_counter() - start
     lines = sw.report_lines(sweep, analysis, rows, out, wall) + findings
