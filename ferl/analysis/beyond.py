@@ -91,18 +91,21 @@ def memory_curve(jobs: Sequence) -> list[CurvePoint]:
 
 def curve_figure(points: Sequence[CurvePoint]):
     import matplotlib.pyplot as plt
-    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
+    fig, axes = plt.subplots(1, 4, figsize=(17, 3.8))
     for memory in sorted({c.memory for c in points}):
         mine = [c for c in points if c.memory == memory]
         x = [c.corridor for c in mine]
         axes[0].plot(x, [c.solved / c.n for c in mine], "o-", label=memory)
-        for ax, field in ((axes[1], "correct"), (axes[2], "correct_if_reached")):
+        for ax, field in ((axes[1], "correct"), (axes[2], "reached"), (axes[3], "correct_if_reached")):
             mean, sem = np.array([getattr(c, field) for c in mine]).T
             ax.errorbar(x, mean, yerr=np.nan_to_num(sem), marker="o", capsize=3, label=memory)
     titles = ("solved runs (share)", "correct-goal rate, last 200 episodes",
-              "correct share of the episodes that reached a goal")
+              "share of the last 200 episodes that reached a goal", "correct share of those")
+    corridors = sorted({c.corridor for c in points})
     for ax, title in zip(axes, titles):
         ax.set_xscale("log")
+        ax.set_xticks(corridors, [str(c) for c in corridors])
+        ax.minorticks_off()
         ax.set_xlabel("corridor length T_min")
         ax.set_title(title, fontsize=9)
         ax.set_ylim(-0.05, 1.05)
