@@ -119,18 +119,22 @@ class ActorEpisodes(Phase):
         """What learns from episode k besides the actor: nothing while the predictors are frozen."""
 
     def reward_bonus(self, job, states: list, obs_id: torch.Tensor):
-        """What is added to the raw reward the actor learns from after a step: nothing here."""
-        return 0.0
+        """What is added to the raw reward the actor learns from after a step: nothing (None) here."""
+        return None
+
+    def memory_step(self, predictor, table: torch.Tensor, n_actions: int):
+        """A predictor's step on observation ids: the frozen one (``Predictor.frozen_step``)."""
+        return predictor.frozen_step(table, n_actions)
 
     def freeze(self, job) -> None:
-        """The frozen predictors' steps on observation ids, the actor's observation rows (times
+        """The predictors' steps on observation ids, the actor's observation rows (times
         ``actor_obs_scale``) and the row offsets that address run r's part of them."""
-        table = observation_table(job).table
+        self.observations = observation_table(job)
+        table = self.observations.table
         ids = job.env.observation_table.shape[0]
-        self.steps = [p.frozen_step(table, job.env.n_actions) for p in job.predictors.values()]
+        self.steps = [self.memory_step(p, table, job.env.n_actions) for p in job.predictors.values()]
         self.obs_rows = scaled(table.reshape(-1, table.shape[-1]), self.obs_scale)
         self.obs_offsets = torch.arange(job.R, device=job.device) * ids if table.dim() == 3 else None
-        self.initial_states = [p.initial_state() for p in job.predictors.values()]
         self.discounts = job.actor.gamma ** torch.arange(job.env.max_steps, device=job.device, dtype=torch.float32)
 
     def state(self, job, obs_id: torch.Tensor, memories: list) -> torch.Tensor:
@@ -143,11 +147,11 @@ class ActorEpisodes(Phase):
         memories m_t (Eq. 4.3) → a' by Eq. (3.11) → δ → θ update (Eq. 3.10). Runs whose episode
         has ended wait with δ = 0. Returns the outcome (len(outcome_names), R), the TD errors
         (steps, R), NaN where a run had ended, the probe visits (or None) and the trajectory:
-        observation ids (steps + 1, R), actions and raw rewards (steps, R)."""
+        observation ids (steps + 1 tensors (R,)), actions (steps tensors (R,)) and raw rewards (steps, R)."""
         env, actor, predictors = job.env, job.actor, list(job.predictors.values())
         env.reset()
         (uniform,) = self.uniforms.next()  # (T_max + 1, R, 1, 1)
-        m = self.initial_states
+        m = [p.initial_state() for p in predictors]  # m_0 (Eq. 4.1): it learns too when the predictors do
         memories = [p.memory(x) for p, x in zip(predictors, m)]
         s = self.state(job, env.obs_id, memories)
         a, F_sa, x_sa = first_action(actor, s, beta, job.generator, uniform[0])
@@ -162,7 +166,8 @@ class ActorEpisodes(Phase):
             m = [step(x, obs_prev, a.squeeze(1)) for step, x in zip(self.steps, m)]
             memories = [p.memory(x) for p, x in zip(predictors, m)]
             s_next = self.state(job, env.obs_id, memories)
-            a, F_sa, x_sa, delta = td_step(actor, s, a, F_sa, x_sa, r + self.reward_bonus(job, m, env.obs_id), s_next,
+            bonus = self.reward_bonus(job, m, env.obs_id)
+            a, F_sa, x_sa, delta = td_step(actor, s, a, F_sa, x_sa, r if bonus is None else r + bonus, s_next,
                                            lr, beta, job.generator, uniform[t + 1],
                                            job.guard.alive, (terminated | ~active).unsqueeze(1), active.unsqueeze(1))
             rewards.append(r)
@@ -179,7 +184,7 @@ class ActorEpisodes(Phase):
             deltas.abs().sum(0) / steps.clamp(min=1), *(v.float() for v in env.outcomes().values())])
         return {"outcome": outcome, "td": torch.where(actives, deltas, torch.nan),
                 "probes": self.probe_visits(job, k, visits),
-                "trajectory": (torch.stack(obs), torch.stack(actions), rewards)}
+                "trajectory": (obs, actions, rewards)}
 
     def probe_visits(self, job, k: int, visits: list) -> dict | None:
         """Activations at every probe visit of episode k after the action there was selected

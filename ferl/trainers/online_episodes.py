@@ -36,7 +36,7 @@ import torch
 from ferl.config.params import Momentum, NonNegative, Positive, PositiveInt, UnitInterval, checked
 from ferl.predictors.recurrent import lookup_step
 from ferl.trainers.actor_episodes import ActorEpisodes
-from ferl.trainers.episodes import Episodes, episode_tensors, observation_table
+from ferl.trainers.episodes import Episodes, episode_tensors
 from ferl.trainers.job import SeedOffsets
 from ferl.trainers.observations import FitPreprocessor, log_observations
 from ferl.trainers.phased import PhasedTrainer
@@ -62,7 +62,8 @@ class OnlineEpisodes(ActorEpisodes):
         for p in job.predictors.values():
             groups.setdefault(p.batch_key, []).append(p)
         self.groups = list(groups.values())
-        self.observers = [p for p in job.predictors.values() if getattr(p, "predict_obs", False)]
+        # (position among the predictors' states, predictor) of those that predict observations
+        self.observers = [(i, p) for i, p in enumerate(job.predictors.values()) if getattr(p, "predict_obs", False)]
 
     def fresh_state(self, job) -> dict:
         R, K, T = job.R, self.K, job.env.max_steps
@@ -73,17 +74,9 @@ class OnlineEpisodes(ActorEpisodes):
                 "error_first": None, "error_ema": None, "predictor_time": 0.0,
                 "online": {k: np.zeros((R, self.N), np.float32) for k in ("prediction_error", "beta", "curiosity")}}
 
-    def freeze(self, job) -> None:
-        """As the frozen phase, but the predictors step with their current weights."""
-        super().freeze(job)
-        table = observation_table(job).table
-        self.steps = [lookup_step(p, table, job.env.n_actions) for p in job.predictors.values()]
-        self.table = observation_table(job)
-
-    def play_episode(self, job, k: int, lr: float, beta) -> dict:
-        """As the frozen phase's, from the memories' current initial state (m_0 learns too)."""
-        self.initial_states = [p.initial_state() for p in job.predictors.values()]
-        return super().play_episode(job, k, lr, beta)
+    def memory_step(self, predictor, table: torch.Tensor, n_actions: int):
+        """The predictor's step with its current weights (they learn between episodes)."""
+        return lookup_step(predictor, table, n_actions)
 
     def begin_episode(self, job, k: int, state: dict):
         """β_k per run (R, 1, 1) from the error so far, and η_k (module docstring)."""
@@ -100,10 +93,9 @@ class OnlineEpisodes(ActorEpisodes):
     def reward_bonus(self, job, states: list, obs_id: torch.Tensor):
         """η_k e^y_t: the observation prediction error at the new observation (module docstring)."""
         if self.eta_now == 0 or not self.observers:
-            return 0.0
-        y = self.table.lookup(obs_id)
-        by_name = dict(zip(job.predictors.values(), states))
-        error = sum(p.rho_y * (p.outputs(p.memory(by_name[p]))[0] - y).abs().sum(-1) for p in self.observers)
+            return None
+        y = self.observations.lookup(obs_id)
+        error = sum(p.rho_y * (p.outputs(p.memory(states[i]))[0] - y).abs().sum(-1) for i, p in self.observers)
         return self.eta_now * error
 
     def after_episode(self, job, k: int, episode: dict, state: dict) -> None:
@@ -128,8 +120,8 @@ class OnlineEpisodes(ActorEpisodes):
         pick = torch.randint(filled, (job.R, self.n_replay), generator=job.generator, device=job.device)
         sample = Episodes(replay["obs"], replay["actions"], replay["rewards"], replay["lengths"]).select(pick)
         order = torch.arange(self.n_replay, device=job.device).expand(job.R, -1)
+        y, a, _, lengths = episode_tensors(job, sample, None)
         for members in self.groups:
-            y, a, _, lengths = episode_tensors(job, sample, None)
             rs = [p.reward_targets(job.env.reward_values, sample.rewards) for p in members]
             batch = type(members[0]).training_batch(members, y, a, rs, lengths, self.replay_batch, summed=True)
             batch.train_epoch([order] * len(members))
@@ -142,6 +134,7 @@ class OnlineEpisodes(ActorEpisodes):
     def as_episodes(self, job, episode: dict) -> Episodes:
         """The trajectory of ``play_episode`` as one padded episode per run, (R, 1, …)."""
         obs, actions, rewards = episode["trajectory"]
+        obs, actions = torch.stack(obs), torch.stack(actions)
         T, lengths = job.env.max_steps, episode["outcome"][1].long()
         steps = torch.arange(T + 1, device=job.device).unsqueeze(1)
         pad = lambda x, fill: torch.nn.functional.pad(x, (0, 0, 0, T + 1 - x.shape[0]), value=fill)  # noqa: E731
