@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup run test bench reproduce beyond clean
+.PHONY: setup run test bench reproduce beyond variants clean
 
 setup: $(STAMP)
 
@@ -70,6 +70,26 @@ beyond: $(STAMP)
 	echo $$(( $$(date +%s) - start )) > $$dir/train_wall_time_s && \
 	$(PY) analyze.py $$dir && \
 	echo "  beyond in $$(( $$(date +%s) - start )) s; report: $$dir/analysis/report.md"
+
+# Beyond the dissertation (§5.4, II): the dissertation's agent beside its variants, each task run
+# by every agent with 10 runs: the actor's value forms (actor.q) on the floor, the matching maze
+# and the pixel maze; the DBN preprocessor on the pixel maze; the Gaussian-visible RBM and the
+# binary RBM on the continuous (grey-level + Gaussian noise) pixel maze; Sallans & Hinton's
+# large-action task. Then the report, whose "Agents side by side" section has a table and a
+# learning-curve figure per task.
+VALUE_FORMS := free_energy,scaled_free_energy,expected_energy
+
+variants: $(STAMP)
+	@dir=outputs/variants/$$(date +%Y-%m-%d_%H-%M-%S); start=$$(date +%s); \
+	jobs="hydra/launcher=joblib hydra.launcher.n_jobs=$(REPRO_JOBS)"; \
+	$(PY) train.py -m experiment=table5_1_pixel,table4_1_matching,ch3_floor actor.q=$(VALUE_FORMS) $$jobs \
+	  hydra.sweep.dir=$$dir/value_forms && \
+	$(PY) train.py -m experiment=table5_1_pixel_dbn,table5_1_pixel_gaussian,large_action $$jobs \
+	  hydra.sweep.dir=$$dir/preprocessors_actions && \
+	$(PY) train.py experiment=table5_1_pixel_gaussian preprocessor=rbm hydra.run.dir=$$dir/binary_rbm_on_grey && \
+	echo $$(( $$(date +%s) - start )) > $$dir/train_wall_time_s && \
+	$(PY) analyze.py $$dir && \
+	echo "  variants in $$(( $$(date +%s) - start )) s; report: $$dir/analysis/report.md"
 
 bench: $(STAMP)
 	$(PY) benchmarks/bench_floor.py

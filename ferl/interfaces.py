@@ -192,14 +192,12 @@ class Actor(Protocol):
     def inverse_temperature(self, progress: float) -> float: ...
 
     def evaluate(self, s: Tensor) -> tuple[Tensor, Tensor]:
-        """F (R, B, nA) of every action and the per-action cache (R, B, nA, ·)."""
+        """F (R, B, nA) of every action and the per-action cache (R, B, nA, ·) (greedy tests)."""
 
-    def select(self, s: Tensor, F: Tensor, beta: float, generator: torch.Generator,
-               uniform: Tensor | None = None) -> Tensor:
-        """An action (R, B) per state; ``uniform`` (R, B, 1) pre-drawn U(0, 1) numbers."""
-
-    def td_error(self, reward: Tensor, F_sa: Tensor, F_next: Tensor, a_next: Tensor, beta: float,
-                 terminal: Tensor | None = None) -> Tensor: ...
+    def act(self, s: Tensor, beta: float, generator: torch.Generator,
+            uniform: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """At states s (R, 1, S): an action (R, 1), its F (R, 1) and cache (R, 1, ·), and the F a TD
+        error bootstraps from at s (by the actor's TD rule); ``uniform`` (R, 1, 1) pre-drawn U(0, 1)."""
 
     def learn(self, s, a, cache_sa, delta, lr, s_next, a_next, F_next, cache_next) -> tuple[Tensor, Tensor]:
         """Update on (s, a) with TD errors delta (R, B); returns F and the cache of (s', a') for

@@ -41,6 +41,21 @@ def train_job(cfg, run_dir, resume: bool = False) -> dict:
     return trainer.fit(RunDir(run_dir), resume)
 
 
+def train_sweep(root: Path, jobs: dict) -> dict:
+    """A sweep directory as train.py -m leaves it: job name → overrides, each trained in process
+    into ``root/name`` with its summary.json written, then the sweep analysed; returns the summaries."""
+    from ferl.analysis import runner
+    from ferl.run.directory import RunDir
+
+    summaries = {}
+    for name, overrides in jobs.items():
+        run = RunDir(root / name)
+        summaries[name] = train_job(compose_config(overrides), run.path)
+        run.write_summary(summaries[name])
+    runner.analyze_sweep(root)
+    return summaries
+
+
 def run_train(*overrides, cwd=ROOT, timeout=600, env=None, **popen):
     """Run train.py in a subprocess (in ``env``, by default this one's); returns the CompletedProcess."""
     env = {**(env or os.environ), "PYTHONUNBUFFERED": "1"}

@@ -1,5 +1,6 @@
 """FERL actor: Eq. (3.1) free energies, Eq. (3.5–3.10) updates vs autograd, Eq. (3.11) policy,
 TD rules of §3.2 and alternating-Gibbs action sampling."""
+import copy
 import itertools
 
 import pytest
@@ -7,6 +8,7 @@ import torch
 
 from ferl import rbm
 from ferl.actors.free_energy import FERLActor, action_code_table, sample_categorical
+from ferl.actors.td import td_step
 from ferl.schedules import Constant
 
 
@@ -100,24 +102,37 @@ def test_sample_categorical_frequencies():
 
 @pytest.mark.parametrize("rule", ["sarsa", "q", "expected_sarsa"])
 def test_td_errors(rule):
+    """δ = r − γ F_boot + F(s, a) of td_step, F_boot by the TD rule (§3.2) from F of every action
+    at s' (enumerated here); no bootstrap at terminals."""
     actor = make_actor(td_rule=rule)
-    r = torch.tensor([[1.0], [-2.0], [0.0]], dtype=torch.float64)
+    g = torch.Generator().manual_seed(4)
+    s, s_next = torch.rand(3, 1, 6, dtype=torch.float64), torch.rand(3, 1, 6, dtype=torch.float64)
+    r = torch.tensor([1.0, -2.0, 0.0], dtype=torch.float64)
     F_sa = torch.tensor([[-3.0], [0.5], [2.0]], dtype=torch.float64)
-    F_next = torch.tensor([[[-1.0, -4.0, 0.0, 2.0]], [[0.3, 0.1, 0.2, 0.0]], [[5.0, 1.0, 1.0, 1.0]]], dtype=torch.float64)
-    a_next = torch.tensor([[0], [1], [3]])
+    uniform = torch.rand(3, 1, 1, generator=g, dtype=torch.float64)
     beta = 0.8
+    F_next = torch.stack([torch.stack([rbm.free_energy(torch.cat([s_next, actor.codes[b].expand(3, 1, -1)], -1),
+                                                       torch.cat([actor.W_sh, actor.W_ah], 1),
+                                                       torch.cat([actor.b_s, actor.b_a], 1), actor.b_h)
+                                       for b in range(4)], -1)]).squeeze(0)  # (R, 1, nA)
+    a_next, F_a, _, F_boot = actor.act(s_next, beta, g, uniform)
+    assert torch.equal(a_next, sample_categorical(torch.softmax(-beta * F_next, -1), uniform))
+    torch.testing.assert_close(F_a, F_next.gather(-1, a_next.unsqueeze(-1)).squeeze(-1))
     if rule == "sarsa":
-        boot = torch.tensor([[-1.0], [0.1], [1.0]], dtype=torch.float64)
+        boot = F_a
     elif rule == "q":  # max_a Q = −min_a F
-        boot = torch.tensor([[-4.0], [0.0], [1.0]], dtype=torch.float64)
+        boot = F_next.min(-1).values
     else:
         w = torch.exp(-beta * F_next)
         boot = ((w / w.sum(-1, keepdim=True)) * F_next).sum(-1)
-    expected = r - 0.9 * boot + F_sa
-    torch.testing.assert_close(actor.td_error(r, F_sa, F_next, a_next, beta), expected)
-    terminal = torch.tensor([[True], [False], [True]])
-    expected_t = r - 0.9 * boot * (~terminal) + F_sa
-    torch.testing.assert_close(actor.td_error(r, F_sa, F_next, a_next, beta, terminal), expected_t)
+    torch.testing.assert_close(F_boot, boot)
+    for terminal in (None, torch.tensor([[True], [False], [True]])):
+        alive = torch.ones(3, 1, dtype=torch.bool)
+        frozen = copy.deepcopy(actor)
+        *_, delta = td_step(frozen, s, torch.zeros(3, 1, dtype=torch.long), F_sa, torch.zeros(3, 1, 5, dtype=torch.float64),
+                            r, s_next, 0.0, beta, g, uniform, alive, terminal)
+        kept = boot if terminal is None else boot * (~terminal)
+        torch.testing.assert_close(delta, r.unsqueeze(1) - 0.9 * kept + F_sa)
 
 
 @pytest.mark.parametrize("code", ["onehot", "binary"])
@@ -134,7 +149,7 @@ def test_gibbs_sampling_reaches_free_energy_softmax(code):
     for n, p in shared.items():
         getattr(actor, n).copy_(p.expand_as(getattr(actor, n)))
     s = torch.tensor([1.0, 0.0, 1.0], dtype=torch.float64).expand(R, 1, 3).contiguous()
-    a = actor.select(s, None, beta, g)
+    a, *_ = actor.act(s, beta, g)
     freq = torch.bincount(a.flatten(), minlength=4).double() / R
     scaled = make_actor(R=1, S=3, A=4, H=3, code=code)
     for n, p in shared.items():

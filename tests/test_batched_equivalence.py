@@ -17,7 +17,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from ferl.actors.free_energy import FERLActor, action_code_table
+from ferl.actors.free_energy import FERLActor
+from ferl.actors.td import td_step
 from ferl.envs.tmaze import TMaze, maze_tables
 from ferl.predictors.elman import ElmanPredictor
 from ferl.preprocessors.rbm import RBMPreprocessor, statistics
@@ -130,8 +131,8 @@ def test_actor_update_equals_single_run_updates(code, n_actions, B, dtype):
 @pytest.mark.parametrize("dtype", DTYPES)
 @pytest.mark.parametrize("rule", ["sarsa", "q", "expected_sarsa"])
 def test_actor_sarsa_step_equals_single_run_steps(rule, dtype):
-    """A whole online step as the trainers take it — evaluate, select (pre-drawn uniforms), TD
-    error with terminal masks, update — over R runs = the same step of R 1-run actors."""
+    """A whole online step as the trainers take it (``td_step``: act with pre-drawn uniforms, TD
+    error with terminal masks, update) over R runs = the same step of R 1-run actors."""
     batched, make_single = actors("onehot", dtype, 4, td_rule=rule)
     singles = [single_copy(make_single, batched, r, ACTOR_KEYS) for r in range(R)]
     g = torch.Generator().manual_seed(8)
@@ -142,14 +143,10 @@ def test_actor_sarsa_step_equals_single_run_steps(rule, dtype):
     beta, lr = 1.3, 0.05
 
     def step(actor, sl):
-        F_all, x = actor.evaluate(s[sl])
-        a = actor.select(s[sl], F_all, beta, None, uniform=u[sl])
-        F_sa = F_all.gather(-1, a.unsqueeze(-1)).squeeze(-1)
-        x_sa = x.gather(2, a[..., None, None].expand(-1, -1, 1, HID)).squeeze(2)
-        F_next, _ = actor.evaluate(s_next[sl])
-        a_next = actor.select(s_next[sl], F_next, beta, None, uniform=u_next[sl])
-        delta = actor.td_error(reward[sl], F_sa, F_next, a_next, beta, terminal[sl])
-        actor.update(s[sl], a, x_sa, delta, lr)
+        a, F_sa, x_sa, _ = actor.act(s[sl], beta, None, u[sl])
+        alive = torch.ones(len(a), 1, dtype=torch.bool)
+        a_next, _, _, delta = td_step(actor, s[sl], a, F_sa, x_sa, reward[sl].squeeze(1), s_next[sl], lr, beta, None,
+                                      u_next[sl], alive, terminal[sl])
         return {"a": a, "a_next": a_next, "delta": delta}
 
     out = step(batched, slice(None))
@@ -409,7 +406,7 @@ def test_numpy_bptt_matches_torch_autograd_and_train_epoch(hp):
 
 def test_numpy_sarsa_step_matches_ferl_actor():
     """One SARSA(0) step of the NumPy reference (free energies, TD error with and without a
-    terminal, Eq. 3.10 update) = FERLActor.evaluate / td_error / update on one run."""
+    terminal, Eq. 3.10 update) = FERLActor.evaluate and ``td_step`` on one run."""
     rng = np.random.default_rng(1)
     n_state = ref.N_OBS + 20
     params = ref.init_actor(rng, n_state, 20)
@@ -422,21 +419,21 @@ def test_numpy_sarsa_step_matches_ferl_actor():
     a, a_next, reward = 2, 1, -0.1
     alpha = actor.learning_rate(0.0)
     assert alpha == pytest.approx(0.05 / np.sqrt(n_state + ref.N_ACTIONS))
-    for terminal in (False, True):
+    for terminal, u in ((False, 0.1), (True, 0.9)):
         F_np, x_np = ref.free_energy_all_actions(s, *params)
         F_next_np, _ = ref.free_energy_all_actions(s_next, *params)
-        delta_np = ref.td_error(reward, F_np[a], F_next_np[a_next], 0.95, terminal)
-        ref.sarsa_update(params, s, a, ref.sigmoid(x_np[a]), delta_np, alpha)
-
         st, st_next = torch.from_numpy(s)[None, None], torch.from_numpy(s_next)[None, None]
         F_all, x = actor.evaluate(st)
         F_next, _ = actor.evaluate(st_next)
         np.testing.assert_allclose(F_all[0, 0].numpy(), F_np, rtol=1e-12)
         np.testing.assert_allclose(F_next[0, 0].numpy(), F_next_np, rtol=1e-12)
-        delta = actor.td_error(torch.tensor([[reward]], dtype=torch.float64), F_all[:, :, a], F_next,
-                               torch.tensor([[a_next]]), 1.0, torch.tensor([[terminal]]))
+        a_next, _, _, delta = td_step(actor, st, torch.tensor([[a]]), F_all[:, :, a], x[:, :, a],
+                                      torch.tensor([reward], dtype=torch.float64), st_next, alpha, 1.0, None,
+                                      torch.full((1, 1, 1), u, dtype=torch.float64),
+                                      torch.ones(1, 1, dtype=torch.bool), torch.tensor([[terminal]]))
+        delta_np = ref.td_error(reward, F_np[a], F_next_np[int(a_next)], 0.95, terminal)
         assert float(delta) == pytest.approx(delta_np, rel=1e-12)
-        actor.update(st, torch.tensor([[a]]), x[:, :, a], delta, alpha)
+        ref.sarsa_update(params, s, a, ref.sigmoid(x_np[a]), delta_np, alpha)
         for name, value in zip(ACTOR_KEYS, params):
             np.testing.assert_allclose(getattr(actor, name)[0].numpy(), value, rtol=1e-12, atol=1e-15, err_msg=name)
 

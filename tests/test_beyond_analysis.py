@@ -8,9 +8,7 @@ import csv
 import numpy as np
 import pytest
 
-from conftest import compose_config, train_job
-from ferl.analysis import runner
-from ferl.run.directory import RunDir
+from conftest import train_sweep
 
 TINY_ONLINE = ["trainer=online", "n_runs=2", "trainer.n_episodes=60", "trainer.final_window=20",
                "trainer.log_every=20", "trainer.replay_sample=4"]
@@ -25,13 +23,7 @@ def sweep(tmp_path_factory):
     jobs["phased"] = ["experiment=table4_1_matching", "n_runs=2", "trainer.n_sample=300", "trainer.n_epoch=2",
                       "trainer.n_episodes=60", "trainer.final_window=20", "trainer.log_every=20"]
     jobs["online_curious"] = ["experiment=table4_1_matching", *TINY_ONLINE, "trainer.curiosity=0.2"]
-    summaries = {}
-    for name, overrides in jobs.items():
-        run = RunDir(root / name)
-        summaries[name] = train_job(compose_config(overrides), run.path)
-        run.write_summary(summaries[name])
-    runner.analyze_sweep(root)
-    return root, summaries
+    return root, train_sweep(root, jobs)
 
 
 def table(path):

@@ -5,6 +5,7 @@ import threading
 
 import numpy as np
 import pytest
+import torch
 
 from conftest import train_job
 from ferl.trainers import chunks, online
@@ -12,6 +13,15 @@ from ferl.trainers.chunks import chunk_length
 
 TINY = ["n_runs=3", "trainer.steps=480", "trainer.log_every=160", "trainer.checkpoint_every=160",
         "trainer.test_per_class=5", "trainer.test_noise_levels=[0.125]"]
+
+
+@pytest.fixture(autouse=True)
+def fresh_compiler():
+    """Every test compiles afresh: one process compiles td_steps for a few actors (value forms,
+    group sizes), more versions of one function than dynamo keeps (its recompile limit); a run
+    of train.py compiles for one actor only."""
+    torch._dynamo.reset()
+    yield
 
 
 def run(compose_cfg, tmp_path, name, *overrides):
@@ -56,13 +66,13 @@ def test_prefetched_random_numbers_change_no_run(compose_cfg, tmp_path, monkeypa
         np.testing.assert_array_equal(got, want)
 
 
-@pytest.mark.parametrize("td_fresh", [False, True])
-def test_compiled_chunks_equal_eager_ones(compose_cfg, tmp_path, monkeypatch, td_fresh):
+@pytest.mark.parametrize("td_fresh, q", [(False, "free_energy"), (True, "free_energy"), (True, "expected_energy")])
+def test_compiled_chunks_equal_eager_ones(compose_cfg, tmp_path, monkeypatch, td_fresh, q):
     monkeypatch.setattr(chunks, "MAX_CHUNK", 4)  # a short unrolled graph compiles faster
-    fresh = f"actor.td_fresh={str(td_fresh).lower()}"
-    eager = run(compose_cfg, tmp_path, "eager", fresh)
+    actor = (f"actor.td_fresh={str(td_fresh).lower()}", f"actor.q={q}")
+    eager = run(compose_cfg, tmp_path, "eager", *actor)
     # 3 runs in groups of 2: a full group and a remainder group of 1, each its own graph
-    compiled = run(compose_cfg, tmp_path, "compiled", fresh, "compile=true", "trainer.compile_group_runs=2")
+    compiled = run(compose_cfg, tmp_path, "compiled", *actor, "compile=true", "trainer.compile_group_runs=2")
     np.testing.assert_array_equal(compiled[1], eager[1])  # the same actions, so the same rewards
     np.testing.assert_allclose(compiled[2], eager[2], rtol=1e-4, atol=1e-4)  # TD errors
     np.testing.assert_allclose(compiled[3], eager[3], rtol=1e-4, atol=1e-5)  # weights after training

@@ -29,8 +29,8 @@ def test_experiment_composes_validates_and_builds(compose_cfg, name):
     assert cfg.name == name
     validate(cfg)
     job = Job(cfg, torch.device("cpu"), SeedOffsets(), cfg.trainer.divergence_limit)
-    # the actor's state: the (processed) observation and every predictor's memory, as the YAML sizes it
-    n_obs = cfg.preprocessor.n_hidden if cfg.get("preprocessor") else job.env.observation_size
+    # the actor's state: the (processed) observation, as the preprocessor reports it, and every predictor's memory
+    n_obs = job.preprocessor.output_size if cfg.get("preprocessor") else job.env.observation_size
     n_state = n_obs + sum(p.n_memory for p in (cfg.get("predictor") or {}).values())
     assert job.actor.state_weights().shape == (2, n_state, cfg.actor.n_hidden)
     for p_cfg, predictor in zip((cfg.get("predictor") or {}).values(), job.predictors.values()):
@@ -38,8 +38,10 @@ def test_experiment_composes_validates_and_builds(compose_cfg, name):
     optimal = job.env.optimal(cfg.actor.gamma)
     if job.env.task == "tmaze":
         assert optimal["discounted_return"] == pytest.approx(4.3175)
-    else:
+    elif job.env.task == "digit_floor":
         assert optimal["reward_per_step"] == pytest.approx({"none": 0.0}.get(cfg.env.reward_condition, 8.0))
+    else:  # the large-action task: every action bit right
+        assert optimal["reward_per_step"] == cfg.env.action_bits
     trainer = instantiate(cfg.trainer)
     assert hasattr(trainer, "setup") and hasattr(trainer, "fit")
 

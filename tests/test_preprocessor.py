@@ -30,14 +30,18 @@ def all_states(n: int) -> torch.Tensor:
     return torch.tensor(list(itertools.product([0.0, 1.0], repeat=n)), dtype=torch.float64)
 
 
+def random_biases(model):
+    """The model with biases N(0, 0.5²) drawn from seed 7, in place."""
+    g = torch.Generator().manual_seed(7)
+    model.b_v.copy_(0.5 * torch.randn(model.b_v.shape, generator=g))
+    model.b_h.copy_(0.5 * torch.randn(model.b_h.shape, generator=g))
+    return model
+
+
 def tiny_rbm(**kw) -> RBMPreprocessor:
     """Two runs of a 4×3 binary RBM with large weights and random biases: slow mixing, so the
     bias of CD-1 stands well above the sampling noise."""
-    model = RBMPreprocessor(2, n_visible=V, n_hidden=H, visible="binary", init_std=2.0, seed=1, **kw)
-    g = torch.Generator().manual_seed(7)
-    model.b_v.copy_(0.5 * torch.randn(2, V, generator=g))
-    model.b_h.copy_(0.5 * torch.randn(2, H, generator=g))
-    return model
+    return random_biases(RBMPreprocessor(2, n_visible=V, n_hidden=H, visible="binary", init_std=2.0, seed=1, **kw))
 
 
 def params64(model):

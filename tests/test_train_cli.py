@@ -67,7 +67,16 @@ def test_same_seed_same_numbers(tmp_path, tiny_run):
                                       "experiment=table4_1_regular predictor.joint.memory=tcn",
                                       "experiment=table4_1_matching trainer=online trainer.curiosity=-0.5",
                                       "experiment=table4_1_regular env.max_steps=10 env.corridor_length"
-                                      "=20"])
+                                      "=20",
+                                      # issue 3/8: a DBN whose sizes do not chain, noise on binarized pixels
+                                      "experiment=table5_1_pixel_dbn preprocessor.layers=[784]",
+                                      "experiment=table5_1_pixel_gaussian env.binarize_threshold=0.5",
+                                      # issue 3/8: an unknown value form; 2^40 factored actions by softmax
+                                      # selection or one node each; a Gibbs chain for the expected energy
+                                      "experiment=large_action actor.q=advantage",
+                                      "experiment=large_action actor.action_selection=clamp",
+                                      "experiment=large_action actor.action_code=onehot",
+                                      "experiment=table4_1_matching actor.action_selection=gibbs actor.q=expected_energy"])
 def test_bad_input_one_line_nothing_written(tmp_path, override):
     run_dir = tmp_path / "out" / "run"
     result = run_train(*override.split(), f"hydra.run.dir={run_dir}")

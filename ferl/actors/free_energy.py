@@ -6,7 +6,12 @@ Visible layer = state nodes s and action nodes a, hidden layer h (Fig. 4.1a).
 * clamped action selection: softmax π(a|s) ∝ exp(−β F(s, a)) over all action codes (Eq. 3.11)
 * alternating-Gibbs action sampling (end of §3.2) as an option
 * TD errors SARSA(0), Q(0), expected SARSA (§3.2, with Q = −F):
-      δ = r − γ F(s', a') + F(s, a)
+      δ = r − γ F(s', a') + F(s, a)   (``act`` gives F(s', a') and the bootstrap term, ``ferl.actors.td``)
+* ``q``: Q as the free energy (default), the scaled free energy or the expected energy
+  (``ferl.actors.values``); F stands for −Q throughout
+* factored actions (Sallans & Hinton 2004): with ``action_code=binary`` and more than
+  ``MAX_ENUMERATED_ACTIONS`` actions, action i is the K = log2 n bits of i, never enumerated; it is
+  drawn by alternating Gibbs sampling and only its own F is evaluated (SARSA only)
 * online update θ ← θ + α δ (−∂F/∂θ), Eqs. (3.5–3.10)
 * ``td_fresh``: F(s_t, a_t) of δ_t at the θ of F(s_{t+1}, a_{t+1}), as Eq. (3.2) writes δ_t(θ),
   obtained from the value before the previous update by that update's rank-one effect (``learn``)
@@ -24,12 +29,20 @@ from hydra.utils import instantiate
 from torch import nn
 
 from ferl import rbm
-from ferl.config.params import ArgumentError, Discount, NonNegative, NonNegativeInt, PositiveInt, checked
+from ferl.actors.values import FORMS, value_form
+from ferl.bits import from_bits, to_bits
+from ferl.config.params import ArgumentError, Discount, NonNegative, NonNegativeInt, Positive, PositiveInt, checked
 
 TD_RULES = ("sarsa", "q", "expected_sarsa")
-LR_NORMS = ("edges", "fan_in", "none")  # what α is divided by the square root of
+# what α is divided by: the square root of the edges or of a hidden node's fan-in, nothing, or
+# ‖∂Q(s, a)/∂θ‖² (normalised LMS: α is then the share of δ that one update corrects)
+LR_NORMS = ("edges", "fan_in", "none", "gradient")
 ACTION_CODES = ("onehot", "binary")
 ACTION_SELECTIONS = ("clamp", "gibbs")
+VALUE_FORMS = tuple(FORMS)
+# Up to this many actions every action's F is computed at every step (clamped softmax, Q(0),
+# expected SARSA); beyond it actions are factored bit codes drawn by Gibbs sampling.
+MAX_ENUMERATED_ACTIONS = 4096
 
 
 def action_code_table(n_actions: int, code: str) -> torch.Tensor:
@@ -40,9 +53,14 @@ def action_code_table(n_actions: int, code: str) -> torch.Tensor:
     """
     if code == "onehot":
         return torch.eye(n_actions)
-    n_bits = max(1, math.ceil(math.log2(n_actions)))
-    bits = (torch.arange(n_actions).unsqueeze(1) >> torch.arange(n_bits - 1, -1, -1)) & 1
-    return bits.float()
+    return to_bits(torch.arange(n_actions), max(1, math.ceil(math.log2(n_actions))))
+
+
+def pick(x: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+    """Entries of the chosen actions on the online path: x (R, 1, nA, ...) at a (R, 1) → (R, 1, ...)."""
+    flat = x.reshape(-1, *x.shape[3:]) if x.dim() > 3 else x.reshape(-1)
+    index = a.squeeze(1) + torch.arange(0, flat.shape[0], x.shape[2], device=a.device)
+    return flat.index_select(0, index).unsqueeze(1)
 
 
 def sample_categorical(probs: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
@@ -62,15 +80,21 @@ class FERLActor(nn.Module):
                  td_rule: Literal[TD_RULES], gamma: Discount, lr, beta, lr_norm: Literal[LR_NORMS] = "edges",
                  init_std: NonNegative = 0.01, bias_init_std: NonNegative = 0.0,
                  action_code: Literal[ACTION_CODES] = "onehot", action_selection: Literal[ACTION_SELECTIONS] = "clamp",
-                 gibbs_sweeps: PositiveInt = 20, td_fresh: bool = False, seed: NonNegativeInt = 0):
+                 gibbs_sweeps: PositiveInt = 20, gibbs_anneal_from: Positive | None = None, td_fresh: bool = False,
+                 q: Literal[VALUE_FORMS] = "free_energy", q_scale: Positive | None = None, seed: NonNegativeInt = 0):
         super().__init__()
         self.td_rule, self.gamma, self.td_fresh = td_rule, gamma, td_fresh
         self.n_hidden, self.lr_norm = n_hidden, lr_norm
         self.lr_schedule, self.beta_schedule = lr, beta
         self.action_selection, self.gibbs_sweeps = action_selection, gibbs_sweeps
-        codes = action_code_table(n_actions, action_code)
-        n_bits = codes.shape[1]
+        self.gibbs_anneal_from = gibbs_anneal_from
+        # Z of the scaled free energy: by default √(state nodes), Elfwing et al. (2013)'s choice
+        self.form = value_form(q, q_scale or math.sqrt(n_state))
         self.onehot = action_code == "onehot"
+        self.enumerated = n_actions <= MAX_ENUMERATED_ACTIONS
+        # factored actions are the bits of their index (ferl.bits); no table of 2^K rows
+        codes = action_code_table(n_actions, action_code) if self.enumerated else torch.zeros(0, int(math.log2(n_actions)))
+        n_bits = codes.shape[1]
         self.register_buffer("codes", codes)
         # Each run is initialised from its own seed, so run r does not depend on n_runs.
         gens = [torch.Generator().manual_seed(seed + r) for r in range(n_runs)]
@@ -85,24 +109,42 @@ class FERLActor(nn.Module):
         # α's divisor (learning_rate), fixed by the network's size: a hidden node's fan-in is its
         # state + action nodes; the edges are those connections of every hidden node (§3.5)
         fan_in = n_state + n_bits
-        self.lr_divisor = math.sqrt({"edges": fan_in * n_hidden, "fan_in": fan_in, "none": 1}[lr_norm])
+        self.lr_divisor = math.sqrt({"edges": fan_in * n_hidden, "fan_in": fan_in}.get(lr_norm, 1))
 
     @classmethod
     def check_config(cls, args: dict) -> None:
-        """α and β of the schedules at the start and the end of training (both monotone)."""
+        """α and β of the schedules at the start and the end of training (both monotone); a value
+        form that Gibbs sampling can draw from; factored actions (known once the environment
+        gives ``n_actions``) coded in bits, drawn by Gibbs sampling and learnt by SARSA."""
         lr, beta = schedule(args["lr"]), schedule(args["beta"])
         if not all(lr(p) > 0 for p in (0.0, 1.0)):
             raise ArgumentError("lr", "a schedule of learning rates > 0")
         if not all(beta(p) >= 0 for p in (0.0, 1.0)):
             raise ArgumentError("beta", "a schedule of inverse temperatures ≥ 0")
+        if args["action_selection"] == "gibbs" and not value_form(args["q"], 1.0).boltzmann:
+            raise ArgumentError("q", "free_energy or scaled_free_energy with action_selection=gibbs "
+                                     "(no Gibbs chain samples exp(β Q) of the expected energy)")
+        n_actions = args.get("n_actions", 0)
+        if n_actions <= MAX_ENUMERATED_ACTIONS:
+            return
+        actions = f"the environment's {n_actions} actions"
+        if n_actions & (n_actions - 1):
+            raise ArgumentError("action_code", f"{actions}: factored actions need a power of two")
+        if args["action_code"] != "binary":
+            raise ArgumentError("action_code", f"binary: {actions} are too many for one node each")
+        if args["action_selection"] != "gibbs":
+            raise ArgumentError("action_selection", f"gibbs: softmax selection would enumerate {actions}")
+        if args["td_rule"] != "sarsa":
+            raise ArgumentError("td_rule", f"sarsa: Q(0) and expected SARSA would enumerate {actions}")
 
     @property
     def n_runs(self) -> int:
         return self.W_sh.shape[0]
 
     def describe(self) -> dict:
-        return {"kind": "free_energy", "n_hidden": self.n_hidden, "gamma": self.gamma, "td_rule": self.td_rule,
-                "action_selection": self.action_selection, "td_fresh": self.td_fresh}
+        return {"kind": "free_energy", "q": self.form.name, "n_hidden": self.n_hidden, "gamma": self.gamma,
+                "td_rule": self.td_rule, "action_selection": self.action_selection, "td_fresh": self.td_fresh,
+                "action_bits": self.W_ah.shape[1]}
 
     @property
     def samples_with_generator(self) -> bool:
@@ -139,11 +181,23 @@ class FERLActor(nn.Module):
         return self.beta_schedule(progress)
 
     def evaluate(self, s: torch.Tensor):
-        """Free energies of every action and the hidden inputs: s (R, B, S) or shared (B, S) →
+        """Energies F = −Q of every action and the hidden inputs: s (R, B, S) or shared (B, S) →
         F (R, B, nA), x (R, B, nA, H) with ĥ = σ(x) (Eq. 3.1c)."""
         x = rbm.hidden_input(s, self.W_sh, self.b_h).unsqueeze(2) + self.action_input(self.W_ah).unsqueeze(1)
         visible = rbm.visible_term(s, self.b_s).unsqueeze(-1) + self.action_input(self.b_a.unsqueeze(-1)).transpose(1, 2)
-        return rbm.free_energy_from_input(visible, x), x
+        return self.form.energy(visible, x), x
+
+    def evaluate_actions(self, s: torch.Tensor, a: torch.Tensor):
+        """F = −Q and the hidden inputs of the given actions only: s (R, B, S), a (R, B) →
+        F (R, B), x (R, B, H)."""
+        code = self.code(a)
+        x = rbm.hidden_input(s, self.W_sh, self.b_h) + torch.bmm(code, self.W_ah)
+        visible = rbm.visible_term(s, self.b_s) + (code * self.b_a.unsqueeze(1)).sum(-1)
+        return self.form.energy(visible, x), x
+
+    def code(self, a: torch.Tensor) -> torch.Tensor:
+        """The action nodes' states of actions a (R, B) → (R, B, K)."""
+        return self.codes[a] if self.enumerated else to_bits(a, self.W_ah.shape[1]).to(self.W_ah.dtype)
 
     def action_input(self, weights: torch.Tensor) -> torch.Tensor:
         """codes @ weights, (R, nA, ·): what every admissible action feeds the hidden layer.
@@ -153,6 +207,23 @@ class FERLActor(nn.Module):
     def policy(self, F: torch.Tensor, beta: float) -> torch.Tensor:
         """Softmax action-selection probabilities, Eq. (3.11)."""
         return torch.softmax(-beta * F, dim=-1)
+
+    def act(self, s: torch.Tensor, beta: float, generator: torch.Generator, uniform: torch.Tensor = None):
+        """At states s (R, 1, S): an action a (R, 1) by the actor's selection, its F(s, a) (R, 1) and
+        hidden input (R, 1, H), and the F that a TD error bootstraps from at s (§3.2): F(s, a)
+        (SARSA), min_a F (Q(0)) or the policy's mean F (expected SARSA). Factored actions are
+        drawn by Gibbs sampling and only their own F is computed."""
+        if not self.enumerated:
+            a = self.gibbs_bits(s, beta, generator)
+            F_a, x_a = self.evaluate_actions(s, a)
+            return a, F_a, x_a, F_a
+        F, x = self.evaluate(s)
+        a = self.select(s, F, beta, generator, uniform)
+        F_a = pick(F, a)
+        if self.td_rule == "sarsa":
+            return a, F_a, pick(x, a), F_a
+        F_boot = F.min(-1).values if self.td_rule == "q" else (self.policy(F, beta) * F).sum(-1)
+        return a, F_a, pick(x, a), F_boot
 
     def select(self, s: torch.Tensor, F: torch.Tensor, beta: float, generator: torch.Generator,
                uniform: torch.Tensor = None) -> torch.Tensor:
@@ -172,8 +243,10 @@ class FERLActor(nn.Module):
         Both conditionals at inverse temperature β, so the chain's stationary law is
         P(a|s) ∝ exp(−β F_β(s, a)). P(a|h) ∝ exp(β aᵀ(W_ah h + b_a)) over the admissible codes:
         for ``binary`` codes this factorises into independent action nodes; for ``onehot`` it
-        is the softmax unit that enforces one active action node.
+        is the softmax unit that enforces one active action node. A scaled free energy runs the
+        chain at β / Z (``ferl.actors.values``).
         """
+        beta = self.form.gibbs_beta(beta)
         x_s = rbm.hidden_input(s, self.W_sh, self.b_h)
         n_actions = self.codes.shape[0]
         a = torch.randint(n_actions, x_s.shape[:2], generator=generator, device=s.device)
@@ -185,52 +258,85 @@ class FERLActor(nn.Module):
             a = sample_categorical(probs, torch.rand(a.shape + (1,), generator=generator, device=s.device, dtype=probs.dtype))
         return a
 
-    def td_error(self, reward, F_sa, F_next, a_next, beta: float, terminal=None) -> torch.Tensor:
-        """δ = r − γ F_next + F(s, a) with F_next by the TD rule (§3.2); 0 bootstrap at terminals."""
-        if self.td_rule == "sarsa":
-            F_boot = F_next.gather(-1, a_next.unsqueeze(-1)).squeeze(-1)
-        elif self.td_rule == "q":
-            F_boot = F_next.min(-1).values
-        else:
-            F_boot = (self.policy(F_next, beta) * F_next).sum(-1)
-        if terminal is not None:
-            F_boot = F_boot * (~terminal)
-        return reward - self.gamma * F_boot + F_sa
+    def gibbs_bits(self, s: torch.Tensor, beta: float, generator: torch.Generator) -> torch.Tensor:
+        """``gibbs_actions`` for factored actions (Sallans & Hinton 2004, §3): the action nodes
+        are independent given h, P(a_k = 1 | h) = σ(β (W_ah h + b_a)_k), so the chain never
+        enumerates the 2^K actions. Starts from uniformly random bits; all the chain's uniforms
+        are drawn in one call. With ``gibbs_anneal_from`` the chain is annealed: its inverse
+        temperature rises geometrically from that value to β over the sweeps. Returns action
+        indices (R, B)."""
+        x_s = rbm.hidden_input(s, self.W_sh, self.b_h)
+        R, B, H = x_s.shape
+        K = self.W_ah.shape[1]
+        u = torch.rand(R, B, K + self.gibbs_sweeps * (H + K), generator=generator, device=s.device, dtype=x_s.dtype)
+        bits = (u[..., :K] < 0.5).to(x_s.dtype)
+        W_ha = self.W_ah.transpose(1, 2)
+        for b, u_sweep in zip(self.chain_betas(beta), u[..., K:].split(H + K, -1)):
+            h = (u_sweep[..., :H] < torch.sigmoid(b * torch.baddbmm(x_s, bits, self.W_ah))).to(x_s.dtype)
+            bits = (u_sweep[..., H:] < torch.sigmoid(b * torch.baddbmm(self.b_a.unsqueeze(1), h, W_ha))).to(x_s.dtype)
+        return from_bits(bits)
+
+    def chain_betas(self, beta: float) -> list[float]:
+        """The inverse temperature of every Gibbs sweep: β throughout, or annealed geometrically
+        from ``gibbs_anneal_from`` to β; at β / Z for a scaled free energy."""
+        beta = self.form.gibbs_beta(beta)
+        n = self.gibbs_sweeps
+        if self.gibbs_anneal_from is None or n == 1:
+            return [beta] * n
+        start = self.form.gibbs_beta(self.gibbs_anneal_from)
+        return [start * (beta / start) ** (i / (n - 1)) for i in range(n)]
+
+    def scaled(self, t: torch.Tensor) -> torch.Tensor:
+        """κ t for the value form's κ (``ferl.actors.values``); the free energy's κ = 1 is skipped."""
+        return t if self.form.scale == 1.0 else t * self.form.scale
 
     def learn(self, s, a, x_sa, delta, lr, s_next, a_next, F_next, x_next):
         """The online update of (s, a) (``update``, Eq. 3.10), then F (R, B) and hidden input
         x (R, B, H) of the next pair (s', a') for the next TD error: as evaluated before the
-        update, or with ``td_fresh`` at the parameters it produced. The update adds g = α δ ĥ(s, a)
-        to b_h, sᵀg to W_sh and g to the rows of a's action nodes, α δ s to b_s and α δ a to b_a, so
+        update, or with ``td_fresh`` at the parameters it produced. With Q = κ (c + Σ_k φ(x_k))
+        (``ferl.actors.values``; the free energy: κ = 1, φ = softplus) the update adds
+        g = κ α δ φ'(x(s, a)) to b_h, sᵀg to W_sh and g to the rows of a's action nodes, κ α δ s
+        to b_s and κ α δ a to b_a, so
 
-            x' = x + (s'·s + 1 + a'·a) g,   F' = F − α δ (s'·s + a'·a) − Σ_k [softplus(x'_k) − softplus(x_k)],
+            x' = x + (s'·s + 1 + a'·a) g,   F' = F − κ² α δ (s'·s + a'·a) − κ Σ_k [φ(x'_k) − φ(x_k)],
 
         O(S + H) a pair instead of a second pass over W_sh (a'·a: the action codes' overlap).
         """
+        if self.lr_norm == "gradient":
+            lr = lr / self.gradient_norm(s, a, x_sa)
         g = self.update(s, a, x_sa, delta, lr)
         if not self.td_fresh:
             return F_next, x_next
         overlap = (s_next * s).sum(-1) + self.codes_overlap(a, a_next)
         x_new = x_next + (overlap + 1).unsqueeze(-1) * g
-        F_new = F_next - lr * delta * overlap - (nn.functional.softplus(x_new) - nn.functional.softplus(x_next)).sum(-1)
+        phi = self.form.hidden_term
+        F_new = F_next - self.scaled(self.scaled(lr * delta * overlap)) - self.scaled((phi(x_new) - phi(x_next)).sum(-1))
         return F_new, x_new
+
+    def gradient_norm(self, s: torch.Tensor, a: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """‖∂Q(s, a)/∂θ‖² (R, B) over W_sh, W_ah, b_s, b_a, b_h: κ² (|v|² (1 + Σ_k φ'_k²) + Σ_k φ'_k²),
+        v = (s, a). An update α δ ∂Q/∂θ changes Q(s, a) by α δ times this (to first order), so
+        an α above 2 / this makes the update overshoot and grow (the LMS stability bound)."""
+        v_sq = (s * s).sum(-1) + self.codes_overlap(a, a)
+        phi_sq = self.form.hidden_gradient(x).pow(2).sum(-1)
+        return self.scaled(self.scaled(v_sq * (1 + phi_sq) + phi_sq))
 
     def codes_overlap(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         """Dot products of the action codes of a and b (R, B): 1 or 0 for one-hot codes."""
         if self.onehot:
             return (a == b).to(self.W_ah.dtype)
-        return (self.codes[a] * self.codes[b]).sum(-1)
+        return (self.code(a) * self.code(b)).sum(-1)
 
     @torch.no_grad()
     def update(self, s, a, x_sa, delta, lr) -> torch.Tensor:
-        """θ ← θ + α δ (−∂F/∂θ) in place, Eq. (3.10a–e), summed over the B axis; returns α δ ĥ
-        (R, B, H).
+        """θ ← θ + α δ ∂Q/∂θ in place (Eq. 3.10a–e for Q = −F), summed over the B axis; returns
+        the hidden nodes' share g = κ α δ φ'(x) (R, B, H) (α δ ĥ for the free energy).
 
         s (R, B, S), a (R, B) action indices, x_sa (R, B, H) hidden inputs at (s, a), delta (R, B);
         lr a float or a 0-d tensor (so a compiled step does not recompile as α decays).
         """
-        step = lr * delta  # α δ
-        g = step.unsqueeze(-1) * torch.sigmoid(x_sa)  # α δ ĥ
+        step = self.scaled(lr * delta)  # κ α δ
+        g = step.unsqueeze(-1) * self.form.hidden_gradient(x_sa)  # κ α δ φ'(x)
         if s.shape[1] == 1:  # online step: broadcast outer products beat batched matmuls
             self.W_sh.addcmul_(s.transpose(1, 2), g)
             self.b_s.addcmul_(step, s.squeeze(1))
@@ -243,7 +349,7 @@ class FERLActor(nn.Module):
             self.W_ah.view(-1, self.W_ah.shape[2]).index_add_(0, rows, g.flatten(0, 1))
             self.b_a.view(-1).index_add_(0, rows, step.flatten())
         else:
-            code = self.codes[a]
+            code = self.code(a)
             self.W_ah.baddbmm_(code.transpose(1, 2), g)
             self.b_a.add_(torch.bmm(step.unsqueeze(1), code).squeeze(1))
         return g

@@ -10,18 +10,10 @@ that δ_t takes both free energies at one θ as Eq. (3.2) writes it.
 import torch
 
 
-def pick(x: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
-    """Entries of the chosen actions on the online path: x (R, 1, nA, ...) at a (R, 1) → (R, 1, ...)."""
-    flat = x.reshape(-1, *x.shape[3:]) if x.dim() > 3 else x.reshape(-1)
-    index = a.squeeze(1) + torch.arange(0, flat.shape[0], x.shape[2], device=a.device)
-    return flat.index_select(0, index).unsqueeze(1)
-
-
 def first_action(actor, s: torch.Tensor, beta: float, generator: torch.Generator, uniform=None):
     """a_0 of every run at state s (R, 1, S), its free energy and cache: where a run of TD steps starts."""
-    F, cache = actor.evaluate(s)
-    a = actor.select(s, F, beta, generator, uniform)
-    return a, pick(F, a), pick(cache, a)
+    a, F_a, cache_a, _ = actor.act(s, beta, generator, uniform)
+    return a, F_a, cache_a
 
 
 def td_step(actor, s, a, F_sa, cache_sa, reward, s_next, lr, beta, generator, uniform, alive,
@@ -32,11 +24,11 @@ def td_step(actor, s, a, F_sa, cache_sa, reward, s_next, lr, beta, generator, un
     reward (R,); ``terminal`` (R, 1): no bootstrap from s'; ``active`` (R, 1): runs still in an
     episode (others get δ = 0). Returns a' (R, 1), F(s', a') (R, 1), its cache and δ (R, 1).
     """
-    F_next, cache_next = actor.evaluate(s_next)
-    a_next = actor.select(s_next, F_next, beta, generator, uniform)
-    delta = actor.td_error(reward.unsqueeze(1), F_sa, F_next, a_next, beta, terminal)
+    a_next, F_next, cache_next, F_boot = actor.act(s_next, beta, generator, uniform)
+    if terminal is not None:
+        F_boot = F_boot * (~terminal)
+    delta = reward.unsqueeze(1) - actor.gamma * F_boot + F_sa  # δ = r − γ F(s', ·) + F(s, a)
     if active is not None:
         delta = torch.where(active, delta, 0.0)
-    F_sa, cache_sa = actor.learn(s, a, cache_sa, torch.where(alive, delta, 0.0), lr, s_next, a_next,
-                                 pick(F_next, a_next), pick(cache_next, a_next))
+    F_sa, cache_sa = actor.learn(s, a, cache_sa, torch.where(alive, delta, 0.0), lr, s_next, a_next, F_next, cache_next)
     return a_next, F_sa, cache_sa, delta

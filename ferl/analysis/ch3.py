@@ -209,7 +209,7 @@ CLAIMS: list[Claim] = [
 
 
 def applies(manifest: Manifest) -> bool:
-    return manifest.env_kind == ENV_KIND
+    return manifest.env_kind == ENV_KIND and manifest.dissertation_components
 
 
 CHAPTER = Chapter("the FERL actor on the digit floor (chapter 3, §3.4–§3.5)", applies,

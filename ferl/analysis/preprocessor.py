@@ -116,11 +116,11 @@ class Preprocessing:
 def describe(pre: Preprocessing) -> str:
     """The report header's line on the preprocessor."""
     n_raw, n_hidden = pre.shape
-    return (f"RBM {n_raw} → {n_hidden} units, {pre.reconstruction.shape[1]} training sweeps "
+    return (f"{n_raw} → {n_hidden} units, {pre.reconstruction.shape[1]} training sweeps (all layers) "
             f"({'loaded from the cache' if pre.cached else 'trained in this run'}); PCA of "
             f"{len(pre.ids)} distinct images, {len(pre.class_names)} digit classes "
             f"({', '.join(pre.class_names)}) × {pre.reservoir_size}, raw and processed by each "
-            f"run's RBM; class separation = silhouette on PC1–3")
+            f"run's preprocessor; class separation = silhouette on PC1–3")
 
 
 def write_tables(pre: Preprocessing, out: Path) -> list[str]:

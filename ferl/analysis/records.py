@@ -77,11 +77,20 @@ class Manifest:
         return self.env.get("observation") == "image"
 
     @property
+    def dissertation_components(self) -> bool:
+        """The actor's Q is the free energy (§3.2), a preprocessor, if any, the RBM (§5.2), and the
+        observations without the continuous pixel noise of §5.4's Gaussian-visible variant: other
+        value forms, preprocessors and observations are findings of ours, not claims to judge."""
+        return (self.actor.get("q", "free_energy") == "free_energy"
+                and (self.preprocessor is None or self.preprocessor.get("kind") == "rbm")
+                and not self.env.get("pixel_noise_std"))
+
+    @property
     def dissertation_algorithm(self) -> bool:
-        """The predictors are the dissertation's (Elman memories) and trained in their own phase
-        before the actor (Algorithms 1–2): only then do chapters 4–5's claims speak to the run.
-        The online trainer and other memories (§5.4) are findings of ours, not claims to judge."""
-        return ("predictors" in self.trainer.get("phases", ())
+        """The dissertation's components, its predictors (Elman memories) trained in their own
+        phase before the actor (Algorithms 1–2): only then do chapters 4–5's claims speak to the
+        run. The online trainer and other memories (§5.4) are findings of ours."""
+        return (self.dissertation_components and "predictors" in self.trainer.get("phases", ())
                 and all(facts.get("kind") == "elman" for facts in self.predictors.values()))
 
     @cached_property

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ferl import runs
-from ferl.analysis import beyond, dispatch, generic
+from ferl.analysis import beyond, dispatch, generic, variants
 from ferl.analysis import sweep as sw
 from ferl.analysis.claims import VERDICTS, ClaimResult, Numbering, evaluate
 from ferl.analysis.io import write_json
@@ -137,6 +137,7 @@ def analyze_sweep(sweep_dir: Path, readme: Path | None = None) -> list[RunOutcom
     analysis = sw.analyze_sweep(sweep, out)
     rows = sw.reproduction_rows(jobs, evaluate(SWEEP_CLAIMS, sweep), dispatch.CLAIM_ORDER)
     findings = beyond.report(jobs, out, analysis.figures, analysis.data_files)
+    findings += variants.report(jobs, out, analysis.figures, analysis.data_files)
     publish_figures(analysis.figures, out, out / "tb")
     write_json(out / "claims.json",
                [_claim_json(r.result, job=None if r.job is None else str(r.job.run_dir),

@@ -115,16 +115,19 @@ def entry_at_fault(key: str, value, annotation) -> tuple[str, object, object]:
 def signature(fn) -> tuple[dict, dict, bool]:
     """The parameters a callable takes by name (a class: its constructor's), their annotations
     (extras kept) and whether it takes any keyword. A constructor that passes ``**kwargs`` on to
-    its base class takes the base class's parameters too (``DigitTMaze`` → ``TMaze``)."""
+    its base class takes the base class's parameters too (``DigitTMaze`` → ``TMaze``); one that
+    passes them to another class names it, and the parameters it sets there itself, in the class
+    attribute ``kwargs_to = (class, (names, …))`` (``DBNPreprocessor`` → each layer's RBM)."""
     init = fn.__init__ if inspect.isclass(fn) else fn
     init = getattr(init, "__wrapped__", init)
     params = {n: p for n, p in inspect.signature(init).parameters.items()
               if n != "self" and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)}
     hints = typing.get_type_hints(init, include_extras=True)
     takes_any = any(p.kind == p.VAR_KEYWORD for p in inspect.signature(init).parameters.values())
-    if takes_any and inspect.isclass(fn) and fn.__mro__[1] is not object:
-        base_params, base_hints, takes_any = signature(fn.__mro__[1])
-        params = {**base_params, **params}
+    base, fixed = getattr(fn, "kwargs_to", (fn.__mro__[1], ())) if inspect.isclass(fn) else (object, ())
+    if takes_any and base is not object:
+        base_params, base_hints, takes_any = signature(base)
+        params = {**{n: p for n, p in base_params.items() if n not in fixed}, **params}
         hints = {**base_hints, **hints}
     return params, hints, takes_any
 

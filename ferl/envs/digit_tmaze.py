@@ -7,14 +7,28 @@ images of the class; a reservoir of one is the static digit of chapter 4, a rese
 noisy observations of chapter 5, drawn afresh at every visit, even within an episode. Pixels are
 binarized (> ``binarize_threshold`` → 1, §4.3.3 "binarized") or, with a null threshold, kept as
 intensities in [0, 1] for the mean-field visible units of the ch. 5 preprocessor.
+
+Continuous observations (§5.4 "Fifth", for the Gaussian RBM): with ``pixel_noise_std`` σ > 0 the
+grey-level images carry Gaussian pixel noise, x + ε, ε ~ N(0, σ² I), not clipped to [0, 1]. The
+maze's observations are ids into a finite ``observation_table`` that the preprocessor processes
+once (Algorithm 2) and the episodes store, so the noise cannot be drawn at every visit: every
+reservoir image gets ``noise_copies`` noisy copies, drawn once when the maze is built, and the
+reservoir of an observation is its K images × C copies (id n·K·C + c·K + k: copy c of image k),
+from which every visit draws one afresh as before. The copies come from a stream of their own,
+seeded from the maze generator's seed (``NOISE_SEED_OFFSET``): every maze built for a job (the
+trainer builds more for its random episodes) has the same table, and the noise shifts no other
+random number. Observations of one digit class share their noisy copies, as they share images.
 """
 from typing import Annotated
 
 import torch
 
-from ferl.config.params import (Allowed, ArgumentError, NonNegativeInt, PositiveInt, UnitInterval, checked)
+from ferl.config.params import (Allowed, ArgumentError, NonNegative, NonNegativeInt, PositiveInt, UnitInterval,
+                                checked)
 from ferl.data import MnistSplit
 from ferl.envs.tmaze import TMaze, observation_names
+
+NOISE_SEED_OFFSET = 300_000  # the noisy copies' stream: maze seed + this (the weights' streams are seed + < 300 000)
 
 
 def class_images(data: MnistSplit, digit_classes: dict, image_index: int, reservoir_size: int,
@@ -31,25 +45,44 @@ def class_images(data: MnistSplit, digit_classes: dict, image_index: int, reserv
     return images
 
 
+def noisy_copies(images: dict, digit_classes: dict, std: float, copies: int, generator: torch.Generator) -> dict:
+    """Observation name → its reservoir (K, V) repeated ``copies`` times, (copies·K, V), plus
+    N(0, std²) per pixel; one draw per digit class (in class order), shared by its observations."""
+    noisy = {}
+    for label in sorted(set(digit_classes.values())):
+        names = [name for name, c in digit_classes.items() if c == label]
+        clean = images[names[0]].repeat(copies, 1)
+        drawn = clean + std * torch.randn(clean.shape, generator=generator, dtype=clean.dtype)
+        noisy.update({name: drawn for name in names})
+    return noisy
+
+
 class DigitTMaze(TMaze):
-    """A (matching) T-maze whose observations are the digit images of ``digit_classes``; every
-    other argument is the T-maze's."""
+    """A (matching) T-maze whose observations are the digit images of ``digit_classes``, with
+    Gaussian pixel noise of s.d. ``pixel_noise_std`` in ``noise_copies`` copies of every image
+    (grey levels only; ignored without noise); every other argument is the T-maze's."""
 
     @checked
     def __init__(self, n_runs: PositiveInt, generator: torch.Generator, data: MnistSplit,
                  digit_classes: dict[str, Annotated[int, Allowed(lambda c: 0 <= c <= 9, "a digit class 0–9")]],
                  image_index: NonNegativeInt = 0, reservoir_size: PositiveInt = 1,
-                 binarize_threshold: UnitInterval | None = 0.5, device="cpu", **maze):
+                 binarize_threshold: UnitInterval | None = 0.5, pixel_noise_std: NonNegative = 0.0,
+                 noise_copies: PositiveInt = 10, device="cpu", **maze):
         self.digit_classes = {name: int(label) for name, label in dict(digit_classes).items()}
+        self.pixel_noise_std, self.noise_copies = pixel_noise_std, noise_copies
         images = class_images(data, self.digit_classes, image_index, reservoir_size, binarize_threshold)
+        if pixel_noise_std > 0:
+            stream = torch.Generator().manual_seed(generator.initial_seed() + NOISE_SEED_OFFSET)
+            images = noisy_copies(images, self.digit_classes, pixel_noise_std, noise_copies, stream)
         super().__init__(n_runs, generator, images={k: v.to(device) for k, v in images.items()}, device=device, **maze)
 
     def describe(self) -> dict:
-        return {**super().describe(), "digit_classes": self.digit_classes}
+        return {**super().describe(), "digit_classes": self.digit_classes, "pixel_noise_std": self.pixel_noise_std,
+                "noise_copies": self.noise_copies if self.pixel_noise_std > 0 else 1}
 
     @classmethod
     def check_config(cls, args: dict) -> None:
-        """Every observation of the maze has a digit class, and only those."""
+        """Every observation of the maze has a digit class, and only those; pixel noise only on grey levels."""
         TMaze.check_config(args)
         names = observation_names(args["matching"])
         unknown = sorted(set(args["digit_classes"]) - set(names))
@@ -58,3 +91,6 @@ class DigitTMaze(TMaze):
         missing = [n for n in names if n not in args["digit_classes"]]
         if missing:
             raise ArgumentError(f"digit_classes.{missing[0]}", "a class (every observation of the maze needs one)")
+        if args["pixel_noise_std"] > 0 and args["binarize_threshold"] is not None:
+            raise ArgumentError("pixel_noise_std", "0 unless binarize_threshold is null (the noise is added to "
+                                                   f"grey levels; binarize_threshold={args['binarize_threshold']})")

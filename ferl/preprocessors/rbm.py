@@ -139,19 +139,28 @@ class RBMPreprocessor(nn.Module):
         """Processed observations ĥ = σ(Wᵀv + b_h) (Algorithm 2): v (B, V) shared or (R, B, V) → (R, B, H)."""
         return rbm.hidden_expectation(v.to(self.W), self.W, self.b_h)
 
+    def visible_input(self, h: torch.Tensor) -> torch.Tensor:
+        """Total input W h + b_v of every visible unit: h (R, B, H) → (R, B, V)."""
+        return torch.baddbmm(self.b_v.unsqueeze(1), h, self.W.mT)
+
     def visible_given(self, h: torch.Tensor, gens: list = None) -> torch.Tensor:
         """p(v = 1 | h) = σ(W h + b_v) for h (R, B, H); sampled from gens when visible="binary"."""
-        p = torch.sigmoid(torch.baddbmm(self.b_v.unsqueeze(1), h, self.W.mT))
+        p = torch.sigmoid(self.visible_input(h))
         if self.visible == "binary" and gens is not None:
             return bernoulli(p, uniform(p.shape[1:], gens, p))
         return p
 
     @torch.no_grad()
+    def reconstruct(self, v: torch.Tensor) -> torch.Tensor:
+        """One-step mean-field reconstruction σ(W ĥ + b_v), ĥ = σ(Wᵀv + b_h): v (B, V) or (R, B, V)
+        → (R, B, V)."""
+        return self.visible_given(self.transform(v))
+
+    @torch.no_grad()
     def reconstruction_error(self, v: torch.Tensor) -> torch.Tensor:
-        """Mean squared error per run (R,) of σ(W ĥ + b_v), ĥ = σ(Wᵀv + b_h), against v."""
+        """Mean squared error per run (R,) of the reconstruction of v (B, V) or (R, B, V) against v."""
         v = v.to(self.W)
-        v_hat = self.visible_given(self.transform(v))
-        return (v_hat - v).pow(2).mean((1, 2))
+        return (self.reconstruct(v) - v).pow(2).mean((1, 2))
 
     # ---- contrastive divergence ----------------------------------------------------------------
     def gibbs(self, h: torch.Tensor, gens: list):
@@ -246,19 +255,33 @@ class RBMPreprocessor(nn.Module):
         before = self.reconstruction_error(test)
         # no generator: every run trains on its own stream (seed + r), so the cache key is complete
         history, cached = load_or_fit(self, data.train_images.to(self.W), self.cache_dir, writer)
-        sweeps = history.shape[1]
         if cached:  # the fit's own logging happened in the run that trained it
-            for sweep, value in enumerate(history.mean(0), 1):
-                writer.add_scalar("preprocessor/reconstruction_error", float(value), sweep)
-            if self.W.shape[1] == IMAGE_SIDE ** 2:
-                writer.add_images("preprocessor/filters", weight_images(self.W), sweeps)
-        after = self.reconstruction_error(test)
-        writer.add_scalar("preprocessor/test_reconstruction_error", float(before.mean()), 0)
-        writer.add_scalar("preprocessor/test_reconstruction_error", float(after.mean()), sweeps)
-        if test.shape[1] == IMAGE_SIDE ** 2:
-            labels = data.test_labels.cpu()
-            shown = test[[int(torch.nonzero(labels == c)[0]) for c in labels.unique().tolist()][:10]]
-            recon = self.visible_given(self.transform(shown))[0]
-            writer.add_image("preprocessor/reconstructions", tile(torch.stack([as_images(shown), as_images(recon)])), sweeps)
-        return {"reconstruction_error": history, "test_error_before": before.cpu().numpy(),
-                "test_error_after": after.cpu().numpy(), "cached": np.bool_(cached)}
+            log_training(writer, history, self.W)
+        return fit_records(writer, data, history, before, self.reconstruction_error(test), cached, self.reconstruct)
+
+
+def log_training(writer, history: np.ndarray, W: torch.Tensor) -> None:
+    """What ``train`` logs as it goes, from its errors (R, sweeps): the mean error per sweep and
+    run 0's filters W (R, 784, H)."""
+    for sweep, value in enumerate(history.mean(0), 1):
+        writer.add_scalar("preprocessor/reconstruction_error", float(value), sweep)
+    if W.shape[1] == IMAGE_SIDE ** 2:
+        writer.add_images("preprocessor/filters", weight_images(W), history.shape[1])
+
+
+def fit_records(writer, data, history: np.ndarray, before: torch.Tensor, after: torch.Tensor, cached: bool,
+                reconstruct) -> dict:
+    """The end of a fit: logs the held-out errors before / after (R,) at sweeps 0 and S (history
+    (R, S)) and run 0's ``reconstruct`` (images (B, V) → (R, B, V)) of one test image per digit
+    class under the images; returns the records of ``preprocessor.npz``."""
+    sweeps = history.shape[1]
+    writer.add_scalar("preprocessor/test_reconstruction_error", float(before.mean()), 0)
+    writer.add_scalar("preprocessor/test_reconstruction_error", float(after.mean()), sweeps)
+    test = data.test_images
+    if test.shape[1] == IMAGE_SIDE ** 2:
+        labels = data.test_labels.cpu()
+        shown = test[[int(torch.nonzero(labels == c)[0]) for c in labels.unique().tolist()][:10]]
+        recon = reconstruct(shown)[0]
+        writer.add_image("preprocessor/reconstructions", tile(torch.stack([as_images(shown), as_images(recon)])), sweeps)
+    return {"reconstruction_error": history, "test_error_before": before.cpu().numpy(),
+            "test_error_after": after.cpu().numpy(), "cached": np.bool_(cached)}

@@ -28,6 +28,7 @@ class SeedOffsets:
     actor: int = 0
     predictors: int = 10_000   # predictor i: + i × this
     preprocessor: int = 200_000
+    env: int = 300_000         # an environment that draws its own task per run (``seed`` in its constructor)
 
 
 def takes(node, name: str) -> bool:
@@ -57,6 +58,7 @@ class Job:
         pre_cfg, predictor_cfg = cfg.get("preprocessor"), cfg.get("predictor") or {}
         needs_data = takes(cfg.env, "data") or pre_cfg is not None
         self.data = build(cfg.data).load() if needs_data else None
+        self.env_seed = cfg.seed + seeds.env
         self.env = self.make_env(self.R)
         self.preprocessor = build(pre_cfg, n_runs=self.R, seed=cfg.seed + seeds.preprocessor).to(device) \
             if pre_cfg is not None else None
@@ -95,6 +97,8 @@ class Job:
     def make_env(self, n_runs: int):
         """A batch of ``n_runs`` environments of the config on the job's generator."""
         extra = {"data": self.data} if takes(self.cfg.env, "data") else {}
+        if takes(self.cfg.env, "seed"):
+            extra["seed"] = self.env_seed
         return build(self.cfg.env, n_runs=n_runs, generator=self.generator, device=self.device, **extra)
 
     def components(self) -> dict:

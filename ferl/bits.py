@@ -1,0 +1,16 @@
+"""Binary codes of integers: how a factored action (Sallans & Hinton 2004) is both an index, as
+every environment takes actions, and the states of K binary action nodes, as the actor sees it.
+Index i ↔ the K bits of i, most significant first."""
+import torch
+
+
+def to_bits(i: torch.Tensor, n_bits: int) -> torch.Tensor:
+    """Integer tensor (…) → its binary codes (…, n_bits) as floats, most significant bit first."""
+    shifts = torch.arange(n_bits - 1, -1, -1, device=i.device)
+    return ((i.unsqueeze(-1) >> shifts) & 1).float()
+
+
+def from_bits(bits: torch.Tensor) -> torch.Tensor:
+    """Binary codes (…, n_bits) → the integers (…) they code (the inverse of ``to_bits``)."""
+    weights = 2 ** torch.arange(bits.shape[-1] - 1, -1, -1, device=bits.device)
+    return (bits.long() * weights).sum(-1)
