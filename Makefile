@@ -84,7 +84,7 @@ variants: $(STAMP)
 	jobs="hydra/launcher=joblib hydra.launcher.n_jobs=$(REPRO_JOBS)"; \
 	$(PY) train.py -m experiment=table5_1_pixel,table4_1_matching,ch3_floor actor.q=$(VALUE_FORMS) $$jobs \
 	  hydra.sweep.dir=$$dir/value_forms && \
-	$(PY) train.py -m experiment=table5_1_pixel_dbn,table5_1_pixel_gaussian,large_action $$jobs \
+	$(PY) train.py -m experiment=table5_1_pixel_dbn,table5_1_pixel_gaussian,large_action,large_action_key_states $$jobs \
 	  hydra.sweep.dir=$$dir/preprocessors_actions && \
 	$(PY) train.py experiment=table5_1_pixel_gaussian preprocessor=rbm hydra.run.dir=$$dir/binary_rbm_on_grey && \
 	echo $$(( $$(date +%s) - start )) > $$dir/train_wall_time_s && \

@@ -87,6 +87,19 @@ def headline(entry: Entry) -> dict[str, tuple[float, float, int]]:
     return {name: stats.mean_sem(values[name]) for name in HEADLINES if name in values}
 
 
+def cell_text(name: str, value) -> str:
+    """``solved`` as runs of runs, other metrics as mean ± s.e.m. (large ones without decimals)."""
+    if value is None:
+        return ""
+    mean, sem, n = value
+    if np.isnan(mean):
+        return "n/a"
+    if name == "solved":
+        return f"{round(mean * n)}/{n}"
+    digits = 0 if abs(mean) >= 1000 else 3
+    return f"{mean:,.{digits}f} ± {sem:,.{digits}f}" if n > 1 else f"{mean:,.{digits}f}"
+
+
 def curve_figure(group: Sequence[Entry]) -> Figure | None:
     """Every agent's main learning curve (mean ± s.e.m. over runs) in one panel."""
     fig = Figure(figsize=(7.5, 4), layout="constrained")
@@ -100,7 +113,7 @@ def curve_figure(group: Sequence[Entry]) -> Figure | None:
         mean, sem = c.mean_sem(key)
         color = f"C{k % 10}"
         band(ax, c.x, mean, sem, None, color)
-        ax.lines[-1].set_label(f"{entry.agent} {'' if entry.job.variant.startswith('as in') else entry.job.variant}")
+        ax.lines[-1].set_label(" ".join([entry.agent, *(o for o in entry.job.overrides if o not in entry.agent)]))
         optimum = c.optima.get(key) if optimum is None else optimum
         ax.set_xlabel(c.unit + "s")
         ax.set_ylabel(f"{c.labels[key]} ({c.window}-{c.unit} moving average)")
@@ -130,7 +143,7 @@ def report(jobs: Sequence, out: Path, figures: dict, data_files: list) -> list[s
         lines += ["", f"### {title(group)}", ""]
         lines += table_lines(["agent", "overrides", "runs", *names],
                              [(e.agent, e.job.variant, max((h[n][2] for n in h), default=0),
-                               *(cell_text(h.get(n)) for n in names)) for e, h in cells])
+                               *(cell_text(n, h.get(n)) for n in names)) for e, h in cells])
         rows += [(title(group), e.agent, e.job.variant, n, *map(fmt, h[n][:2]), h[n][2])
                  for e, h in cells for n in names if n in h]
         fig = curve_figure(group)
@@ -142,9 +155,3 @@ def report(jobs: Sequence, out: Path, figures: dict, data_files: list) -> list[s
     data_files.append("agents_side_by_side.csv")
     return lines
 
-
-def cell_text(value) -> str:
-    if value is None:
-        return ""
-    mean, sem, n = value
-    return "n/a" if np.isnan(mean) else f"{mean:.3f} ± {sem:.3f}" if n > 1 else f"{mean:.3f}"
