@@ -141,8 +141,8 @@ def report(jobs: Sequence, out: Path, figures: dict, data_files: list) -> list[s
         cells = [(e, headline(e)) for e in group]
         names = [n for n in HEADLINES if any(n in h for _, h in cells)]
         lines += ["", f"### {title(group)}", ""]
-        lines += table_lines(["agent", "overrides", "runs", *names],
-                             [(e.agent, e.job.variant, max((h[n][2] for n in h), default=0),
+        lines += table_lines(["agent", "run as", "runs", *names],
+                             [(e.agent, e.job.label, max((h[n][2] for n in h), default=0),
                                *(cell_text(n, h.get(n)) for n in names)) for e, h in cells])
         rows += [(title(group), e.agent, e.job.variant, n, *map(fmt, h[n][:2]), h[n][2])
                  for e, h in cells for n in names if n in h]
