@@ -76,7 +76,9 @@ def test_same_seed_same_numbers(tmp_path, tiny_run):
                                       "experiment=large_action actor.q=advantage",
                                       "experiment=large_action actor.action_selection=clamp",
                                       "experiment=large_action actor.action_code=onehot",
-                                      "experiment=table4_1_matching actor.action_selection=gibbs actor.q=expected_energy"])
+                                      "experiment=table4_1_matching actor.action_selection=gibbs actor.q=expected_energy",
+                                      # issue 4/8: a memoryless agent has nothing to train online
+                                      "experiment=table4_1_matching trainer=online predictor=none"])
 def test_bad_input_one_line_nothing_written(tmp_path, override):
     run_dir = tmp_path / "out" / "run"
     result = run_train(*override.split(), f"hydra.run.dir={run_dir}")

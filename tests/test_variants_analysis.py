@@ -1,6 +1,7 @@
 """The sweep report's "Agents side by side" section (ferl/analysis/variants.py) on a real
 miniature sweep: the digit floor with the dissertation's actor and with the expected-energy
-actor, and a T-maze that one agent ran (no table). Rows are checked against summary.json."""
+actor, the regular T-maze with and without a predictor, and a matching T-maze that one agent ran
+(no table). Rows are checked against summary.json."""
 import csv
 
 import numpy as np
@@ -10,13 +11,18 @@ from conftest import TINY, train_sweep
 from ferl.analysis.records import Manifest
 
 
+MAZE = ["n_runs=2", "trainer.n_sample=300", "trainer.n_epoch=2", "trainer.n_episodes=60", "trainer.final_window=20",
+        "trainer.log_every=20"]
+
+
 @pytest.fixture(scope="module")
 def sweep(tmp_path_factory):
     root = tmp_path_factory.mktemp("variants")
     jobs = {"floor_fe": ["experiment=ch3_floor", *TINY],
             "floor_ee": ["experiment=ch3_floor", *TINY, "actor.q=expected_energy"],
-            "maze": ["experiment=table4_1_regular", "n_runs=2", "trainer.n_sample=300", "trainer.n_epoch=2",
-                     "trainer.n_episodes=60", "trainer.final_window=20", "trainer.log_every=20"]}
+            "maze": ["experiment=table4_1_regular", *MAZE],
+            "maze_memoryless": ["experiment=table4_1_regular", *MAZE, "predictor=none"],
+            "matching": ["experiment=table4_1_matching", *MAZE]}
     return root, train_sweep(root, jobs)
 
 
@@ -24,7 +30,8 @@ def test_one_table_per_task_with_every_agent(sweep):
     root, summaries = sweep
     with open(root / "analysis" / "agents_side_by_side.csv") as f:
         rows = list(csv.DictReader(f))
-    assert {r["agent"] for r in rows} == {"dissertation agent", "actor.q=expected_energy"}  # the maze: one agent
+    assert {r["agent"] for r in rows} == {"dissertation agent", "actor.q=expected_energy", "predictor=none"}
+    assert {r["task"] for r in rows} == {"digit_floor: ch3_floor", "tmaze: table4_1_regular"}  # not the matching maze
     for name, agent in (("floor_fe", "dissertation agent"), ("floor_ee", "actor.q=expected_energy")):
         row = next(r for r in rows if r["agent"] == agent and r["metric"] == "reward_per_step_last10pct")
         values = summaries[name]["metrics"]["reward_per_step_last10pct"]
@@ -33,7 +40,7 @@ def test_one_table_per_task_with_every_agent(sweep):
         assert int(row["n"]) == 2
     report = (root / "analysis" / "report.md").read_text()
     assert "## Agents side by side (findings of ours, §5.4)" in report
-    assert (root / "analysis" / "agents_task1.png").is_file() and "agents_task2" not in report
+    assert (root / "analysis" / "agents_task2.png").is_file() and "agents_task3" not in report
 
 
 def test_only_the_dissertation_components_are_judged_by_its_claims(sweep):

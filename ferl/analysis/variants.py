@@ -4,8 +4,8 @@ dissertation's agent against each variant of its components, as findings of ours
 A *task* is what a run's environment recorded of itself (`records/run.json` `env`): runs whose
 environments describe themselves alike faced the same task, whatever experiment or override
 produced them. An *agent* is what differs from the dissertation's components: the actor's value
-form (`actor.q`), a preprocessor other than the RBM (or a different one's kind), predictor
-memories other than Elman, a trainer other than the phased algorithms, curiosity. A task gets a
+form (`actor.q`), a preprocessor other than the RBM, no predictor where the dissertation has one
+(`predictor=none`), predictor memories other than Elman, a trainer other than the phased algorithms, curiosity. A task gets a
 table (the headline metrics of its summary, mean ± s.e.m. over runs) and one learning-curve
 figure with every agent's mean ± s.e.m. when it was run by at least two agents.
 """
@@ -43,6 +43,8 @@ def agent(manifest) -> str:
     if manifest.preprocessor is not None and manifest.preprocessor.get("kind") != "rbm":
         parts.append(f"preprocessor={manifest.preprocessor.get('kind')}")
     memories = sorted({str(p.get("kind")) for p in manifest.predictors.values()} - {"elman"})
+    if manifest.episodic and not manifest.predictors:  # the dissertation's episodic agents all remember
+        parts.append("predictor=none")
     if memories:
         parts.append(f"memory={'+'.join(memories)}")
     if manifest.episodic and manifest.trainer.get("kind") != "phased":

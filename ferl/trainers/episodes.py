@@ -122,6 +122,10 @@ class CollectEpisodes(Phase):
     def __init__(self, n_sample: int, collect_batch: int, train_fraction: float):
         self.n_sample, self.collect_batch, self.train_fraction = n_sample, collect_batch, train_fraction
 
+    def applies(self, job) -> bool:
+        """The random episodes are the predictors' data: a memoryless agent (``predictor=none``) acts at once."""
+        return bool(job.predictors)
+
     def run(self, job, state) -> None:
         copies = max(1, min(self.n_sample, self.collect_batch // job.R))
         env = job.make_env(job.R * copies)

@@ -33,7 +33,7 @@ import time
 import numpy as np
 import torch
 
-from ferl.config.params import Momentum, NonNegative, Positive, PositiveInt, UnitInterval, checked
+from ferl.config.params import ConfigError, Momentum, NonNegative, Positive, PositiveInt, UnitInterval, checked
 from ferl.predictors.recurrent import lookup_step
 from ferl.trainers.actor_episodes import ActorEpisodes
 from ferl.trainers.episodes import Episodes, episode_tensors
@@ -57,6 +57,9 @@ class OnlineEpisodes(ActorEpisodes):
         self.eta_now, self.beta_now = 0.0, None
 
     def prepare(self, job) -> None:
+        if not job.predictors:
+            raise ConfigError("predictor=none is not allowed with trainer=online: it trains predictors and actor "
+                              "together; a memoryless actor alone is the actor phase of trainer=algorithm1")
         super().prepare(job)
         groups = {}
         for p in job.predictors.values():

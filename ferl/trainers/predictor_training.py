@@ -23,6 +23,9 @@ class TrainPredictors(Phase):
 
     name = "predictors"
 
+    def applies(self, job) -> bool:
+        return bool(job.predictors)
+
     def __init__(self, l_training: int, n_epoch: int, error_every: int, checkpoint_every_epochs: int,
                  checkpoint_minutes: float):
         self.l_training, self.n_epoch, self.error_every = l_training, n_epoch, error_every
