@@ -136,6 +136,14 @@ def test_sigterm_then_resume_equals_uninterrupted(tmp_path, runs):
     interrupt_and_resume(tmp_path, args, 20000, signal.SIGTERM, 128 + signal.SIGTERM)
 
 
+def test_large_action_task_resumes_equal_to_uninterrupted(tmp_path):
+    """The large-action task's checkpoint (its key states, the states drawn ahead, the Gibbs
+    chains' generator) continues the run exactly."""
+    args = ["experiment=large_action", "n_runs=2", "actor.gibbs_sweeps=5", "trainer.steps=6000",
+            "trainer.checkpoint_every=200", "trainer.log_every=200"]
+    interrupt_and_resume(tmp_path, args, 6000, signal.SIGTERM, 128 + signal.SIGTERM)
+
+
 def test_kill_9_resumes_from_a_checkpoint_the_clock_wrote(tmp_path):
     """No step count reaches checkpoint_every inside the run: only trainer.checkpoint_minutes
     writes checkpoints. kill -9 (no handler) leaves the last one intact, and the resumed run
