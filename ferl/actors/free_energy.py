@@ -121,7 +121,7 @@ class FERLActor(nn.Module):
             raise ArgumentError("lr", "a schedule of learning rates > 0")
         if not all(beta(p) >= 0 for p in (0.0, 1.0)):
             raise ArgumentError("beta", "a schedule of inverse temperatures ≥ 0")
-        if args["action_selection"] == "gibbs" and not value_form(args["q"], 1.0).boltzmann:
+        if args["action_selection"] == "gibbs" and not FORMS[args["q"]].boltzmann:
             raise ArgumentError("q", "free_energy or scaled_free_energy with action_selection=gibbs "
                                      "(no Gibbs chain samples exp(β Q) of the expected energy)")
         n_actions = args.get("n_actions", 0)
@@ -221,8 +221,9 @@ class FERLActor(nn.Module):
         a = self.select(s, F, beta, generator, uniform)
         F_a = pick(F, a)
         if self.td_rule == "sarsa":
-            return a, F_a, pick(x, a), F_a
-        F_boot = F.min(-1).values if self.td_rule == "q" else (self.policy(F, beta) * F).sum(-1)
+            F_boot = F_a
+        else:
+            F_boot = F.min(-1).values if self.td_rule == "q" else (self.policy(F, beta) * F).sum(-1)
         return a, F_a, pick(x, a), F_boot
 
     def select(self, s: torch.Tensor, F: torch.Tensor, beta: float, generator: torch.Generator,
@@ -243,18 +244,17 @@ class FERLActor(nn.Module):
         Both conditionals at inverse temperature β, so the chain's stationary law is
         P(a|s) ∝ exp(−β F_β(s, a)). P(a|h) ∝ exp(β aᵀ(W_ah h + b_a)) over the admissible codes:
         for ``binary`` codes this factorises into independent action nodes; for ``onehot`` it
-        is the softmax unit that enforces one active action node. A scaled free energy runs the
-        chain at β / Z (``ferl.actors.values``).
+        is the softmax unit that enforces one active action node. Each sweep runs at its
+        ``chain_betas`` value (β / Z for a scaled free energy, annealed with ``gibbs_anneal_from``).
         """
-        beta = self.form.gibbs_beta(beta)
         x_s = rbm.hidden_input(s, self.W_sh, self.b_h)
         n_actions = self.codes.shape[0]
         a = torch.randint(n_actions, x_s.shape[:2], generator=generator, device=s.device)
-        for _ in range(self.gibbs_sweeps):
+        for b in self.chain_betas(beta):
             x = x_s + torch.bmm(self.codes[a], self.W_ah)
-            h = torch.bernoulli(torch.sigmoid(beta * x), generator=generator)
+            h = torch.bernoulli(torch.sigmoid(b * x), generator=generator)
             action_field = torch.bmm(h, self.W_ah.transpose(1, 2)) + self.b_a.unsqueeze(1)
-            probs = torch.softmax(beta * action_field @ self.codes.T, -1)
+            probs = torch.softmax(b * action_field @ self.codes.T, -1)
             a = sample_categorical(probs, torch.rand(a.shape + (1,), generator=generator, device=s.device, dtype=probs.dtype))
         return a
 

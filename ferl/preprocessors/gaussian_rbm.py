@@ -40,7 +40,7 @@ import torch
 
 from ferl import rbm
 from ferl.config.params import Positive, PositiveInt, checked
-from ferl.preprocessors.rbm import Generators, RBMPreprocessor
+from ferl.preprocessors.rbm import Generators, RBMPreprocessor, uniform
 
 GAUSSIAN_VISIBLE_MODES = ("mean", "sampled")
 
@@ -50,11 +50,6 @@ def free_energy(v: torch.Tensor, W: torch.Tensor, b_v: torch.Tensor, b_h: torch.
     shared (B, V) → (R, B); W (R, V, H), b_v (R, V), b_h (R, H)."""
     quadratic = 0.5 * (v - b_v.unsqueeze(1)).pow(2).sum(-1)
     return rbm.free_energy_from_input(-quadratic, rbm.hidden_input(v, W, b_h))
-
-
-def normal(shape, gens: list, like: torch.Tensor) -> torch.Tensor:
-    """N(0, 1) numbers (R, *shape), run r's from gens[r], on like's device and dtype."""
-    return torch.stack([torch.randn(shape, generator=g, device=like.device, dtype=like.dtype) for g in gens])
 
 
 class GaussianRBMPreprocessor(RBMPreprocessor):
@@ -101,7 +96,7 @@ class GaussianRBMPreprocessor(RBMPreprocessor):
         from gens when visible="sampled"."""
         mean = self.visible_input(h)
         if self.visible == "sampled" and gens is not None:
-            return mean + normal(mean.shape[1:], gens, mean)
+            return mean + uniform(mean.shape[1:], gens, mean, draw=torch.randn)  # N(0, 1) per run
         return mean
 
     @torch.no_grad()

@@ -70,9 +70,10 @@ def per_run(generator: Generators, n_runs: int) -> list:
     return gens
 
 
-def uniform(shape, gens: list, like: torch.Tensor) -> torch.Tensor:
-    """U(0, 1) numbers (R, *shape), run r's from gens[r], on like's device and dtype."""
-    return torch.stack([torch.rand(shape, generator=g, device=like.device, dtype=like.dtype) for g in gens])
+def uniform(shape, gens: list, like: torch.Tensor, draw=torch.rand) -> torch.Tensor:
+    """U(0, 1) numbers (R, *shape) (or ``draw``'s, e.g. torch.randn), run r's from gens[r], on like's
+    device and dtype."""
+    return torch.stack([draw(shape, generator=g, device=like.device, dtype=like.dtype) for g in gens])
 
 
 def bernoulli(p: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
