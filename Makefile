@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup run test bench reproduce beyond variants clean
+.PHONY: setup run test bench reproduce beyond variants baselines clean
 
 setup: $(STAMP)
 
@@ -90,6 +90,21 @@ variants: $(STAMP)
 	echo $$(( $$(date +%s) - start )) > $$dir/train_wall_time_s && \
 	$(PY) analyze.py $$dir && \
 	echo "  variants in $$(( $$(date +%s) - start )) s; report: $$dir/analysis/report.md"
+
+# Baselines side by side (issue 4/8; CONTRACT §3): the dissertation's agent, memoryless FERL, the
+# feed-forward Q-network on the same predictors (actor=mlp_q), a DRQN-style recurrent Q-learner and
+# the oracle on the true state, on the floor, the matching maze (Algorithms 1 and 2), the pixel maze
+# and the corridor-20 regular maze, 10 runs each, REPRO_JOBS at a time; RecurrentPPO (sb3-contrib)
+# on the matching and corridor-20 mazes where the `baselines` extra is installed. Then the report,
+# whose "Agents side by side" section has a table, a finding and a figure per task.
+BASELINES_STAMP := $(VENV)/.installed-baselines
+$(BASELINES_STAMP): $(STAMP)
+	$(PY) -m pip install --quiet -e '.[baselines]'
+	touch $@
+baselines: $(BASELINES_STAMP)
+	@dir=outputs/baselines/$$(date +%Y-%m-%d_%H-%M-%S); start=$$(date +%s); \
+	$(PY) baselines/side_by_side.py $$dir --jobs $(REPRO_JOBS) && \
+	echo "  baselines in $$(( $$(date +%s) - start )) s; report: $$dir/analysis/report.md"
 
 bench: $(STAMP)
 	$(PY) benchmarks/bench_floor.py

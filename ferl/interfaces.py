@@ -223,6 +223,22 @@ class Actor(Protocol):
     def describe(self) -> dict: ...
 
 
+@runtime_checkable
+class EpisodeLearner(Protocol):
+    """An actor that carries a memory through an episode and learns from whole replayed episodes
+    (a recurrent Q-learner, ``ferl.actors.drqn``) rather than from each TD error: the episodic
+    phases tell it where an episode begins and hand it the episode when it has ended."""
+
+    def begin_episode(self) -> None:
+        """Forget the last episode (every run's memory back to its start)."""
+
+    def end_episode(self, states: Tensor, actions: Tensor, rewards: Tensor, lengths: Tensor,
+                    terminated: Tensor, lr: float) -> None:
+        """Every run's episode — states (R, T_max+1, S), actions and rewards (R, T_max) padded after
+        ``lengths`` (R,) actions, ``terminated`` (R,) whether it ended in a terminal state — to
+        learn from at step size ``lr``."""
+
+
 class Trainer(Protocol):
     """A training procedure: built from ``conf/trainer/*.yaml`` (``_target_``), then ``setup``
     builds the components from the composed config and ``fit`` trains them into a run directory."""

@@ -20,20 +20,17 @@ All parameters carry the run dimension first, ``W_sh`` (R, S, H); states are (R,
 B = 1 in the online step loop and B = many for test images. The cache of ``evaluate`` is the
 hidden input x (R, B, nA, H), ĥ = σ(x).
 """
-import copy
 import math
 from typing import Literal
 
 import torch
-from hydra.utils import instantiate
-from torch import nn
 
 from ferl import rbm
+from ferl.actors.softmax import TD_RULES, SoftmaxActor, check_schedules, run_generators, sample_categorical
 from ferl.actors.values import FORMS, value_form
 from ferl.bits import from_bits, to_bits
 from ferl.config.params import ArgumentError, Discount, NonNegative, NonNegativeInt, Positive, PositiveInt, checked
 
-TD_RULES = ("sarsa", "q", "expected_sarsa")
 # what α is divided by: the square root of the edges or of a hidden node's fan-in, nothing, or
 # ‖∂Q(s, a)/∂θ‖² (normalised LMS: α is then the share of δ that one update corrects)
 LR_NORMS = ("edges", "fan_in", "none", "gradient")
@@ -56,25 +53,8 @@ def action_code_table(n_actions: int, code: str) -> torch.Tensor:
     return to_bits(torch.arange(n_actions), max(1, math.ceil(math.log2(n_actions))))
 
 
-def pick(x: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
-    """Entries of the chosen actions on the online path: x (R, 1, nA, ...) at a (R, 1) → (R, 1, ...)."""
-    flat = x.reshape(-1, *x.shape[3:]) if x.dim() > 3 else x.reshape(-1)
-    index = a.squeeze(1) + torch.arange(0, flat.shape[0], x.shape[2], device=a.device)
-    return flat.index_select(0, index).unsqueeze(1)
-
-
-def sample_categorical(probs: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-    """One draw per row of probs (..., n) by inverting the CDF at uniforms u (..., 1)."""
-    index = (probs.cumsum(-1) < u).sum(-1)
-    return index.clamp_(max=probs.shape[-1] - 1)
-
-
-def schedule(node):
-    """A schedule given as an object, or as its config node (``_target_``: ``ferl.schedules``)."""
-    return instantiate(node) if isinstance(node, dict) else node
-
-
-class FERLActor(nn.Module):
+class FERLActor(SoftmaxActor):
+    shared_buffers = ("codes",)
     @checked
     def __init__(self, n_runs: PositiveInt, n_state: PositiveInt, n_actions: PositiveInt, n_hidden: PositiveInt,
                  td_rule: Literal[TD_RULES], gamma: Discount, lr, beta, lr_norm: Literal[LR_NORMS] = "edges",
@@ -97,7 +77,7 @@ class FERLActor(nn.Module):
         n_bits = codes.shape[1]
         self.register_buffer("codes", codes)
         # Each run is initialised from its own seed, so run r does not depend on n_runs.
-        gens = [torch.Generator().manual_seed(seed + r) for r in range(n_runs)]
+        gens = run_generators(seed, n_runs)
         self.register_buffer("W_sh", torch.stack([torch.randn(n_state, n_hidden, generator=g) for g in gens]) * init_std)
         self.register_buffer("W_ah", torch.stack([torch.randn(n_bits, n_hidden, generator=g) for g in gens]) * init_std)
         # biases N(0, bias_init_std²), drawn after the weights so the weights do not depend on it
@@ -116,11 +96,7 @@ class FERLActor(nn.Module):
         """α and β of the schedules at the start and the end of training (both monotone); a value
         form that Gibbs sampling can draw from; factored actions (known once the environment
         gives ``n_actions``) coded in bits, drawn by Gibbs sampling and learnt by SARSA."""
-        lr, beta = schedule(args["lr"]), schedule(args["beta"])
-        if not all(lr(p) > 0 for p in (0.0, 1.0)):
-            raise ArgumentError("lr", "a schedule of learning rates > 0")
-        if not all(beta(p) >= 0 for p in (0.0, 1.0)):
-            raise ArgumentError("beta", "a schedule of inverse temperatures ≥ 0")
+        check_schedules(args)
         if args["action_selection"] == "gibbs" and not FORMS[args["q"]].boltzmann:
             raise ArgumentError("q", "free_energy or scaled_free_energy with action_selection=gibbs "
                                      "(no Gibbs chain samples exp(β Q) of the expected energy)")
@@ -165,21 +141,6 @@ class FERLActor(nn.Module):
         vectorises and fuses into one pass over W (eager's bmm is faster on the default layout)."""
         self.W_sh = self.W_sh.transpose(1, 2).contiguous().transpose(1, 2)
 
-    def runs(self, index: slice) -> "FERLActor":
-        """This actor restricted to a slice of its runs. The parameters are views, so updates
-        (Eq. 3.10) of the slice land in this actor's."""
-        part = copy.copy(self)
-        part._buffers = {name: b if name == "codes" else b[index] for name, b in self._buffers.items()}
-        return part
-
-    def learning_rate(self, progress: float) -> float:
-        """α of Eq. (3.10) divided by √(total edges) ("edges", §3.5), by √(fan-in of a hidden
-        node) ("fan_in") or by nothing ("none")."""
-        return self.lr_schedule(progress) / self.lr_divisor
-
-    def inverse_temperature(self, progress: float) -> float:
-        return self.beta_schedule(progress)
-
     def evaluate(self, s: torch.Tensor):
         """Energies F = −Q of every action and the hidden inputs: s (R, B, S) or shared (B, S) →
         F (R, B, nA), x (R, B, nA, H) with ĥ = σ(x) (Eq. 3.1c)."""
@@ -204,10 +165,6 @@ class FERLActor(nn.Module):
         One-hot codes are the identity, so the product is skipped on the hot path."""
         return weights if self.onehot else self.codes @ weights
 
-    def policy(self, F: torch.Tensor, beta: float) -> torch.Tensor:
-        """Softmax action-selection probabilities, Eq. (3.11)."""
-        return torch.softmax(-beta * F, dim=-1)
-
     def act(self, s: torch.Tensor, beta: float, generator: torch.Generator, uniform: torch.Tensor = None):
         """At states s (R, 1, S): an action a (R, 1) by the actor's selection, its F(s, a) (R, 1) and
         hidden input (R, 1, H), and the F that a TD error bootstraps from at s (§3.2): F(s, a)
@@ -217,14 +174,7 @@ class FERLActor(nn.Module):
             a = self.gibbs_bits(s, beta, generator)
             F_a, x_a = self.evaluate_actions(s, a)
             return a, F_a, x_a, F_a
-        F, x = self.evaluate(s)
-        a = self.select(s, F, beta, generator, uniform)
-        F_a = pick(F, a)
-        if self.td_rule == "sarsa":
-            F_boot = F_a
-        else:
-            F_boot = F.min(-1).values if self.td_rule == "q" else (self.policy(F, beta) * F).sum(-1)
-        return a, F_a, pick(x, a), F_boot
+        return super().act(s, beta, generator, uniform)
 
     def select(self, s: torch.Tensor, F: torch.Tensor, beta: float, generator: torch.Generator,
                uniform: torch.Tensor = None) -> torch.Tensor:
@@ -234,9 +184,7 @@ class FERLActor(nn.Module):
         """
         if self.action_selection == "gibbs":
             return self.gibbs_actions(s, beta, generator)
-        if uniform is None:
-            uniform = torch.rand(F.shape[:-1] + (1,), generator=generator, device=F.device, dtype=F.dtype)
-        return sample_categorical(self.policy(F, beta), uniform)
+        return super().select(s, F, beta, generator, uniform)
 
     def gibbs_actions(self, s: torch.Tensor, beta: float, generator: torch.Generator) -> torch.Tensor:
         """Alternating Gibbs sampling with s clamped (end of §3.2): h ~ P(h|s,a), a ~ P(a|h).

@@ -78,10 +78,13 @@ class Manifest:
 
     @property
     def dissertation_components(self) -> bool:
-        """The actor's Q is the free energy (§3.2), a preprocessor, if any, the RBM (§5.2), and the
-        observations without the continuous pixel noise of §5.4's Gaussian-visible variant: other
-        value forms, preprocessors and observations are findings of ours, not claims to judge."""
-        return (self.actor.get("q", "free_energy") == "free_energy"
+        """The actor is the free-energy one (§3.2) with Q the free energy, a preprocessor, if any,
+        the RBM (§5.2), and the observations what the agent sees, without the continuous pixel
+        noise of §5.4's Gaussian-visible variant: baselines, other value forms, preprocessors and
+        observations are findings of ours, not claims to judge."""
+        return (self.actor.get("kind", "free_energy") == "free_energy"
+                and self.actor.get("q", "free_energy") == "free_energy"
+                and not self.env.get("true_state")
                 and (self.preprocessor is None or self.preprocessor.get("kind") == "rbm")
                 and not self.env.get("pixel_noise_std"))
 

@@ -3,11 +3,14 @@ dissertation's agent against each variant of its components, as findings of ours
 
 A *task* is what a run's environment recorded of itself (`records/run.json` `env`): runs whose
 environments describe themselves alike faced the same task, whatever experiment or override
-produced them. An *agent* is what differs from the dissertation's components: the actor's value
-form (`actor.q`), a preprocessor other than the RBM, no predictor where the dissertation has one
-(`predictor=none`), predictor memories other than Elman, a trainer other than the phased algorithms, curiosity. A task gets a
-table (the headline metrics of its summary, mean ± s.e.m. over runs) and one learning-curve
-figure with every agent's mean ± s.e.m. when it was run by at least two agents.
+produced them, and whatever view of it the agent had (the oracle's true state). An *agent* is
+what differs from the dissertation's components: the oracle's view, the actor's kind (the
+baselines: ``mlp_q``, ``drqn``, ``tabular_q``, an external ``recurrent_ppo``) and value form
+(`actor.q`), a preprocessor other than the RBM, no predictor where the dissertation has one
+(`predictor=none`), predictor memories other than Elman, a trainer other than the phased
+algorithms, curiosity. A task gets a table (the headline metrics of its summary, mean ± s.e.m.
+over runs), the finding of which agent leads it, and one learning-curve figure with every
+agent's mean ± s.e.m. when it was run by at least two agents.
 """
 
 from __future__ import annotations
@@ -30,13 +33,22 @@ from ferl.analysis.sweep import metric_values
 DISSERTATION_AGENT = "dissertation agent"
 # The metrics a task's row shows, in this order, where its summaries have them (CONTRACT §2).
 HEADLINES = ("solved", "final_correct_goal_rate", "final_discounted_return", "reward_per_step_last10pct",
-             "greedy_accuracy/0.125", "env_steps_total", "agent_steps_per_s")
+             "greedy_accuracy/0.125", "env_steps_to_solve", "env_steps_total", "wall_time_s", "agent_steps_per_s")
+# How agents are ranked on a task: by the first of these their summaries have (higher is better),
+# then the next on ties; the finding compares the leader with the runner-up on the first.
+RANKING = ("solved", "final_correct_goal_rate", "final_discounted_return", "reward_per_step_last10pct")
+# What a view of the environment changes of its facts (the oracle's ``true_state``): the task stays.
+VIEW_KEYS = ("true_state", "observation", "observation_size", "observation_names")
+ORACLE = "oracle"
 CURVE = {"episode": "discounted_return", "step": "reward"}  # the curve each unit of run draws
 
 
 def agent(manifest) -> str:
     """The components of a run that are not the dissertation's, or DISSERTATION_AGENT."""
-    parts = []
+    parts = [ORACLE] if manifest.env.get("true_state") else []
+    kind = manifest.actor.get("kind", "free_energy")
+    if kind != "free_energy":
+        parts.append(f"actor={kind}")
     q = manifest.actor.get("q", "free_energy")
     if q != "free_energy":
         parts.append(f"actor.q={q}")
@@ -55,7 +67,8 @@ def agent(manifest) -> str:
 
 
 def task_key(manifest) -> str:
-    return json.dumps(manifest.env, sort_keys=True, default=str)
+    """The environment's facts but those of the view its agent had of it."""
+    return json.dumps({k: v for k, v in manifest.env.items() if k not in VIEW_KEYS}, sort_keys=True, default=str)
 
 
 @dataclass
@@ -102,6 +115,30 @@ def cell_text(name: str, value) -> str:
     return f"{mean:,.{digits}f} ± {sem:,.{digits}f}" if n > 1 else f"{mean:,.{digits}f}"
 
 
+def ranking_key(cells: dict) -> tuple:
+    return tuple(cells[n][0] if n in cells and not np.isnan(cells[n][0]) else -np.inf for n in RANKING)
+
+
+def finding(cells: Sequence[tuple[Entry, dict]]) -> str | None:
+    """Which agent leads the task (the oracle aside: it sees the true state), by how much on the
+    first ranking metric, with the s.e.m. of the difference; and the oracle's ceiling."""
+    agents = [(e, h) for e, h in cells if not e.agent.startswith(ORACLE)]
+    if len(agents) < 2:
+        return None
+    (best, b), (second, c) = sorted(agents, key=lambda eh: ranking_key(eh[1]), reverse=True)[:2]
+    metric = next((n for n in RANKING if n in b and n in c), None)
+    if metric is None:
+        return None
+    name = lambda e: f"{e.agent} ({e.job.label})"  # noqa: E731
+    diff, sem = b[metric][0] - c[metric][0], float(np.hypot(b[metric][1], c[metric][1]))
+    text = (f"**Best: {name(best)}**, {metric} {cell_text(metric, b[metric])}, ahead of {name(second)} "
+            f"({cell_text(metric, c[metric])}) by {diff:.3f} ± {sem:.3f} (s.e.m. of the difference).")
+    oracle = [(e, h) for e, h in cells if e.agent.startswith(ORACLE) and metric in h]
+    if oracle:
+        text += f" Ceiling (oracle on the true state): {cell_text(metric, oracle[0][1][metric])}."
+    return text
+
+
 def curve_figure(group: Sequence[Entry]) -> Figure | None:
     """Every agent's main learning curve (mean ± s.e.m. over runs) in one panel."""
     fig = Figure(figsize=(7.5, 4), layout="constrained")
@@ -137,7 +174,8 @@ def report(jobs: Sequence, out: Path, figures: dict, data_files: list) -> list[s
         return []
     lines = ["", "## Agents side by side (findings of ours, §5.4)", "",
              "Per task (runs whose environments recorded the same settings), the dissertation's agent "
-             "and every variant of its components that the sweep ran: mean ± s.e.m. over runs."]
+             "and every variant of its components or baseline agent that the sweep ran: mean ± s.e.m. over "
+             "runs (`env_steps_to_solve`: over the runs that solved)."]
     rows = []
     for i, group in enumerate(groups):
         cells = [(e, headline(e)) for e in group]
@@ -146,6 +184,9 @@ def report(jobs: Sequence, out: Path, figures: dict, data_files: list) -> list[s
         lines += table_lines(["agent", "run as", "runs", *names],
                              [(e.agent, e.job.label, max((h[n][2] for n in h), default=0),
                                *(cell_text(n, h.get(n)) for n in names)) for e, h in cells])
+        best = finding(cells)
+        if best:
+            lines += ["", best]
         rows += [(title(group), e.agent, e.job.variant, n, *map(fmt, h[n][:2]), h[n][2])
                  for e, h in cells for n in names if n in h]
         fig = curve_figure(group)

@@ -110,7 +110,8 @@ class DigitFloor:
     task = "digit_floor"
     action_names = ACTIONS
     n_actions = len(ACTIONS)
-    observation_size = 784
+    pixels = 784
+    observation_size = pixels  # the tile's image (``true_state``: its in-patch position)
 
     @checked
     def __init__(self, n_runs: PositiveInt, data: MnistSplit, generator: torch.Generator,
@@ -120,9 +121,12 @@ class DigitFloor:
                  reward_condition: Literal[REWARD_CONDITIONS] = "cw", goal_reward: float = 10.0,
                  boundary_reward: float = 4.0, other_reward: float = -2.0,
                  noise_tile: Annotated[str | int, Allowed(lambda c: str(c) in DIGITS, "(a class 0–9)")] | None = None,
-                 device="cpu"):
+                 true_state: bool = False, device="cpu"):
         self.n_runs, self.noise, self.generator, self.device = n_runs, noise, generator, torch.device(device)
         self.reward_condition, self.patches = reward_condition, patches
+        # true_state: the oracle's view (``actor=oracle``), the tile's in-patch position one-hot
+        # (its digit class) instead of its noisy image; the same random numbers are drawn
+        self.true_state = true_state
         layout = [str(c) for row in arrangement for c in row]
         if noise_tile is not None:
             layout = [NOISE_CLASS if c == str(noise_tile) else c for c in layout]
@@ -146,7 +150,9 @@ class DigitFloor:
         self.lands_in_goal = as_tensor((position == GOAL)[next_tile].reshape(-1), torch.bool)
         self.non_goal_tiles = as_tensor(np.flatnonzero(position != GOAL), torch.long)
         self._build_floor(data, position)
-        self.n_noisy = round(noise * self.observation_size)
+        self.n_noisy = round(noise * self.pixels)
+        if true_state:
+            self.observation_size = len(layout)
         self.noise_blocks = Blocks(self._draw_noise, steps_per_block(n_runs * (2 * self.n_noisy + 1)))
         self.tile = self._random_non_goal()
 
@@ -160,7 +166,8 @@ class DigitFloor:
             raise ArgumentError("noise_tile", "null or a class of the arrangement other than the goal (its centre)")
 
     def describe(self) -> dict:
-        return {"kind": "digit_floor", "task": self.task, "episodic": False, "observation": "image",
+        return {"kind": "digit_floor", "task": self.task, "episodic": False,
+                "observation": "state" if self.true_state else "image", "true_state": self.true_state,
                 "observation_size": self.observation_size, "n_actions": self.n_actions, "action_names": list(self.action_names),
                 "noise": self.noise, "reward_condition": self.reward_condition, "patches": self.patches,
                 "classes": list(self.classes), "noise_class": NOISE_CLASS}
@@ -176,7 +183,7 @@ class DigitFloor:
 
     def _draw_noise(self, steps: int):
         """Noisy-pixel positions and values plus transport targets for ``steps`` future steps."""
-        idx, values = pixel_noise(steps * self.n_runs, self.observation_size, self.noise, self.generator)
+        idx, values = pixel_noise(steps * self.n_runs, self.pixels, self.noise, self.generator)
         shape = (steps, self.n_runs, self.n_noisy)
         transport = self.non_goal_tiles[torch.randint(len(self.non_goal_tiles), (steps, self.n_runs),
                                                       generator=self.generator, device=self.device)]
@@ -191,7 +198,7 @@ class DigitFloor:
             tiles = torch.as_tensor(np.flatnonzero(np.array(self.layout)[position] == label), device=self.device)
             if label == NOISE_CLASS:
                 offset = sum(len(b) for b in bank)
-                bank.append(torch.rand(self.n_runs * len(tiles), self.observation_size,
+                bank.append(torch.rand(self.n_runs * len(tiles), self.pixels,
                                        generator=self.generator, device=self.device))
                 ids = offset + torch.arange(self.n_runs * len(tiles), device=self.device).view(self.n_runs, -1)
             else:
@@ -221,7 +228,10 @@ class DigitFloor:
         return self.non_goal_tiles[k]
 
     def _observe(self, idx, values) -> torch.Tensor:
-        """The current tile's image with its noisy pixels replaced: (R, 784)."""
+        """The current tile's image with its noisy pixels replaced: (R, 784); its position one-hot
+        with ``true_state``."""
+        if self.true_state:
+            return torch.nn.functional.one_hot(self.tile_position.index_select(0, self.tile), self.observation_size).float()
         image = self.bank.index_select(0, self.tile_image.gather(1, self.tile.unsqueeze(1)).squeeze(1))
         return image.scatter_(1, idx, values) if self.n_noisy else image
 

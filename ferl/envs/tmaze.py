@@ -31,6 +31,13 @@ def observation_names(matching: bool) -> tuple:
     return ("start_0", "start_1", "corridor", *junction, "goal_left", "goal_right")
 
 
+def true_state_names(corridor_length: int) -> tuple:
+    """Every true state (position, s0, s1) of the maze, in id order position·4 + 2·s0 + s1 (the
+    regular maze uses s1 = 0 only)."""
+    places = ("start", *(f"corridor{p}" for p in range(1, corridor_length - 1)), "junction", "goal_left", "goal_right")
+    return tuple(f"{place}_s{s0}{s1}" for place in places for s0 in (0, 1) for s1 in (0, 1))
+
+
 def observation_bits(name: str) -> np.ndarray:
     """The 7-bit code of an observation: its position bit, plus bit 5 + v for a shown signal v."""
     place, _, signal = name.rpartition("_") if name[-1].isdigit() else (name, "", "")
@@ -85,7 +92,8 @@ class TMaze:
     def __init__(self, n_runs: PositiveInt, generator: torch.Generator,
                  corridor_length: Annotated[int, at_least(2, "start, corridor cells, junction")] = 3,
                  max_steps: PositiveInt = 10, matching: bool = False, goal_reward: float = 5.0,
-                 wall_reward: float = -1.0, step_reward: float = -0.1, images=None, device="cpu"):
+                 wall_reward: float = -1.0, step_reward: float = -0.1, true_state: bool = False, images=None,
+                 device="cpu"):
         self.n_runs, self.generator, self.device = n_runs, generator, torch.device(device)
         self.corridor_length, self.max_steps, self.matching = corridor_length, max_steps, matching
         self.optimal_steps = corridor_length
@@ -108,6 +116,13 @@ class TMaze:
                 raise ValueError("images: every observation needs a reservoir of the same size")
             table = torch.cat(entries)
         self.reservoir_size = table.shape[0] // len(self.observation_names)
+        # true_state: the oracle's view (``actor=oracle``), the hidden state (position, s0, s1)
+        # one-hot instead of what the agent would see. Ids become true states (K rows each, as a
+        # reservoir's images), so every lookup and random draw stays as it is.
+        self.true_state = true_state
+        if true_state:
+            self.observation_names, self.observation_kind = true_state_names(corridor_length), "state"
+            table = torch.eye(len(self.observation_names)).repeat_interleave(self.reservoir_size, 0)
         self.observation_table = table.to(self.device)
         self.observation_size = self.observation_table.shape[1]
 
@@ -127,13 +142,15 @@ class TMaze:
         return {"kind": "tmaze", "task": self.task, "episodic": True,
                 "observation": self.observation_kind,
                 "observation_size": self.observation_size, "n_actions": self.n_actions, "action_names": list(self.action_names),
-                "matching": self.matching, "corridor_length": self.corridor_length, "max_steps": self.max_steps,
+                "true_state": self.true_state, "matching": self.matching, "corridor_length": self.corridor_length, "max_steps": self.max_steps,
                 "goal_reward": self.rewards[0], "reward_values": list(self.reward_values),
                 "observation_names": list(self.observation_names), "reservoir_size": self.reservoir_size,
                 "labels": list(self.labels()), "outcomes": list(self.outcomes())}
 
     def _observation_ids(self) -> np.ndarray:
         """Observation id of every (position, s0, s1), shape (P, 2, 2)."""
+        if self.true_state:  # id = position·4 + 2·s0 + s1 (``true_state_names``)
+            return np.arange((self.corridor_length + 2) * 4).reshape(-1, 2, 2)
         ids = {n: i for i, n in enumerate(self.observation_names)}
         junction = self.corridor_length - 1
         table = np.full((self.corridor_length + 2, 2, 2), ids["corridor"], dtype=np.int64)

@@ -16,10 +16,12 @@ import time
 
 import numpy as np
 import torch
+from torch.nn import functional as nnf
 from tqdm import tqdm
 
 from ferl.actors.td import first_action, td_step
 from ferl.images import IMAGE_SIDE, matrix_image, tile, weight_images
+from ferl.interfaces import EpisodeLearner
 from ferl.predictors.heads import scaled
 from ferl.random_blocks import Blocks, steps_per_block
 from ferl.run.directory import CheckpointTimer
@@ -54,6 +56,7 @@ class ActorEpisodes(Phase):
         outcomes = job.env.outcomes()
         self.outcome_names = ("discounted_return", "steps", "terminal_reward", "td_abs_mean", *outcomes)
         self.rates = [name for name, v in outcomes.items() if v.dtype == torch.bool]  # e.g. correct_goal
+        self.episode_learner = isinstance(job.actor, EpisodeLearner)
         self.dtypes = {"discounted_return": np.float32, "steps": np.int64, "terminal_reward": np.float32,
                        "td_abs_mean": np.float32, **{k: bool if k in self.rates else np.int64 for k in outcomes}}
 
@@ -150,18 +153,22 @@ class ActorEpisodes(Phase):
         observation ids (steps + 1 tensors (R,)), actions (steps tensors (R,)) and raw rewards (steps, R)."""
         env, actor, predictors = job.env, job.actor, list(job.predictors.values())
         env.reset()
+        if self.episode_learner:
+            actor.begin_episode()
         (uniform,) = self.uniforms.next()  # (T_max + 1, R, 1, 1)
         m = [p.initial_state() for p in predictors]  # m_0 (Eq. 4.1): it learns too when the predictors do
         memories = [p.memory(x) for p, x in zip(predictors, m)]
         s = self.state(job, env.obs_id, memories)
         a, F_sa, x_sa = first_action(actor, s, beta, job.generator, uniform[0])
         rewards, deltas, visits, obs, actions = [], [], [], [env.obs_id], []
+        ended_terminal = torch.zeros_like(env.done)
         for t in range(env.max_steps):
             active = ~env.done
             visits.append((env.probe & active, active, memories, s, x_sa))
             obs_prev = env.obs_id
             actions.append(a.squeeze(1))
             r, terminated, _ = env.advance(a.squeeze(1))
+            ended_terminal = ended_terminal | terminated
             obs.append(env.obs_id)
             m = [step(x, obs_prev, a.squeeze(1)) for step, x in zip(self.steps, m)]
             memories = [p.memory(x) for p, x in zip(predictors, m)]
@@ -178,6 +185,8 @@ class ActorEpisodes(Phase):
         rewards, deltas = torch.stack(rewards), torch.stack(deltas)  # (steps, R)
         actives = torch.stack([v[1] for v in visits])
         steps = env.t
+        if self.episode_learner:
+            self.hand_over(job, [v[3] for v in visits] + [s], actions, rewards, ended_terminal, lr)
         outcome = torch.stack([
             self.discounts[:len(rewards)] @ rewards,  # discounted return (done runs got r = 0)
             steps.float(), rewards.gather(0, (steps - 1).unsqueeze(0)).squeeze(0),  # terminal reward
@@ -185,6 +194,16 @@ class ActorEpisodes(Phase):
         return {"outcome": outcome, "td": torch.where(actives, deltas, torch.nan),
                 "probes": self.probe_visits(job, k, visits),
                 "trajectory": (obs, actions, rewards)}
+
+    def hand_over(self, job, states: list, actions: list, rewards: torch.Tensor, terminated: torch.Tensor,
+                  lr: float) -> None:
+        """The ended episode, padded to T_max actions, to an actor that learns from episodes
+        (``ferl.interfaces.EpisodeLearner``): states (R, T_max+1, S), actions and rewards
+        (R, T_max), lengths and whether each ended in a terminal state (R,)."""
+        pad = job.env.max_steps - len(actions)
+        states = torch.cat(states, 1)
+        job.actor.end_episode(nnf.pad(states, (0, 0, 0, pad)), nnf.pad(torch.stack(actions, 1), (0, pad)),
+                              nnf.pad(rewards.T, (0, pad)), job.env.t.clone(), terminated, lr)
 
     def probe_visits(self, job, k: int, visits: list) -> dict | None:
         """Activations at every probe visit of episode k after the action there was selected

@@ -77,6 +77,10 @@ class GreedyTests(Phase):
         self.when, self.name = when, f"test_{when}"
         self.test_per_class, self.levels, self.last_step = test_per_class, list(test_noise_levels), last_step
 
+    def applies(self, job) -> bool:
+        """The tests show held-out images: not to an actor that sees the floor's true state."""
+        return job.env.describe()["observation"] == "image"
+
     def prepare(self, job) -> None:
         if "floor_test_images" in job.resources:
             return

@@ -16,6 +16,7 @@ from tqdm import tqdm
 
 from ferl.actors.td import first_action
 from ferl.config.params import ConfigError
+from ferl.interfaces import EpisodeLearner
 from ferl.random_blocks import Blocks, steps_per_block
 from ferl.run.directory import CheckpointTimer
 from ferl.trainers.chunks import chunk_length, compiled_td_steps, done_future, switch_interval, td_steps
@@ -49,6 +50,9 @@ class OnlineTD(Phase):
 
     def prepare(self, job) -> None:
         actor, R = job.actor, job.R
+        if isinstance(actor, EpisodeLearner):
+            raise ConfigError(f"actor={actor.describe()['kind']} learns from whole episodes, and the continuing task "
+                              f"{job.env.task} has none: use an episodic environment or another actor")
         self.action_uniforms = Blocks(
             lambda steps: (torch.rand(steps, R, 1, 1, generator=job.generator, device=job.device),),
             steps_per_block(R))

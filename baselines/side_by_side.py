@@ -1,0 +1,99 @@
+"""Every agent on every task of the baselines comparison (issue 4/8; `make baselines`), ``--jobs``
+at a time, then ``analyze.py`` on the folder: its report's "Agents side by side" section has, per
+task, every agent's table row, the finding of which leads, and one learning-curve figure.
+
+Agents (CONTRACT §2 ``actor``, ``predictor``): the dissertation's FERL agent; memoryless FERL
+(``predictor=none``); the recurrent-model architecture with a feed-forward Q-network
+(``actor=mlp_q``); a DRQN-style recurrent Q-learner (``actor=drqn predictor=none``, episodic tasks
+only); the oracle (``actor=oracle predictor=none``: tabular Q on the true state); and, where
+sb3-contrib is installed (``.[baselines]``), RecurrentPPO through the Gymnasium ids.
+
+Tasks: the digit floor (``ch3_floor``; its agent has no memory, so memoryless FERL is FERL
+itself, and DRQN needs episodes), the matching T-maze (``table4_1_matching`` with Algorithm 1's
+joint predictor and ``table5_1_bit`` with Algorithm 2's separate predictors: one task, two FERL
+and two MLP-Q agents; the agents without predictors are the same for both and run once), the
+pixel T-maze (``table5_1_pixel``) and the corridor-20 regular T-maze of issue 2/8.
+
+    python baselines/side_by_side.py outputs/baselines/NAME [--jobs 2] [--only SUBSTRING]
+"""
+import argparse
+import importlib.util
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor, as_completed
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+FLOOR = ["experiment=ch3_floor"]
+# §3.5's discount and inverse temperature for the actors whose YAML holds the T-maze values
+FLOOR_SCHEDULES = ["actor.gamma=0.9", "actor.beta.end=2"]
+MATCHING, BIT, PIXEL = ["experiment=table4_1_matching"], ["experiment=table5_1_bit"], ["experiment=table5_1_pixel"]
+CORRIDOR_20 = ["experiment=table4_1_regular", "env.corridor_length=20", "env.max_steps=44"]
+PPO_STEPS = 60_000  # per run: about the environment steps of Algorithm 1 on the matching maze (54 256)
+
+
+def train_jobs() -> dict[str, list[str]]:
+    """Job name → train.py overrides, longest first so that the parallel lanes end together."""
+    jobs = {"pixel/ferl": PIXEL, "pixel/mlp_q": [*PIXEL, "actor=mlp_q"]}
+    for name, task in (("corridor20", CORRIDOR_20), ("pixel", PIXEL), ("matching", MATCHING)):
+        jobs |= {f"{name}/ferl": task, f"{name}/mlp_q": [*task, "actor=mlp_q"],
+                 f"{name}/memoryless": [*task, "predictor=none"], f"{name}/drqn": [*task, "actor=drqn", "predictor=none"],
+                 f"{name}/oracle": [*task, "actor=oracle", "predictor=none", *(["~preprocessor"] if task is PIXEL else [])]}
+    jobs |= {"bit/ferl": BIT, "bit/mlp_q": [*BIT, "actor=mlp_q"],
+             "floor/ferl": FLOOR, "floor/mlp_q": [*FLOOR, "actor=mlp_q", *FLOOR_SCHEDULES],
+             "floor/oracle": [*FLOOR, "actor=oracle", "actor.gamma=0.9"]}
+    return jobs
+
+
+def ppo_jobs() -> dict[str, list[str]]:
+    """The external reference, where sb3-contrib is installed."""
+    if importlib.util.find_spec("sb3_contrib") is None:
+        print("sb3-contrib is not installed (pip install -e '.[baselines]'): no RecurrentPPO reference")
+        return {}
+    common = ["--runs", "10", "--steps", str(PPO_STEPS)]
+    return {"ppo/corridor20": ["--env-id", "ferl/TMaze-v0", "--env-kwargs", '{"corridor_length": 20, "max_steps": 44}',
+                               *common, "--experiment", "table4_1_regular"],
+            "ppo/matching": ["--env-id", "ferl/MatchingTMaze-v0", *common, "--experiment", "table4_1_matching"]}
+
+
+def command(name: str, args: list[str], out: Path, ppo: bool) -> list[str]:
+    run_dir = out / name.replace("/", "_")
+    if ppo:
+        return [sys.executable, str(ROOT / "baselines" / "recurrent_ppo.py"), *args, "--out", str(run_dir)]
+    return [sys.executable, str(ROOT / "train.py"), *args, f"hydra.run.dir={run_dir}"]
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("out", type=Path)
+    parser.add_argument("--jobs", type=int, default=2)
+    parser.add_argument("--only", default="", help="run only the jobs whose name contains this")
+    args = parser.parse_args()
+    trains, ppos = train_jobs(), ppo_jobs()
+    order = [*list(trains)[:2], *ppos, *list(trains)[2:]]  # the longest (pixel, PPO) first
+    todo = [(n, command(n, trains.get(n) or ppos[n], args.out, n in ppos)) for n in order if args.only in n]
+    args.out.mkdir(parents=True, exist_ok=True)
+    started, failed = time.monotonic(), []
+    with ThreadPoolExecutor(args.jobs) as pool:
+        logs = {n: open(args.out / f"{n.replace('/', '_')}.log", "w") for n, _ in todo}
+        futures = {pool.submit(subprocess.run, cmd, cwd=ROOT, stdout=logs[n], stderr=subprocess.STDOUT): n
+                   for n, cmd in todo}
+        for done, future in enumerate(as_completed(futures), 1):
+            name, elapsed = futures[future], time.monotonic() - started
+            if future.result().returncode != 0:
+                failed.append(name)
+            left = elapsed / done * (len(todo) - done)
+            print(f"[{done}/{len(todo)}] {name} {'FAILED' if name in failed else 'done'} "
+                  f"({elapsed / 60:.1f} min, ~{left / 60:.0f} min left)", flush=True)
+        for log in logs.values():
+            log.close()
+    (args.out / "train_wall_time_s").write_text(f"{round(time.monotonic() - started)}\n")
+    if failed:
+        print(f"failed: {', '.join(failed)} (logs: {args.out}/<job>.log)")
+        return 1
+    return subprocess.run([sys.executable, str(ROOT / "analyze.py"), str(args.out)], cwd=ROOT).returncode
+
+
+if __name__ == "__main__":
+    sys.exit(main())

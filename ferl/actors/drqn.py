@@ -1,0 +1,209 @@
+"""A DRQN-style recurrent Q-learner (Hausknecht & Stone 2015, "Deep recurrent Q-learning for
+partially observable MDPs"): the baseline that remembers end to end, without a separate
+predictor (``actor=drqn predictor=none``).
+
+A GRU reads the (processed) observation and the previous action, a linear head gives Q:
+
+    x_t = (s_t, onehot(a_{t−1})),   h_t = GRU(x_t, h_{t−1}), h_{−1} = 0,   Q(h_t, ·) = W_q h_t + b_q
+
+(the GRU as torch.nn.GRUCell defines it, batched over runs: ``gru_step``). It acts by the same
+softmax / β schedule (Eq. 3.11) as the FERL actor, stepping h with every ``act``. It learns from
+replayed whole episodes (the "bootstrapped sequential updates" of §4 of the paper): after every
+episode, ``updates_per_episode`` Adam steps on ``batch_episodes`` episodes per run drawn from its
+last ``replay_episodes``, each unrolled from h = 0 by back-propagation through time (autograd) on
+
+    L = mean_t Huber(Q(h_t, a_t) − y_t),   y_t = r_{t+1} + γ (1 − terminal) max_a Q⁻(h_{t+1}, a)
+
+with Q⁻ a target network copied every ``target_every`` episodes (Mnih et al. 2015). Runs are
+independent: the loss is summed over runs, Adam is elementwise, and each run draws its own
+episodes from its own generator (seed + r), never from the trainer's.
+"""
+import math
+from typing import Literal
+
+import torch
+from torch.nn import functional as nnf
+
+from ferl.actors.softmax import TD_RULES, SoftmaxActor, run_generators
+from ferl.config.params import Discount, NonNegative, NonNegativeInt, PositiveInt, checked
+
+PARAMETERS = ("W_x", "W_h", "b_x", "b_h", "W_q", "b_q")
+ADAM_BETAS, ADAM_EPS = (0.9, 0.999), 1e-8
+
+
+def gru_step(p: dict, x: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+    """h_t from x_t (R, B, X) and h_{t−1} (R, B, H): gates r, z and candidate n in PyTorch's
+    order, W_x (R, X, 3H), W_h (R, H, 3H), b_x and b_h (R, 3H)."""
+    gx = torch.baddbmm(p["b_x"].unsqueeze(1), x, p["W_x"])
+    gh = torch.baddbmm(p["b_h"].unsqueeze(1), h, p["W_h"])
+    xr, xz, xn = gx.chunk(3, -1)
+    hr, hz, hn = gh.chunk(3, -1)
+    r, z = torch.sigmoid(xr + hr), torch.sigmoid(xz + hz)
+    n = torch.tanh(xn + r * hn)
+    return (1 - z) * n + z * h
+
+
+def q_values(p: dict, h: torch.Tensor) -> torch.Tensor:
+    """Q (R, B, nA) from h (R, B, H)."""
+    return torch.baddbmm(p["b_q"].unsqueeze(1), h, p["W_q"])
+
+
+def unroll(p: dict, states: torch.Tensor, prev_actions: torch.Tensor) -> torch.Tensor:
+    """Q of every step of episodes: states (R, B, T+1, S), prev_actions one-hot (R, B, T+1, nA)
+    (zeros at t = 0) → (R, B, T+1, nA), from h = 0."""
+    R, B = states.shape[:2]
+    h = states.new_zeros(R, B, p["W_h"].shape[1])
+    qs = []
+    for t in range(states.shape[2]):
+        h = gru_step(p, torch.cat([states[:, :, t], prev_actions[:, :, t]], -1), h)
+        qs.append(q_values(p, h))
+    return torch.stack(qs, 2)
+
+
+class DRQNActor(SoftmaxActor):
+    @checked
+    def __init__(self, n_runs: PositiveInt, n_state: PositiveInt, n_actions: PositiveInt, n_hidden: PositiveInt,
+                 gamma: Discount, lr, beta, replay_episodes: PositiveInt = 1000, batch_episodes: PositiveInt = 16,
+                 updates_per_episode: NonNegativeInt = 1, target_every: PositiveInt = 100,
+                 td_rule: Literal[TD_RULES] = "q", seed: NonNegativeInt = 0, init_std: NonNegative | None = None):
+        super().__init__()
+        self.td_rule, self.gamma, self.n_hidden, self.n_actions = td_rule, gamma, n_hidden, n_actions
+        self.lr_schedule, self.beta_schedule, self.lr_divisor = lr, beta, 1.0
+        self.replay_episodes, self.batch_episodes = replay_episodes, batch_episodes
+        self.updates_per_episode, self.target_every = updates_per_episode, target_every
+        # PyTorch's GRU initialisation U(−1/√H, 1/√H) unless init_std is given, per run from seed + r
+        self.generators = run_generators(seed, n_runs)
+        bound = 1 / math.sqrt(n_hidden)
+        shapes = {"W_x": (n_state + n_actions, 3 * n_hidden), "W_h": (n_hidden, 3 * n_hidden), "b_x": (3 * n_hidden,),
+                  "b_h": (3 * n_hidden,), "W_q": (n_hidden, n_actions), "b_q": (n_actions,)}
+        for name, shape in shapes.items():
+            draws = [torch.rand(shape, generator=g) * 2 * bound - bound if init_std is None
+                     else torch.randn(shape, generator=g) * init_std for g in self.generators]
+            self.register_buffer(name, torch.stack(draws))
+        for name in PARAMETERS:  # Adam's moments and the target network
+            self.register_buffer(f"{name}_m", torch.zeros_like(getattr(self, name)))
+            self.register_buffer(f"{name}_v", torch.zeros_like(getattr(self, name)))
+            self.register_buffer(f"{name}_target", getattr(self, name).clone())
+        self.register_buffer("h", torch.zeros(n_runs, 1, n_hidden))
+        self.register_buffer("a_prev", torch.zeros(n_runs, 1, n_actions))
+        self.replay = None      # allocated by the first episode, whose length fixes T_max
+        self.episodes = self.adam_steps = 0
+
+    @property
+    def n_runs(self) -> int:
+        return self.W_q.shape[0]
+
+    def params(self, suffix: str = "") -> dict:
+        return {name: getattr(self, name + suffix) for name in PARAMETERS}
+
+    def describe(self) -> dict:
+        return {"kind": "drqn", "memory": "gru", "n_hidden": self.n_hidden, "gamma": self.gamma,
+                "td_rule": self.td_rule, "replay_episodes": self.replay_episodes,
+                "batch_episodes": self.batch_episodes, "updates_per_episode": self.updates_per_episode,
+                "target_every": self.target_every}
+
+    def state_weights(self) -> torch.Tensor:
+        """The observation's weights into the GRU's gates (R, S, 3H)."""
+        return self.W_x[:, : self.W_x.shape[1] - self.n_actions]
+
+    def hidden(self, h: torch.Tensor) -> torch.Tensor:
+        return h
+
+    def begin_episode(self) -> None:
+        """h = 0 and no previous action in every run."""
+        self.h.zero_()
+        self.a_prev.zero_()
+
+    @torch.no_grad()
+    def evaluate(self, s: torch.Tensor):
+        """F = −Q (R, B, nA) at the present memory h, stepped on s (R, B, S) by the previous
+        action; h broadcast over the actions as the cache. Only ``act`` moves the memory on."""
+        h = gru_step(self.params(), torch.cat([s, self.a_prev.expand(-1, s.shape[1], -1)], -1),
+                     self.h.expand(-1, s.shape[1], -1))
+        return -q_values(self.params(), h), h.unsqueeze(2).expand(-1, -1, self.n_actions, -1)
+
+    def act(self, s: torch.Tensor, beta: float, generator: torch.Generator, uniform: torch.Tensor = None):
+        """``SoftmaxActor.act`` at s (R, 1, S), then the memory steps: h ← GRU((s, a_{t−1}), h)
+        and a_{t−1} ← the action drawn."""
+        a, F_a, h, F_boot = super().act(s, beta, generator, uniform)
+        self.h.copy_(h)
+        self.a_prev.copy_(nnf.one_hot(a, self.n_actions).to(self.a_prev.dtype))
+        return a, F_a, h, F_boot
+
+    def learn(self, s, a, h, delta, lr, s_next, a_next, F_next, h_next):
+        """Nothing per step: DRQN learns from replayed episodes (``end_episode``)."""
+        return F_next, h_next
+
+    def end_episode(self, states: torch.Tensor, actions: torch.Tensor, rewards: torch.Tensor,
+                    lengths: torch.Tensor, terminated: torch.Tensor, lr: float) -> None:
+        """Store every run's episode — states (R, T_max+1, S), actions and rewards (R, T_max)
+        padded after ``lengths`` (R,) actions, ``terminated`` (R,) ended in a terminal state —
+        then the Adam steps on replayed episodes at step size ``lr``."""
+        if self.replay is None:
+            self.replay = {"states": states.new_zeros(self.n_runs, self.replay_episodes, *states.shape[1:]),
+                           "actions": actions.new_zeros(self.n_runs, self.replay_episodes, actions.shape[1]),
+                           "rewards": rewards.new_zeros(self.n_runs, self.replay_episodes, rewards.shape[1]),
+                           "lengths": lengths.new_zeros(self.n_runs, self.replay_episodes),
+                           "terminated": terminated.new_zeros(self.n_runs, self.replay_episodes)}
+        slot = self.episodes % self.replay_episodes
+        for key, value in zip(("states", "actions", "rewards", "lengths", "terminated"),
+                              (states, actions, rewards, lengths, terminated)):
+            self.replay[key][:, slot] = value
+        self.episodes += 1
+        for _ in range(self.updates_per_episode):
+            self.adam_step(self.sample(), lr)
+        if self.episodes % self.target_every == 0:
+            for name in PARAMETERS:
+                getattr(self, f"{name}_target").copy_(getattr(self, name))
+
+    def sample(self) -> dict:
+        """``batch_episodes`` stored episodes per run, drawn uniformly with replacement by each
+        run's own generator."""
+        filled = min(self.episodes, self.replay_episodes)
+        index = torch.stack([torch.randint(filled, (self.batch_episodes,), generator=g) for g in self.generators])
+        index = index.to(self.W_q.device)
+        return {key: value[torch.arange(self.n_runs, device=index.device).unsqueeze(1), index]
+                for key, value in self.replay.items()}
+
+    def loss(self, p: dict, batch: dict) -> torch.Tensor:
+        """Σ over runs of the mean Huber TD loss of the module docstring over the batch's steps."""
+        states, actions, rewards = batch["states"], batch["actions"], batch["rewards"]
+        T = actions.shape[-1]
+        onehot = nnf.one_hot(actions, self.n_actions).to(states.dtype)            # (R, B, T, nA)
+        prev = torch.cat([torch.zeros_like(onehot[:, :, :1]), onehot], 2)          # a_{t−1}, (R, B, T+1, nA)
+        q = unroll(p, states, prev)                                                  # (R, B, T+1, nA)
+        with torch.no_grad():
+            q_next = unroll(self.params("_target"), states, prev)[:, :, 1:].max(-1).values  # (R, B, T)
+            t = torch.arange(T, device=states.device)
+            valid = t < batch["lengths"].unsqueeze(-1)
+            last = t == batch["lengths"].unsqueeze(-1) - 1
+            bootstrap = ~(last & batch["terminated"].unsqueeze(-1))
+            target = rewards + self.gamma * q_next * bootstrap
+        q_sa = (q[:, :, :T] * onehot).sum(-1)
+        errors = nnf.huber_loss(q_sa, target, reduction="none") * valid
+        return (errors.sum((1, 2)) / valid.sum((1, 2)).clamp(min=1)).sum()
+
+    def adam_step(self, batch: dict, lr: float) -> None:
+        """One Adam step (Kingma & Ba 2015) of every run on its own loss."""
+        p = {name: value.detach().requires_grad_() for name, value in self.params().items()}
+        with torch.enable_grad():
+            grads = torch.autograd.grad(self.loss(p, batch), list(p.values()))
+        self.adam_steps += 1
+        (b1, b2), k = ADAM_BETAS, self.adam_steps
+        with torch.no_grad():
+            for name, g in zip(PARAMETERS, grads):
+                m, v = getattr(self, f"{name}_m"), getattr(self, f"{name}_v")
+                m.mul_(b1).add_(g, alpha=1 - b1)
+                v.mul_(b2).addcmul_(g, g, value=1 - b2)
+                denominator = (v.sqrt() / math.sqrt(1 - b2 ** k)).add_(ADAM_EPS)
+                getattr(self, name).addcdiv_(m, denominator, value=-lr / (1 - b1 ** k))
+
+    def get_extra_state(self) -> dict:
+        """What a checkpoint needs beyond the buffers: the replay, the counters, the generators."""
+        return {"replay": self.replay, "episodes": self.episodes, "adam_steps": self.adam_steps,
+                "generators": [g.get_state() for g in self.generators]}
+
+    def set_extra_state(self, state: dict) -> None:
+        self.replay, self.episodes, self.adam_steps = state["replay"], state["episodes"], state["adam_steps"]
+        for g, s in zip(self.generators, state["generators"]):
+            g.set_state(s)

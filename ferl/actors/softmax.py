@@ -1,0 +1,109 @@
+"""What every actor with an enumerable set of actions shares (§3.2): the clamped softmax of
+Eq. (3.11) over every action's energy F = −Q, the TD rules' bootstrap terms, and α and β following
+the actor's schedules over training. Actors say only how they evaluate and update Q
+(``evaluate``, ``learn``); the FERL actor adds its factored actions and Gibbs sampling.
+
+All parameters carry the run dimension first and are buffers, so ``runs`` can hand out views of
+a slice of the runs whose updates land in the whole batch.
+"""
+import copy
+
+import torch
+from hydra.utils import instantiate
+from torch import nn
+
+from ferl.config.params import ArgumentError
+
+TD_RULES = ("sarsa", "q", "expected_sarsa")
+
+
+def pick(x: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+    """Entries of the chosen actions on the online path: x (R, 1, nA, ...) at a (R, 1) → (R, 1, ...)."""
+    flat = x.reshape(-1, *x.shape[3:]) if x.dim() > 3 else x.reshape(-1)
+    index = a.squeeze(1) + torch.arange(0, flat.shape[0], x.shape[2], device=a.device)
+    return flat.index_select(0, index).unsqueeze(1)
+
+
+def sample_categorical(probs: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+    """One draw per row of probs (..., n) by inverting the CDF at uniforms u (..., 1)."""
+    index = (probs.cumsum(-1) < u).sum(-1)
+    return index.clamp_(max=probs.shape[-1] - 1)
+
+
+def schedule(node):
+    """A schedule given as an object, or as its config node (``_target_``: ``ferl.schedules``)."""
+    return instantiate(node) if isinstance(node, dict) else node
+
+
+def check_schedules(args: dict) -> None:
+    """α and β of the schedules at the start and the end of training (both monotone)."""
+    lr, beta = schedule(args["lr"]), schedule(args["beta"])
+    if not all(lr(p) > 0 for p in (0.0, 1.0)):
+        raise ArgumentError("lr", "a schedule of learning rates > 0")
+    if not all(beta(p) >= 0 for p in (0.0, 1.0)):
+        raise ArgumentError("beta", "a schedule of inverse temperatures ≥ 0")
+
+
+def run_generators(seed: int, n_runs: int) -> list[torch.Generator]:
+    """One generator per run, seeded seed + r, so that run r's initial parameters do not depend
+    on how many runs share the batch."""
+    return [torch.Generator().manual_seed(seed + r) for r in range(n_runs)]
+
+
+class SoftmaxActor(nn.Module):
+    """An actor choosing among its n actions by Eq. (3.11) and learning by a TD rule (§3.2).
+
+    Subclasses set ``td_rule``, ``gamma``, ``lr_schedule``, ``beta_schedule``, ``lr_divisor`` and
+    give ``evaluate(s) → (F (R, B, nA), cache (R, B, nA, ·))`` and ``learn``."""
+
+    shared_buffers: tuple = ()  # buffers without a run dimension (``runs`` keeps them whole)
+
+    @classmethod
+    def check_config(cls, args: dict) -> None:
+        check_schedules(args)
+
+    @property
+    def samples_with_generator(self) -> bool:
+        return False
+
+    def runs(self, index: slice) -> "SoftmaxActor":
+        """This actor restricted to a slice of its runs. The parameters are views, so updates
+        of the slice land in this actor's."""
+        part = copy.copy(self)
+        part._buffers = {name: b if name in self.shared_buffers else b[index] for name, b in self._buffers.items()}
+        return part
+
+    def prepare_for_compile(self) -> None:
+        """Nothing to lay out: the parameters' default layout serves a compiled step."""
+
+    def learning_rate(self, progress: float) -> float:
+        """α of the schedule divided by the actor's ``lr_divisor`` (§3.5's normalisation)."""
+        return self.lr_schedule(progress) / self.lr_divisor
+
+    def inverse_temperature(self, progress: float) -> float:
+        return self.beta_schedule(progress)
+
+    def policy(self, F: torch.Tensor, beta: float) -> torch.Tensor:
+        """Softmax action-selection probabilities, Eq. (3.11)."""
+        return torch.softmax(-beta * F, dim=-1)
+
+    def select(self, s: torch.Tensor, F: torch.Tensor, beta: float, generator: torch.Generator,
+               uniform: torch.Tensor = None) -> torch.Tensor:
+        """An action index per (run, state) by the clamped softmax (Eq. 3.11); ``uniform``
+        (R, B, 1) may carry pre-drawn U(0, 1) numbers."""
+        if uniform is None:
+            uniform = torch.rand(F.shape[:-1] + (1,), generator=generator, device=F.device, dtype=F.dtype)
+        return sample_categorical(self.policy(F, beta), uniform)
+
+    def act(self, s: torch.Tensor, beta: float, generator: torch.Generator, uniform: torch.Tensor = None):
+        """At states s (R, 1, S): an action a (R, 1), its F(s, a) (R, 1) and cache (R, 1, ·), and
+        the F a TD error bootstraps from at s (§3.2): F(s, a) (SARSA), min_a F (Q(0)) or the
+        policy's mean F (expected SARSA)."""
+        F, cache = self.evaluate(s)
+        a = self.select(s, F, beta, generator, uniform)
+        F_a = pick(F, a)
+        if self.td_rule == "sarsa":
+            F_boot = F_a
+        else:
+            F_boot = F.min(-1).values if self.td_rule == "q" else (self.policy(F, beta) * F).sum(-1)
+        return a, F_a, pick(cache, a), F_boot

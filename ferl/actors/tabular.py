@@ -1,0 +1,57 @@
+"""Tabular Q-learning: the oracle baseline's actor (``actor=oracle``, with the environment's
+``true_state`` view, CONTRACT §2).
+
+Q(s, a) = sᵀ Θ[:, a] with Θ (R, S, nA). On one-hot states — the environment's true hidden state,
+e.g. (maze position, s0, s1) — Θ is the table of Q-values and the TD update (§3.2)
+
+    Q(s, a) ← Q(s, a) + α δ,   δ = r + γ max_a' Q(s', a') − Q(s, a)  (td_rule q)
+
+is Watkins' Q-learning; on other states it is the linear Q of the same gradient rule
+(θ ← θ + α δ ∂Q/∂θ, ∂Q/∂Θ[:, a] = s). The TD step and the softmax / β schedule (Eq. 3.11) are
+those of every actor (``ferl.actors.td``). With values initialised to 0 the table learns from
+what it visits only, as value iteration's fixed point (``tests/test_baselines.py``) requires.
+"""
+from typing import Literal
+
+import torch
+
+from ferl.actors.softmax import TD_RULES, SoftmaxActor
+from ferl.config.params import Discount, NonNegativeInt, PositiveInt, checked
+
+
+class TabularQActor(SoftmaxActor):
+    @checked
+    def __init__(self, n_runs: PositiveInt, n_state: PositiveInt, n_actions: PositiveInt,
+                 td_rule: Literal[TD_RULES], gamma: Discount, lr, beta, init_value: float = 0.0,
+                 seed: NonNegativeInt = 0):
+        super().__init__()
+        self.td_rule, self.gamma = td_rule, gamma
+        self.lr_schedule, self.beta_schedule, self.lr_divisor = lr, beta, 1.0
+        self.register_buffer("Q", torch.full((n_runs, n_state, n_actions), float(init_value)))
+
+    @property
+    def n_runs(self) -> int:
+        return self.Q.shape[0]
+
+    def describe(self) -> dict:
+        return {"kind": "tabular_q", "gamma": self.gamma, "td_rule": self.td_rule, "n_hidden": 0}
+
+    def state_weights(self) -> torch.Tensor:
+        return self.Q
+
+    def hidden(self, q: torch.Tensor) -> torch.Tensor:
+        """No hidden layer: the records keep the chosen action's value."""
+        return q
+
+    def evaluate(self, s: torch.Tensor):
+        """F = −Q (R, B, nA) and, as the cache, Q itself (R, B, nA, 1)."""
+        q = torch.matmul(s, self.Q) if s.dim() == 2 else torch.bmm(s, self.Q)
+        return -q, q.unsqueeze(-1)
+
+    def learn(self, s, a, q_sa, delta, lr, s_next, a_next, F_next, q_next):
+        """Θ[:, a] += α δ s (Q(s, a) += α δ for one-hot s); F(s', a') afresh, so a state that
+        follows itself bootstraps from its updated value."""
+        onehot = torch.nn.functional.one_hot(a, self.Q.shape[2]).to(s.dtype)  # (R, B, nA)
+        self.Q.baddbmm_(s.transpose(1, 2), (lr * delta).unsqueeze(-1) * onehot)
+        q = torch.bmm(s_next, self.Q).gather(-1, a_next.unsqueeze(-1))
+        return -q.squeeze(-1), q

@@ -1,0 +1,207 @@
+"""The baseline actors (issue 4/8, CONTRACT §2 ``actor``) checked against independent computations:
+the MLP-Q update against autograd, the oracle's tabular values against value iteration on the
+maze's definition, DRQN's GRU and its BPTT gradient against torch.nn.GRU run run by run, its Adam
+against torch.optim.Adam."""
+import numpy as np
+import pytest
+import torch
+
+from ferl.actors import drqn
+from ferl.actors.drqn import DRQNActor
+from ferl.actors.mlp_q import MLPQActor
+from ferl.actors.tabular import TabularQActor
+from ferl.actors.td import first_action, td_step
+from ferl.envs.tmaze import TMaze, maze_tables
+from ferl.schedules import Constant
+
+R, S, NA, H = 3, 5, 4, 6
+
+
+def schedules(lr=0.1, beta=1.0):
+    return dict(lr=Constant(lr), beta=Constant(beta))
+
+
+def test_mlp_q_update_is_alpha_delta_times_the_autograd_gradient_of_q():
+    actor = MLPQActor(R, S, NA, H, "sarsa", 0.9, lr_norm="none", init_std=0.5, td_fresh=False, seed=3, **schedules())
+    actor.b_1.normal_(generator=torch.Generator().manual_seed(1))
+    gen = torch.Generator().manual_seed(0)
+    s = torch.rand(R, 1, S, generator=gen)
+    a = torch.randint(NA, (R, 1), generator=gen)
+    delta = torch.randn(R, 1, generator=gen)
+    names = ("W_1", "b_1", "W_2", "b_2")
+    before = {n: getattr(actor, n).clone().requires_grad_() for n in names}
+    # Q(s, a) written out independently of the actor's evaluate
+    h = torch.sigmoid(torch.einsum("rbs,rsh->rbh", s, before["W_1"]) + before["b_1"][:, None])
+    q = torch.einsum("rbh,rha->rba", h, before["W_2"]) + before["b_2"][:, None]
+    q_sa = q.gather(-1, a.unsqueeze(-1)).sum()
+    grads = dict(zip(names, torch.autograd.grad(q_sa, [before[n] for n in names])))
+    F, cache = actor.evaluate(s)
+    torch.testing.assert_close(-F, q.detach())
+    lr = 0.3
+    actor.learn(s, a, cache[:, :, 0], delta, lr, s, a, None, None)
+    for n in names:
+        step = lr * delta.view(R, *[1] * (grads[n].dim() - 1)) * grads[n]
+        torch.testing.assert_close(getattr(actor, n), before[n].detach() + step, rtol=1e-5, atol=1e-6)
+
+
+def value_iteration_q(corridor_length: int, gamma: float, rewards=(5.0, -1.0, -0.1)) -> np.ndarray:
+    """Q* (P, 4, side) of the infinite-horizon maze (the cut-off is not terminal, §4.3.1)."""
+    nxt, reward = maze_tables(corridor_length, *rewards)
+    terminal = nxt >= corridor_length
+    Q = np.zeros(reward.shape)
+    for _ in range(2000):
+        V = Q.max(1)  # (P, side)
+        Q = reward + gamma * np.where(terminal[..., None], 0.0, V[nxt])
+    return Q
+
+
+def test_oracle_tabular_values_are_the_value_iteration_fixed_point():
+    """Q-learning with α = 1 on a deterministic maze, acting uniformly at random (β = 0): every
+    table entry of a non-goal true state converges to Q* of value iteration."""
+    T_min, gamma, runs = 3, 0.95, 2
+    gen = torch.Generator().manual_seed(0)
+    env = TMaze(runs, gen, corridor_length=T_min, max_steps=10, true_state=True)
+    actor = TabularQActor(runs, env.observation_size, env.n_actions, "q", gamma, **schedules(lr=1.0, beta=0.0))
+    alive = torch.ones(runs, 1, dtype=torch.bool)
+    for _ in range(1500):
+        env.reset()
+        s = env.observe().unsqueeze(1)
+        a, F_sa, c_sa = first_action(actor, s, 0.0, gen)
+        while not bool(env.done.all()):
+            active = ~env.done
+            r, terminated, _ = env.advance(a.squeeze(1))
+            s_next = env.observe().unsqueeze(1)
+            a, F_sa, c_sa, _ = td_step(actor, s, a, F_sa, c_sa, r, s_next, 1.0, 0.0, gen, None, alive,
+                                       (terminated | ~active).unsqueeze(1), active.unsqueeze(1))
+            s = s_next
+    Q_star = value_iteration_q(T_min, gamma)
+    for position in range(T_min):
+        for s0 in (0, 1):
+            state = position * 4 + 2 * s0  # regular maze: s1 = 0 (ferl.envs.tmaze.true_state_names)
+            side = s0  # s0 = 1 rewards the right goal
+            np.testing.assert_allclose(actor.Q[:, state].numpy(), np.broadcast_to(Q_star[position, :, side], (runs, 4)),
+                                       atol=1e-4)
+
+
+def test_true_state_view_names_every_state_once_and_keeps_the_dynamics():
+    gen_a, gen_b = torch.Generator().manual_seed(5), torch.Generator().manual_seed(5)
+    seen, oracle = TMaze(4, gen_a, matching=True), TMaze(4, gen_b, matching=True, true_state=True)
+    actions = torch.Generator().manual_seed(1)
+    for _ in range(30):
+        a = torch.randint(4, (4,), generator=actions)
+        r_seen, term_seen, _ = seen.advance(a)
+        r_oracle, term_oracle, _ = oracle.advance(a)
+        assert torch.equal(r_seen, r_oracle) and torch.equal(term_seen, term_oracle)
+        expected = oracle.position * 4 + 2 * oracle.initial_signal + oracle.junction_signal
+        assert torch.equal(oracle.observe().argmax(1), expected)
+        assert torch.equal(oracle.observe().sum(1), torch.ones(4))
+        if bool(seen.done.all()):
+            seen.reset(), oracle.reset()
+    assert len(set(oracle.observation_names)) == oracle.observation_size == (3 + 2) * 4
+
+
+def reference_gru(actor: DRQNActor, r: int) -> torch.nn.GRUCell:
+    """torch.nn.GRUCell holding run r's weights."""
+    cell = torch.nn.GRUCell(actor.W_x.shape[1], actor.n_hidden)
+    with torch.no_grad():
+        cell.weight_ih.copy_(actor.W_x[r].T)
+        cell.weight_hh.copy_(actor.W_h[r].T)
+        cell.bias_ih.copy_(actor.b_x[r])
+        cell.bias_hh.copy_(actor.b_h[r])
+    return cell
+
+
+def test_gru_step_is_torch_grucell_run_by_run():
+    actor = DRQNActor(R, S, NA, H, 0.9, seed=2, **schedules())
+    x = torch.randn(R, 7, S + NA)
+    h = torch.randn(R, 7, H)
+    out = drqn.gru_step(actor.params(), x, h)
+    for r in range(R):
+        torch.testing.assert_close(out[r], reference_gru(actor, r)(x[r], h[r]))
+
+
+def episodes_batch(T=6, B=5, seed=0) -> dict:
+    gen = torch.Generator().manual_seed(seed)
+    lengths = torch.randint(1, T + 1, (R, B), generator=gen)
+    return {"states": torch.rand(R, B, T + 1, S, generator=gen), "actions": torch.randint(NA, (R, B, T), generator=gen),
+            "rewards": torch.randn(R, B, T, generator=gen), "lengths": lengths,
+            "terminated": torch.rand(R, B, generator=gen) < 0.5}
+
+
+def reference_loss(actor: DRQNActor, r: int, batch: dict, cell, W_q, b_q) -> torch.Tensor:
+    """Run r's DRQN loss step by step in Python, with torch.nn.GRUCell and the target network."""
+    target_cell = torch.nn.GRUCell(cell.input_size, cell.hidden_size)
+    with torch.no_grad():
+        target_cell.weight_ih.copy_(actor.W_x_target[r].T)
+        target_cell.weight_hh.copy_(actor.W_h_target[r].T)
+        target_cell.bias_ih.copy_(actor.b_x_target[r])
+        target_cell.bias_hh.copy_(actor.b_h_target[r])
+    losses = []
+    for b in range(batch["states"].shape[1]):
+        h = torch.zeros(actor.n_hidden)
+        h_target = torch.zeros(actor.n_hidden)
+        prev = torch.zeros(NA)
+        qs, q_targets = [], []
+        for t in range(batch["states"].shape[2]):
+            x = torch.cat([batch["states"][r, b, t], prev])
+            h = cell(x, h)
+            with torch.no_grad():
+                h_target = target_cell(x, h_target)
+                q_targets.append(h_target @ actor.W_q_target[r] + actor.b_q_target[r])
+            qs.append(h @ W_q + b_q)
+            if t < batch["actions"].shape[2]:
+                prev = torch.nn.functional.one_hot(batch["actions"][r, b, t], NA).float()
+        n = int(batch["lengths"][r, b])
+        errors = []
+        for t in range(n):
+            terminal = t == n - 1 and bool(batch["terminated"][r, b])
+            y = batch["rewards"][r, b, t] + (0.0 if terminal else actor.gamma * q_targets[t + 1].max())
+            errors.append(torch.nn.functional.huber_loss(qs[t][batch["actions"][r, b, t]], y))
+        losses.append(torch.stack(errors))
+    return torch.cat(losses).mean()
+
+
+def test_drqn_bptt_gradient_of_every_run_equals_a_per_run_reference():
+    """The batched loss's gradient with respect to run r's parameters is run r's own loss gradient,
+    computed by an independent per-episode Python unroll with torch.nn.GRUCell."""
+    actor = DRQNActor(R, S, NA, H, 0.9, seed=4, **schedules())
+    for name in drqn.PARAMETERS:  # a target network that differs from the online one
+        getattr(actor, f"{name}_target").add_(torch.randn_like(getattr(actor, name)) * 0.1)
+    batch = episodes_batch()
+    p = {name: value.clone().requires_grad_() for name, value in actor.params().items()}
+    grads = dict(zip(p, torch.autograd.grad(actor.loss(p, batch), list(p.values()))))
+    for r in range(R):
+        cell = reference_gru(actor, r)
+        W_q, b_q = actor.W_q[r].clone().requires_grad_(), actor.b_q[r].clone().requires_grad_()
+        loss = reference_loss(actor, r, batch, cell, W_q, b_q)
+        ref = torch.autograd.grad(loss, [cell.weight_ih, cell.weight_hh, cell.bias_ih, cell.bias_hh, W_q, b_q])
+        for name, expected in zip(drqn.PARAMETERS, (ref[0].T, ref[1].T, ref[2], ref[3], ref[4], ref[5])):
+            torch.testing.assert_close(grads[name][r], expected, rtol=1e-4, atol=1e-6)
+
+
+def test_drqn_adam_step_equals_torch_adam():
+    actor = DRQNActor(R, S, NA, H, 0.9, seed=1, **schedules())
+    batch = episodes_batch(seed=3)
+    params = {name: value.clone().requires_grad_() for name, value in actor.params().items()}
+    optimiser = torch.optim.Adam(list(params.values()), lr=0.01)
+    for _ in range(3):
+        optimiser.zero_grad()
+        actor.loss(params, batch).backward()
+        optimiser.step()
+        actor.adam_step(batch, 0.01)
+    for name in drqn.PARAMETERS:
+        torch.testing.assert_close(getattr(actor, name), params[name].detach(), rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("draws", [3])
+def test_drqn_replay_draws_per_run_and_resumes_from_its_extra_state(draws):
+    actor = DRQNActor(R, S, NA, H, 0.9, batch_episodes=4, updates_per_episode=0, seed=0, **schedules())
+    T = 4
+    for k in range(draws):
+        actor.end_episode(torch.full((R, T + 1, S), float(k)), torch.zeros(R, T, dtype=torch.long),
+                          torch.zeros(R, T), torch.full((R,), T), torch.ones(R, dtype=torch.bool), 0.01)
+    copy = DRQNActor(R, S, NA, H, 0.9, batch_episodes=4, updates_per_episode=0, seed=0, **schedules())
+    copy.load_state_dict(actor.state_dict())
+    first, again = actor.sample(), copy.sample()
+    assert torch.equal(first["states"], again["states"])
+    assert set(first["states"][:, :, 0, 0].flatten().tolist()) <= set(range(draws))
