@@ -46,11 +46,14 @@ def test_drqn_remembers_the_signal_of_the_matching_maze(tmp_path):
     assert np.mean(summary["metrics"]["final_correct_goal_rate"]) >= 0.9  # memoryless: ≈ 0.5
 
 
-def test_mlp_q_on_the_elman_memory_learns_the_matching_maze(tmp_path):
-    summary = train(tmp_path / "run", "experiment=table4_1_matching", "actor=mlp_q", "trainer.n_epoch=150",
+def test_mlp_q_on_the_elman_memory_learns_the_regular_maze(tmp_path):
+    """With a briefly trained Elman predictor (150 epochs; on the matching maze MLP-Q needs the
+    full 400 of Table 4.1, 75 s here), on the regular maze, whose start signal a memoryless agent
+    cannot see at the junction either."""
+    summary = train(tmp_path / "run", "experiment=table4_1_regular", "actor=mlp_q", "trainer.n_epoch=150",
                     "trainer.n_episodes=3000")
     assert manifest(tmp_path / "run")["actor"]["kind"] == "mlp_q"
-    assert np.mean(summary["metrics"]["final_correct_goal_rate"]) >= 0.85  # memoryless: ≈ 0.5
+    assert np.mean(summary["metrics"]["final_correct_goal_rate"]) >= 0.9  # memoryless: ≈ 0.5
 
 
 @pytest.mark.parametrize("overrides, key", [
@@ -64,3 +67,29 @@ def test_a_baseline_where_it_cannot_run_is_one_clear_line(tmp_path, overrides, k
     message = result.stderr.strip().splitlines()
     assert len(message) == 1 and key in message[0], result.stderr[-1000:]
     assert not run_dir.exists()
+
+
+def test_every_job_of_make_baselines_composes_and_validates(compose_cfg):
+    """The job table of baselines/side_by_side.py: each composes to the agent it names, and
+    passes the checks train.py makes before any work."""
+    import importlib.util
+
+    from hydra.core.hydra_config import HydraConfig
+
+    from conftest import ROOT
+    from ferl.config.validate import validate
+    spec = importlib.util.spec_from_file_location("side_by_side", ROOT / "baselines" / "side_by_side.py")
+    side_by_side = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(side_by_side)
+    jobs = side_by_side.train_jobs()
+    expected = {"ferl": "FERLActor", "memoryless": "FERLActor", "mlp_q": "MLPQActor", "drqn": "DRQNActor",
+                "oracle": "TabularQActor"}
+    assert {name.split("/")[0] for name in jobs} == {"floor", "matching", "bit", "pixel", "corridor20"}
+    for name, overrides in jobs.items():
+        cfg = compose_cfg(overrides)
+        HydraConfig.instance().set_config(cfg)
+        validate(cfg)
+        agent = name.split("/")[1]
+        assert cfg.actor._target_.endswith(expected[agent]), name
+        assert (not cfg.get("predictor")) == (agent in ("memoryless", "drqn", "oracle") or name.startswith("floor")), name
+        assert bool(cfg.env.get("true_state")) == (agent == "oracle"), name

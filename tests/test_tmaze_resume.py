@@ -34,9 +34,9 @@ def progress(run_dir: Path) -> dict | None:
         return None
 
 
-def interrupt_when(run_dir: Path, ready, sig: int) -> dict:
-    """Start a run, send `sig` once its checkpoint satisfies `ready`, wait; return the progress."""
-    proc = train(f"hydra.run.dir={run_dir}", stderr=subprocess.DEVNULL)
+def interrupt_when(run_dir: Path, ready, sig: int, *args: str) -> dict:
+    """Start a run (with `args`), send `sig` once its checkpoint satisfies `ready`, wait; return the progress."""
+    proc = train(*args, f"hydra.run.dir={run_dir}", stderr=subprocess.DEVNULL)
     deadline = time.time() + 240
     while time.time() < deadline and proc.poll() is None:
         found = progress(run_dir)
@@ -148,3 +148,21 @@ def test_sigterm_in_the_preprocessor_phase_then_resume(tmp_path):
         got, want = records(cut, name), records(whole, name)
         for key in want:
             np.testing.assert_array_equal(got[key], want[key], err_msg=f"{name}.npz {key}")
+
+
+def test_drqn_resumes_mid_actor_equal_to_uninterrupted(tmp_path):
+    """DRQN's checkpoint (its replay, Adam's moments, the target network, each run's generator)
+    continues the run exactly."""
+    agent = ("actor=drqn", "predictor=none")
+    whole, cut = tmp_path / "whole", tmp_path / "cut"
+    proc = train(*agent, f"hydra.run.dir={whole}")
+    assert proc.wait(timeout=300) == 0, proc.stderr.read()[-2000:]
+    saved = interrupt_when(cut, lambda p: (p["partial"].get("actor") or {}).get("episode", 0) >= 300,
+                           signal.SIGTERM, *agent)
+    assert 0 < saved["partial"]["actor"]["episode"] < 1500
+    proc = train(*agent, "resume=true", f"hydra.run.dir={cut}")
+    assert proc.wait(timeout=300) == 0, proc.stderr.read()[-2000:]
+    assert summary(cut)["metrics"] == summary(whole)["metrics"]
+    got, want = records(cut, "episodes"), records(whole, "episodes")
+    for key in want:
+        np.testing.assert_array_equal(got[key], want[key], err_msg=f"episodes.npz {key}")

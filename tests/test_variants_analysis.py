@@ -22,6 +22,8 @@ def sweep(tmp_path_factory):
             "floor_ee": ["experiment=ch3_floor", *TINY, "actor.q=expected_energy"],
             "maze": ["experiment=table4_1_regular", *MAZE],
             "maze_memoryless": ["experiment=table4_1_regular", *MAZE, "predictor=none"],
+            "maze_mlp_q": ["experiment=table4_1_regular", *MAZE, "actor=mlp_q"],
+            "maze_oracle": ["experiment=table4_1_regular", *MAZE, "actor=oracle", "predictor=none"],
             "matching": ["experiment=table4_1_matching", *MAZE]}
     return root, train_sweep(root, jobs)
 
@@ -30,8 +32,10 @@ def test_one_table_per_task_with_every_agent(sweep):
     root, summaries = sweep
     with open(root / "analysis" / "agents_side_by_side.csv") as f:
         rows = list(csv.DictReader(f))
-    assert {r["agent"] for r in rows} == {"dissertation agent", "actor.q=expected_energy", "predictor=none"}
-    assert {r["task"] for r in rows} == {"digit_floor: ch3_floor", "tmaze: table4_1_regular"}  # not the matching maze
+    assert {r["agent"] for r in rows} == {"dissertation agent", "actor.q=expected_energy", "predictor=none",
+                                          "actor=mlp_q", "oracle, actor=tabular_q, predictor=none"}
+    # the oracle's true-state view is the same task; the matching maze, run by one agent, has no table
+    assert {r["task"] for r in rows} == {"digit_floor: ch3_floor", "tmaze: table4_1_regular"}
     for name, agent in (("floor_fe", "dissertation agent"), ("floor_ee", "actor.q=expected_energy")):
         row = next(r for r in rows if r["agent"] == agent and r["metric"] == "reward_per_step_last10pct")
         values = summaries[name]["metrics"]["reward_per_step_last10pct"]
@@ -49,3 +53,18 @@ def test_only_the_dissertation_components_are_judged_by_its_claims(sweep):
     assert not Manifest.load(root / "floor_ee").dissertation_components
     claims = (root / "floor_ee" / "analysis" / "report.md").read_text()
     assert "No dissertation claim applies" in claims
+
+
+def test_the_finding_names_the_leader_among_the_agents_that_see_what_the_agent_sees(sweep):
+    """The leader by (solved, correct-goal rate, return), the oracle aside, from summary.json."""
+    root, summaries = sweep
+    agents = {"maze": "dissertation agent", "maze_memoryless": "predictor=none", "maze_mlp_q": "actor=mlp_q"}
+    key = lambda name: tuple(np.mean(summaries[name]["metrics"][m])  # noqa: E731
+                             for m in ("solved", "final_correct_goal_rate", "final_discounted_return"))
+    best = max(agents, key=key)
+    report = (root / "analysis" / "report.md").read_text()
+    line = next(x for x in report.splitlines() if x.startswith("**Best: ") and "table4_1_regular" in x)
+    assert line.startswith(f"**Best: {agents[best]} (")
+    assert "Ceiling (oracle on the true state)" in line
+    assert not Manifest.load(root / "maze_oracle").dissertation_components
+    assert not Manifest.load(root / "maze_mlp_q").dissertation_components

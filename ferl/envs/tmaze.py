@@ -142,7 +142,8 @@ class TMaze:
         return {"kind": "tmaze", "task": self.task, "episodic": True,
                 "observation": self.observation_kind,
                 "observation_size": self.observation_size, "n_actions": self.n_actions, "action_names": list(self.action_names),
-                "true_state": self.true_state, "matching": self.matching, "corridor_length": self.corridor_length, "max_steps": self.max_steps,
+                "true_state": self.true_state, "matching": self.matching, "corridor_length": self.corridor_length,
+                "max_steps": self.max_steps,
                 "goal_reward": self.rewards[0], "reward_values": list(self.reward_values),
                 "observation_names": list(self.observation_names), "reservoir_size": self.reservoir_size,
                 "labels": list(self.labels()), "outcomes": list(self.outcomes())}
