@@ -2,11 +2,18 @@
 `make baselines` runs: each clearly above what memoryless FERL reaches on the matching T-maze
 (correct-goal rate near chance, tests/test_memoryless.py), the oracle at the optimum."""
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 
-from conftest import run_train
+from conftest import ROOT, run_train
+
+
+def run_analyze(path):
+    return subprocess.run([sys.executable, str(ROOT / "analyze.py"), str(path)], cwd=ROOT, capture_output=True,
+                          text=True, timeout=300)
 
 
 def train(run_dir, *overrides) -> dict:
@@ -31,12 +38,15 @@ def test_oracle_solves_the_matching_maze_on_its_true_state(tmp_path):
 
 
 def test_oracle_on_the_floor_earns_near_the_optimal_rate_without_the_image_tests(tmp_path):
-    summary = train(tmp_path / "run", "experiment=ch3_floor", "actor=oracle", "actor.gamma=0.9", "env.patches=4",
-                    "trainer.steps=15000")
+    summary = train(tmp_path / "run", "experiment=ch3_floor", "actor=oracle", "actor.gamma=0.9", "actor.beta.end=2",
+                    "env.patches=4", "trainer.steps=15000")
     # a uniformly random walk earns < 1 a step here; the optimal policy 8
     assert min(summary["metrics"]["reward_per_step_last10pct"]) > 0.85 * summary["optimal"]["reward_per_step"]
     assert "greedy_accuracy" not in summary["metrics"]  # no test images for a true-state view
     assert not (tmp_path / "run" / "records" / "floor_test.npz").exists()
+    result = run_analyze(tmp_path / "run")  # the generic figures only: no test images to draw
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert (tmp_path / "run" / "analysis" / "report.md").is_file()
 
 
 def test_drqn_remembers_the_signal_of_the_matching_maze(tmp_path):
@@ -76,7 +86,6 @@ def test_every_job_of_make_baselines_composes_and_validates(compose_cfg):
 
     from hydra.core.hydra_config import HydraConfig
 
-    from conftest import ROOT
     from ferl.config.validate import validate
     spec = importlib.util.spec_from_file_location("side_by_side", ROOT / "baselines" / "side_by_side.py")
     side_by_side = importlib.util.module_from_spec(spec)

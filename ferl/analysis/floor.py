@@ -330,9 +330,12 @@ def _header(run: FloorRun) -> list[tuple[str, str]]:
     ]
 
 
-def analyze(run: Run, out: Path) -> tuple[FloorRun, RunAnalysis]:
+def analyze(run: Run, out: Path) -> tuple[FloorRun, RunAnalysis] | None:
     """The chapter-3 figures and data files of a digit-floor run, and the run as the claims of
-    `ferl.analysis.ch3` read it."""
+    `ferl.analysis.ch3` read it; None for a run without the test images' records (an actor that
+    saw the floor's true state, not its images)."""
+    if run.records("floor_test") is None:
+        return None
     floor = FloorRun.load(run)
     return floor, RunAnalysis(f"Digit floor (chapter 3): {run.experiment}", _header(floor),
                               figures=make_figures(floor), data_files=write_tables(floor, out))

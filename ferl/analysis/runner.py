@@ -74,9 +74,10 @@ def run_analysis(run: Run, out: Path) -> RunAnalysis:
     analysis.header.append(("dissertation", chapter.model if chapter else
                             "no chapter's model matches this run: generic figures, no claims"))
     environment = dispatch.ENVIRONMENTS.get(run.manifest.env_kind)
-    if environment is None:
+    parts = environment(run, num, out) if environment is not None else None
+    if parts is None:
         return analysis
-    view, own = environment(run, num, out)
+    view, own = parts
     analysis.title = own.title
     analysis.add(own)
     if chapter is not None:

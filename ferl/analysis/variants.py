@@ -126,13 +126,16 @@ def finding(cells: Sequence[tuple[Entry, dict]]) -> str | None:
     if len(agents) < 2:
         return None
     (best, b), (second, c) = sorted(agents, key=lambda eh: ranking_key(eh[1]), reverse=True)[:2]
-    metric = next((n for n in RANKING if n in b and n in c), None)
-    if metric is None:
+    shared = [n for n in RANKING if n in b and n in c]
+    if not shared:
         return None
+    # the first metric on which the two differ (solved 0/10 against 0/10 says nothing)
+    metric = next((n for n in shared if b[n][0] != c[n][0]), shared[0])
     name = lambda e: f"{e.agent} ({e.job.label})"  # noqa: E731
     diff, sem = b[metric][0] - c[metric][0], float(np.hypot(b[metric][1], c[metric][1]))
+    clear = "" if diff > 2 * sem else " — within two s.e.m.: no clear leader"
     text = (f"**Best: {name(best)}**, {metric} {cell_text(metric, b[metric])}, ahead of {name(second)} "
-            f"({cell_text(metric, c[metric])}) by {diff:.3f} ± {sem:.3f} (s.e.m. of the difference).")
+            f"({cell_text(metric, c[metric])}) by {diff:.3f} ± {sem:.3f} (s.e.m. of the difference){clear}.")
     oracle = [(e, h) for e, h in cells if e.agent.startswith(ORACLE) and metric in h]
     if oracle:
         text += f" Ceiling (oracle on the true state): {cell_text(metric, oracle[0][1][metric])}."
