@@ -118,9 +118,9 @@ class DRQNActor(SoftmaxActor):
     def evaluate(self, s: torch.Tensor):
         """F = −Q (R, B, nA) at the present memory h, stepped on s (R, B, S) by the previous
         action; h broadcast over the actions as the cache. Only ``act`` moves the memory on."""
-        h = gru_step(self.params(), torch.cat([s, self.a_prev.expand(-1, s.shape[1], -1)], -1),
-                     self.h.expand(-1, s.shape[1], -1))
-        return -q_values(self.params(), h), h.unsqueeze(2).expand(-1, -1, self.n_actions, -1)
+        p = self.params()
+        h = gru_step(p, torch.cat([s, self.a_prev.expand(-1, s.shape[1], -1)], -1), self.h.expand(-1, s.shape[1], -1))
+        return -q_values(p, h), h.unsqueeze(2).expand(-1, -1, self.n_actions, -1)
 
     def act(self, s: torch.Tensor, beta: float, generator: torch.Generator, uniform: torch.Tensor = None):
         """``SoftmaxActor.act`` at s (R, 1, S), then the memory steps: h ← GRU((s, a_{t−1}), h)

@@ -35,7 +35,8 @@ DISSERTATION_AGENT = "dissertation agent"
 HEADLINES = ("solved", "final_correct_goal_rate", "final_discounted_return", "reward_per_step_last10pct",
              "greedy_accuracy/0.125", "env_steps_to_solve", "env_steps_total", "wall_time_s", "agent_steps_per_s")
 # How agents are ranked on a task: by the first of these their summaries have (higher is better),
-# then the next on ties; the finding compares the leader with the runner-up on the first.
+# then the next on ties; the finding compares the leader with the runner-up on the first of them
+# on which the two differ.
 RANKING = ("solved", "final_correct_goal_rate", "final_discounted_return", "reward_per_step_last10pct")
 # What a view of the environment changes of its facts (the oracle's ``true_state``): the task stays.
 VIEW_KEYS = ("true_state", "observation", "observation_size", "observation_names")
@@ -121,7 +122,8 @@ def ranking_key(cells: dict) -> tuple:
 
 def finding(cells: Sequence[tuple[Entry, dict]]) -> str | None:
     """Which agent leads the task (the oracle aside: it sees the true state), by how much on the
-    first ranking metric, with the s.e.m. of the difference; and the oracle's ceiling."""
+    first ranking metric that tells it from the runner-up, with the s.e.m. of the difference; and
+    the oracle's ceiling."""
     agents = [(e, h) for e, h in cells if not e.agent.startswith(ORACLE)]
     if len(agents) < 2:
         return None

@@ -168,7 +168,8 @@ class ActorEpisodes(Phase):
             obs_prev = env.obs_id
             actions.append(a.squeeze(1))
             r, terminated, _ = env.advance(a.squeeze(1))
-            ended_terminal = ended_terminal | terminated
+            if self.episode_learner:
+                ended_terminal = ended_terminal | terminated
             obs.append(env.obs_id)
             m = [step(x, obs_prev, a.squeeze(1)) for step, x in zip(self.steps, m)]
             memories = [p.memory(x) for p, x in zip(predictors, m)]
