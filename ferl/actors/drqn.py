@@ -15,8 +15,9 @@ last ``replay_episodes``, each unrolled from h = 0 by back-propagation through t
     L = mean_t Huber(Q(h_t, a_t) − y_t),   y_t = r_{t+1} + γ (1 − terminal) max_a Q⁻(h_{t+1}, a)
 
 with Q⁻ a target network copied every ``target_every`` episodes (Mnih et al. 2015). Runs are
-independent: the loss is summed over runs, Adam is elementwise, and each run draws its own
-episodes from its own generator (seed + r), never from the trainer's.
+independent: the loss is summed over runs, Adam is elementwise, and each run replays its own
+episodes, drawn for every run at once from the actor's generator, never from the trainer's (so
+the lockstep episodes' pre-drawn streams stay as they are).
 """
 import math
 from typing import Literal
@@ -72,13 +73,13 @@ class DRQNActor(SoftmaxActor):
         self.replay_episodes, self.batch_episodes = replay_episodes, batch_episodes
         self.updates_per_episode, self.target_every = updates_per_episode, target_every
         # PyTorch's GRU initialisation U(−1/√H, 1/√H) unless init_std is given, per run from seed + r
-        self.generators = run_generators(seed, n_runs)
+        generators = run_generators(seed, n_runs)
         bound = 1 / math.sqrt(n_hidden)
         shapes = {"W_x": (n_state + n_actions, 3 * n_hidden), "W_h": (n_hidden, 3 * n_hidden), "b_x": (3 * n_hidden,),
                   "b_h": (3 * n_hidden,), "W_q": (n_hidden, n_actions), "b_q": (n_actions,)}
         for name, shape in shapes.items():
             draws = [torch.rand(shape, generator=g) * 2 * bound - bound if init_std is None
-                     else torch.randn(shape, generator=g) * init_std for g in self.generators]
+                     else torch.randn(shape, generator=g) * init_std for g in generators]
             self.register_buffer(name, torch.stack(draws))
         for name in PARAMETERS:  # Adam's moments and the target network
             self.register_buffer(f"{name}_m", torch.zeros_like(getattr(self, name)))
@@ -86,6 +87,8 @@ class DRQNActor(SoftmaxActor):
             self.register_buffer(f"{name}_target", getattr(self, name).clone())
         self.register_buffer("h", torch.zeros(n_runs, 1, n_hidden))
         self.register_buffer("a_prev", torch.zeros(n_runs, 1, n_actions))
+        # the replay's draws for every run at once, from a seed that run 0's stream gives
+        self.generator = torch.Generator().manual_seed(int(torch.randint(2**62, (), generator=generators[0])))
         self.replay = None      # allocated by the first episode, whose length fixes T_max
         self.episodes = self.adam_steps = 0
 
@@ -157,11 +160,10 @@ class DRQNActor(SoftmaxActor):
                 getattr(self, f"{name}_target").copy_(getattr(self, name))
 
     def sample(self) -> dict:
-        """``batch_episodes`` stored episodes per run, drawn uniformly with replacement by each
-        run's own generator."""
+        """``batch_episodes`` stored episodes per run, drawn uniformly with replacement, every
+        run's in one draw."""
         filled = min(self.episodes, self.replay_episodes)
-        index = torch.stack([torch.randint(filled, (self.batch_episodes,), generator=g) for g in self.generators])
-        index = index.to(self.W_q.device)
+        index = torch.randint(filled, (self.n_runs, self.batch_episodes), generator=self.generator).to(self.W_q.device)
         return {key: value[torch.arange(self.n_runs, device=index.device).unsqueeze(1), index]
                 for key, value in self.replay.items()}
 
@@ -199,11 +201,10 @@ class DRQNActor(SoftmaxActor):
                 getattr(self, name).addcdiv_(m, denominator, value=-lr / (1 - b1 ** k))
 
     def get_extra_state(self) -> dict:
-        """What a checkpoint needs beyond the buffers: the replay, the counters, the generators."""
+        """What a checkpoint needs beyond the buffers: the replay, the counters, the generator."""
         return {"replay": self.replay, "episodes": self.episodes, "adam_steps": self.adam_steps,
-                "generators": [g.get_state() for g in self.generators]}
+                "generator": self.generator.get_state()}
 
     def set_extra_state(self, state: dict) -> None:
         self.replay, self.episodes, self.adam_steps = state["replay"], state["episodes"], state["adam_steps"]
-        for g, s in zip(self.generators, state["generators"]):
-            g.set_state(s)
+        self.generator.set_state(state["generator"])
