@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup run test bench reproduce beyond variants baselines clean
+.PHONY: setup run test bench reproduce beyond variants baselines suites clean
 
 setup: $(STAMP)
 
@@ -105,6 +105,19 @@ baselines: $(BASELINES_STAMP)
 	@dir=outputs/baselines/$$(date +%Y-%m-%d_%H-%M-%S); start=$$(date +%s); \
 	$(PY) baselines/side_by_side.py $$dir --jobs $(REPRO_JOBS) && \
 	echo "  baselines in $$(( $$(date +%s) - start )) s; report: $$dir/analysis/report.md"
+
+# Issue 5/8: ferl's agents on third-party POMDPs through env=gymnasium: POPGym's RepeatPrevious,
+# CountRecall, Autoencode and MineSweeper (Easy) and MiniGrid's MemoryS7, FERL online, MLP-Q,
+# memoryless FERL, DRQN and RecurrentPPO, 10 runs each, REPRO_JOBS at a time (the `suites` and
+# `baselines` extras); then one table and one learning-curve figure per environment in the report.
+SUITES_STAMP := $(VENV)/.installed-suites
+$(SUITES_STAMP): $(STAMP)
+	$(PY) -m pip install --quiet -e '.[suites,baselines]'
+	touch $@
+suites: $(SUITES_STAMP)
+	@dir=outputs/suites/$$(date +%Y-%m-%d_%H-%M-%S); start=$$(date +%s); \
+	$(PY) baselines/suites.py $$dir --jobs $(REPRO_JOBS) && \
+	echo "  suites in $$(( $$(date +%s) - start )) s; report: $$dir/analysis/report.md"
 
 bench: $(STAMP)
 	$(PY) benchmarks/bench_floor.py

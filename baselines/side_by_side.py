@@ -76,40 +76,50 @@ def command(name: str, args: list[str], out: Path, ppo: bool) -> list[str]:
     return [sys.executable, str(ROOT / "train.py"), *args, *resume, f"hydra.run.dir={run_dir}"]
 
 
-def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def run_table(out: Path, trains: dict, ppos: dict, jobs: int, only: str = "", first: int = 2) -> int:
+    """Run the jobs ``jobs`` at a time (train.py ones: ``trains``, RecurrentPPO ones: ``ppos``), the
+    ``first`` longest train.py jobs, then PPO's, then the rest; one progress line per finished job;
+    then analyze.py on ``out``. Jobs done already are skipped; exit status 1 if any failed."""
+    order = [*list(trains)[:first], *ppos, *list(trains)[first:]]
+    done = [n for n in order if (out / n.replace("/", "_") / "summary.json").exists()]
+    if done:
+        print(f"already done, not run again: {', '.join(done)}")
+    todo = [(n, command(n, trains.get(n) or ppos[n], out, n in ppos)) for n in order
+            if any(part in n for part in only.split(",")) and n not in done]
+    out.mkdir(parents=True, exist_ok=True)
+    started, failed = time.monotonic(), []
+    with ThreadPoolExecutor(jobs) as pool:
+        logs = {n: open(out / f"{n.replace('/', '_')}.log", "w") for n, _ in todo}
+        futures = {pool.submit(subprocess.run, cmd, cwd=ROOT, stdout=logs[n], stderr=subprocess.STDOUT): n
+                   for n, cmd in todo}
+        for count, future in enumerate(as_completed(futures), 1):
+            name, elapsed = futures[future], time.monotonic() - started
+            if future.result().returncode != 0:
+                failed.append(name)
+            left = elapsed / count * (len(todo) - count)
+            print(f"[{count}/{len(todo)}] {name} {'FAILED' if name in failed else 'done'} "
+                  f"({elapsed / 60:.1f} min, ~{left / 60:.0f} min left)", flush=True)
+        for log in logs.values():
+            log.close()
+    (out / "train_wall_time_s").write_text(f"{round(time.monotonic() - started)}\n")
+    if failed:
+        print(f"failed: {', '.join(failed)} (logs: {out}/<job>.log)")
+        return 1
+    return subprocess.run([sys.executable, str(ROOT / "analyze.py"), str(out)], cwd=ROOT).returncode
+
+
+def arguments(doc: str) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     parser.add_argument("out", type=Path)
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--only", default="", help="run only the jobs whose name contains one of these "
                                                    "(comma-separated), e.g. pixel/,floor/oracle")
-    args = parser.parse_args()
-    trains, ppos = train_jobs(), ppo_jobs()
-    order = [*list(trains)[:2], *ppos, *list(trains)[2:]]  # the longest (pixel, PPO) first
-    done = [n for n in order if (args.out / n.replace("/", "_") / "summary.json").exists()]
-    if done:
-        print(f"already done, not run again: {', '.join(done)}")
-    todo = [(n, command(n, trains.get(n) or ppos[n], args.out, n in ppos)) for n in order
-            if any(part in n for part in args.only.split(",")) and n not in done]
-    args.out.mkdir(parents=True, exist_ok=True)
-    started, failed = time.monotonic(), []
-    with ThreadPoolExecutor(args.jobs) as pool:
-        logs = {n: open(args.out / f"{n.replace('/', '_')}.log", "w") for n, _ in todo}
-        futures = {pool.submit(subprocess.run, cmd, cwd=ROOT, stdout=logs[n], stderr=subprocess.STDOUT): n
-                   for n, cmd in todo}
-        for done, future in enumerate(as_completed(futures), 1):
-            name, elapsed = futures[future], time.monotonic() - started
-            if future.result().returncode != 0:
-                failed.append(name)
-            left = elapsed / done * (len(todo) - done)
-            print(f"[{done}/{len(todo)}] {name} {'FAILED' if name in failed else 'done'} "
-                  f"({elapsed / 60:.1f} min, ~{left / 60:.0f} min left)", flush=True)
-        for log in logs.values():
-            log.close()
-    (args.out / "train_wall_time_s").write_text(f"{round(time.monotonic() - started)}\n")
-    if failed:
-        print(f"failed: {', '.join(failed)} (logs: {args.out}/<job>.log)")
-        return 1
-    return subprocess.run([sys.executable, str(ROOT / "analyze.py"), str(args.out)], cwd=ROOT).returncode
+    return parser.parse_args()
+
+
+def main() -> int:
+    args = arguments(__doc__)
+    return run_table(args.out, train_jobs(), ppo_jobs(), args.jobs, args.only)
 
 
 if __name__ == "__main__":

@@ -82,6 +82,10 @@ class EpisodicEnvironment(Environment, Protocol):
     boolean ones become ``final_<name>_rate`` metrics and count towards ``solved``), ``labels``
     (what the episode's probes are labelled with, e.g. the maze's condition) and ``probe`` (the
     runs whose present state is one whose activations the records keep, e.g. the T-junction).
+    An environment whose observations are not known in advance (a third-party one,
+    ``ferl.envs.gymnasium_vector``) sets ``discovers_observations = True`` and fills rows of its
+    table in place as it meets them: the phases then index the table live and compute nothing
+    from it ahead of the episodes.
     """
 
     max_steps: int

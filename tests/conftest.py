@@ -16,6 +16,18 @@ def compose_config(overrides=()):
         return compose("config", overrides=list(overrides), return_hydra_config=True)
 
 
+def validated_config(overrides=()):
+    """A composed config that has passed train.py's checks before any work (``ferl.config.validate``)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    from ferl.config.validate import validate
+
+    cfg = compose_config(overrides)
+    HydraConfig.instance().set_config(cfg)
+    validate(cfg)
+    return cfg
+
+
 @pytest.fixture
 def compose_cfg():
     return compose_config

@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from conftest import ROOT, run_train
+from conftest import ROOT, run_train, validated_config
 
 
 def run_analyze(path):
@@ -79,14 +79,11 @@ def test_a_baseline_where_it_cannot_run_is_one_clear_line(tmp_path, overrides, k
     assert not run_dir.exists()
 
 
-def test_every_job_of_make_baselines_composes_and_validates(compose_cfg):
+def test_every_job_of_make_baselines_composes_and_validates():
     """The job table of baselines/side_by_side.py: each composes to the agent it names, and
     passes the checks train.py makes before any work."""
     import importlib.util
 
-    from hydra.core.hydra_config import HydraConfig
-
-    from ferl.config.validate import validate
     spec = importlib.util.spec_from_file_location("side_by_side", ROOT / "baselines" / "side_by_side.py")
     side_by_side = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(side_by_side)
@@ -95,9 +92,7 @@ def test_every_job_of_make_baselines_composes_and_validates(compose_cfg):
                 "oracle": "TabularQActor"}
     assert {name.split("/")[0] for name in jobs} == {"floor", "matching", "bit", "pixel", "corridor20"}
     for name, overrides in jobs.items():
-        cfg = compose_cfg(overrides)
-        HydraConfig.instance().set_config(cfg)
-        validate(cfg)
+        cfg = validated_config(overrides)
         agent = name.split("/")[1]
         assert cfg.actor._target_.endswith(expected[agent]), name
         assert (not cfg.get("predictor")) == (agent in ("memoryless", "drqn", "oracle") or name.startswith("floor")), name

@@ -52,7 +52,7 @@ def test_env_steps_to_solve_against_a_loop_over_windows():
     ep = {"discounted_return": np.where(good, 4.2, -1.0) + rng.normal(0, 0.3, (R, N)),
           "steps": rng.integers(3, 11, size=(R, N)), "correct_goal": good | (rng.random((R, N)) < 0.3)}
     random_steps = rng.integers(0, 1000, size=R)
-    got = sample_efficiency(ep, random_steps, opt, W, ["correct_goal"])
+    got = sample_efficiency(ep, random_steps, ("discounted_return", opt), W, ["correct_goal"])
     for r in range(R):
         want = None
         for k in range(W - 1, N):

@@ -1,19 +1,25 @@
 """baselines/recurrent_ppo.py (the optional sb3-contrib RecurrentPPO baseline): its run directory
 holds what CONTRACT §2 and docs/records.md promise, its episode records are ones the regular T-maze
 can produce, and analyze.py puts it beside a ferl run of the same maze in a sweep's "Agents side by
-side" table. Skipped without sb3-contrib (`pip install -e '.[baselines]'`)."""
+side" table; on an outside Gymnasium id (tests/outside_env.py) it describes the environment as
+ferl's ``env=gymnasium`` does and records episodes the environment can produce; bad input is one
+line. Skipped without sb3-contrib (`pip install -e '.[baselines]'`)."""
 import csv
 import json
+import os
 import subprocess
 import sys
 
 import numpy as np
 import pytest
+import torch
 
 pytest.importorskip("sb3_contrib")
 
 from conftest import ROOT, compose_config, train_job  # noqa: E402
 from ferl.analysis.records import Manifest  # noqa: E402
+from ferl.analysis.variants import VIEW_KEYS  # noqa: E402
+from ferl.envs.gymnasium_vector import GymnasiumEnv  # noqa: E402
 from ferl.run.directory import RunDir  # noqa: E402
 
 GAMMA, T_MIN, T_MAX, GOAL = 0.95, 3, 10, 5.0
@@ -25,9 +31,16 @@ TMAZE_METRICS = ("final_discounted_return", "final_steps_to_goal", "final_correc
                  "env_steps_total", "env_steps_to_solve")
 
 
-def run_script(*args):
+# CueRecall (tests/outside_env.py) with MultiDiscrete actions: 3-step episodes, −0.1, −0.1, then ±1
+TESTS = ROOT / "tests"
+sys.path.insert(0, str(TESTS))  # GymnasiumEnv below imports outside_env, as the script does
+CUE, CUE_KWARGS, CUE_GAMMA = "outside_env:CueRecall-v0", {"delay": 2, "grid_actions": True}, 0.9
+CUE_SETTINGS = {"optimal_return": 0.8, "success_threshold": 0.0}
+
+
+def run_script(*args, env=None):
     return subprocess.run([sys.executable, str(ROOT / "baselines" / "recurrent_ppo.py"), *args],
-                          capture_output=True, text=True, timeout=300)
+                          capture_output=True, text=True, timeout=300, env=env)
 
 
 @pytest.fixture(scope="module")
@@ -106,3 +119,62 @@ def test_a_directory_holding_a_run_is_refused(sweep):
     root, _ = sweep
     done = run_script("--env-id", "ferl/TMaze-v0", "--steps", "10", "--out", str(root / "ppo"))
     assert done.returncode == 2 and "already holds a run" in done.stderr
+
+
+@pytest.fixture(scope="module")
+def cue(tmp_path_factory):
+    """The baseline on an id that nothing in ferl names (2 runs of 2 048 steps, a few seconds)."""
+    out = tmp_path_factory.mktemp("ppo_cue") / "ppo"
+    done = run_script("--env-id", CUE, "--env-kwargs", json.dumps(CUE_KWARGS), "--runs", "2", "--steps", "2048",
+                      "--n-envs", "2", "--gamma", str(CUE_GAMMA), "--optimal-return", "0.8", "--success-threshold", "0",
+                      "--out", str(out), env={**os.environ, "PYTHONPATH": str(TESTS)})
+    assert done.returncode == 0, done.stderr
+    return out, done.stdout
+
+
+def test_a_gymnasium_id_is_described_as_ferl_describes_it(cue):
+    out, stdout = cue
+    summary = json.loads((out / "summary.json").read_text())
+    assert (summary["experiment"], summary["task"]) == ("recurrent_ppo", "gymnasium")
+    assert summary["optimal"] == {"return": 0.8}
+    assert {"final_return", "final_success_rate", "solved", "env_steps_total"} <= set(summary["metrics"])
+    assert summary["metrics"]["env_steps_total"] == [2048, 2048]
+    assert stdout.count("mean return over the last 200") == 2  # one progress line per run
+    manifest = Manifest.load(out)
+    ferl_env = GymnasiumEnv(1, torch.Generator(), 0, id=CUE, kwargs=CUE_KWARGS, **CUE_SETTINGS)
+    ferl_env.close()
+    assert manifest.env["class"] == "ferl.envs.gymnasium_vector.GymnasiumEnv"
+    task = {k: v for k, v in ferl_env.describe().items() if k not in VIEW_KEYS}
+    assert {k: v for k, v in manifest.env.items() if k not in (*VIEW_KEYS, "class")} == task
+    assert (manifest.task, manifest.actor["gamma"], manifest.env["n_actions"]) == ("gymnasium", CUE_GAMMA, 6)
+    overrides = (out / ".hydra" / "overrides.yaml").read_text()
+    assert "env.optimal_return=0.8" in overrides and "gamma=0.9" in overrides
+
+
+def test_gymnasium_records_are_episodes_of_the_environment(cue):
+    out, _ = cue
+    ep = dict(np.load(out / "records" / "episodes.npz"))
+    ret, steps = ep["return"], ep["steps"]
+    assert ret.shape == steps.shape == ep["success"].shape == (2, ret.shape[1]) and ret.shape[1] > 200
+    assert np.all(steps == 3) and set(np.unique(ep["terminal_reward"])) <= {-1.0, 1.0}
+    np.testing.assert_allclose(ret, -0.2 + ep["terminal_reward"], atol=1e-6)  # raw rewards, undiscounted
+    np.testing.assert_allclose(ep["discounted_return"], -0.1 - 0.1 * CUE_GAMMA + CUE_GAMMA ** 2 * ep["terminal_reward"],
+                               atol=1e-6)
+    np.testing.assert_array_equal(ep["success"], ret > 0)
+    assert float(ep["gamma"]) == CUE_GAMMA and np.isnan(ep["optimal_return"]) and np.isnan(ep["optimal_steps"])
+    assert np.isnan(ep["td_abs_mean"]).all()
+    metrics = json.loads((out / "summary.json").read_text())["metrics"]
+    np.testing.assert_allclose(metrics["final_return"], ret[:, -200:].mean(1), rtol=1e-6)
+    np.testing.assert_allclose(metrics["final_success_rate"], ep["success"][:, -200:].mean(1))
+
+
+@pytest.mark.parametrize("args, names", [
+    (["--env-id", "Pendulum-v1"], "action space Box"), (["--env-id", "outside_env:Nope-v0"], "--env-id"),
+    (["--env-id", "CartPole-v1"], "--encoding"),
+    (["--env-id", "ferl/TMaze-v0", "--optimal-return", "1"], "Gymnasium ids")])
+def test_bad_input_is_one_line_and_writes_nothing(tmp_path, args, names):
+    out = tmp_path / "ppo"
+    done = run_script(*args, "--steps", "100", "--out", str(out), env={**os.environ, "PYTHONPATH": str(TESTS)})
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 2 and len(lines) == 1 and lines[0].startswith("recurrent_ppo.py: error:"), done.stderr
+    assert names in lines[0] and not out.exists()

@@ -37,7 +37,8 @@ ERROR_UNITS = {  # predictor role → its recorded error measure (Eq. 4.8; Figs.
     REWARD: "squared error (r − r̂)²\n(scalar reward)",
 }
 EPISODE_LABELS = {"discounted_return": "discounted return", "steps": "steps per episode",
-                  "terminal_reward": "terminal reward", "td_abs_mean": "mean |δ| per episode"}
+                  "terminal_reward": "terminal reward", "td_abs_mean": "mean |δ| per episode",
+                  "return": "return (undiscounted)"}
 
 
 @dataclass(frozen=True)
@@ -74,21 +75,23 @@ def curves(run: Run) -> Curves | None:
     """The run's learning curves; None for a run with neither record."""
     episodes, steps = run.records("episodes"), run.records("steps")
     if run.manifest.episodic and episodes is not None:
-        outcomes = [k for k in run.manifest.env.get("outcomes", [])
-                    if k in episodes and episodes[k].dtype == bool]
+        recorded = [k for k in run.manifest.env.get("outcomes", []) if k in episodes]
+        rates = [k for k in recorded if episodes[k].dtype == bool]
+        averages = [k for k in recorded if episodes[k].dtype.kind == "f"]  # e.g. the undiscounted return
         keys = [k for k in ("discounted_return", "steps", "terminal_reward") if k in episodes]
-        keys += outcomes + ["td_abs_mean"]
+        keys += averages + rates + ["td_abs_mean"]
         window = min(EPISODE_WINDOW, episodes["td_abs_mean"].shape[1])
         series = {}
         for key in keys:
             x, series[key] = _moving(episodes[key].astype(np.float64), window, None)
         optima = {"discounted_return": episodes.get("optimal_return"),
                   "steps": episodes.get("optimal_steps"),
-                  "terminal_reward": run.manifest.env.get("goal_reward")}
+                  "terminal_reward": run.manifest.env.get("goal_reward"),
+                  "return": run.summary.get("optimal", {}).get("return")}
         return Curves("episode", window, episodes["td_abs_mean"].shape[1], x, series,
                       {k: EPISODE_LABELS.get(k, f"{k.replace('_', ' ')} rate") for k in keys},
-                      {k: None if optima.get(k) is None else float(optima[k]) for k in keys},
-                      "td_abs_mean")
+                      {k: None if optima.get(k) is None or np.isnan(float(optima[k])) else float(optima[k])
+                       for k in keys}, "td_abs_mean")
     if steps is None:
         return None
     window = min(STEP_WINDOW, steps["rewards"].shape[1])

@@ -32,16 +32,23 @@ from ferl.analysis.sweep import metric_values
 
 DISSERTATION_AGENT = "dissertation agent"
 # The metrics a task's row shows, in this order, where its summaries have them (CONTRACT §2).
-HEADLINES = ("solved", "final_correct_goal_rate", "final_discounted_return", "reward_per_step_last10pct",
+HEADLINES = ("solved", "final_correct_goal_rate", "final_success_rate", "final_return", "best_return",
+             "final_discounted_return", "reward_per_step_last10pct",
              "greedy_accuracy/0.125", "env_steps_to_solve", "env_steps_total", "wall_time_s", "agent_steps_per_s")
 # How agents are ranked on a task: by the first of these their summaries have (higher is better),
 # then the next on ties; the finding compares the leader with the runner-up on the first of them
 # on which the two differ.
-RANKING = ("solved", "final_correct_goal_rate", "final_discounted_return", "reward_per_step_last10pct")
+# (An outside task's undiscounted return before the discounted one: its agents may discount differently.)
+RANKING = ("solved", "final_correct_goal_rate", "final_success_rate", "final_return", "final_discounted_return",
+           "reward_per_step_last10pct")
 # What a view of the environment changes of its facts (the oracle's ``true_state``): the task stays.
-VIEW_KEYS = ("true_state", "observation", "observation_size", "observation_names")
+# what an agent's view of a task is (the oracle's true state; an outside task's encoding and the
+# scale of the rewards it learns from), not the task
+VIEW_KEYS = ("true_state", "observation", "observation_size", "observation_names", "encoding", "vectorization",
+             "reward_scale")
 ORACLE = "oracle"
-CURVE = {"episode": "discounted_return", "step": "reward"}  # the curve each unit of run draws
+# the curve each unit of run draws: the first of these it has (an outside task's undiscounted return)
+CURVE = {"episode": ("return", "discounted_return"), "step": ("reward",)}
 
 
 def agent(manifest) -> str:
@@ -122,8 +129,9 @@ def ranking_key(cells: dict) -> tuple:
 
 def finding(cells: Sequence[tuple[Entry, dict]]) -> str | None:
     """Which agent leads the task (the oracle aside: it sees the true state), by how much on the
-    first ranking metric that tells it from the runner-up, with the s.e.m. of the difference; and
-    the oracle's ceiling."""
+    first ranking metric that tells it from the runner-up, with the s.e.m. of the difference; where
+    the dissertation's agent does not lead, how far behind it is and its rank; and the oracle's
+    ceiling."""
     agents = [(e, h) for e, h in cells if not e.agent.startswith(ORACLE)]
     if len(agents) < 2:
         return None
@@ -138,6 +146,12 @@ def finding(cells: Sequence[tuple[Entry, dict]]) -> str | None:
     clear = "" if diff > 2 * sem else " — within two s.e.m.: no clear leader"
     text = (f"**Best: {name(best)}**, {metric} {cell_text(metric, b[metric])}, ahead of {name(second)} "
             f"({cell_text(metric, c[metric])}) by {diff:.3f} ± {sem:.3f} (s.e.m. of the difference){clear}.")
+    ours = next(((e, h) for e, h in agents if e.agent == DISSERTATION_AGENT and metric in h), None)
+    if ours is not None and ours[0] is not best:
+        gap, gap_sem = b[metric][0] - ours[1][metric][0], float(np.hypot(b[metric][1], ours[1][metric][1]))
+        rank = 1 + sum(ranking_key(h) > ranking_key(ours[1]) for _, h in agents)
+        text += (f" The dissertation's agent ({ours[0].job.label}): {cell_text(metric, ours[1][metric])}, "
+                 f"{gap:.3f} ± {gap_sem:.3f} behind, rank {rank} of {len(agents)}.")
     oracle = [(e, h) for e, h in cells if e.agent.startswith(ORACLE) and metric in h]
     if oracle:
         text += f" Ceiling (oracle on the true state): {cell_text(metric, oracle[0][1][metric])}."
@@ -153,7 +167,7 @@ def curve_figure(group: Sequence[Entry]) -> Figure | None:
         c = generic.curves(entry.run)
         if c is None:
             continue
-        key = CURVE[c.unit]
+        key = next(k for k in CURVE[c.unit] if k in c.series)
         mean, sem = c.mean_sem(key)
         color = f"C{k % 10}"
         band(ax, c.x, mean, sem, None, color)

@@ -56,13 +56,18 @@ class ActorEpisodes(Phase):
         outcomes = job.env.outcomes()
         self.outcome_names = ("discounted_return", "steps", "terminal_reward", "td_abs_mean", *outcomes)
         self.rates = [name for name, v in outcomes.items() if v.dtype == torch.bool]  # e.g. correct_goal
+        self.averages = [name for name, v in outcomes.items() if v.is_floating_point()]  # e.g. a return
+        self.optimum = solved_against(job.env.optimal(job.actor.gamma))
         self.episode_learner = isinstance(job.actor, EpisodeLearner)
+        kinds = {**{k: np.int64 for k in outcomes}, **{k: bool for k in self.rates}, **{k: np.float32 for k in self.averages}}
         self.dtypes = {"discounted_return": np.float32, "steps": np.int64, "terminal_reward": np.float32,
-                       "td_abs_mean": np.float32, **{k: bool if k in self.rates else np.int64 for k in outcomes}}
+                       "td_abs_mean": np.float32, **kinds}
 
     def metric_names(self, job) -> list[str]:
-        return ["final_discounted_return", "final_steps_to_goal", *(f"final_{name}_rate" for name in self.rates), "solved",
-                "env_steps_total", "env_steps_to_solve", "episodes_to_solve"]
+        solved = ["solved"] if self.optimum else []
+        return ["final_discounted_return", "final_steps_to_goal", *(f"final_{name}_rate" for name in self.rates),
+                *(f"{when}_{name}" for name in self.averages for when in ("final", "best")), *solved, "env_steps_total",
+                *(["env_steps_to_solve", "episodes_to_solve"] if self.optimum else [])]
 
     def fresh_state(self, job) -> dict:
         """Records of the phase before its first episode: one value per run and episode."""
@@ -136,14 +141,15 @@ class ActorEpisodes(Phase):
         table = self.observations.table
         ids = job.env.observation_table.shape[0]
         self.steps = [self.memory_step(p, table, job.env.n_actions) for p in job.predictors.values()]
-        self.obs_rows = scaled(table.reshape(-1, table.shape[-1]), self.obs_scale)
+        # an environment that discovers its observations fills the table in place: index it live
+        self.obs_rows = table.reshape(-1, table.shape[-1])
         self.obs_offsets = torch.arange(job.R, device=job.device) * ids if table.dim() == 3 else None
         self.discounts = job.actor.gamma ** torch.arange(job.env.max_steps, device=job.device, dtype=torch.float32)
 
     def state(self, job, obs_id: torch.Tensor, memories: list) -> torch.Tensor:
         """The actor's state (R, 1, S): the (processed) observation, then every predictor's memory."""
         rows = obs_id if self.obs_offsets is None else obs_id + self.obs_offsets
-        return torch.cat([self.obs_rows.index_select(0, rows), *memories], 1).unsqueeze(1)
+        return torch.cat([scaled(self.obs_rows.index_select(0, rows), self.obs_scale), *memories], 1).unsqueeze(1)
 
     def play_episode(self, job, k: int, lr: float, beta: float) -> dict:
         """Episode k of every run, with SARSA(0) updates at every step (``td_step``): observe →
@@ -230,13 +236,14 @@ class ActorEpisodes(Phase):
         sampled = np.asarray(list(range(0, self.N, self.td_sample_every)))
         optimal = job.env.optimal(job.actor.gamma)
         job.run.save_records("episodes", **records, td_sampled=state["td_sampled"], td_sampled_episodes=sampled,
-                             gamma=np.float64(job.actor.gamma), optimal_return=np.float64(optimal["discounted_return"]),
+                             gamma=np.float64(job.actor.gamma),
+                             optimal_return=np.float64(optimal.get("discounted_return", np.nan)),
                              optimal_steps=np.float64(job.env.optimal_steps))
         job.run.save_records("junction", **probes)
         self.log_probes(job, probes, records)
-        job.metrics.update(final_metrics(records, optimal["discounted_return"], self.final_window, self.rates))
+        job.metrics.update(final_metrics(records, self.optimum, self.final_window, self.rates, self.averages))
         job.metrics.update(sample_efficiency(records, job.shared.get("random_steps", np.zeros(job.R, np.int64)),
-                                             optimal["discounted_return"], self.final_window, self.rates))
+                                             self.optimum, self.final_window, self.rates))
         job.count_agent_steps(state["agent_steps"], state["active_time"])
 
     def log_actor(self, job, step: int) -> None:
@@ -274,6 +281,16 @@ def concat_records(parts: list) -> dict:
     return {key: torch.cat([p[key] for p in parts]) for key in parts[0]}
 
 
+def solved_against(optimal: dict) -> tuple[str, float] | None:
+    """(record, optimum) that ``solved`` compares a run's final return with: the discounted return
+    where the environment states its optimum (the T-mazes), else the undiscounted ``return`` where
+    it states that (a Gymnasium id with ``optimal_return``), else None: no ``solved`` metric."""
+    for key in ("discounted_return", "return"):
+        if optimal.get(key) is not None:
+            return key, float(optimal[key])
+    return None
+
+
 def meets_solved(returns: np.ndarray, rates: dict, optimal_return: float) -> np.ndarray:
     """The ``solved`` criterion (CONTRACT §2) on window means: return ≥ 0.95 × optimum and every
     outcome rate (the correct-goal rate) ≥ 0.95."""
@@ -289,28 +306,41 @@ def window_means(x: np.ndarray, window: int) -> np.ndarray:
     return (c[:, window:] - c[:, :-window]) / window
 
 
-def sample_efficiency(episodes: dict, random_steps: np.ndarray, optimal_return: float, window: int,
+def sample_efficiency(episodes: dict, random_steps: np.ndarray, optimum: tuple[str, float] | None, window: int,
                       rates: list) -> dict:
     """Environment steps per run (random collection included: ``random_steps`` (R,)): all of them,
-    and those until the first window of ``window`` episodes that meets the ``solved`` criterion
-    (its last episode included; None if none does), with that episode's number (1-based)."""
+    and, where there is an ``optimum`` (``solved_against``), those until the first window of
+    ``window`` episodes that meets the ``solved`` criterion (its last episode included; None if
+    none does), with that episode's number (1-based)."""
     steps = episodes["steps"].astype(np.int64)
     used = np.asarray(random_steps)[:, None] + np.cumsum(steps, 1)  # (R, N) steps after each episode
-    solved = meets_solved(window_means(episodes["discounted_return"], window),
-                          {n: window_means(episodes[n], window) for n in rates}, optimal_return)
+    if optimum is None:
+        return {"env_steps_total": used[:, -1].tolist()}
+    key, best = optimum
+    solved = meets_solved(window_means(episodes[key], window), {n: window_means(episodes[n], window) for n in rates}, best)
     first = [int(np.argmax(row)) + window - 1 if row.any() else None for row in solved]
     return {"env_steps_total": used[:, -1].tolist(),
             "env_steps_to_solve": [int(used[r, k]) if k is not None else None for r, k in enumerate(first)],
             "episodes_to_solve": [k + 1 if k is not None else None for k in first]}
 
 
-def final_metrics(episodes: dict, optimal_return: float, window: int, rates: list) -> dict:
+def final_metrics(episodes: dict, optimum: tuple[str, float] | None, window: int, rates: list,
+                  averages: list = ()) -> dict:
     """CONTRACT §2 episodic metrics over the last ``window`` (200) episodes, one value per run:
-    return, steps, the rate of every boolean outcome (``final_correct_goal_rate``) and solved."""
+    discounted return, steps, the rate of every boolean outcome (``final_correct_goal_rate``), the
+    mean of every float one (``final_return``) and its best window mean over all episodes
+    (``best_return``) and, given an optimum, solved."""
     last = slice(-window, None)
-    ret = episodes["discounted_return"][:, last].mean(1)
     rate = {name: episodes[name][:, last].mean(1) for name in rates}
-    solved = meets_solved(ret, rate, optimal_return)
-    return {"final_discounted_return": ret.tolist(), "final_steps_to_goal": episodes["steps"][:, last].mean(1).tolist(),
-            **{f"final_{name}_rate": values.tolist() for name, values in rate.items()},
-            "solved": solved.astype(int).tolist()}
+    metrics = {"final_discounted_return": episodes["discounted_return"][:, last].mean(1).tolist(),
+               "final_steps_to_goal": episodes["steps"][:, last].mean(1).tolist(),
+               **{f"final_{name}_rate": values.tolist() for name, values in rate.items()},
+               **{f"final_{name}": episodes[name][:, last].mean(1).tolist() for name in averages},
+               # the best window mean over the training: POPGym's "mean maximum episodic return" (MMER,
+               # Morad et al. 2023) with a window of episodes as its batch
+               **{f"best_{name}": window_means(episodes[name], min(window, episodes[name].shape[1])).max(1).tolist()
+                  for name in averages}}
+    if optimum is not None:
+        key, best = optimum
+        metrics["solved"] = meets_solved(episodes[key][:, last].mean(1), rate, best).astype(int).tolist()
+    return metrics

@@ -126,6 +126,12 @@ class CollectEpisodes(Phase):
         """The random episodes are the predictors' data: a memoryless agent (``predictor=none``) acts at once."""
         return bool(job.predictors)
 
+    def prepare(self, job) -> None:
+        if discovers_observations(job.env):
+            raise ConfigError(f"trainer: Algorithm 1's predictors learn from episodes collected beforehand, on ids of a fixed "
+                              f"observation table, and {job.env.task} environments discover their observations as they "
+                              f"run: use trainer=online, or predictor=none")
+
     def run(self, job, state) -> None:
         copies = max(1, min(self.n_sample, self.collect_batch // job.R))
         env = job.make_env(job.R * copies)
@@ -137,6 +143,12 @@ class CollectEpisodes(Phase):
         job.writer.add_scalar("collect/train_sequences", train.lengths.shape[1], 0)
         job.writer.add_scalar("collect/test_sequences", test.lengths.shape[1], 0)
         job.writer.add_scalar("collect/train_per_length", n_train, 0)
+
+
+def discovers_observations(env) -> bool:
+    """Whether the environment's observation table grows in place as it runs (``env=gymnasium``):
+    then nothing may be computed from the table ahead of the episodes."""
+    return getattr(env, "discovers_observations", False)
 
 
 def observation_table(job) -> ObservationTable:

@@ -4,7 +4,9 @@ import numpy as np
 import torch
 
 from ferl.images import IMAGE_SIDE, as_images, matrix_image, tile
+from ferl.config.params import ConfigError
 from ferl.run.tensorboard import log_weights
+from ferl.trainers.episodes import discovers_observations
 from ferl.trainers.phased import Phase
 
 
@@ -17,6 +19,11 @@ class FitPreprocessor(Phase):
 
     def applies(self, job) -> bool:
         return job.preprocessor is not None
+
+    def prepare(self, job) -> None:
+        if discovers_observations(job.env):
+            raise ConfigError(f"preprocessor: it processes the table of every observation once, and {job.env.task} "
+                              f"environments discover their observations as they run: use ~preprocessor")
 
     def run(self, job, state) -> None:
         pre = job.preprocessor
@@ -32,6 +39,8 @@ class FitPreprocessor(Phase):
 def log_observations(job) -> None:
     """What the agent observes: up to 8 images of every observation's reservoir (one row per
     observation of the environment's table), or the table of bit codes itself."""
+    if discovers_observations(job.env):
+        return  # none seen yet
     table, names = job.env.observation_table.float().cpu(), job.env.observation_names
     if table.shape[1] == IMAGE_SIDE ** 2:
         per_name = table.view(len(names), -1, table.shape[1])

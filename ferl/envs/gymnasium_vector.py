@@ -1,0 +1,244 @@
+"""Any Gymnasium environment with discrete actions as a ferl environment (``env=gymnasium``).
+
+R runs are one ``gymnasium.vector`` environment (``SyncVectorEnv``; ``AsyncVectorEnv`` with
+``vectorization=async``), run r seeded with seed + r at its first reset and never again, so every
+later episode continues its own random stream. Each run's observations are encoded as bits
+(``ferl.envs.encodings``) and given ids in order of first sight: the table of an episodic
+environment (``EpisodicEnvironment``) that grows in place as observations are discovered
+(``discovers_observations``), up to ``max_observations`` rows.
+
+Episodes follow ferl's lockstep (``ferl.trainers.actor_episodes``): every run starts episode k
+together, and a run whose episode has ended waits, with reward 0, until all have. The vector
+environment still steps it: Gymnasium's next-step auto-reset (its default) starts a new episode
+there, which is played with action 0 and thrown away; the next ``reset`` resets every run. An
+episode also ends, truncated, after ``max_steps`` actions (default: the id's own limit —
+``max_episode_steps`` of its registration, POPGym's ``max_episode_length``, MiniGrid's
+``max_steps``).
+
+Rewards are the environment's, times ``reward_scale`` for the learners (POPGym scales every
+episode's return into [−1, 1], so a step's reward can be ±1/50; the agents' step sizes are those
+of rewards of order 1). The episode's undiscounted return, in the environment's own units, is the
+outcome ``return`` (``final_return`` in summary.json); with ``success_threshold`` an episode whose
+return exceeds it counts as a success (``final_success_rate``, MiniGrid's reward is positive only at the goal), and
+with ``optimal_return`` (the environment's stated optimum) a run is ``solved`` when its final
+return is ≥ 0.95 of it and every success rate ≥ 0.95.
+
+A checkpoint holds every run's environment pickled (``Snapshot``: generators included), so a
+resumed run steps the same episodes as an uninterrupted one.
+"""
+import pickle
+from typing import Literal
+
+import gymnasium
+import numpy as np
+import torch
+from gymnasium import spaces
+
+from ferl.config.params import ConfigError, Positive, PositiveInt, checked
+from ferl.envs.encodings import ENCODINGS, BinaryObservation, NoEncoding
+
+
+class Snapshot(gymnasium.Wrapper):
+    """The wrapped environment's whole state as bytes (``ferl_state``), read and written through
+    the vector environment's ``get_attr`` / ``set_attr``, synchronous or asynchronous alike."""
+
+    @property
+    def ferl_state(self) -> bytes:
+        return pickle.dumps(self.env)
+
+    @ferl_state.setter
+    def ferl_state(self, state: bytes) -> None:
+        self.env = pickle.loads(state)
+
+
+def make(env_id: str, kwargs: dict):
+    """``gymnasium.make`` (``module:Id`` imports the module that registers the id); a failure is
+    one ConfigError line naming env.id."""
+    try:
+        return gymnasium.make(env_id, **kwargs)
+    except gymnasium.error.Error as e:
+        raise ConfigError(f"env.id: {env_id!r} is not a registered Gymnasium id ({str(e).splitlines()[0]}); "
+                          f"use a registered id or 'module:Id' with a module that registers it") from None
+    except (ModuleNotFoundError, ImportError) as e:
+        raise ConfigError(f"env.id: {env_id!r}: its module cannot be imported ({e})") from None
+    except TypeError as e:
+        raise ConfigError(f"env.kwargs: {env_id!r} does not take them ({e})") from None
+
+
+def action_sizes(space, env_id: str) -> np.ndarray:
+    """The sizes of the discrete action's parts: (n,) for ``Discrete(n)``, the entries of a
+    ``MultiDiscrete`` (its actions are enumerated: action i is the mixed-radix digits of i)."""
+    if isinstance(space, spaces.Discrete):
+        return np.array([int(space.n)])
+    if isinstance(space, spaces.MultiDiscrete):
+        return space.nvec.reshape(-1).astype(np.int64)
+    raise ConfigError(f"env.id: {env_id!r} has the action space {space}; ferl's agents choose among discrete "
+                      f"actions (Discrete or MultiDiscrete)")
+
+
+def default_max_steps(env) -> int | None:
+    """An id's own episode limit (module docstring), or None if it states none."""
+    spec_limit = env.spec.max_episode_steps if env.spec is not None else None
+    inner = env.unwrapped
+    for limit in (spec_limit, getattr(inner, "max_episode_length", None), getattr(inner, "max_steps", None)):
+        if isinstance(limit, (int, np.integer)) and limit > 0:
+            return int(limit)
+    return None
+
+
+class GymnasiumEnv:
+    """R runs of the Gymnasium environment ``id`` (module docstring). Arguments: ``kwargs`` for
+    ``gymnasium.make``; ``encoding`` of the observations (``ferl.envs.encodings``) with its
+    ``thresholds``; ``max_steps`` T_max (null: the id's own); ``vectorization``; ``max_observations``
+    the table's rows; ``success_threshold`` and ``optimal_return`` (null: none stated)."""
+
+    task = "gymnasium"
+    discovers_observations = True  # the observation table grows as observations are seen
+    optimal_steps = float("nan")   # unknown in general
+    reward_values = ()             # no reward bits: predictors take the scalar reward (reward_output=linear)
+
+    @checked
+    def __init__(self, n_runs: PositiveInt, generator: torch.Generator, seed: int, id: str, kwargs: dict | None = None,
+                 encoding: Literal[ENCODINGS] = "auto", thresholds: list | None = None,
+                 max_steps: PositiveInt | None = None, vectorization: Literal["sync", "async"] = "sync",
+                 max_observations: PositiveInt = 4096, success_threshold: float | None = None,
+                 optimal_return: float | None = None, reward_scale: Positive = 1.0, device="cpu"):
+        del generator  # the environments draw from their own seeded generators
+        self.n_runs, self.id, self.kwargs, self.device = n_runs, id, dict(kwargs or {}), torch.device(device)
+        self.encoding, self.thresholds = encoding, list(thresholds or ())
+        probe = make(id, self.kwargs)
+        try:
+            self.sizes = action_sizes(probe.action_space, id)
+            self.action_space = probe.action_space
+            try:
+                observation_size = BinaryObservation(probe, encoding, self.thresholds).observation_space.n
+            except NoEncoding as e:
+                raise ConfigError(f"env.encoding: the observation space of {id!r}: {e}") from None
+            limit = max_steps or default_max_steps(probe)
+        finally:
+            probe.close()
+        if limit is None:
+            raise ConfigError(f"env.max_steps: {id!r} states no episode limit; set env.max_steps (T_max)")
+        self.max_steps, self.observation_size = limit, int(observation_size)
+        self.n_actions = int(np.prod(self.sizes))
+        self.action_names = [str(i) for i in range(self.n_actions)] if len(self.sizes) == 1 else \
+            ["(" + ",".join(map(str, np.unravel_index(i, self.sizes))) + ")" for i in range(self.n_actions)]
+        self.success_threshold, self.optimal_return, self.vectorization = success_threshold, optimal_return, vectorization
+        self.reward_scale = reward_scale
+        self.seeds = [seed + r for r in range(n_runs)]
+        vector = gymnasium.vector.AsyncVectorEnv if vectorization == "async" else gymnasium.vector.SyncVectorEnv
+        self.vector = vector([self.env_fn() for _ in range(n_runs)], autoreset_mode=gymnasium.vector.AutoresetMode.NEXT_STEP)
+        self.observation_table = torch.zeros(max_observations, self.observation_size, device=self.device)
+        self.ids: dict[bytes, int] = {}
+        self.observation_names: list[str] = []
+        self.seeded = False
+        self.obs_id = torch.zeros(n_runs, dtype=torch.long, device=self.device)
+        self.done = torch.ones(n_runs, dtype=torch.bool, device=self.device)
+        self.t = torch.zeros(n_runs, dtype=torch.long, device=self.device)
+        self.episode_return = torch.zeros(n_runs, device=self.device)
+
+    def env_fn(self):
+        env_id, kwargs, encoding, thresholds = self.id, self.kwargs, self.encoding, self.thresholds
+        return lambda: BinaryObservation(Snapshot(make(env_id, kwargs)), encoding, thresholds)
+
+    # ---- observations -------------------------------------------------------------------------
+    def identify(self, bits: np.ndarray) -> torch.Tensor:
+        """Ids (R,) of the encoded observations (R, O), new ones added to the table."""
+        ids = []
+        for row in np.asarray(bits, np.uint8):
+            key = row.tobytes()
+            if key not in self.ids:
+                i = len(self.ids)
+                if i == self.observation_table.shape[0]:
+                    raise RuntimeError(f"env.max_observations: {self.id!r} showed more than {i} distinct observations; "
+                                       f"raise env.max_observations")
+                self.ids[key] = i
+                self.observation_names.append(f"obs{i}")
+                self.observation_table[i] = torch.from_numpy(row.astype(np.float32)).to(self.device)
+            ids.append(self.ids[key])
+        return torch.tensor(ids, device=self.device)
+
+    def observe(self) -> torch.Tensor:
+        return self.observation_table.index_select(0, self.obs_id)
+
+    # ---- episodes -----------------------------------------------------------------------------
+    def reset(self) -> torch.Tensor:
+        """Every run's next episode (run r seeded with seed + r at the first one)."""
+        bits, _ = self.vector.reset(seed=None if self.seeded else self.seeds)
+        self.seeded = True
+        self.obs_id = self.identify(bits)
+        self.done = torch.zeros_like(self.done)
+        self.t = torch.zeros_like(self.t)
+        self.episode_return = torch.zeros_like(self.episode_return)
+        return self.observe()
+
+    def env_actions(self, action: torch.Tensor) -> np.ndarray:
+        """ferl's action indices (R,) as the space's actions; action 0 for runs that wait."""
+        index = torch.where(self.done, 0, action).cpu().numpy()
+        space = self.action_space
+        if isinstance(space, spaces.Discrete):
+            return index + int(space.start)
+        digits = np.stack(np.unravel_index(index, self.sizes), -1).reshape(len(index), *space.nvec.shape)
+        return digits + (space.start if getattr(space, "start", None) is not None else 0)
+
+    def advance(self, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """One step of every run that has not ended: (rewards, terminated, truncated), each (R,)."""
+        bits, reward, terminated, truncated, _ = self.vector.step(self.env_actions(action))
+        active = ~self.done
+        as_tensor = lambda x, dtype: torch.as_tensor(np.asarray(x), dtype=dtype, device=self.device)  # noqa: E731
+        raw = torch.where(active, as_tensor(reward, torch.float32), 0.0)
+        self.t = self.t + active.long()
+        terminated = as_tensor(terminated, torch.bool) & active
+        truncated = (as_tensor(truncated, torch.bool) | (self.t >= self.max_steps)) & active & ~terminated
+        self.obs_id = torch.where(active, self.identify(bits), self.obs_id)
+        self.episode_return = self.episode_return + raw
+        self.done = self.done | terminated | truncated
+        return raw * self.reward_scale, terminated, truncated
+
+    def step(self, action: torch.Tensor):
+        reward, terminated, truncated = self.advance(action)
+        return self.observe(), reward, terminated, truncated
+
+    def outcomes(self) -> dict:
+        """The episode's undiscounted return, and whether it succeeded where a threshold is set."""
+        facts = {"return": self.episode_return}
+        if self.success_threshold is not None:
+            facts["success"] = self.episode_return > self.success_threshold
+        return facts
+
+    def labels(self) -> dict:
+        return {}
+
+    @property
+    def probe(self) -> torch.Tensor:
+        return torch.zeros_like(self.done)  # no state of a third-party task is singled out
+
+    def optimal(self, gamma: float) -> dict:
+        """The stated optimum of the undiscounted return, if any (``solved`` needs one)."""
+        return {} if self.optimal_return is None else {"return": self.optimal_return}
+
+    def describe(self) -> dict:
+        return {"kind": "gymnasium", "task": self.task, "episodic": True, "observation": "bits", "id": self.id,
+                "kwargs": self.kwargs, "encoding": self.encoding, "vectorization": self.vectorization,
+                "observation_size": self.observation_size, "n_actions": self.n_actions,
+                "action_names": self.action_names, "max_steps": self.max_steps, "optimal_return": self.optimal_return,
+                "success_threshold": self.success_threshold, "reward_scale": self.reward_scale,
+                "labels": [], "outcomes": list(self.outcomes())}
+
+    def state_dict(self) -> dict:
+        n = len(self.ids)
+        return {"envs": self.vector.get_attr("ferl_state"), "seeded": self.seeded, "table": self.observation_table[:n].cpu(),
+                "obs_id": self.obs_id, "done": self.done, "t": self.t, "episode_return": self.episode_return}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.vector.set_attr("ferl_state", list(state["envs"]))
+        self.seeded = state["seeded"]
+        self.ids.clear()
+        self.observation_names.clear()
+        self.observation_table.zero_()
+        self.identify(state["table"].numpy().astype(np.uint8))
+        for key in ("obs_id", "done", "t", "episode_return"):
+            setattr(self, key, state[key].to(self.device))
+
+    def close(self) -> None:
+        self.vector.close()
