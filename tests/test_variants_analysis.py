@@ -65,7 +65,7 @@ def test_the_finding_names_the_leader_among_the_agents_that_see_what_the_agent_s
     report = (root / "analysis" / "report.md").read_text()
     line = next(x for x in report.splitlines() if x.startswith("**Best: ") and "table4_1_regular" in x)
     assert line.startswith(f"**Best: {agents[best]} (")
-    assert ("The dissertation's agent" in line) == (best != "maze")
+    assert (" FERL (dissertation agent " in line) == (best != "maze")
     assert "Ceiling (oracle on the true state)" in line
     assert not Manifest.load(root / "maze_oracle").dissertation_components
     assert not Manifest.load(root / "maze_mlp_q").dissertation_components

@@ -130,7 +130,7 @@ def ranking_key(cells: dict) -> tuple:
 def finding(cells: Sequence[tuple[Entry, dict]]) -> str | None:
     """Which agent leads the task (the oracle aside: it sees the true state), by how much on the
     first ranking metric that tells it from the runner-up, with the s.e.m. of the difference; where
-    the dissertation's agent does not lead, how far behind it is and its rank; and the oracle's
+    FERL (``ferl_agent``) does not lead, how far behind it is and its rank; and the oracle's
     ceiling."""
     agents = [(e, h) for e, h in cells if not e.agent.startswith(ORACLE)]
     if len(agents) < 2:
@@ -146,11 +146,11 @@ def finding(cells: Sequence[tuple[Entry, dict]]) -> str | None:
     clear = "" if diff > 2 * sem else " — within two s.e.m.: no clear leader"
     text = (f"**Best: {name(best)}**, {metric} {cell_text(metric, b[metric])}, ahead of {name(second)} "
             f"({cell_text(metric, c[metric])}) by {diff:.3f} ± {sem:.3f} (s.e.m. of the difference){clear}.")
-    ours = next(((e, h) for e, h in agents if e.agent == DISSERTATION_AGENT and metric in h), None)
+    ours = ferl_agent([(e, h) for e, h in agents if metric in h])
     if ours is not None and ours[0] is not best:
         gap, gap_sem = b[metric][0] - ours[1][metric][0], float(np.hypot(b[metric][1], ours[1][metric][1]))
         rank = 1 + sum(ranking_key(h) > ranking_key(ours[1]) for _, h in agents)
-        text += (f" The dissertation's agent ({ours[0].job.label}): {cell_text(metric, ours[1][metric])}, "
+        text += (f" FERL ({name(ours[0])}): {cell_text(metric, ours[1][metric])}, "
                  f"{gap:.3f} ± {gap_sem:.3f} behind, rank {rank} of {len(agents)}.")
     oracle = [(e, h) for e, h in cells if e.agent.startswith(ORACLE) and metric in h]
     if oracle:
@@ -158,20 +158,32 @@ def finding(cells: Sequence[tuple[Entry, dict]]) -> str | None:
     return text
 
 
+def ferl_agent(cells: Sequence[tuple[Entry, dict]]):
+    """The dissertation's agent, or where no run has its components (an outside task), the best
+    ranked run of its architecture: the free-energy actor on predictors' memories."""
+    exact = [(e, h) for e, h in cells if e.agent == DISSERTATION_AGENT]
+    same_kind = [(e, h) for e, h in cells if e.job.manifest.actor.get("kind", "free_energy") == "free_energy"
+                 and e.job.manifest.predictors and not e.agent.startswith(ORACLE)]
+    candidates = exact or same_kind
+    return max(candidates, key=lambda eh: ranking_key(eh[1])) if candidates else None
+
+
 def curve_figure(group: Sequence[Entry]) -> Figure | None:
     """Every agent's main learning curve (mean ± s.e.m. over runs) in one panel."""
     fig = Figure(figsize=(7.5, 4), layout="constrained")
     ax = fig.subplots()
     optimum, drawn = None, 0
-    for k, entry in enumerate(group):
+    for k, (entry, label) in enumerate(zip(group, legend_labels(group))):
         c = generic.curves(entry.run)
         if c is None:
             continue
-        key = next(k for k in CURVE[c.unit] if k in c.series)
+        key = next(name for name in CURVE[c.unit] if name in c.series)
         mean, sem = c.mean_sem(key)
         color = f"C{k % 10}"
         band(ax, c.x, mean, sem, None, color)
-        ax.lines[-1].set_label(" ".join([entry.agent, *(o for o in entry.job.overrides if o not in entry.agent)]))
+        ax.lines[-1].set_label(label)
+        if len(c.x) == 1:  # a run as long as the window (MiniGrid's 200 episodes): one point, with its s.e.m.
+            ax.errorbar(c.x, mean, sem, fmt="o", color=color, capsize=3)
         optimum = c.optima.get(key) if optimum is None else optimum
         ax.set_xlabel(c.unit + "s")
         ax.set_ylabel(f"{c.labels[key]} ({c.window}-{c.unit} moving average)")
@@ -180,9 +192,20 @@ def curve_figure(group: Sequence[Entry]) -> Figure | None:
         return None
     if optimum is not None:
         ax.axhline(optimum, color="k", ls=":", label=f"optimum {optimum:.5g}")
-    ax.legend(fontsize="x-small", loc="best")
+    fig.legend(fontsize="x-small", loc="outside lower center", ncols=2)
     ax.set_title(title(group), fontsize="medium")
     return fig
+
+
+def legend_labels(group: Sequence[Entry]) -> list[str]:
+    """Each run's agent, with the overrides that tell it from the other runs of the same agent
+    (the matching maze's FERL under Algorithms 1 and 2)."""
+    labels = []
+    for entry in group:
+        twins = [e for e in group if e.agent == entry.agent]
+        shared = set.intersection(*(set(e.job.overrides) for e in twins))
+        labels.append(" ".join([entry.agent, *(o for o in entry.job.overrides if o not in shared)]))
+    return labels
 
 
 def report(jobs: Sequence, out: Path, figures: dict, data_files: list) -> list[str]:
