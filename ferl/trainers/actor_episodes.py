@@ -26,7 +26,7 @@ from ferl.predictors.heads import scaled
 from ferl.random_blocks import Blocks, steps_per_block
 from ferl.run.directory import CheckpointTimer
 from ferl.run.tensorboard import log_embedding, log_weights
-from ferl.trainers.episodes import observation_table
+from ferl.trainers.episodes import discovers_observations, observation_table
 from ferl.trainers.phased import Phase
 
 EMBEDDED_PROBES = 2000  # run 0's last probe visits in the projector (docs/records.md)
@@ -141,15 +141,18 @@ class ActorEpisodes(Phase):
         table = self.observations.table
         ids = job.env.observation_table.shape[0]
         self.steps = [self.memory_step(p, table, job.env.n_actions) for p in job.predictors.values()]
-        # an environment that discovers its observations fills the table in place: index it live
-        self.obs_rows = table.reshape(-1, table.shape[-1])
+        # scaled once; an environment that discovers its observations fills the table in place, so
+        # its rows are indexed live and scaled at each step (a gain of 1 costs nothing either way)
+        rows = table.reshape(-1, table.shape[-1])
+        live = discovers_observations(job.env)
+        self.obs_rows, self.row_gain = (rows, self.obs_scale) if live else (scaled(rows, self.obs_scale), 1.0)
         self.obs_offsets = torch.arange(job.R, device=job.device) * ids if table.dim() == 3 else None
         self.discounts = job.actor.gamma ** torch.arange(job.env.max_steps, device=job.device, dtype=torch.float32)
 
     def state(self, job, obs_id: torch.Tensor, memories: list) -> torch.Tensor:
         """The actor's state (R, 1, S): the (processed) observation, then every predictor's memory."""
         rows = obs_id if self.obs_offsets is None else obs_id + self.obs_offsets
-        return torch.cat([scaled(self.obs_rows.index_select(0, rows), self.obs_scale), *memories], 1).unsqueeze(1)
+        return torch.cat([scaled(self.obs_rows.index_select(0, rows), self.row_gain), *memories], 1).unsqueeze(1)
 
     def play_episode(self, job, k: int, lr: float, beta: float) -> dict:
         """Episode k of every run, with SARSA(0) updates at every step (``td_step``): observe →
