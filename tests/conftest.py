@@ -10,10 +10,17 @@ ROOT = Path(__file__).resolve().parents[1]
 EXPERIMENTS = sorted(p.stem for p in (ROOT / "conf" / "experiment").glob("*.yaml"))
 
 
+def eager(overrides) -> list:
+    """Tests run the eager reference path unless they choose: compiling every tiny configuration
+    of the suite would take most of its time. tests/test_fast_path.py holds the compiled path to it."""
+    overrides = list(overrides)
+    return overrides if any(o.startswith("compile=") for o in overrides) else [*overrides, "compile=false"]
+
+
 def compose_config(overrides=()):
-    """Compose the real configs as train.py does (hydra's runtime keys included)."""
+    """Compose the real configs as train.py does (hydra's runtime keys included), eager by default."""
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-        return compose("config", overrides=list(overrides), return_hydra_config=True)
+        return compose("config", overrides=eager(overrides), return_hydra_config=True)
 
 
 def validated_config(overrides=()):
@@ -71,7 +78,7 @@ def train_sweep(root: Path, jobs: dict) -> dict:
 def run_train(*overrides, cwd=ROOT, timeout=600, env=None, **popen):
     """Run train.py in a subprocess (in ``env``, by default this one's); returns the CompletedProcess."""
     env = {**(env or os.environ), "PYTHONUNBUFFERED": "1"}
-    return subprocess.run([sys.executable, str(ROOT / "train.py"), *overrides], cwd=cwd, env=env,
+    return subprocess.run([sys.executable, str(ROOT / "train.py"), *eager(overrides)], cwd=cwd, env=env,
                           capture_output=True, text=True, timeout=timeout, **popen)
 
 

@@ -193,7 +193,6 @@ SETUP_ERRORS = [
     ("experiment=table5_1_pixel preprocessor.n_visible=700", "preprocessor"),
     ("experiment=table5_1_bit preprocessor=rbm", "preprocessor"),
     ("trainer.test_per_class=450", "trainer.test_per_class"),
-    ("compile=true actor.action_selection=gibbs", "compile"),
     ("optimized_metric=final_discounted_return", "optimized_metric"),
     ("experiment=table5_1_pixel env.reservoir_size=101", "env.reservoir_size"),
     ("data.test_per_class=500", "data.test_per_class"),  # the embedded data hold 500 images a class

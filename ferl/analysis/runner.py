@@ -13,6 +13,7 @@ jobs (`ferl.analysis.beyond`), its figures also logged to `DIR/analysis/tb/`.
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import sys
 import time
@@ -30,6 +31,7 @@ from ferl.analysis.report import RunAnalysis, RunOutcome, jobs_table, write_run_
 from ferl.analysis.sweep_claims import SWEEP_CLAIMS
 
 PROG = "analyze.py"
+POOL_MIN_RUNS = 4  # a pool's workers take a few seconds to start: fewer runs are analyzed in turn
 
 
 def publish_figures(figures: dict, out: Path, tb_dir: Path) -> None:
@@ -126,11 +128,21 @@ def _read_summary(run_dir: Path) -> dict | None:
         return None
 
 
+def analyze_runs(found: list[Path]) -> list[RunOutcome]:
+    """Every run's own analysis, on every CPU at once from POOL_MIN_RUNS runs on (the figures'
+    drawing is most of the time, and the runs are independent)."""
+    workers = min(os.cpu_count() or 1, len(found))
+    if workers < 2 or len(found) < POOL_MIN_RUNS:
+        return [_safe_analyze_run(r) for r in found]
+    from joblib import Parallel, delayed  # loky's workers return the claims' functions too (cloudpickle)
+    return Parallel(n_jobs=workers)(delayed(_safe_analyze_run)(r) for r in found)
+
+
 def analyze_sweep(sweep_dir: Path, readme: Path | None = None) -> list[RunOutcome]:
     """Analyze every run below `sweep_dir`, then the sweep as a whole (`ferl.analysis.sweep`)."""
     start = time.perf_counter()
     found = runs.find_runs(sweep_dir)
-    outcomes = [_safe_analyze_run(r) for r in found]
+    outcomes = analyze_runs(found)
     jobs = [sw.Job(o, summary) for o in outcomes
             if (summary := _read_summary(o.run_dir)) is not None]
     sweep = sw.Sweep(sweep_dir, jobs)

@@ -85,6 +85,7 @@ class TMaze:
     (``ferl.interfaces.EpisodicEnvironment``)."""
 
     task = "tmaze"
+    traceable_steps = True  # ``advance`` is tensor operations only: an episode can be one compiled graph
     action_names = ACTIONS
     n_actions = len(ACTIONS)
 

@@ -19,7 +19,7 @@ the number of actions T of each sequence; steps beyond a sequence's length are m
 """
 import torch
 
-from ferl.predictors.heads import affine, linear, scaled
+from ferl.predictors.heads import affine, baddbmm, linear, scaled
 from ferl.predictors.recurrent import RecurrentPredictor
 
 MEMORY_PARAMETERS = ("W_my", "W_ma", "W_mm", "b_m", "b_init")
@@ -34,7 +34,7 @@ def memory_drive(params: list, gains: tuple, y_prev: torch.Tensor, a_prev: torch
 
 def recur(W_mm: torch.Tensor, beta_m: float, drive: torch.Tensor, m_prev: torch.Tensor) -> torch.Tensor:
     """m_t = σ_{β_m}(drive + W_mm m_{t−1}), Eq. (4.3): drive, m_prev (R, B, M)."""
-    return torch.sigmoid(scaled(torch.baddbmm(drive, m_prev, W_mm.transpose(1, 2)), beta_m))
+    return torch.sigmoid(scaled(baddbmm(drive, m_prev, W_mm.transpose(1, 2)), beta_m))
 
 
 def unroll(params: list, gains: tuple, y: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
@@ -58,7 +58,7 @@ def backprop_memory(W_mm: torch.Tensor, gains: tuple, m, dm, y, a) -> list:
     dm = dm.unbind(2)
     back = [dm[T] * slope[T]]  # δ^m_T, Eq. (2.61)
     for t in range(T - 1, -1, -1):
-        back.append(torch.baddbmm(dm[t], back[-1], W_mm).mul_(slope[t]))
+        back.append(baddbmm(dm[t], back[-1], W_mm).mul_(slope[t]))
     d_init = back.pop().sum(1)  # δ^m_0: the gradient of b_init
     d_t = torch.stack(back[::-1], 2).view(R, B * T, M).transpose(1, 2)  # δ^m_1 … δ^m_T
     prev = lambda x: x[:, :, :T].reshape(R, B * T, x.shape[-1])  # noqa: E731  inputs at t − 1
@@ -89,6 +89,7 @@ class ElmanPredictor(RecurrentPredictor):
     out. β_m is the gain of the memory's sigmoid (Eq. 4.3)."""
 
     kind, uses_beta_m = "elman", True
+    traceable_bptt = True  # its BPTT is tensor operations only, so PredictorBatch.fuse can compile it
 
     def init_memory(self, gaussian, generators: list, n_obs: int, n_actions: int, n_memory: int) -> None:
         M = n_memory

@@ -20,6 +20,21 @@ REWARD_OUTPUTS = ("bits", "linear", "none")
 ERROR_CHUNK = 1 << 20  # output values per chunk of sequences in prediction_errors
 
 
+def bmm(x: torch.Tensor, W: torch.Tensor) -> torch.Tensor:
+    """x W per run: x (R, N, I), W (R, I, O) → (R, N, O). Under torch.compile a product and a sum:
+    inductor generates it as a loop fused with the element-wise work around it, where bmm would be
+    an external kernel call that costs more than these small products' arithmetic (the fast path,
+    ``ferl.compiled``; as ``ferl.rbm.hidden_input``). Eager keeps bmm, the reference."""
+    if torch.compiler.is_compiling():
+        return (x.unsqueeze(-1) * W.unsqueeze(1)).sum(-2)
+    return torch.bmm(x, W)
+
+
+def baddbmm(b: torch.Tensor, x: torch.Tensor, W: torch.Tensor) -> torch.Tensor:
+    """b + x W per run (``bmm``)."""
+    return b + bmm(x, W) if torch.compiler.is_compiling() else torch.baddbmm(b, x, W)
+
+
 def linear(x: torch.Tensor, W: torch.Tensor) -> torch.Tensor:
     """W x per run: x (R, …, I), W (R, O, I) → (R, …, O)."""
     out = torch.bmm(x.reshape(x.shape[0], -1, x.shape[-1]), W.transpose(1, 2))

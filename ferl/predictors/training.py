@@ -11,7 +11,24 @@ alone (tested).
 import torch
 import torch.nn.functional as F
 
+from ferl.compiled import compiled
 from ferl.predictors.heads import clean, valid_steps
+
+# SGD steps per compiled chunk: 8 at T = 7 compiles in ~40 s (16: ~80 s) and leaves the call's
+# guards and launch ~1/8 of an update
+CHUNK_STEPS = 8
+
+
+def sgd_steps(members: list, memory: list, params: list, y, a, rs: list, steps, reward_steps, lr: float, B: int) -> None:
+    """Plain SGD steps θ ← θ − α ∇_θ J, one on every B consecutive sequences of y (R', K·B, T+1, Y),
+    a, rs[k], steps and reward_steps (the weight of every step in its update's loss), for the
+    members stacked along the run axis (``PredictorBatch``); ``memory`` their memory parameters,
+    ``params`` everything trained (memory first), updated in place."""
+    for i in range(0, y.shape[1], B):
+        s = slice(i, i + B)
+        grads = type(members[0]).bptt(members, memory, y[:, s], a[:, s], [r[:, s] if r is not None else None for r in rs],
+                                      steps[:, s], reward_steps[:, s])
+        torch._foreach_add_(params, grads, alpha=-lr)
 
 
 class PredictorBatch:
@@ -32,6 +49,16 @@ class PredictorBatch:
         valid = valid_steps(lengths, y.shape[2]).unsqueeze(-1)
         self.y, self.a, self.lengths = y, a, lengths
         self.rs = [torch.where(valid, r, 0.0) if r is not None else None for r in rs]
+        self.chunk = None  # sgd_steps compiled for chunks of CHUNK_STEPS steps (``fuse``)
+
+    def fuse(self, device: torch.device) -> None:
+        """Train in compiled chunks of CHUNK_STEPS SGD steps (``ferl.compiled``) where the class's
+        BPTT is written out in tensor operations (``traceable_bptt``). Every step then unrolls the
+        longest training sequence, the shorter ones masked, and a short last chunk is filled
+        with sequences of weight 0, whose gradients are exactly 0: the same steps as eager, up
+        to the rounding of the generated kernels (tests/test_fast_path.py)."""
+        if getattr(type(self.lead), "traceable_bptt", False):
+            self.chunk = compiled(sgd_steps, device, f"{CHUNK_STEPS} steps of BPTT")
 
     @torch.no_grad()
     def train_epoch(self, orders: list) -> None:
@@ -58,16 +85,33 @@ class PredictorBatch:
             scale = scale / chunk.bincount()[chunk]
         steps = valid_steps(L, y.shape[2]) * scale.unsqueeze(-1)
         reward_steps = steps * (torch.arange(y.shape[2], device=L.device) > 0)
-        # T of every step: the longest sequence of its B positions over all runs, read once (one
-        # host sync per epoch); it trims the padding all runs and sequences of the step share
-        longest = F.pad(L.max(0).values, (0, -n % B)).view(-1, B).max(1).values.tolist()
-        for i, T in zip(range(0, n, B), longest):
-            s = slice(i, i + B)
-            grads = type(p).bptt(self.members, memory, y[:, s, : T + 1], a[:, s, :T],
-                                 [r[:, s, : T + 1] if r is not None else None for r in rs],
-                                 steps[:, s, : T + 1], reward_steps[:, s, : T + 1])
-            torch._foreach_add_(params, grads, alpha=-p.lr)
+        if self.chunk is not None:
+            self.train_chunks(memory, params, y, a, rs, steps, reward_steps, int(L.max()))
+        else:
+            # T of every step: the longest sequence of its B positions over all runs, read once (one
+            # host sync per epoch); it trims the padding all runs and sequences of the step share
+            longest = F.pad(L.max(0).values, (0, -n % B)).view(-1, B).max(1).values.tolist()
+            for i, T in zip(range(0, n, B), longest):
+                s = slice(i, i + B)
+                sgd_steps(self.members, memory, params, y[:, s, : T + 1], a[:, s, :T],
+                          [r[:, s, : T + 1] if r is not None else None for r in rs],
+                          steps[:, s, : T + 1], reward_steps[:, s, : T + 1], p.lr, B)
         if P > 1:
             for k, member in enumerate(self.members):
                 for q, merged in zip(member.memory_parameters(), memory):
                     q.copy_(merged[k * R:(k + 1) * R])
+
+    def train_chunks(self, memory: list, params: list, y, a, rs: list, steps, reward_steps, T: int) -> None:
+        """The epoch's steps in compiled chunks of CHUNK_STEPS, every sequence unrolled to T actions;
+        the sequences padded with zero-weight ones to whole chunks."""
+        B = self.batch_size
+        size = CHUNK_STEPS * B
+        pad = -y.shape[1] % size
+        fill = lambda x, length: F.pad(x[:, :, :length], (0, 0) * (x.dim() - 2) + (0, pad)) if x is not None else None  # noqa: E731
+        y, a, steps, reward_steps = fill(y, T + 1), fill(a, T), fill(steps, T + 1), fill(reward_steps, T + 1)
+        rs = [fill(r, T + 1) for r in rs]
+        for i in range(0, y.shape[1], size):
+            s = slice(i, i + size)
+            self.chunk(self.members, memory, params, y[:, s], a[:, s], [r[:, s] if r is not None else None for r in rs],
+                       steps[:, s], reward_steps[:, s], self.lead.lr, B)
+

@@ -12,14 +12,13 @@ What the records keep besides returns, lengths and TD errors is the environment'
 count towards ``solved``) and the activations at its ``probe`` states with its ``labels``
 (``junction.npz``, the T-junction in the T-mazes, Figs. 4.14–4.19).
 """
-import time
-
 import numpy as np
 import torch
 from torch.nn import functional as nnf
 from tqdm import tqdm
 
 from ferl.actors.td import first_action, td_step
+from ferl.compiled import compiled, run_clock
 from ferl.images import IMAGE_SIDE, matrix_image, tile, weight_images
 from ferl.interfaces import EpisodeLearner
 from ferl.predictors.heads import scaled
@@ -90,11 +89,11 @@ class ActorEpisodes(Phase):
         bar = tqdm(range(state["episode"], self.N), desc="actor", unit="episode", initial=state["episode"],
                    total=self.N, mininterval=1.0)
         for k in bar:
-            started = time.perf_counter()
+            started = run_clock()
             lr, beta = job.actor.learning_rate(k / self.N), self.begin_episode(job, k, state)
             episode = self.play_episode(job, k, lr, beta)
             self.after_episode(job, k, episode, state)
-            state["active_time"] += time.perf_counter() - started
+            state["active_time"] += run_clock() - started
             outcome = episode["outcome"].cpu().numpy()  # one host copy per episode
             for i, key in enumerate(self.outcome_names):
                 records[key][:, k] = outcome[i]
@@ -148,6 +147,17 @@ class ActorEpisodes(Phase):
         self.obs_rows, self.row_gain = (rows, self.obs_scale) if live else (scaled(rows, self.obs_scale), 1.0)
         self.obs_offsets = torch.arange(job.R, device=job.device) * ids if table.dim() == 3 else None
         self.discounts = job.actor.gamma ** torch.arange(job.env.max_steps, device=job.device, dtype=torch.float32)
+        self.fused = None
+        if self.fuses(job):
+            job.actor.prepare_for_compile()
+            self.fused = compiled(self.episode, job.device, "an episode")
+
+    def fuses(self, job) -> bool:
+        """Whether episodes run as one compiled graph (``ferl.compiled``): on the fast path, with an
+        environment whose steps are tensor operations (``traceable_steps``) and an actor that
+        neither draws inside a step (Gibbs) nor learns from whole episodes."""
+        return (job.fast and getattr(job.env, "traceable_steps", False) and not job.actor.samples_with_generator
+                and not self.episode_learner)
 
     def state(self, job, obs_id: torch.Tensor, memories: list) -> torch.Tensor:
         """The actor's state (R, 1, S): the (processed) observation, then every predictor's memory."""
@@ -155,79 +165,92 @@ class ActorEpisodes(Phase):
         return torch.cat([scaled(self.obs_rows.index_select(0, rows), self.row_gain), *memories], 1).unsqueeze(1)
 
     def play_episode(self, job, k: int, lr: float, beta: float) -> dict:
-        """Episode k of every run, with SARSA(0) updates at every step (``td_step``): observe →
-        memories m_t (Eq. 4.3) → a' by Eq. (3.11) → δ → θ update (Eq. 3.10). Runs whose episode
-        has ended wait with δ = 0. Returns the outcome (len(outcome_names), R), the TD errors
-        (steps, R), NaN where a run had ended, the probe visits (or None) and the trajectory:
-        observation ids (steps + 1 tensors (R,)), actions (steps tensors (R,)) and raw rewards (steps, R)."""
-        env, actor, predictors = job.env, job.actor, list(job.predictors.values())
-        env.reset()
+        """Episode k of every run (``episode``), one compiled graph on the fast path, and what the
+        records keep of it: the outcome (len(outcome_names), R), the TD errors (steps, R), NaN where
+        a run had ended, the probe visits (or None) and the trajectory: observation ids
+        (steps + 1, R), actions (steps, R) and raw rewards (steps, R)."""
+        job.env.reset()
         if self.episode_learner:
-            actor.begin_episode()
+            job.actor.begin_episode()
         (uniform,) = self.uniforms.next()  # (T_max + 1, R, 1, 1)
+        if self.fused is None:
+            ep = self.episode(job, lr, beta, uniform, True)
+        else:  # α and β as tensors, so that one graph serves every episode
+            ep = self.fused(job, torch.tensor(lr, device=job.device),
+                            torch.as_tensor(beta, dtype=torch.float32, device=job.device), uniform, False)
+        if self.episode_learner:
+            self.hand_over(job, torch.cat([ep["states"].transpose(0, 1), ep["last_state"]], 1),
+                           ep["actions"], ep["rewards"], ep["terminated"], lr)
+        return {"outcome": ep["outcome"], "td": torch.where(ep["actives"], ep["deltas"], torch.nan),
+                "probes": self.probe_visits(job, k, ep), "trajectory": (ep["obs"], ep["actions"], ep["rewards"])}
+
+    def episode(self, job, lr, beta, uniform, until_done: bool) -> dict:
+        """An episode of every run from the reset environment, with SARSA(0) updates at every step
+        (``td_step``): observe → memories m_t (Eq. 4.3) → a' by Eq. (3.11) → δ → θ update
+        (Eq. 3.10); ``uniform`` (T_max + 1, R, 1, 1) the action draws. Runs whose episode has ended
+        wait with δ = 0 and keep their parameters. ``until_done``: stop once every run has ended
+        (eager); else play all T_max steps, the ended ones masked: the same episode as one graph
+        of fixed shape. Returns per step, stacked (steps, R, …): probe and active masks, each
+        predictor's memory, the state and the cache of (s, a) at the visit, action, raw reward, δ,
+        observation ids (steps + 1); the last state, whether each run's episode terminated, and
+        the outcome (len(outcome_names), R)."""
+        env, actor, predictors = job.env, job.actor, list(job.predictors.values())
         m = [p.initial_state() for p in predictors]  # m_0 (Eq. 4.1): it learns too when the predictors do
         memories = [p.memory(x) for p, x in zip(predictors, m)]
         s = self.state(job, env.obs_id, memories)
         a, F_sa, x_sa = first_action(actor, s, beta, job.generator, uniform[0])
-        rewards, deltas, visits, obs, actions = [], [], [], [env.obs_id], []
-        ended_terminal = torch.zeros_like(env.done)
+        visits, out, obs = [], [], [env.obs_id]
+        terminated_any = torch.zeros_like(env.done)
         for t in range(env.max_steps):
             active = ~env.done
-            visits.append((env.probe & active, active, memories, s, x_sa))
-            obs_prev = env.obs_id
-            actions.append(a.squeeze(1))
-            r, terminated, _ = env.advance(a.squeeze(1))
-            if self.episode_learner:
-                ended_terminal = ended_terminal | terminated
+            visits.append((env.probe & active, active, *memories, s[:, 0], x_sa[:, 0]))
+            obs_prev, action = env.obs_id, a.squeeze(1)
+            r, terminated, _ = env.advance(action)
+            terminated_any = terminated_any | terminated
             obs.append(env.obs_id)
-            m = [step(x, obs_prev, a.squeeze(1)) for step, x in zip(self.steps, m)]
+            m = [step(x, obs_prev, action) for step, x in zip(self.steps, m)]
             memories = [p.memory(x) for p, x in zip(predictors, m)]
             s_next = self.state(job, env.obs_id, memories)
             bonus = self.reward_bonus(job, m, env.obs_id)
             a, F_sa, x_sa, delta = td_step(actor, s, a, F_sa, x_sa, r if bonus is None else r + bonus, s_next,
                                            lr, beta, job.generator, uniform[t + 1],
                                            job.guard.alive, (terminated | ~active).unsqueeze(1), active.unsqueeze(1))
-            rewards.append(r)
-            deltas.append(delta.squeeze(1))
+            out.append((action, r, delta.squeeze(1)))
             s = s_next
-            if bool(env.done.all()):
+            if until_done and bool(env.done.all()):
                 break
-        rewards, deltas = torch.stack(rewards), torch.stack(deltas)  # (steps, R)
-        actives = torch.stack([v[1] for v in visits])
+        visits = [torch.stack(v) for v in zip(*visits)]
+        actions, rewards, deltas = (torch.stack(v) for v in zip(*out))
         steps = env.t
-        if self.episode_learner:
-            self.hand_over(job, [v[3] for v in visits] + [s], actions, rewards, ended_terminal, lr)
         outcome = torch.stack([
             self.discounts[:len(rewards)] @ rewards,  # discounted return (done runs got r = 0)
             steps.float(), rewards.gather(0, (steps - 1).unsqueeze(0)).squeeze(0),  # terminal reward
             deltas.abs().sum(0) / steps.clamp(min=1), *(v.float() for v in env.outcomes().values())])
-        return {"outcome": outcome, "td": torch.where(actives, deltas, torch.nan),
-                "probes": self.probe_visits(job, k, visits),
-                "trajectory": (obs, actions, rewards)}
+        return {"probes": visits[0], "actives": visits[1], "memories": visits[2:-2], "states": visits[-2],
+                "caches": visits[-1], "actions": actions, "rewards": rewards, "deltas": deltas,
+                "obs": torch.stack(obs), "last_state": s, "terminated": terminated_any, "outcome": outcome}
 
-    def hand_over(self, job, states: list, actions: list, rewards: torch.Tensor, terminated: torch.Tensor,
-                  lr: float) -> None:
+    def hand_over(self, job, states: torch.Tensor, actions: torch.Tensor, rewards: torch.Tensor,
+                  terminated: torch.Tensor, lr: float) -> None:
         """The ended episode, padded to T_max actions, to an actor that learns from episodes
         (``ferl.interfaces.EpisodeLearner``): states (R, T_max+1, S), actions and rewards
-        (R, T_max), lengths and whether each ended in a terminal state (R,)."""
+        (R, T_max), lengths and whether each ended in a terminal state (R,), from states
+        (R, steps+1, S) and actions, rewards (steps, R)."""
         pad = job.env.max_steps - len(actions)
-        states = torch.cat(states, 1)
-        job.actor.end_episode(nnf.pad(states, (0, 0, 0, pad)), nnf.pad(torch.stack(actions, 1), (0, pad)),
+        job.actor.end_episode(nnf.pad(states, (0, 0, 0, pad)), nnf.pad(actions.T, (0, pad)),
                               nnf.pad(rewards.T, (0, pad)), job.env.t.clone(), terminated, lr)
 
-    def probe_visits(self, job, k: int, visits: list) -> dict | None:
+    def probe_visits(self, job, k: int, ep: dict) -> dict | None:
         """Activations at every probe visit of episode k after the action there was selected
         (Figs. 4.14–4.19): memories, actor state and hidden nodes, with the episode's labels."""
-        step, run = torch.stack([v[0] for v in visits]).nonzero(as_tuple=True)
+        step, run = ep["probes"].nonzero(as_tuple=True)
         if len(run) == 0:
             return None
-        gather = lambda xs: torch.stack(xs)[step, run]  # noqa: E731
         return {"run": run.cpu(), "episode": torch.full_like(run, k).cpu(), "step": step.cpu(),
                 **{key: v[run].cpu() for key, v in job.env.labels().items()},
-                **{f"memory_{name}": gather([v[2][i] for v in visits]).half().cpu()
-                   for i, name in enumerate(job.predictors)},
-                "state": gather([v[3][:, 0] for v in visits]).half().cpu(),
-                "hidden": job.actor.hidden(gather([v[4][:, 0] for v in visits])).half().cpu()}
+                **{f"memory_{name}": memory[step, run].half().cpu() for name, memory in zip(job.predictors, ep["memories"])},
+                "state": ep["states"][step, run].half().cpu(),
+                "hidden": job.actor.hidden(ep["caches"][step, run]).half().cpu()}
 
     def finish(self, job, state: dict) -> None:
         """Records, metrics, the final TensorBoard points; the phase's steps for the speed."""

@@ -15,6 +15,7 @@ from contextlib import contextmanager
 import torch
 
 from ferl.actors.td import td_step
+from ferl.compiled import compiled
 
 MAX_CHUNK = 16  # steps per call of td_steps (a divisor of the logging and checkpoint intervals)
 
@@ -55,13 +56,10 @@ def td_steps_by_groups(steps, groups: list[slice]):
 
 
 def compiled_td_steps(n_runs: int, group_runs: int, device: torch.device):
-    """td_steps as one torch.compiled graph per chunk; on a CPU with its kernels called from C++
-    (no Python between the steps) and run by groups of ``group_runs`` runs (a smaller last group
-    compiles a second graph). fullgraph: a graph break would silently bring back per-op overhead."""
-    if device.type != "cpu":
-        return torch.compile(td_steps, fullgraph=True, dynamic=False)
-    steps = torch.compile(td_steps, fullgraph=True, dynamic=False, options={"cpp_wrapper": True})
-    if n_runs <= group_runs:
+    """td_steps as one compiled graph per chunk (``ferl.compiled``); on a CPU run by groups of
+    ``group_runs`` runs (a smaller last group compiles a second graph)."""
+    steps = compiled(td_steps, device, "a chunk of TD steps")
+    if device.type != "cpu" or n_runs <= group_runs:
         return steps
     return td_steps_by_groups(steps, [slice(r, min(r + group_runs, n_runs)) for r in range(0, n_runs, group_runs)])
 

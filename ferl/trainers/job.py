@@ -18,6 +18,7 @@ import torch
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 
+from ferl.compiled import compile_seconds, fast_path
 from ferl.config.params import ConfigError, signature, target
 from ferl.run.guard import DivergenceGuard
 
@@ -79,6 +80,8 @@ class Job:
         self.progress = {"done": [], "partial": {}, "shared": {}, "metrics": {}, "agent_steps": 0, "actor_time": 0.0}
         self.resources = {}  # what phases prepare at every start (not saved: drawn again alike)
         self.unit = "step"   # what the guard reports a divergence in (a T-maze: "episode")
+        self.fast = fast_path(cfg.compile, device)  # compile the phases' chunks of steps (ferl.compiled)
+        self.compile_started = compile_seconds()  # a process may train several jobs (Hydra's joblib workers)
 
     @property
     def shared(self) -> dict:

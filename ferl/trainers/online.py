@@ -6,7 +6,6 @@ chunks of steps on random numbers drawn beforehand (``ferl.trainers.chunks``). Î
 actor's schedules over the phase's steps. The environment is any with ``step_inputs`` /
 ``step_with`` (a step's random numbers as inputs, so a chunk can be compiled) and ``runs``.
 """
-import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import nullcontext
@@ -15,6 +14,7 @@ import torch
 from tqdm import tqdm
 
 from ferl.actors.td import first_action
+from ferl.compiled import run_clock
 from ferl.config.params import ConfigError
 from ferl.interfaces import EpisodeLearner
 from ferl.random_blocks import Blocks, steps_per_block
@@ -57,10 +57,7 @@ class OnlineTD(Phase):
             lambda steps: (torch.rand(steps, R, 1, 1, generator=job.generator, device=job.device),),
             steps_per_block(R))
         self.td_steps = td_steps
-        if job.cfg.compile:
-            if actor.samples_with_generator:
-                raise ConfigError("compile=true is not allowed with an actor that samples inside a step "
-                                  "(actor.action_selection=gibbs): use compile=false")
+        if job.fast and not actor.samples_with_generator:  # Gibbs sampling draws inside a step: eager
             actor.prepare_for_compile()
             self.td_steps = compiled_td_steps(R, self.compile_group_runs, job.device)
         drawn_ahead = not actor.samples_with_generator and R >= PREFETCH_MIN_RUNS
@@ -102,7 +99,7 @@ class OnlineTD(Phase):
         rewards, td_errors = state["rewards"], state["td_errors"]
         clock = CheckpointTimer(self.checkpoint_minutes)
         bar = tqdm(total=T, initial=state["step"], desc="actor", unit="step", mininterval=1.0, dynamic_ncols=True)
-        started = time.perf_counter()
+        started = run_clock()
         # random inputs of the next chunks, in draw order; a checkpoint's were drawn before the
         # generator state it saved
         pending = deque(done_future(inputs) for inputs in state.pop("inputs", ()))
@@ -130,12 +127,12 @@ class OnlineTD(Phase):
                     bar.update(done - bar.n)
                 if (done % self.checkpoint_every == 0 or job.stop.requested or clock.due()) and done < T:
                     state.update(step=done, s=s, a=a, F_sa=F_sa, x_sa=x_sa, inputs=[f.result() for f in pending],
-                                 actor_time=state["actor_time"] + time.perf_counter() - started)
-                    started = time.perf_counter()
+                                 actor_time=state["actor_time"] + run_clock() - started)
+                    started = run_clock()
                     job.checkpoint(self.name, {**state, "action_uniforms": self.action_uniforms.state_dict()})
                     del state["inputs"]  # in the checkpoint only
         bar.close()
-        state["actor_time"] += time.perf_counter() - started
+        state["actor_time"] += run_clock() - started
         return state
 
     def log(self, writer, rewards, td_errors, done, lr, beta) -> None:

@@ -77,6 +77,11 @@ class OnlineEpisodes(ActorEpisodes):
                 "error_first": None, "error_ema": None, "predictor_time": 0.0,
                 "online": {k: np.zeros((R, self.N), np.float32) for k in ("prediction_error", "beta", "curiosity")}}
 
+    def fuses(self, job) -> bool:
+        """Eager: β and the curiosity η change from episode to episode, and the replay's BPTT,
+        not the episode, takes most of the time."""
+        return False
+
     def memory_step(self, predictor, table: torch.Tensor, n_actions: int):
         """The predictor's step with its current weights (they learn between episodes)."""
         return lookup_step(predictor, table, n_actions)
@@ -137,7 +142,6 @@ class OnlineEpisodes(ActorEpisodes):
     def as_episodes(self, job, episode: dict) -> Episodes:
         """The trajectory of ``play_episode`` as one padded episode per run, (R, 1, …)."""
         obs, actions, rewards = episode["trajectory"]
-        obs, actions = torch.stack(obs), torch.stack(actions)
         T, lengths = job.env.max_steps, episode["outcome"][1].long()
         steps = torch.arange(T + 1, device=job.device).unsqueeze(1)
         pad = lambda x, fill: torch.nn.functional.pad(x, (0, 0, 0, T + 1 - x.shape[0]), value=fill)  # noqa: E731

@@ -13,6 +13,7 @@ import time
 import torch
 from torch.utils.tensorboard import SummaryWriter
 
+from ferl.compiled import compile_seconds
 from ferl.config.params import ConfigError
 from ferl.run.directory import RunDir, StopRequest
 from ferl.run.tensorboard import log_hparams
@@ -87,7 +88,10 @@ class PhasedTrainer:
             for phase in self.phases:
                 if phase.name in job.progress["done"]:
                     continue
+                started = time.perf_counter()
                 phase.run(job, job.progress["partial"].pop(phase.name, None))
+                times = job.progress.setdefault("phase_time_s", {})
+                times[phase.name] = times.get(phase.name, 0.0) + time.perf_counter() - started
                 job.progress["partial"].pop(phase.name, None)  # its in-phase checkpoints' state
                 job.progress["done"].append(phase.name)
                 if phase is self.phases[-1]:
@@ -113,5 +117,7 @@ class PhasedTrainer:
             "optimal": job.env.optimal(job.actor.gamma),
             "wall_time_s": wall_time,
             "agent_steps_per_s": job.progress["agent_steps"] / max(job.progress["actor_time"], 1e-9),
+            "compile_time_s": compile_seconds() - job.compile_started,  # in wall_time_s, not in agent-steps/s
+            "phase_time_s": job.progress.get("phase_time_s", {}),  # a phase cut by a stop: from its resume on
             "diverged": job.guard.report(job.unit),
         }

@@ -69,6 +69,8 @@ class TrainPredictors(Phase):
         y, a, _, lengths = episode_tensors(job, fit, None)
         batch = type(members[0]).training_batch(
             members, y, a, [p.reward_targets(job.env.reward_values, fit.rewards) for p in members], lengths)
+        if job.fast:
+            batch.fuse(job.device)
         splits = {(name, s): episode_tensors(job, data[s], p) for name, p in zip(names, members) for s in ("train", "test")}
         partial = state["group"] or {}
         if partial.get("names") == names:

@@ -1,0 +1,107 @@
+"""The fast path: a fused chunk of steps as one torch.compiled graph, its cache on disk, and eager.
+
+Small networks spend their time in per-operation overhead, not arithmetic: a T-maze step is ~50
+tensor operations of a few µs each on tensors of a few hundred numbers. A chunk — K online TD steps
+of the floor (``ferl.trainers.chunks``), a whole T-maze episode (``ActorEpisodes.episode``),
+K pattern-mode SGD steps (``ferl.predictors.training``) — is written as a plain loop over tensors
+with its random numbers drawn beforehand, so ``torch.compile`` can trace it as one graph: inductor
+fuses the element-wise work into generated loops, and on a CPU its kernels are called from C++
+(``cpp_wrapper``), so Python runs once per chunk. The same function run eagerly is the reference.
+
+Compiling takes tens of seconds; inductor keeps what it built in ``cache_dir()`` (by default
+``~/.cache/ferl/inductor``; ``TORCHINDUCTOR_CACHE_DIR`` if set), so only a machine's first run of
+a configuration pays, and that run says so in one line. Without a C++ compiler (CPU) or Triton
+(CUDA) a run warns once and runs eagerly.
+"""
+import os
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import torch
+
+CACHE_ENV = "TORCHINDUCTOR_CACHE_DIR"
+DEFAULT_CACHE = Path.home() / ".cache" / "ferl" / "inductor"
+_first_calls = [0.0]  # seconds this process has spent in compiled functions' first calls
+
+
+def compile_seconds() -> float:
+    """Seconds this process has spent in the first calls of compiled functions: compiling them, or
+    tracing them and loading what the cache holds (summary.json ``compile_time_s``; a phase's
+    agent-steps/s leaves them out)."""
+    return _first_calls[0]
+
+
+def run_clock() -> float:
+    """A clock (seconds) that stands still during compiled functions' first calls: what a phase's
+    agent-steps/s is timed with, so that it measures running, not compiling."""
+    return time.perf_counter() - _first_calls[0]
+
+
+def cache_dir() -> Path:
+    """Where inductor keeps compiled graphs across runs (set before the first compile)."""
+    os.environ.setdefault(CACHE_ENV, str(DEFAULT_CACHE))
+    return Path(os.environ[CACHE_ENV])
+
+
+def compiler_missing(device: torch.device) -> str | None:
+    """Why graphs cannot be compiled for ``device`` here, or None."""
+    if device.type == "cuda":
+        from torch.utils._triton import has_triton
+        return None if has_triton() else "Triton is not installed"
+    try:
+        from torch._inductor.cpp_builder import get_cpp_compiler
+        get_cpp_compiler()
+    except Exception as e:  # noqa: BLE001 — whatever inductor's search raises, the reason is its message
+        return f"no C++ compiler ({str(e).splitlines()[0] if str(e) else type(e).__name__})"
+    return None
+
+
+def fast_path(wanted: bool, device: torch.device) -> bool:
+    """Whether to compile: ``compile=true`` (the default) where a compiler exists; else one
+    warning and the eager path, which computes the same steps."""
+    if not wanted:
+        return False
+    cache_dir()  # before anything of inductor's sets its own default
+    reason = compiler_missing(device)
+    if reason is not None:
+        warnings.warn(f"compile=true: {reason}; running eagerly (slower, same steps). "
+                      f"Set compile=false to silence this.", stacklevel=2)
+        return False
+    return True
+
+
+def compiled(fn, device: torch.device, what: str):
+    """``fn`` as one graph per input shape (fullgraph: a graph break would silently bring back the
+    per-operation overhead), its kernels called from C++ on a CPU. The first call that had to
+    compile rather than load from the cache prints one line saying so, with its time. Where fn
+    cannot be compiled (an operation dynamo cannot trace, say, in a user's actor) it warns once
+    and runs eagerly: compiling fails before the graph runs, so nothing has changed yet."""
+    options = {"cpp_wrapper": True} if device.type == "cpu" else {}
+    graph = torch.compile(fn, fullgraph=True, dynamic=False, options=options)
+    first = True
+
+    def call(*args):
+        nonlocal first, graph
+        if not first:
+            return graph(*args)
+        first = False
+        from torch._dynamo.exc import TorchDynamoException
+        from torch._dynamo.utils import counters
+        misses = counters["inductor"]["fxgraph_cache_miss"]
+        started = time.perf_counter()
+        try:
+            out = graph(*args)
+        except TorchDynamoException as e:
+            warnings.warn(f"compile=true: {what} cannot be compiled ({str(e).splitlines()[0]}); running it eagerly",
+                          stacklevel=2)
+            graph = fn
+            return fn(*args)
+        seconds = time.perf_counter() - started
+        _first_calls[0] += seconds
+        if counters["inductor"]["fxgraph_cache_miss"] > misses:
+            print(f"ferl: compiled {what} in {seconds:.0f} s (the first run of this configuration on this "
+                  f"machine; later runs load it from {cache_dir()})", file=sys.stderr)
+        return out
+    return call

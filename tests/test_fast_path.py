@@ -1,0 +1,125 @@
+"""The fast path (ferl/compiled.py): the T-maze phases compiled as fused chunks against independent
+references and against the eager path; the first run's line; eager without a compiler.
+
+Pattern-mode BPTT in compiled chunks (``PredictorBatch.fuse``) must equal per-run SGD by autograd
+on each unpadded sequence (float64, so rounding cannot hide a wrong step): every step unrolls the
+longest sequence with the shorter ones masked, and the chunks are filled with zero-weight
+sequences. A compiled episode (``ActorEpisodes.fuses``) plays all T_max steps with the ended ones
+masked, where eager stops when every run has ended: the same actions, and values within float32
+rounding of the generated kernels.
+"""
+import subprocess
+import sys
+import warnings
+
+import numpy as np
+import pytest
+import torch
+from test_predictor import data, make, reference_loss
+
+from conftest import train_job
+from ferl import compiled as fast
+from ferl.predictors import training
+from ferl.predictors.training import PredictorBatch
+
+CPU = torch.device("cpu")
+
+
+@pytest.fixture(autouse=True)
+def fresh_compiler():
+    torch._dynamo.reset()
+    yield
+
+
+@pytest.mark.parametrize("batch_size", [1, 2])
+def test_fused_bptt_equals_autograd_sgd_of_each_run_alone(monkeypatch, batch_size):
+    """Chapter 5's two predictors as one compiled batch, 7 sequences of lengths 1 … 5 in chunks
+    of 2 steps (so the last chunk, and with B = 2 the last step, is padded), two epochs, against
+    θ ← θ − α ∇ mean_b Σ_t E_t by autograd for each predictor and run alone."""
+    monkeypatch.setattr(training, "CHUNK_STEPS", 2)
+    R, N, lr = 2, 7, 0.2
+    kinds = [dict(reward_output="none", seed=30), dict(reward_output="linear", predict_obs=False, seed=40)]
+    members = [make(R=R, lr=lr, batch_size=batch_size, **k) for k in kinds]
+    y, a, _, lengths = data(R, N, 5, seed=6)
+    r = torch.randn(R, N, 6, 1, generator=torch.Generator().manual_seed(7), dtype=torch.float64)
+    batch = PredictorBatch(members, y, a, [None, r], lengths)
+    batch.fuse(CPU)
+    assert batch.chunk is not None
+    g = torch.Generator().manual_seed(8)
+    orders = [[torch.rand(R, N, generator=g).argsort(1) for _ in members] for _ in range(2)]
+    for epoch in orders:
+        batch.train_epoch(epoch)
+    for k, (member, kind) in enumerate(zip(members, kinds)):
+        for run in range(R):
+            single = make(R=1, lr=lr, **{**kind, "seed": kind["seed"] + run})
+            for epoch in orders:
+                for step in epoch[k][run].split(batch_size):
+                    losses = [reference_loss(single, 0, y[run, i, : int(lengths[run, i]) + 1],
+                                             a[run, i, : int(lengths[run, i])],
+                                             r[run, i, : int(lengths[run, i]) + 1] if k else None)
+                              for i in step.tolist()]
+                    grads = torch.autograd.grad(torch.stack(losses).mean(), list(single.parameters()))
+                    with torch.no_grad():
+                        for q, gq in zip(single.parameters(), grads):
+                            q -= lr * gq
+            for (name, qb), qs in zip(member.named_parameters(), single.parameters()):
+                torch.testing.assert_close(qb[run], qs[0], rtol=1e-10, atol=1e-10, msg=name)
+
+
+def episodes(tmp_path, name: str, *overrides) -> tuple[dict, dict]:
+    from conftest import compose_config
+    tiny = ["experiment=table5_1_bit", "n_runs=3", "trainer.n_sample=300", "trainer.n_epoch=2",
+            "trainer.n_episodes=60", "trainer.log_every=20", "trainer.td_sample_every=20", "trainer.final_window=20"]
+    summary = train_job(compose_config([*tiny, *overrides]), tmp_path / name)
+    with np.load(tmp_path / name / "records" / "episodes.npz") as ep:
+        return summary, dict(ep)
+
+
+def test_compiled_phases_equal_eager_ones(tmp_path):
+    """table5_1_bit (two predictors in one compiled BPTT batch, then compiled episodes) at
+    reduced scale, compile=true against compile=false: the same actions in every episode of
+    every run (steps, goals, conditions equal), returns and TD errors within float32 rounding."""
+    eager_summary, eager = episodes(tmp_path, "eager", "compile=false")
+    summary, fused = episodes(tmp_path, "fused", "compile=true")
+    assert summary["metrics"]["env_steps_total"] == eager_summary["metrics"]["env_steps_total"]
+    for key in ("steps", "correct_goal", "condition"):
+        np.testing.assert_array_equal(fused[key], eager[key], err_msg=key)
+    for key in ("discounted_return", "terminal_reward", "td_abs_mean", "td_sampled"):
+        np.testing.assert_allclose(fused[key], eager[key], rtol=1e-4, atol=1e-5, err_msg=key)
+
+
+def test_no_compiler_warns_once_and_runs_eagerly(monkeypatch):
+    monkeypatch.setattr(torch._inductor.config.cpp, "cxx", ("no-such-compiler++",))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert fast.fast_path(True, CPU) is False
+    assert len(caught) == 1 and "no C++ compiler" in str(caught[0].message) and "eager" in str(caught[0].message)
+    assert fast.fast_path(False, CPU) is False
+
+
+def test_the_first_run_says_it_compiles_and_later_ones_load(tmp_path):
+    """Two processes compile the same function with one cache folder: the first prints one line
+    naming the folder, the second loads from it and prints nothing."""
+    script = ("import torch; from ferl.compiled import compiled, fast_path; assert fast_path(True, torch.device('cpu')); "
+              "f = compiled(lambda x: torch.sigmoid(x) * 3 + 1, torch.device('cpu'), 'a test'); "
+              "f(torch.ones(4)); f(torch.zeros(4))")
+    env = {"TORCHINDUCTOR_CACHE_DIR": str(tmp_path / "cache"), "PATH": "/usr/bin:/bin"}
+    first, second = (subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=300)
+                     for _ in range(2))
+    assert first.returncode == 0 and second.returncode == 0, first.stderr + second.stderr
+    lines = [line for line in first.stderr.splitlines() if line.startswith("ferl:")]
+    assert len(lines) == 1 and "compiled a test" in lines[0] and str(tmp_path / "cache") in lines[0]
+    assert "ferl:" not in second.stderr
+
+
+def test_what_cannot_be_compiled_warns_once_and_runs_eagerly():
+    """A data-dependent branch breaks the graph, which fullgraph refuses: one warning naming
+    what, then the function's own results, eagerly, on every call."""
+    def branchy(x):
+        return x + 1 if bool(x.sum() > 0) else x - 1
+    f = fast.compiled(branchy, CPU, "a branchy step")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert torch.equal(f(torch.ones(3)), torch.full((3,), 2.0))
+        assert torch.equal(f(-torch.ones(3)), torch.full((3,), -2.0))
+    assert len(caught) == 1 and "a branchy step cannot be compiled" in str(caught[0].message)
