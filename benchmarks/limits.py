@@ -87,14 +87,14 @@ def run_flops(run: Path) -> dict:
         images = 1000  # the embedded MNIST training images (data=mnist_embedded)
         flops["preprocessor"] = R * sweeps * images * (2 * pre["cd_k"] + 3) * 2 * pre["n_visible"] * pre["n_hidden"]
     if predictors:
-        flops["predictors"] = predictor_flops(cfg, predictors, Y, A)
+        flops["predictors"] = predictor_flops(manifest["experiment"], cfg, predictors, Y, A)
     return {"experiment": manifest["experiment"], "runs": R, "flops": flops, "actor_bytes_per_step": 8 * S * H}
 
 
-def predictor_flops(cfg, predictors: dict, Y: int, A: int) -> float:
+def predictor_flops(experiment: str, cfg, predictors: dict, Y: int, A: int) -> float:
     """Every predictor's BPTT over n_epoch epochs of its training sequences (counted by running the
     collect phase of the run's config), and the Eq. 4.7 error passes (forward only, a third)."""
-    overrides = [f"experiment={cfg.name}", f"n_runs={cfg.n_runs}", f"seed={cfg.seed}",
+    overrides = [f"experiment={experiment}", f"n_runs={cfg.n_runs}", f"seed={cfg.seed}",
                  *(f"trainer.{k}={cfg.trainer[k]}" for k in ("n_sample", "l_training", "n_epoch", "error_every"))]
     with bench_job(overrides, "cpu") as (trainer, job):
         collect = [p for p in trainer.phases if p.name == "collect"]
