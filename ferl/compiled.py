@@ -16,7 +16,6 @@ a configuration pays, and that run says so in one line. Without a C++ compiler (
 import os
 import sys
 import time
-import warnings
 from pathlib import Path
 
 import torch
@@ -45,6 +44,11 @@ def cache_dir() -> Path:
     return Path(os.environ[CACHE_ENV])
 
 
+def warn(message: str) -> None:
+    """One line on stderr, as ferl's other run-time messages."""
+    print(f"ferl: warning: {message}", file=sys.stderr)
+
+
 def compiler_missing(device: torch.device) -> str | None:
     """Why graphs cannot be compiled for ``device`` here, or None."""
     if device.type == "cuda":
@@ -66,8 +70,7 @@ def fast_path(wanted: bool, device: torch.device) -> bool:
     cache_dir()  # before anything of inductor's sets its own default
     reason = compiler_missing(device)
     if reason is not None:
-        warnings.warn(f"compile=true: {reason}; running eagerly (slower, same steps). "
-                      f"Set compile=false to silence this.", stacklevel=2)
+        warn(f"compile=true: {reason}; running eagerly (slower, the same steps; compile=false silences this)")
         return False
     return True
 
@@ -94,8 +97,7 @@ def compiled(fn, device: torch.device, what: str):
         try:
             out = graph(*args)
         except TorchDynamoException as e:
-            warnings.warn(f"compile=true: {what} cannot be compiled ({str(e).splitlines()[0]}); running it eagerly",
-                          stacklevel=2)
+            warn(f"compile=true: {what} cannot be compiled ({str(e).splitlines()[0]}); running it eagerly")
             graph = fn
             return fn(*args)
         seconds = time.perf_counter() - started

@@ -136,9 +136,8 @@ class TrainingBatch(Protocol):
     def train_epoch(self, orders: Sequence[Tensor]) -> None:
         """One epoch, member k taking the sequences in its order orders[k] (R, N)."""
 
-    def fuse(self, device) -> None:
-        """Run the next epochs on the fast path (compiled chunks of steps) where it can; a batch
-        that has none keeps the eager one (``ferl.compiled``)."""
+    # Optional: ``fuse(device)`` runs the next epochs on the fast path (compiled chunks of steps,
+    # ``ferl.compiled``) where it can; the trainer calls it with compile=true when it exists.
 
 
 @runtime_checkable

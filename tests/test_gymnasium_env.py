@@ -17,7 +17,7 @@ import pytest
 import torch
 from gymnasium import spaces
 
-from conftest import ROOT, compose_config, run_train, train_job
+from conftest import ROOT, compose_config, eager, run_train, train_job
 from ferl.envs.encodings import MINIGRID_SIZES, NoEncoding, encoder_for
 from ferl.envs.gymnasium_vector import GymnasiumEnv
 from ferl.interfaces import EpisodicEnvironment
@@ -187,7 +187,7 @@ def test_same_seed_same_numbers_sync_and_async(tmp_path):
 
 def test_sigterm_then_resume_equals_uninterrupted(tmp_path, cue_run):
     cut = tmp_path / "cut"
-    proc = subprocess.Popen([sys.executable, str(ROOT / "train.py"), *RUN, f"hydra.run.dir={cut}"], cwd=ROOT,
+    proc = subprocess.Popen([sys.executable, str(ROOT / "train.py"), *eager(RUN), f"hydra.run.dir={cut}"], cwd=ROOT,
                             env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 240
     while time.time() < deadline and proc.poll() is None:

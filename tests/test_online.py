@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import compose_config, train_job
+from conftest import compose_config, eager, train_job
 from ferl.trainers.actor_episodes import SOLVED_SHARE, sample_efficiency
 from test_tmaze_resume import progress, records
 from test_train_cli import summary
@@ -115,7 +115,7 @@ def test_curiosity_bonus_is_eta_times_the_observation_prediction_error():
 def test_sigterm_mid_online_then_resume_equals_uninterrupted(tmp_path, online_run):
     whole, result = online_run
     cut = tmp_path / "cut"
-    proc = subprocess.Popen([sys.executable, str(ROOT / "train.py"), *ONLINE, f"hydra.run.dir={cut}",
+    proc = subprocess.Popen([sys.executable, str(ROOT / "train.py"), *eager(ONLINE), f"hydra.run.dir={cut}",
                              "cpu_threads=1"], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 240
     while time.time() < deadline and proc.poll() is None:
@@ -125,7 +125,7 @@ def test_sigterm_mid_online_then_resume_equals_uninterrupted(tmp_path, online_ru
         time.sleep(0.05)
     proc.send_signal(signal.SIGTERM)
     assert proc.wait(timeout=240) == 128 + signal.SIGTERM
-    resumed = subprocess.run([sys.executable, str(ROOT / "train.py"), *ONLINE, f"hydra.run.dir={cut}", "resume=true",
+    resumed = subprocess.run([sys.executable, str(ROOT / "train.py"), *eager(ONLINE), f"hydra.run.dir={cut}", "resume=true",
                               "cpu_threads=1"], cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert resumed.returncode == 0, resumed.stderr[-2000:]
     assert summary(cut)["metrics"] == result["metrics"]

@@ -15,7 +15,7 @@ import urllib.request
 import numpy as np
 import pytest
 
-from conftest import ROOT, TINY
+from conftest import ROOT, TINY, eager
 from ferl import runs
 
 TMAZE = ["experiment=table4_1_matching", "n_runs=2", "trainer.n_sample=200", "trainer.n_epoch=10",
@@ -28,7 +28,7 @@ PHASES = {"actor", "schedule", "test", "collect", "preprocessor", "hparam"}
 def sweep(tmp_path_factory):
     """Both runs trained at the same time (two processes) into one folder."""
     root = tmp_path_factory.mktemp("sweep")
-    jobs = [subprocess.Popen([sys.executable, str(ROOT / "train.py"), *args, f"hydra.run.dir={root / name}"],
+    jobs = [subprocess.Popen([sys.executable, str(ROOT / "train.py"), *eager(args), f"hydra.run.dir={root / name}"],
                              cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
             for name, args in ((FLOOR_RUN, [*TINY, "experiment=ch3_coding_cw"]), (TMAZE_RUN, TMAZE))]
     for job in jobs:

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import assert_same_tb_log
+from conftest import assert_same_tb_log, eager
 from test_train_cli import summary
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -22,7 +22,7 @@ TINY = ["experiment=table4_1_matching", "n_runs=2", "trainer.n_sample=200", "tra
 
 
 def train(*args: str, stderr=subprocess.PIPE) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, str(ROOT / "train.py"), *TINY, *args], cwd=ROOT,
+    return subprocess.Popen([sys.executable, str(ROOT / "train.py"), *eager([*TINY, *args])], cwd=ROOT,
                             stdout=subprocess.DEVNULL, stderr=stderr, text=True)
 
 
@@ -118,7 +118,7 @@ PIXEL = ["experiment=table5_1_pixel", "n_runs=2", "env.reservoir_size=5", "prepr
 
 def train_pixel(run_dir: Path, *args: str, stderr=subprocess.PIPE) -> subprocess.Popen:
     # a cache of its own per run directory: every run fits its RBM (no shortcut through the cache)
-    return subprocess.Popen([sys.executable, str(ROOT / "train.py"), *PIXEL, *args, f"hydra.run.dir={run_dir}",
+    return subprocess.Popen([sys.executable, str(ROOT / "train.py"), *eager([*PIXEL, *args]), f"hydra.run.dir={run_dir}",
                              f"preprocessor.cache_dir={run_dir.parent / (run_dir.name + '_cache')}"],
                             cwd=ROOT, stdout=subprocess.DEVNULL, stderr=stderr, text=True)
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import ROOT, TINY, assert_same_tb_log, run_train
+from conftest import ROOT, TINY, assert_same_tb_log, eager, run_train
 from ferl.trainers.online import PREFETCH_MIN_RUNS
 
 
@@ -113,7 +113,7 @@ def interrupt_and_resume(tmp_path, args: list, steps: int, sig: int, expected_co
     compare with the whole run."""
     whole, cut = tmp_path / "whole", tmp_path / "cut"
     assert run_train(*args, f"hydra.run.dir={whole}").returncode == 0
-    proc = subprocess.Popen([sys.executable, str(ROOT / "train.py"), *args, f"hydra.run.dir={cut}"],
+    proc = subprocess.Popen([sys.executable, str(ROOT / "train.py"), *eager(args), f"hydra.run.dir={cut}"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 120
     while checkpointed_step(cut) == 0 and time.time() < deadline:

@@ -44,6 +44,7 @@ class RecurrentPredictor(OutputHeads):
 
     kind = ""
     uses_beta_m = False  # β_m is the gain of the Elman memory's sigmoid (Eq. 4.3); others keep it 1
+    traceable_bptt = False  # True where ``bptt`` is tensor operations only: PredictorBatch.fuse compiles it
 
     @checked
     def __init__(self, n_runs: PositiveInt, n_obs: PositiveInt, n_actions: PositiveInt, n_memory: PositiveInt = 20,

@@ -57,7 +57,7 @@ class PredictorBatch:
         longest training sequence, the shorter ones masked, and a short last chunk is filled
         with sequences of weight 0, whose gradients are exactly 0: the same steps as eager, up
         to the rounding of the generated kernels (tests/test_fast_path.py)."""
-        if getattr(type(self.lead), "traceable_bptt", False):
+        if type(self.lead).traceable_bptt:
             self.chunk = compiled(sgd_steps, device, f"{CHUNK_STEPS} steps of BPTT")
 
     @torch.no_grad()
@@ -114,4 +114,3 @@ class PredictorBatch:
             s = slice(i, i + size)
             self.chunk(self.members, memory, params, y[:, s], a[:, s], [r[:, s] if r is not None else None for r in rs],
                        steps[:, s], reward_steps[:, s], self.lead.lr, B)
-

@@ -69,7 +69,7 @@ class TrainPredictors(Phase):
         y, a, _, lengths = episode_tensors(job, fit, None)
         batch = type(members[0]).training_batch(
             members, y, a, [p.reward_targets(job.env.reward_values, fit.rewards) for p in members], lengths)
-        if job.fast:
+        if job.fast and hasattr(batch, "fuse"):  # optional: a batch without it trains eagerly
             batch.fuse(job.device)
         splits = {(name, s): episode_tensors(job, data[s], p) for name, p in zip(names, members) for s in ("train", "test")}
         partial = state["group"] or {}
