@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup run test bench reproduce beyond variants baselines suites clean
+.PHONY: setup run test bench reproduce beyond variants baselines suites figures clean
 
 setup: $(STAMP)
 
@@ -13,13 +13,21 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet torch==2.13.0
 	$(PY) -m pip install --quiet -e '.[dev]'
+	$(PY) -m ferl.mnist_download    # data=mnist_full's 60 000 + 10 000 images (11 MB, once per machine)
 	touch $(STAMP)
 
 # The default experiment (ch3_floor), then its figures and report.
 run: $(STAMP)
 	@dir=outputs/ch3_floor/$$(date +%Y-%m-%d_%H-%M-%S); \
 	$(PY) train.py hydra.run.dir=$$dir && $(PY) analyze.py $$dir && \
-	echo "  figures:     $$dir/analysis/ (claims: $$dir/analysis/report.md)"
+	echo "ferl: make run's outputs are in $$dir/ (formats: docs/records.md)" && \
+	echo "  config:      $$dir/.hydra/config.yaml" && \
+	echo "  summary:     $$dir/summary.json" && \
+	echo "  TensorBoard: tensorboard --logdir $$dir/tb" && \
+	echo "  figures:     $$dir/analysis/*.png (their numbers: *.csv)" && \
+	echo "  report:      $$dir/analysis/report.md (each dissertation claim beside what was measured)" && \
+	echo "  checkpoints: $$dir/checkpoints/ (python train.py resume=true hydra.run.dir=$$dir)" && \
+	echo "  records:     $$dir/records/ (what analysis reads)"
 
 test: $(STAMP)
 	$(PY) -m pytest -n 2 -q
@@ -30,8 +38,8 @@ test: $(STAMP)
 # Fig. 3.13 (ch3_coding_cw with 10 and 40 hidden; 20 is in the first sweep), the long regular
 # T-maze of Fig. 4.4 (corridor length 6: a random walk ends in exactly T_min = 6 steps with
 # probability (1/4)^5 · 1/2 ≈ 5·10⁻⁴, so balancing the lengths 6 … 10 needs ~50× Table 4.1's
-# 2 000 random episodes); then the sweep's aggregate tables, reproduction report and README table
-# (analyze.py --readme).
+# 2 000 random episodes); then the sweep's aggregate tables, reproduction report, the README's
+# scorecard and docs/reproduction.md's claims table (analyze.py --readme), and the README's gallery.
 REPRO_JOBS  ?= 2
 EXPERIMENTS := table5_1_pixel,table4_2_digit,table5_1_bit,table4_1_regular,table4_1_matching,ch3_floor,ch3_coding_cw,ch3_coding_ccw,ch3_coding_noreward
 NOISE_GRID  := 0.0,0.125,0.25,0.375,0.5,0.625,0.75,0.875,1.0
@@ -39,12 +47,17 @@ NOISE_GRID  := 0.0,0.125,0.25,0.375,0.5,0.625,0.75,0.875,1.0
 reproduce: $(STAMP)
 	@dir=outputs/reproduce/$$(date +%Y-%m-%d_%H-%M-%S); start=$$(date +%s); \
 	jobs="hydra/launcher=joblib hydra.launcher.n_jobs=$(REPRO_JOBS)"; \
+	echo "ferl: sweep 1/4: experiments" && \
 	$(PY) train.py -m experiment=$(EXPERIMENTS) $$jobs hydra.sweep.dir=$$dir/experiments && \
+	echo "ferl: sweep 2/4: noise_grid" && \
 	$(PY) train.py -m experiment=ch3_floor env.noise=$(NOISE_GRID) $$jobs hydra.sweep.dir=$$dir/noise_grid && \
+	echo "ferl: sweep 3/4: hidden_sizes" && \
 	$(PY) train.py -m experiment=ch3_coding_cw actor.n_hidden=10,40 $$jobs hydra.sweep.dir=$$dir/hidden_sizes && \
+	echo "ferl: sweep 4/4: long_corridor" && \
 	$(PY) train.py -m experiment=table4_1_regular env.corridor_length=6 trainer.n_sample=100000 $$jobs hydra.sweep.dir=$$dir/long_corridor && \
 	echo $$(( $$(date +%s) - start )) > $$dir/train_wall_time_s && \
-	$(PY) analyze.py $$dir --readme README.md && \
+	$(PY) analyze.py $$dir --readme README.md --readme docs/reproduction.md && \
+	$(PY) docs/figures/gallery.py $$dir --readme README.md && \
 	echo "  reproduced in $$(( $$(date +%s) - start )) s; report: $$dir/analysis/report.md"
 
 # Beyond the dissertation (§5.4; CONTRACT §3): (b) sample efficiency on three tasks, each by its
@@ -59,10 +72,13 @@ MEMORIES        := elman,lstm,gru,esn
 beyond: $(STAMP)
 	@dir=outputs/beyond/$$(date +%Y-%m-%d_%H-%M-%S); start=$$(date +%s); \
 	jobs="hydra/launcher=joblib hydra.launcher.n_jobs=$(REPRO_JOBS)"; \
+	echo "ferl: sweep 1/7: phased" && \
 	$(PY) train.py -m experiment=table5_1_pixel,table5_1_bit,table4_1_matching $$jobs hydra.sweep.dir=$$dir/phased && \
+	echo "ferl: sweep 2/7: online" && \
 	$(PY) train.py -m experiment=table5_1_pixel,table5_1_bit,table4_1_matching trainer=online trainer.curiosity=0,$(BEYOND_ETA) \
 	  $$jobs hydra.sweep.dir=$$dir/online && \
-	for c in 50 20 10 5 3; do \
+	n=2; for c in 50 20 10 5 3; do \
+	  n=$$((n + 1)); echo "ferl: sweep $$n/7: memory_length/corridor_$$c"; \
 	  $(PY) train.py -m experiment=table4_1_regular trainer=online predictor.joint.memory=$(MEMORIES) \
 	    env.corridor_length=$$c env.max_steps=$$((2 * c + 4)) trainer.n_episodes=$(BEYOND_EPISODES) \
 	    trainer.replay_sample=16 $$jobs hydra.sweep.dir=$$dir/memory_length/corridor_$$c || exit 1; \
@@ -103,6 +119,7 @@ $(BASELINES_STAMP): $(STAMP)
 	touch $@
 baselines: $(BASELINES_STAMP)
 	@dir=outputs/baselines/$$(date +%Y-%m-%d_%H-%M-%S); start=$$(date +%s); \
+	echo "ferl: sweep 1/1: side_by_side (every agent on every task, $(REPRO_JOBS) at a time)" && \
 	$(PY) baselines/side_by_side.py $$dir --jobs $(REPRO_JOBS) && \
 	echo "  baselines in $$(( $$(date +%s) - start )) s; report: $$dir/analysis/report.md"
 
@@ -124,6 +141,11 @@ bench: $(STAMP)
 	$(PY) benchmarks/bench_preprocessor.py
 	$(PY) benchmarks/bench_tmaze.py
 	$(PY) benchmarks/bench_predictor.py
+
+# The README's gallery (docs/figures/): figures of the newest analysed `make reproduce`, or of
+# REPRODUCE_DIR=outputs/reproduce/<date>_<time>; `make reproduce` ends with it.
+figures: $(STAMP)
+	$(PY) docs/figures/gallery.py $(REPRODUCE_DIR) --readme README.md
 
 clean:
 	rm -rf $(VENV) outputs/*/ .pytest_cache

@@ -2,7 +2,8 @@
 
     python analyze.py RUN_OR_SWEEP_DIR [more dirs ...]
 
-    python analyze.py SWEEP_DIR --readme README.md   # also paste the claims table into README
+    python analyze.py SWEEP_DIR --readme README.md --readme docs/reproduction.md
+        # also paste the results into these pages: the scorecard, the claims table
 
 A directory holding `summary.json` is a run, any other a sweep of runs; what each gets is
 described in `ferl/analysis/runner.py` and docs/records.md ("Analysis").
@@ -19,9 +20,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog=runner.PROG, description=__doc__.split("\n\n")[0])
     parser.add_argument("dirs", nargs="+", type=Path, metavar="RUN_OR_SWEEP_DIR",
                         help="a run directory (holds summary.json) or a directory of runs")
-    parser.add_argument("--readme", type=Path, metavar="README.md",
-                        help="paste a sweep's claims table into this file, between its "
-                             "reproduction-report markers")
+    parser.add_argument("--readme", type=Path, action="append", default=[], metavar="PAGE.md",
+                        help="paste a sweep's results into this page's generated blocks (the "
+                             "claims table, the scorecard), between their marker lines; repeatable")
     args = parser.parse_args(argv)
     return runner.main(args.dirs, args.readme)
 

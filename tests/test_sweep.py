@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import yaml
 
-from ferl.analysis import ch3, ch4, dispatch
+from ferl.analysis import ch3, ch4, dispatch, published
 from ferl.analysis import sweep as sw
 from ferl.analysis.claims import HELD, NOT_HELD, PARTLY, Claim, ClaimResult, Measured, evaluate
 from ferl.analysis.floor import FloorRun
@@ -148,17 +148,30 @@ def test_solved_claim_flips_at_all_runs_and_at_8_in_10(tmp_path, solved, expecte
     assert _verdict(results, "§4.3.1, Fig. 4.6") == expected
 
 
-def test_readme_block_is_replaced_and_nothing_else(tmp_path):
+def test_generated_blocks_are_replaced_and_nothing_else(tmp_path):
     jobs = [fake_job(tmp_path / "job", "coding", {}, facts={"actor": {"n_hidden": 20}},
                      verdict=PARTLY)]
     rows = sw.reproduction_rows(jobs, [], dispatch.CLAIM_ORDER)
-    readme = tmp_path / "README.md"
-    readme.write_text(f"# title\n\nbefore\n{sw.README_BEGIN}\nold table\n{sw.README_END}\nafter\n")
-    sw.update_readme(readme, rows, {"training wall time": 12.0}, tmp_path / "report.md")
+    (tmp_path / "docs").mkdir()
+    readme, table = tmp_path / "README.md", tmp_path / "docs" / "reproduction.md"
+    card, claims = published.SCORECARD, published.TABLE
+    readme.write_text(f"# title\n\nbefore\n{card[0]}\nold card\n{card[1]}\nafter\n")
+    table.write_text(f"# all\n{claims[0]}\nold table\n{claims[1]}\nend\n")
+    published.update_pages([readme, table], rows, {"training wall time": 12.0}, tmp_path / "report.md")
     text = readme.read_text()
-    assert text.startswith("# title\n\nbefore\n") and text.endswith(f"{sw.README_END}\nafter\n")
-    assert "old table" not in text and "training wall time 12 s" in text
+    assert text.startswith("# title\n\nbefore\n") and text.endswith(f"{card[1]}\nafter\n")
+    assert "old card" not in text and "training wall time 12 s" in text
+    assert "[reproduction.md](docs/reproduction.md)" in text
+    assert "| Ch. 3: digit floor | 1 | 0 | 1 | 0 |" in text and "| **all** | **1** | **0** | **1** | **0** |" in text
+    text = table.read_text()
+    assert text.startswith("# all\n") and text.endswith(f"{claims[1]}\nend\n") and "old table" not in text
     assert "| pairs cluster |" in text and "**partly**" in text
+
+
+@pytest.mark.parametrize("source, expected", [("§3.5.1, Fig. 3.4", "3"), ("§4.3.2, Fig. 4.14; §4.3.3", "4"),
+                                              ("§5.3.2, Observation preprocessor", "5"), ("Fig. 9", "?")])
+def test_a_claim_counts_for_the_chapter_of_its_first_section(source, expected):
+    assert published.chapter(source) == expected
 
 
 def run(*args: str, timeout: int = 300) -> subprocess.CompletedProcess:
@@ -176,7 +189,7 @@ def test_smoke_sweep_through_train_and_analyze(tmp_path):
                  f"hydra.sweep.dir={sweep / 'noise_grid'}")
     assert result.returncode == 0, result.stderr[-2000:]
     readme = tmp_path / "README.md"
-    readme.write_text(f"{sw.README_BEGIN}\n{sw.README_END}\n")
+    readme.write_text("{}\n{}\n".format(*published.TABLE))
 
     result = run("analyze.py", str(sweep), "--readme", str(readme))
     assert result.returncode == 0, result.stderr[-2000:]

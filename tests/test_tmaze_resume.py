@@ -10,9 +10,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
 from conftest import assert_same_tb_log, eager
+from ferl.run import checkpoint
 from test_train_cli import summary
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -27,10 +27,9 @@ def train(*args: str, stderr=subprocess.PIPE) -> subprocess.Popen:
 
 
 def progress(run_dir: Path) -> dict | None:
-    path = run_dir / "checkpoints" / "last.pt"
     try:
-        return torch.load(path, weights_only=False)["progress"] if path.exists() else None
-    except (EOFError, RuntimeError, FileNotFoundError):  # replaced while being read: poll again
+        return checkpoint.read(run_dir / "checkpoints" / "last.pt").state()["progress"]
+    except checkpoint.CheckpointError:  # not written yet
         return None
 
 

@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from conftest import ROOT, TINY, assert_same_tb_log, eager, run_train
+from ferl.run import checkpoint
 from ferl.trainers.online import PREFETCH_MIN_RUNS
 
 
@@ -100,8 +101,8 @@ def checkpointed_step(run_dir) -> int:
     """The training step of the run's last checkpoint: 0 before the actor phase started, or
     while no checkpoint exists (or one is being replaced)."""
     try:
-        progress = torch.load(run_dir / "checkpoints" / "last.pt", weights_only=False)["progress"]
-    except (FileNotFoundError, RuntimeError, EOFError):
+        progress = checkpoint.read(run_dir / "checkpoints" / "last.pt").state()["progress"]
+    except checkpoint.CheckpointError:  # not written yet
         return 0
     return (progress["partial"].get("actor") or {}).get("step", 0)
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 import json
+import zipfile
 from pathlib import Path
 from typing import Iterable, Sequence
 
@@ -16,8 +17,11 @@ import numpy as np
 
 def load_npz(path: Path) -> dict[str, np.ndarray]:
     """Every array of a records file (docs/records.md), read at once, no pickles."""
-    with np.load(path, allow_pickle=False) as data:
-        return {key: data[key] for key in data.files}
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {key: data[key] for key in data.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
+        raise ValueError(f"{Path(path).name} is damaged ({type(e).__name__}: {e})") from None
 
 
 def fmt(x) -> str:

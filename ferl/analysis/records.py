@@ -58,7 +58,12 @@ class Manifest:
         path = Path(run_dir) / MANIFEST
         if not path.is_file():
             return None
-        facts = json.loads(path.read_text())
+        try:
+            facts = json.loads(path.read_text())
+        except ValueError as e:
+            raise ValueError(f"{MANIFEST} is damaged ({e})") from None
+        if not isinstance(facts, dict):
+            raise ValueError(f"{MANIFEST} is damaged (a JSON {type(facts).__name__}, not an object)")
         return cls(str(facts.get("task")), str(facts.get("experiment")),
                    facts.get("trainer") or {}, facts.get("env") or {}, facts.get("preprocessor"),
                    facts.get("predictors") or {}, facts.get("actor") or {})

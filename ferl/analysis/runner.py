@@ -12,17 +12,17 @@ jobs (`ferl.analysis.beyond`), its figures also logged to `DIR/analysis/tb/`.
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 import sys
 import time
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
 from ferl import runs
-from ferl.analysis import beyond, dispatch, generic, variants
+from ferl.analysis import beyond, dispatch, generic, published, variants
 from ferl.analysis import sweep as sw
 from ferl.analysis.claims import VERDICTS, ClaimResult, Numbering, evaluate
 from ferl.analysis.io import write_json
@@ -89,7 +89,7 @@ def run_analysis(run: Run, out: Path) -> RunAnalysis:
 
 def analyze_run(run_dir: Path) -> RunOutcome:
     """Rebuild `run_dir/analysis/`; return the run's line of a sweep report."""
-    summary = json.loads((run_dir / "summary.json").read_text())
+    summary = runs.load_summary(run_dir)
     task, experiment = str(summary.get("task")), str(summary.get("experiment", "?"))
     manifest = Manifest.load(run_dir)
     if manifest is None:
@@ -138,7 +138,7 @@ def analyze_runs(found: list[Path]) -> list[RunOutcome]:
     return Parallel(n_jobs=workers)(delayed(_safe_analyze_run)(r) for r in found)
 
 
-def analyze_sweep(sweep_dir: Path, readme: Path | None = None) -> list[RunOutcome]:
+def analyze_sweep(sweep_dir: Path, pages: Sequence[Path] = ()) -> list[RunOutcome]:
     """Analyze every run below `sweep_dir`, then the sweep as a whole (`ferl.analysis.sweep`)."""
     start = time.perf_counter()
     found = runs.find_runs(sweep_dir)
@@ -166,33 +166,33 @@ def analyze_sweep(sweep_dir: Path, readme: Path | None = None) -> list[RunOutcom
     lines = sw.report_lines(sweep, analysis, rows, out, wall) + findings
     lines += ["", "## Jobs", ""] + jobs_table(sweep_dir, out, outcomes)
     (out / "report.md").write_text("\n".join(lines) + "\n")
-    if readme is not None:
-        sw.update_readme(readme, rows, wall, out / "report.md")
-        print(f"{readme}: reproduction table updated")
+    if pages:
+        published.update_pages(pages, rows, wall, out / "report.md")
+        print(f"{', '.join(map(str, pages))}: reproduction results updated")
     print(f"{sweep_dir}: sweep of {len(found)} runs, {len(rows)} claims "
           f"({sw.verdict_counts(rows)}) -> {out / 'report.md'}")
     return outcomes
 
 
-def _usage_error(dirs: list[Path], readme: Path | None) -> str | None:
+def _usage_error(dirs: list[Path], pages: Sequence[Path]) -> str | None:
     """What is wrong with the command line, None when nothing is."""
     missing = [str(d) for d in dirs if not d.is_dir()]
     if missing:
         return f"no such directory: {', '.join(missing)}"
     single = [str(d) for d in dirs if (d / "summary.json").is_file()]
-    if readme is not None and single:
+    if pages and single:
         return f"--readme takes sweep directories only, not the run {', '.join(single)}"
-    text = readme.read_text() if readme is not None and readme.is_file() else ""
-    if readme is not None and not (sw.README_BEGIN in text and sw.README_END in text):
-        return (f"--readme {readme}: needs a file with the lines {sw.README_BEGIN!r} and "
-                f"{sw.README_END!r}")
+    for page in pages:
+        if not (page.is_file() and published.blocks_in(page.read_text())):
+            markers = " or ".join(f"{b!r} … {e!r}" for b, e in published.BLOCKS)
+            return f"--readme {page}: needs a file with the marker lines {markers}"
     return None
 
 
-def main(dirs: list[Path], readme: Path | None = None) -> int:
+def main(dirs: list[Path], pages: Sequence[Path] = ()) -> int:
     """Analyze each directory (a run or a sweep); the exit status: 2 for a usage error or a
     directory without runs, 1 when a run's analysis failed, else 0."""
-    error = _usage_error(dirs, readme)
+    error = _usage_error(dirs, pages)
     if error is not None:
         print(f"{PROG}: error: {error}", file=sys.stderr)
         return 2
@@ -205,7 +205,7 @@ def main(dirs: list[Path], readme: Path | None = None) -> int:
             status = 2
             continue
         else:
-            outcomes = analyze_sweep(d, readme)
+            outcomes = analyze_sweep(d, pages)
         if any(o.status.startswith("failed") for o in outcomes):
             status = max(status, 1)
     return status

@@ -1,14 +1,18 @@
-"""Hydra glue of train.py: the joblib launcher's job count, one-line composition errors, the
-device, the metric that main() returns to a sweeper, and the final summary table.
+"""Hydra glue of train.py: the joblib launcher's job count, one-line composition errors, one line
+for any other error of a run (its phase), the device, the metric that main() returns to a
+sweeper, and the final summary table.
 
 Imported by train.py; joblib's worker processes import it too (main() refers to it), so the
 resolver and the warning filter below are in place wherever a job's config is composed.
 """
 import io
+import logging
 import os
 import sys
+import traceback
 import warnings
 from contextlib import contextmanager
+from pathlib import Path
 
 import torch
 from omegaconf import OmegaConf
@@ -16,7 +20,7 @@ from omegaconf import OmegaConf
 from ferl.config.params import ConfigError
 from ferl.stats import flat_metrics, mean_sd
 
-# conf/hydra/launcher/{joblib,submitit_slurm}.yaml set our defaults on top of the plugins' configs
+# conf/hydra/launcher/{joblib,submitit_local,submitit_slurm,ray}.yaml set our defaults on top of the plugins' configs
 # of the same name, which Hydra merges with a deprecation notice meant for configs one owns.
 warnings.filterwarnings("ignore", message=r"\s*'hydra/launcher/\w+' is validated against ConfigStore schema")
 
@@ -55,6 +59,51 @@ def one_line_errors():
     finally:
         if isinstance(sys.stderr, io.StringIO):
             sys.stderr = real
+
+
+@contextmanager
+def reported_by_phase(run_path: Path, phase):
+    """An exception of the run (not a bad input, which ``fail`` reports) ends it with one line
+    naming the phase (``phase()``: the trainer's current one) and the run directory, and exit
+    code 1; its traceback goes to the run's ``train.log`` (Hydra's job log), and to the terminal
+    too with HYDRA_FULL_ERROR=1. The checkpoints are left as they are: the last one written
+    before the error is the one ``resume=true`` continues from."""
+    try:
+        yield
+    except Exception as e:  # noqa: BLE001 — every failure of a run is reported this way
+        name = phase()
+        log = log_traceback(run_path, f"phase {name!r} failed")
+        if os.environ.get("HYDRA_FULL_ERROR") == "1":
+            traceback.print_exc()
+        message = (str(e).strip().splitlines() or [""])[0]
+        print(f"ferl: error: phase {name!r} of {shown(run_path)}: {type(e).__name__}: {message} "
+              f"(traceback in {shown(log)}; HYDRA_FULL_ERROR=1 shows it here)", file=sys.stderr)
+        sys.exit(1)
+
+
+def log_traceback(run_path: Path, message: str) -> Path:
+    """The exception being handled, with ``message``, into the run's log files only (Hydra's job
+    logging also prints to the terminal): its file handlers, else ``run_path/train.log``."""
+    files = [h for h in logging.getLogger().handlers if isinstance(h, logging.FileHandler)]
+    if not files:
+        path = Path(run_path) / "train.log"
+        with open(path, "a") as f:
+            f.write(f"{message}\n{traceback.format_exc()}")
+        return path
+    record = logging.getLogger(__name__).makeRecord(__name__, logging.ERROR, __file__, 0, message, None,
+                                                   sys.exc_info())
+    for handler in files:
+        handler.handle(record)
+        handler.flush()
+    return Path(files[0].baseFilename)
+
+
+def shown(path: Path) -> str:
+    """``path`` relative to the working directory where it lies below it (as the user typed it)."""
+    try:
+        return str(Path(path).resolve().relative_to(Path.cwd().resolve()))
+    except ValueError:
+        return str(path)
 
 
 def release_stderr() -> None:

@@ -30,6 +30,7 @@ class RunSettings:
     cpu_threads: PositiveInt
     resume: bool
     compile: bool
+    memory_check: bool
     optimized_metric: Annotated[str, Allowed(bool, "(a summary.json metric name)")] | None
 
 

@@ -1,7 +1,8 @@
 """The run directory of CONTRACT §2: tb/, summary.json, checkpoints/, records/.
 
 Every file is written atomically (temporary file + rename), so an interruption never
-leaves a half-written checkpoint or summary behind. A checkpoint also remembers how long each
+leaves a half-written checkpoint or summary behind. Checkpoints check themselves before they are
+used and the last two are kept (``ferl.run.checkpoint``). A checkpoint also remembers how long each
 TensorBoard event file was when it was written; resuming cuts the files back to that, so the
 points a resumed run logs again appear once, not twice.
 """
@@ -15,11 +16,14 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
-import torch
 
-CHECKPOINT = "last.pt"
+from ferl.run import checkpoint
+from ferl.run.checkpoint import Checkpoint, RunIdentity
+
 TB_EVENTS = "events.out.tfevents.*"  # the run's own event files (tb/analysis/ is analyze.py's)
 HYDRA_OWN = {".hydra", "train.log"}  # what Hydra writes into a run directory before main()
+HYDRA_FILES = ("config.yaml", "hydra.yaml", "overrides.yaml")  # .hydra/'s, rewritten by Hydra at every launch
+HYDRA_COPY = Path("checkpoints") / "hydra"  # the run's own .hydra/ files, put back when it is resumed
 
 
 def check_run_dir(path: Path, resume: bool) -> str | None:
@@ -56,11 +60,29 @@ def atomic_path(path: Path):
             os.remove(tmp)
 
 
+def restore_hydra_files(path: Path) -> None:
+    """Put the run's own ``.hydra/`` files back: Hydra rewrote them for this launch (a resume's
+    overrides), before main() could look; the copies were taken at the run's first checkpoint."""
+    for name in HYDRA_FILES:
+        if (path / HYDRA_COPY / name).is_file():
+            with atomic_path(path / ".hydra" / name) as tmp:
+                shutil.copyfile(path / HYDRA_COPY / name, tmp)
+
+
 class RunDir:
-    def __init__(self, path):
+    """``identity``: what its checkpoints are written under (train.py's config; a trainer fills
+    it in from its own config when none was given); ``resume_from``: the checked checkpoint that
+    ``resume`` continues (train.py chose it before the run was set up), else the newest good one."""
+
+    def __init__(self, path, identity: RunIdentity | None = None, resume_from: Checkpoint | None = None):
         self.path = Path(path)
+        self.identity, self.resume_from = identity, resume_from
         for sub in ("tb", "checkpoints", "records"):
             (self.path / sub).mkdir(parents=True, exist_ok=True)
+
+    @property
+    def checkpoints(self) -> Path:
+        return self.path / "checkpoints"
 
     @property
     def tb(self) -> Path:
@@ -82,23 +104,36 @@ class RunDir:
         if writer is not None:
             writer.flush()
             state = {**state, "tb_sizes": {p.name: p.stat().st_size for p in self.tb.glob(TB_EVENTS)}}
-        with atomic_path(self.path / "checkpoints" / CHECKPOINT) as tmp:
-            torch.save(state, tmp)
+        self.keep_hydra_files()
+        checkpoint.write(self.checkpoints, state, self.identity)
 
-    def load_checkpoint(self):
-        path = self.path / "checkpoints" / CHECKPOINT
-        return torch.load(path, map_location="cpu", weights_only=False) if path.exists() else None
+    def keep_hydra_files(self) -> None:
+        """Copy ``.hydra/``'s files once, at the run's first checkpoint (``restore_hydra_files``)."""
+        if (self.path / ".hydra").is_dir() and not (self.path / HYDRA_COPY).exists():
+            for name in HYDRA_FILES:
+                if (self.path / ".hydra" / name).is_file():
+                    with atomic_path(self.path / HYDRA_COPY / name) as tmp:
+                        shutil.copyfile(self.path / ".hydra" / name, tmp)
 
     def resume(self):
-        """The last checkpoint (None if there is none) with ``tb/`` rolled back to the moment it
-        was written: event files are cut to their recorded lengths, and files started after it
-        (or, without a checkpoint, every event file) are removed, because the resumed run logs
-        everything from that moment on again."""
-        saved = self.load_checkpoint()
+        """The newest good checkpoint's state (None if the run has none; CheckpointError if
+        none is good), with ``tb/`` rolled back to the moment it was written: event files are cut
+        to their recorded lengths, and files started after it (or, without a checkpoint, every
+        event file) are removed, because the resumed run logs everything from that moment on
+        again. A damaged ``last.pt`` passed over is kept as ``last.pt.damaged``, so that the
+        next checkpoint does not turn it into ``previous.pt``."""
+        chosen = self.resume_from or checkpoint.newest_good(self.checkpoints)
+        saved = chosen.state() if chosen is not None else None
+        if chosen is not None and chosen.path.name != checkpoint.LAST and (self.checkpoints / checkpoint.LAST).exists():
+            os.replace(self.checkpoints / checkpoint.LAST,
+                       self.checkpoints / (checkpoint.LAST + checkpoint.DAMAGED_SUFFIX))
+        for stale in checkpoint.stale_temporary_files(self.checkpoints):
+            stale.unlink()
         sizes = (saved or {}).pop("tb_sizes", {})
         for path in self.tb.glob(TB_EVENTS):
             if path.name in sizes:
-                os.truncate(path, sizes[path.name])
+                if path.stat().st_size > sizes[path.name]:  # never lengthened (with zeros)
+                    os.truncate(path, sizes[path.name])
             else:
                 path.unlink()
         return saved
@@ -123,15 +158,18 @@ class CheckpointTimer:
         return True
 
 
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGUSR2)  # USR2: submitit's time-limit / pre-emption signal
+
+
 class StopRequest:
-    """Turns SIGINT / SIGTERM into a flag that the step loop polls between steps, so the run
-    can write a consistent checkpoint before it exits (CONTRACT §2, interruption)."""
+    """Turns SIGINT / SIGTERM / SIGUSR2 into a flag that the step loop polls between steps, so the
+    run can write a consistent checkpoint before it exits (CONTRACT §2, interruption)."""
 
     def __init__(self):
         self.signal = None
 
     def __enter__(self):
-        self._previous = {s: signal.signal(s, self._handle) for s in (signal.SIGINT, signal.SIGTERM)}
+        self._previous = {s: signal.signal(s, self._handle) for s in STOP_SIGNALS}
         return self
 
     def _handle(self, signum, frame):

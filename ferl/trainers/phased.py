@@ -16,6 +16,7 @@ from torch.utils.tensorboard import SummaryWriter
 from ferl.compiled import compile_seconds
 from ferl.config.params import ConfigError
 from ferl.run.directory import RunDir, StopRequest
+from ferl.run.resume import identity_of
 from ferl.run.tensorboard import log_hparams
 from ferl.trainers.job import Job, SeedOffsets
 
@@ -50,6 +51,7 @@ class PhasedTrainer:
     kind = "phased"
     params: dict = {}  # the trainer's arguments, for records/run.json
     last_step = 0      # the step of the final TensorBoard points (the HParams session)
+    phase = "setup"    # what the trainer is doing: setup, resume, a phase's name, summary (train.py's error line)
 
     def __init__(self, phases: list, divergence_limit: float):
         self.all_phases, self.divergence_limit = phases, divergence_limit
@@ -78,6 +80,9 @@ class PhasedTrainer:
         """Every phase not yet done; returns the summary.json dict (CONTRACT §2)."""
         job = self.job
         job.run = run
+        if run.identity is None:  # driven in process: the checkpoints carry the job's own config
+            run.identity = identity_of(job.cfg, job.device)
+        self.phase = "resume" if resume else "start"
         saved = run.resume() if resume else None
         if saved:
             job.restore(saved)
@@ -88,6 +93,7 @@ class PhasedTrainer:
             for phase in self.phases:
                 if phase.name in job.progress["done"]:
                     continue
+                self.phase = phase.name
                 started = time.perf_counter()
                 phase.run(job, job.progress["partial"].pop(phase.name, None))
                 times = job.progress.setdefault("phase_time_s", {})
@@ -98,6 +104,7 @@ class PhasedTrainer:
                     job.stop = StopRequest()  # finished: a late signal no longer stops it
                     job.progress["shared"] = {}  # the finished run keeps parameters, not the data
                 job.checkpoint()
+            self.phase = "summary"
             summary = self.summary(job, time.perf_counter() - self.started)
             log_hparams(job.writer, job.cfg, summary, self.last_step)
         return summary
