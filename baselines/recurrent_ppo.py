@@ -335,7 +335,7 @@ def write_run(args, task: Task, run: RunDir, runs: list[dict], steps_total: list
     """episodes.npz, run.json and the overrides of the finished runs; their metrics."""
     records, env_steps = episode_records(task, runs)
     optimal = task.env.optimal(args.gamma)
-    run.save_records("episodes", **records, gamma=np.float64(args.gamma),
+    run.save_records("episodes", len(runs), **records, gamma=np.float64(args.gamma),
                      optimal_return=np.float64(optimal.get("discounted_return", np.nan)),
                      optimal_steps=np.float64(task.env.optimal_steps))
     run.save_json("run", manifest(args, task, records["steps"].shape[1]))

@@ -9,8 +9,8 @@ fuses the element-wise work into generated loops, and on a CPU its kernels are c
 (``cpp_wrapper``), so Python runs once per chunk. The same function run eagerly is the reference.
 
 Compiling takes tens of seconds; inductor keeps what it built in ``cache_dir()`` (by default
-``~/.cache/ferl/inductor``; ``TORCHINDUCTOR_CACHE_DIR`` if set), so only a machine's first run of
-a configuration pays, and that run says so in one line. Without a C++ compiler (CPU) or Triton
+``~/.cache/ferl/inductor/<vector ISA>``; ``TORCHINDUCTOR_CACHE_DIR`` if set), so only a machine's
+first run of a configuration pays, and that run says so in one line. Without a C++ compiler (CPU) or Triton
 (CUDA) a run warns once and runs eagerly.
 """
 import os
@@ -39,9 +39,22 @@ def run_clock() -> float:
 
 
 def cache_dir() -> Path:
-    """Where inductor keeps compiled graphs across runs (set before the first compile)."""
-    os.environ.setdefault(CACHE_ENV, str(DEFAULT_CACHE))
+    """Where inductor keeps compiled graphs across runs (set before the first compile): by default a
+    folder per vector ISA (``vector_isa``). Inductor's cache key leaves the ISA out: a home folder
+    shared by an AVX2 and an AVX-512 machine (a cluster's nodes), or a run with
+    ``ATEN_CPU_CAPABILITY=avx2`` before one without, made the second load the other's graphs, and
+    it ended in "double free or corruption" (seen here with torch 2.13, docs/reliability.md)."""
+    if CACHE_ENV not in os.environ:
+        os.environ[CACHE_ENV] = str(DEFAULT_CACHE / vector_isa())
     return Path(os.environ[CACHE_ENV])
+
+
+def vector_isa() -> str:
+    """The CPU vector instructions inductor generates code for here, e.g. ``avx2`` or
+    ``avx512_avx512_vnni_amx_tile`` (it follows ``ATEN_CPU_CAPABILITY``); ``none`` without."""
+    from torch._inductor.cpu_vec_isa import pick_vec_isa
+    isa = pick_vec_isa()
+    return "_".join(str(isa).split()) if isa else "none"
 
 
 def warn(message: str) -> None:

@@ -128,6 +128,18 @@ class Preprocessor(Protocol):
 
     def describe(self) -> dict: ...
 
+    # Optional: ``stoppable_fit = True`` and ``fit(data, writer, stop, resume)``: ``stop()`` is asked
+    # between steps of the fit; True raises ``FitStopped``, and ``resume=`` its state (the weights
+    # restored from the checkpoint) continues the fit. Without it a stop waits for the fit's end.
+
+
+class FitStopped(Exception):
+    """A preprocessor's fit stopped by a stop request; ``state`` continues it (``Preprocessor``)."""
+
+    def __init__(self, state: dict):
+        super().__init__(f"the fit stopped after sweep {state.get('sweep')}")
+        self.state = state
+
 
 @runtime_checkable
 class TrainingBatch(Protocol):

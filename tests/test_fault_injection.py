@@ -270,10 +270,6 @@ def test_an_error_in_a_phase_one_line_and_the_last_checkpoint_resumes(tmp_path, 
 
 # ---- records, run.json, summary.json through analyze.py -------------------------------------------
 FILES = ("records/episodes.npz", "records/run.json", "summary.json")
-# analyze.py's one outcome that falls short of the issue's bar: TODO — records with one run fewer
-# are analysed without a word (nothing checks the records' shapes against summary.json's seeds).
-SILENT = pytest.mark.xfail(strict=True, reason="TODO(lead): records with one run fewer are analysed without "
-                                                "an error (ferl/analysis/records.py checks no shapes)")
 CASES = [(f, w) for f in FILES for w in WAYS]
 
 
@@ -301,18 +297,14 @@ def analysed(tmp_path_factory, whole) -> dict:
     return out
 
 
-@pytest.mark.parametrize("file, way", [pytest.param(f, w, marks=SILENT)
-                                       if (f, w) == ("records/episodes.npz", "other_shape") else (f, w)
-                                       for f, w in CASES])
+@pytest.mark.parametrize("file, way", CASES)
 def test_analyze_a_damaged_file_fails_in_one_line(analysed, file, way):
     status, lines, run_dir = analysed[file, way]
     assert status == 1, status
     assert len(lines) == 1 and lines[0].startswith(f"analyze.py: error: {run_dir}: "), lines
 
 
-@pytest.mark.parametrize("file, way", [pytest.param(f, w, marks=SILENT)
-                                       if (f, w) == ("records/episodes.npz", "other_shape") else (f, w)
-                                       for f, w in CASES])
+@pytest.mark.parametrize("file, way", CASES)
 def test_analyze_names_the_damaged_file(analysed, file, way):
     status, lines, _ = analysed[file, way]
     assert status == 1 and len(lines) == 1 and Path(file).name in lines[0], lines
@@ -334,7 +326,7 @@ def test_analyze_a_sweep_with_damaged_runs_analyses_the_others(tmp_path, whole):
 
     sweep = tmp_path / "sweep"
     shutil.copytree(whole, sweep / "good", ignore=shutil.ignore_patterns("analysis"))
-    damaged = [case for case in CASES if case not in SWEEP_STOPS and case != ("records/episodes.npz", "other_shape")]
+    damaged = [case for case in CASES if case not in SWEEP_STOPS]
     for i, (file, way) in enumerate(damaged):
         shutil.copytree(whole, sweep / f"bad{i}", ignore=shutil.ignore_patterns("analysis"))
         DAMAGE[way](sweep / f"bad{i}" / file)

@@ -208,21 +208,21 @@ def test_the_estimate_is_within_a_factor_of_the_memory_runs_take(overrides):
     assert 0.5 <= total <= 3, total
 
 
-# What phases allocate while they run, beyond what they hold when they start, is in the estimate only
-# where a phase reports it (``run_bytes(job)``); none of ferl's phases does yet. Measured: Algorithm
-# 1's collected episodes and training batches (~190 kB a run here, estimated 7.5 kB), and the floor
-# tests' activations at their default size (400 images per class × 9 noise levels: ~3 MB a run,
-# estimated 0.14 MB at 300 steps, 0.94 MB at the default 100 000).
+# What phases allocate while they run, beyond what they hold when they start, is in the estimate where
+# a phase reports it (``run_bytes(job)``): Algorithm 1's collected episodes and training tensors, the
+# floor tests' activations. Algorithm 1's is an upper bound: balancing keeps n per length, at most
+# n_sample episodes in all (here 48 of 300), so its estimate may be a few times what a run takes, and
+# never less.
 GAPS = {"algorithm1_maze": (MAZE, 200),
         "floor_default_tests": (["experiment=ch3_floor", "trainer.steps=300", "trainer.log_every=100",
                                  "trainer.checkpoint_every=100"], 20)}
 
 
 @pytest.mark.skipif(not has_mallinfo2(), reason="measured with glibc's mallinfo2")
-@pytest.mark.xfail(strict=True, reason="CollectEpisodes, TrainPredictors and GreedyTests do not report what they "
-                                       "allocate while running (run_bytes) yet")
 @pytest.mark.parametrize("case", list(GAPS))
 def test_the_estimate_counts_what_phases_allocate_while_running(case):
+    """Per run, the estimate is at least 0.8× what runs take (not less: 0.04× for the maze and
+    0.05× for the floor before the phases reported it) and at most 4× (the maze's upper bound)."""
     overrides, large = GAPS[case]
     per_run, _ = compare(overrides, large=large)
-    assert 0.5 <= per_run <= 2, per_run
+    assert 0.25 <= per_run <= 1.25, per_run

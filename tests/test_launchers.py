@@ -106,7 +106,7 @@ def test_submitit_timeout_checkpoints_and_the_resubmitted_job_ends_as_uninterrup
     USR2 (its time-limit and pre-emption signal), on which the run writes its checkpoint and exits; the same sweep re-submitted with resume=true continues the job in its directory and ends
     with the summary and TensorBoard log of the same job run uninterrupted (beside it, directly)."""
     per_s = direct[0]["agent_steps_per_s"] / len(direct[0]["seeds"])  # training steps a second, measured
-    steps = int(min(max(per_s * 42, 20000), 400000)) // 1000 * 1000  # ≈ 42 s of training: cut after ≈ 26 s
+    steps = int(min(max(per_s * 60, 20000), 600000)) // 1000 * 1000  # ≈ 60 s of training: cut after ≈ 26 s
     args = [*(a for a in JOB if not a.startswith(("trainer.steps=", "trainer.checkpoint_every=", "trainer.log_every="))),
             f"trainer.steps={steps}", "trainer.log_every=1000",
             f"trainer.checkpoint_every={steps}"]  # no periodic checkpoint inside training: only the signal's

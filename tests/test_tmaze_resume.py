@@ -66,12 +66,16 @@ def assert_same_as_uninterrupted(run_dir: Path, whole: Path) -> None:
     proc = train("resume=true", f"hydra.run.dir={run_dir}")
     assert proc.wait(timeout=300) == 0, proc.stderr.read()[-2000:]
     assert summary(run_dir)["metrics"] == summary(whole)["metrics"]
-    for name in ("predictor", "episodes", "junction"):
+    assert_same_records(run_dir, whole, ("predictor", "episodes", "junction"))
+    assert_same_tb_log(run_dir, whole)
+
+
+def assert_same_records(run_dir: Path, whole: Path, names) -> None:
+    for name in names:
         got, want = records(run_dir, name), records(whole, name)
         assert got.keys() == want.keys()
         for key in want:
             np.testing.assert_array_equal(got[key], want[key], err_msg=f"{name}.npz {key}")
-    assert_same_tb_log(run_dir, whole)
 
 
 def mid(phase: str):
@@ -123,8 +127,9 @@ def train_pixel(run_dir: Path, *args: str, stderr=subprocess.PIPE) -> subprocess
 
 
 def test_sigterm_in_the_preprocessor_phase_then_resume(tmp_path):
-    """SIGTERM while the RBM preprocessor trains: the phase finishes, is checkpointed, the run
-    exits; the resumed run does not train the RBM again and ends as an uninterrupted one."""
+    """SIGTERM while the RBM preprocessor trains: the fit stops after the sweep it is in, is
+    checkpointed, the run exits; the resumed run continues the fit from that sweep and ends as an
+    uninterrupted one (tests/test_fit_resume.py holds the sweep exactly, in process)."""
     whole, cut = tmp_path / "whole", tmp_path / "cut"
     proc = train_pixel(whole)
     assert proc.wait(timeout=300) == 0, proc.stderr.read()[-2000:]
@@ -136,17 +141,17 @@ def test_sigterm_in_the_preprocessor_phase_then_resume(tmp_path):
     time.sleep(0.5)  # the signal handler is installed right after the TensorBoard writer
     proc.send_signal(signal.SIGTERM)
     assert proc.wait(timeout=240) == 128 + signal.SIGTERM
-    assert progress(cut)["done"] == ["preprocessor"]
+    stopped = progress(cut)
+    assert stopped["done"] == [], "the fit ended before the signal: nothing was tested"
+    sweep = stopped["partial"]["preprocessor"]["fit"]["sweep"]
+    assert 0 < sweep < 60
 
     proc = train_pixel(cut, "resume=true")
     _, err = proc.communicate(timeout=300)
     assert proc.returncode == 0, err[-2000:]
-    assert "preprocessor:" not in err  # no CD sweep ran again
+    assert "preprocessor:   0%|" not in err and f"| {sweep}/60 [" in err  # the fit went on from its sweep
     assert summary(cut)["metrics"] == summary(whole)["metrics"]
-    for name in ("preprocessor", "predictor", "episodes"):
-        got, want = records(cut, name), records(whole, name)
-        for key in want:
-            np.testing.assert_array_equal(got[key], want[key], err_msg=f"{name}.npz {key}")
+    assert_same_records(cut, whole, ("preprocessor", "predictor", "episodes"))
 
 
 def test_drqn_resumes_mid_actor_equal_to_uninterrupted(tmp_path):

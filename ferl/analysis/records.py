@@ -143,8 +143,19 @@ class Run:
         """`records/<name>.npz` as arrays; None where the run has no such file."""
         if name not in self.files:
             path = self.run_dir / "records" / f"{name}.npz"
-            self.files[name] = load_npz(path) if path.is_file() else None
+            self.files[name] = self.checked(path, load_npz(path)) if path.is_file() else None
         return self.files[name]
+
+    def checked(self, path: Path, arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """``arrays`` without ``per_run``, once each array it names has summary.json's run count
+        as its first axis (files written before ``per_run`` existed go unchecked)."""
+        runs = len(self.summary.get("seeds", ()))
+        shapes = {k: arrays[k].shape if k in arrays else "missing" for k in arrays.pop("per_run", ())}
+        wrong = [f"{k} {shape}" for k, shape in shapes.items() if shape == "missing" or shape[:1] != (runs,)]
+        if wrong:
+            raise ValueError(f"{path.name} does not belong to this run: summary.json has {runs} runs, "
+                             f"but {', '.join(wrong)}")
+        return arrays
 
     @property
     def experiment(self) -> str:

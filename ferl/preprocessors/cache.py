@@ -57,13 +57,13 @@ def entry_path(preprocessor, key: str, cache_dir) -> Path:
     return Path(cache_dir) / f"{name}-{hashlib.sha256(key.encode()).hexdigest()[:16]}.pt"
 
 
-def load_or_fit(preprocessor, images: torch.Tensor, cache_dir, writer=None) -> tuple[np.ndarray, bool]:
-    """``preprocessor.train(images)`` (its own streams), or the state that the same hparams and
-    images saved in ``cache_dir`` before (None: no cache). The file is
-    ``<class>-<sha256[:16]>.pt`` (module docstring). Returns (the training errors (R, sweeps),
+def load_or_fit(preprocessor, images: torch.Tensor, cache_dir, writer=None, **train) -> tuple[np.ndarray, bool]:
+    """``preprocessor.train(images)`` (its own streams; ``train``: its further arguments), or the
+    state that the same hparams and images saved in ``cache_dir`` before (None: no cache). The file
+    is ``<class>-<sha256[:16]>.pt`` (module docstring). Returns (the training errors (R, sweeps),
     whether cached)."""
     if cache_dir is None:
-        return preprocessor.train(images, None, writer), False
+        return preprocessor.train(images, None, writer, **train), False
     key = cache_key(preprocessor, images)
     path = entry_path(preprocessor, key, cache_dir)
     expected = {name: list(x.shape) for name, x in preprocessor.state_dict().items()}
@@ -76,7 +76,7 @@ def load_or_fit(preprocessor, images: torch.Tensor, cache_dir, writer=None) -> t
     else:
         preprocessor.load_state_dict(state)
         return errors.numpy(), True
-    errors = preprocessor.train(images, None, writer)
+    errors = preprocessor.train(images, None, writer, **train)
     try:
         write_entry(path, key, preprocessor.state_dict(), errors)
     except OSError as e:  # a full disk, a read-only cache: the fit is done, the next run fits again

@@ -117,15 +117,15 @@ class GaussianRBMPreprocessor(RBMPreprocessor):
     # ---- training ------------------------------------------------------------------------------
     @torch.no_grad()
     def train(self, images: torch.Tensor, generator: Generators = None, writer=None,
-              progress: bool = True) -> np.ndarray:
-        """The binary RBM's training (CD-k, its streams and logging) on the images standardised
-        by their own per-pixel statistics (N, V) or (R, N, V); returns the error (R, sweeps)."""
+              progress: bool = True, stop=None, resume: dict | None = None) -> np.ndarray:
+        """The binary RBM's training (CD-k, its streams, logging, stop and resume) on the images
+        standardised by their own per-pixel statistics (N, V) or (R, N, V); returns the error (R, sweeps)."""
         self.fit_standardisation(images)
-        return super().train(self.standardise(images), generator, writer, progress)
+        return super().train(self.standardise(images), generator, writer, progress, stop, resume)
 
     @torch.no_grad()
-    def fit(self, data, writer) -> dict:
+    def fit(self, data, writer, stop=None, resume: dict | None = None) -> dict:
         """The binary RBM's fit (``RBMPreprocessor.fit``), the standardisation fitted on the
         training images first, so that the held-out error before training is in the same units."""
         self.fit_standardisation(data.train_images)
-        return super().fit(data, writer)
+        return super().fit(data, writer, stop, resume)

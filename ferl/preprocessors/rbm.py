@@ -44,6 +44,7 @@ from tqdm import tqdm
 from ferl import rbm
 from ferl.config.params import Momentum, NonNegative, NonNegativeInt, Positive, PositiveInt, checked
 from ferl.images import IMAGE_SIDE, as_images, tile, weight_images
+from ferl.interfaces import FitStopped
 from ferl.preprocessors.cache import load_or_fit
 
 VISIBLE_MODES = ("mean_field", "binary")
@@ -97,6 +98,8 @@ class RBMPreprocessor(nn.Module):
     decay 2·10⁻⁴ (weights only), minibatches of 100, init_std 0.01, mean-field visible units.
     Run r's initial weights and its training stream come from seed + r.
     """
+
+    stoppable_fit = True  # a stop request ends the fit between sweeps (``train``'s ``stop``)
 
     @checked
     def __init__(self, n_runs: PositiveInt, n_visible: PositiveInt = 784, n_hidden: PositiveInt = 20,
@@ -224,38 +227,55 @@ class RBMPreprocessor(nn.Module):
         return squared / (n * V)
 
     @torch.no_grad()
-    def train(self, images: torch.Tensor, generator: Generators = None, writer=None, progress: bool = True) -> np.ndarray:
+    def train(self, images: torch.Tensor, generator: Generators = None, writer=None, progress: bool = True,
+              stop=None, resume: dict | None = None) -> np.ndarray:
         """Train for ``sweeps`` passes over images (N, V) shared by every run, or (R, N, V).
 
         ``generator``: None = each run's own stream from seed + r (runs independent of n_runs),
         else one generator per run or a single shared one. Returns the reconstruction error per
         run and sweep (R, sweeps); logs it and run 0's filters to a TensorBoard writer if given.
+        ``stop``: asked after every sweep but the last; True raises ``FitStopped``, whose state
+        passed as ``resume`` (with the weights as they were) continues the fit exactly.
         """
         images = images.to(self.W)
         gens = per_run(self.run_generators() if generator is None else generator, self.n_runs)
         velocity = [torch.zeros_like(p) for p in (self.W, self.b_v, self.b_h)]
-        self.chains = None
+        self.chains, start = None, 0
         errors = np.zeros((self.n_runs, self.sweeps), dtype=np.float32)
-        for s in tqdm(range(self.sweeps), desc="preprocessor", unit="sweep", disable=not progress, mininterval=1.0):
+        if resume is not None:
+            start, errors, velocity, self.chains = resume["sweep"], resume["errors"], resume["velocity"], resume["chains"]
+            for g, state in zip(gens, resume["generators"]):
+                g.set_state(state)
+        for s in tqdm(range(start, self.sweeps), desc="preprocessor", unit="sweep", disable=not progress,
+                      mininterval=1.0, initial=start, total=self.sweeps):
             momentum = self.initial_momentum if s < self.initial_momentum_sweeps else self.momentum
             errors[:, s] = self.sweep(images, gens, velocity, momentum).cpu().numpy()
             if writer is not None:
                 writer.add_scalar("preprocessor/reconstruction_error", float(errors[:, s].mean()), s + 1)
+            if stop is not None and s + 1 < self.sweeps and stop():
+                raise FitStopped({"sweep": s + 1, "errors": errors, "velocity": velocity, "chains": self.chains,
+                                  "generators": [g.get_state() for g in gens]})
         if writer is not None and self.W.shape[1] == IMAGE_SIDE ** 2:
             writer.add_images("preprocessor/filters", weight_images(self.W), self.sweeps)
         return errors
 
     @torch.no_grad()
-    def fit(self, data, writer) -> dict:
+    def fit(self, data, writer, stop=None, resume: dict | None = None) -> dict:
         """Algorithm 2's first phase (§5.3.2): CD-k on the training images of ``data`` (an
         ``MnistSplit``), or the cached fit of the same settings and images (``cache_dir``); logs the
         held-out reconstruction error before and after, and run 0's reconstructions σ(W ĥ + b_v) of
         one test image per digit class (row 2) under the images (row 1). Returns the records: error
-        per run and sweep, held-out errors before / after, whether the fit came from the cache."""
+        per run and sweep, held-out errors before / after, whether the fit came from the cache.
+        ``stop`` / ``resume``: as ``train``'s (the state also keeps the error before training)."""
         test = data.test_images.to(self.W)
-        before = self.reconstruction_error(test)
-        # no generator: every run trains on its own stream (seed + r), so the cache key is complete
-        history, cached = load_or_fit(self, data.train_images.to(self.W), self.cache_dir, writer)
+        before = self.reconstruction_error(test) if resume is None else resume["before"]
+        try:
+            # no generator: every run trains on its own stream (seed + r), so the cache key is complete
+            history, cached = load_or_fit(self, data.train_images.to(self.W), self.cache_dir, writer,
+                                          stop=stop, resume=resume)
+        except FitStopped as e:
+            e.state["before"] = before
+            raise
         if cached:  # the fit's own logging happened in the run that trained it
             log_training(writer, history, self.W)
         return fit_records(writer, data, history, before, self.reconstruction_error(test), cached, self.reconstruct)

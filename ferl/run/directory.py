@@ -88,10 +88,13 @@ class RunDir:
     def tb(self) -> Path:
         return self.path / "tb"
 
-    def save_records(self, name: str, **arrays) -> None:
+    def save_records(self, name: str, runs: int, **arrays) -> None:
+        """``records/<name>.npz``; its ``per_run`` names the arrays whose first axis is the run
+        (``runs`` long), so that the analysis can tell a file of another run apart (docs/records.md)."""
+        per_run = np.array(sorted(k for k, a in arrays.items() if np.ndim(a) and np.shape(a)[0] == runs), dtype=str)
         with atomic_path(self.path / "records" / f"{name}.npz") as tmp:
             with open(tmp, "wb") as f:
-                np.savez_compressed(f, **arrays)
+                np.savez_compressed(f, **arrays, per_run=per_run)
 
     def save_json(self, name: str, content: dict) -> None:
         """``records/<name>.json``."""

@@ -7,8 +7,10 @@ array reachable from it, each storage once: data, weights, tiles, reservoirs, te
 random numbers — plus what its phases allocate as they start (``fresh_state``: records of every
 step or episode, replay, episode tables) gives bytes per run (the difference of the two probes)
 and fixed bytes (the rest), and the run needs fixed + n_runs × per run. What a phase allocates
-later while it runs (collected episodes, training batches) is added where the phase says how much
-(an optional ``run_bytes(job)``; a trainer that is not phased may define ``run_bytes()``).
+later while it runs (collected episodes, training batches, test activations) is added where the
+phase says how much (an optional ``run_bytes(job)``: its peak, including what earlier phases handed it;
+phases run one after another, so the largest counts; a trainer that is not phased may define
+``run_bytes()``).
 
 The limit is the memory free now: MemAvailable of /proc/meminfo (lowered to what the cgroup still
 allows, in a container), and on CUDA the device's free memory for the tensors. A run over it is
@@ -118,14 +120,15 @@ def probe(values: dict, n_runs: int, device: torch.device) -> tuple[int, int]:
     storages = Storages()
     storages.add(trainer)
     extra = int(trainer.run_bytes()) if hasattr(trainer, "run_bytes") else 0
-    job = getattr(trainer, "job", None)
+    job, peak = getattr(trainer, "job", None), 0
     with torch.no_grad():
         for phase in getattr(trainer, "phases", ()):
             if hasattr(phase, "fresh_state"):
                 storages.add(phase.fresh_state(job))
-            if hasattr(phase, "run_bytes"):
-                extra += int(phase.run_bytes(job))
+            if hasattr(phase, "run_bytes"):  # phases run one after another: the largest peak counts
+                peak = max(peak, int(phase.run_bytes(job)))
     # what a hook reports is allocated where the run computes
+    extra += peak
     return (storages.host, storages.device + extra) if device.type == "cuda" else (storages.host + extra, 0)
 
 

@@ -261,11 +261,11 @@ class ActorEpisodes(Phase):
             probes["steps_to_goal"] = records["steps"][probes["run"], probes["episode"]]
         sampled = np.asarray(list(range(0, self.N, self.td_sample_every)))
         optimal = job.env.optimal(job.actor.gamma)
-        job.run.save_records("episodes", **records, td_sampled=state["td_sampled"], td_sampled_episodes=sampled,
+        job.run.save_records("episodes", job.R, **records, td_sampled=state["td_sampled"], td_sampled_episodes=sampled,
                              gamma=np.float64(job.actor.gamma),
                              optimal_return=np.float64(optimal.get("discounted_return", np.nan)),
                              optimal_steps=np.float64(job.env.optimal_steps))
-        job.run.save_records("junction", **probes)
+        job.run.save_records("junction", job.R, **probes)
         self.log_probes(job, probes, records)
         job.metrics.update(final_metrics(records, self.optimum, self.final_window, self.rates, self.averages))
         job.metrics.update(sample_efficiency(records, job.shared.get("random_steps", np.zeros(job.R, np.int64)),
@@ -357,16 +357,23 @@ def final_metrics(episodes: dict, optimum: tuple[str, float] | None, window: int
     mean of every float one (``final_return``) and its best window mean over all episodes
     (``best_return``) and, given an optimum, solved."""
     last = slice(-window, None)
-    rate = {name: episodes[name][:, last].mean(1) for name in rates}
-    metrics = {"final_discounted_return": episodes["discounted_return"][:, last].mean(1).tolist(),
-               "final_steps_to_goal": episodes["steps"][:, last].mean(1).tolist(),
+
+    def final(name: str) -> np.ndarray:
+        # in float64: NumPy sums float32 in an order that depends on the CPU's vector width (AVX-512
+        # or AVX2); a float64 sum of float32 numbers is exact, in any order, unless they span more
+        # than ~29 binary orders of magnitude
+        return episodes[name][:, last].mean(1, dtype=np.float64)
+
+    rate = {name: final(name) for name in rates}
+    metrics = {"final_discounted_return": final("discounted_return").tolist(),
+               "final_steps_to_goal": final("steps").tolist(),
                **{f"final_{name}_rate": values.tolist() for name, values in rate.items()},
-               **{f"final_{name}": episodes[name][:, last].mean(1).tolist() for name in averages},
+               **{f"final_{name}": final(name).tolist() for name in averages},
                # the best window mean over the training: POPGym's "mean maximum episodic return" (MMER,
                # Morad et al. 2023) with a window of episodes as its batch
                **{f"best_{name}": window_means(episodes[name], min(window, episodes[name].shape[1])).max(1).tolist()
                   for name in averages}}
     if optimum is not None:
         key, best = optimum
-        metrics["solved"] = meets_solved(episodes[key][:, last].mean(1), rate, best).astype(int).tolist()
+        metrics["solved"] = meets_solved(final(key), rate, best).astype(int).tolist()
     return metrics

@@ -127,10 +127,19 @@ class CollectEpisodes(Phase):
         return bool(job.predictors)
 
     def prepare(self, job) -> None:
+        job.resources["episodes_per_run"] = self.n_sample  # the size of the next phases' data
         if discovers_observations(job.env):
             raise ConfigError(f"trainer: Algorithm 1's predictors learn from episodes collected beforehand, on ids of a fixed "
                               f"observation table, and {job.env.task} environments discover their observations as they "
                               f"run: use trainer=online, or predictor=none")
+
+    def run_bytes(self, job) -> int:
+        """The peak of ``run`` beyond what the job holds (``ferl.run.footprint``'s hook): the
+        collected rounds, their stack and the episodes kept, each (obs, actions int64, rewards
+        float32, length int64) padded to T_max."""
+        copies = max(1, min(self.n_sample, self.collect_batch // job.R))
+        collected = job.R * copies * -(-self.n_sample // copies)
+        return (2 * collected + job.R * self.n_sample) * episode_bytes(job.env.max_steps)
 
     def run(self, job, state) -> None:
         copies = max(1, min(self.n_sample, self.collect_batch // job.R))
@@ -143,6 +152,11 @@ class CollectEpisodes(Phase):
         job.writer.add_scalar("collect/train_sequences", train.lengths.shape[1], 0)
         job.writer.add_scalar("collect/test_sequences", test.lengths.shape[1], 0)
         job.writer.add_scalar("collect/train_per_length", n_train, 0)
+
+
+def episode_bytes(t_max: int) -> int:
+    """Bytes of one padded episode of ``Episodes``."""
+    return 8 * (t_max + 1) + 8 * t_max + 4 * t_max + 8
 
 
 def discovers_observations(env) -> bool:

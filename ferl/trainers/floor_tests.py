@@ -95,6 +95,14 @@ class GreedyTests(Phase):
             return []
         return [f"{name}/{level:g}" for name in ("greedy_accuracy", "greedy_accuracy_before") for level in self.levels]
 
+    def run_bytes(self, job) -> int:
+        """The peak of ``run`` (``ferl.run.footprint``'s hook): per run and test image, float32
+        activations (A, H) three times over (x, hidden, probs × hidden) and their records (H twice,
+        A probabilities); the noisy images once."""
+        classes, n, pixels = job.resources["floor_test_images"].shape
+        A, H = job.env.n_actions, getattr(job.actor, "n_hidden", 0)
+        return 4 * classes * n * (job.R * (3 * A * H + 3 * A + 2 * H) + pixels)
+
     def run(self, job, state) -> None:
         result = evaluate_floor(job.actor, job.resources["floor_test_images"], self.levels, job.env.noise,
                                 job.actor.inverse_temperature(1.0), job.generator)
@@ -107,7 +115,7 @@ class GreedyTests(Phase):
         self.log_test_digits(job, result, step)
         before, env = job.shared.pop("floor_test_before"), job.env
         job.run.save_records(
-            "floor_test", noise_levels=np.asarray(self.levels, dtype=np.float64),
+            "floor_test", job.R, noise_levels=np.asarray(self.levels, dtype=np.float64),
             classes=np.array(env.classes), optimal_action=env.class_optimal_action.astype(np.int64),
             action_names=np.array(env.action_names), arrangement=env.arrangement,
             probe_noise=np.float64(env.noise), beta=np.float64(job.actor.inverse_temperature(1.0)),

@@ -66,7 +66,7 @@ class Job:
         if self.preprocessor is not None and self.preprocessor.input_size != self.env.observation_size:
             raise ConfigError(f"preprocessor takes {self.preprocessor.input_size} inputs, but the environment's "
                               f"observations have {self.env.observation_size} values")
-        n_obs = self.preprocessor.output_size if self.preprocessor is not None else self.env.observation_size
+        self.n_obs = n_obs = self.preprocessor.output_size if self.preprocessor is not None else self.env.observation_size
         self.predictors = {name: build(p, n_runs=self.R, n_obs=n_obs, n_actions=self.env.n_actions,
                                        seed=cfg.seed + seeds.predictors * i).to(device)
                            for i, (name, p) in enumerate(predictor_cfg.items())}

@@ -5,6 +5,7 @@ import torch
 
 from ferl.images import IMAGE_SIDE, as_images, matrix_image, tile
 from ferl.config.params import ConfigError
+from ferl.interfaces import FitStopped
 from ferl.run.tensorboard import log_weights
 from ferl.trainers.episodes import discovers_observations
 from ferl.trainers.phased import Phase
@@ -26,13 +27,23 @@ class FitPreprocessor(Phase):
                               f"environments discover their observations as they run: use ~preprocessor")
 
     def run(self, job, state) -> None:
+        """The fit; where the preprocessor can stop between sweeps, a stop request checkpoints the
+        fit so far (``{"fit": FitStopped.state}``), which ``resume`` continues exactly."""
         pre = job.preprocessor
-        records = pre.fit(job.data, job.writer)
+        if getattr(pre, "stoppable_fit", False):
+            try:
+                records = pre.fit(job.data, job.writer, stop=lambda: job.stop.requested,
+                                  resume=state and state["fit"])
+            except FitStopped as e:
+                job.checkpoint(self.name, {"fit": e.state})  # a stop was requested: this exits
+                raise
+        else:
+            records = pre.fit(job.data, job.writer)
         log_weights(job.writer, "preprocessor", pre, records["reconstruction_error"].shape[1])
         raw = job.env.observation_table
         with torch.no_grad():
             job.shared["observations"] = processed = pre.transform(raw)
-        job.run.save_records("preprocessor", **records, raw_observations=raw.cpu().numpy().astype(np.float16),
+        job.run.save_records("preprocessor", job.R, **records, raw_observations=raw.cpu().numpy().astype(np.float16),
                              processed_observations=processed.cpu().numpy().astype(np.float16))
 
 

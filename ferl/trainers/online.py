@@ -10,6 +10,7 @@ from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import nullcontext
 
+import numpy as np
 import torch
 from tqdm import tqdm
 
@@ -149,9 +150,9 @@ class OnlineTD(Phase):
     def finish(self, job, state: dict) -> None:
         """Records and the metric: mean reward per step over the last 10 % of the steps."""
         rewards = state["rewards"].T.cpu().numpy()
-        job.run.save_records("steps", rewards=rewards, td_errors=state["td_errors"].T.cpu().numpy())
-        job.run.save_records("weights", state_weights_before=state["state_weights_before"].numpy(),
+        job.run.save_records("steps", job.R, rewards=rewards, td_errors=state["td_errors"].T.cpu().numpy())
+        job.run.save_records("weights", job.R, state_weights_before=state["state_weights_before"].numpy(),
                              state_weights_after=job.actor.state_weights().cpu().numpy())
         last = max(1, self.T // 10)
-        job.metrics["reward_per_step_last10pct"] = rewards[:, -last:].mean(1).tolist()
+        job.metrics["reward_per_step_last10pct"] = rewards[:, -last:].mean(1, dtype=np.float64).tolist()  # float64: the same on any CPU (final_metrics)
         job.count_agent_steps(self.T * job.R, state["actor_time"])

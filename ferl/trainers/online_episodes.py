@@ -152,7 +152,7 @@ class OnlineEpisodes(ActorEpisodes):
 
     def finish(self, job, state: dict) -> None:
         super().finish(job, state)
-        job.run.save_records("online", **state["online"], predictor_time_s=np.float64(state["predictor_time"]),
+        job.run.save_records("online", job.R, **state["online"], predictor_time_s=np.float64(state["predictor_time"]),
                              actor_time_s=np.float64(state["active_time"] - state["predictor_time"]))
 
 

@@ -12,7 +12,7 @@ from tqdm import tqdm
 
 from ferl.run.directory import CheckpointTimer
 from ferl.run.tensorboard import log_weights
-from ferl.trainers.episodes import episode_tensors
+from ferl.trainers.episodes import episode_bytes, episode_tensors
 from ferl.trainers.phased import Phase
 
 
@@ -31,6 +31,14 @@ class TrainPredictors(Phase):
         self.l_training, self.n_epoch, self.error_every = l_training, n_epoch, error_every
         self.checkpoint_every_epochs, self.checkpoint_minutes = checkpoint_every_epochs, checkpoint_minutes
 
+    def run_bytes(self, job) -> int:
+        """The peak of ``run`` (``ferl.run.footprint``'s hook): the collected episodes, each as
+        float32 tensors y (T_max+1, Y + a reward), a (T_max, A) for every predictor's two splits, the
+        training set and its batch, and two error arrays (T_max+1) per episode."""
+        n, T = job.resources.get("episodes_per_run", 0), job.env.max_steps
+        tensors = 4 * ((T + 1) * (job.n_obs + 1) + T * job.env.n_actions)
+        return job.R * n * (episode_bytes(T) + (len(job.predictors) + 2) * tensors + 2 * 4 * (T + 1))
+
     def run(self, job, state) -> None:
         """Every group of predictors not yet trained; a finished group is checkpointed."""
         state = state or {"records": {}, "done": [], "group": None}
@@ -43,7 +51,7 @@ class TrainPredictors(Phase):
                 state["done"] += names
                 state["group"] = None
                 job.checkpoint(self.name, state)
-        job.run.save_records("predictor", **state["records"])
+        job.run.save_records("predictor", job.R, **state["records"])
 
     def lengths(self, job) -> range:
         """The episode lengths T_min … T_max that the data hold."""
