@@ -119,16 +119,14 @@ def probe(values: dict, n_runs: int, device: torch.device) -> tuple[int, int]:
     trainer.setup(cfg, device)
     storages = Storages()
     storages.add(trainer)
-    extra = int(trainer.run_bytes()) if hasattr(trainer, "run_bytes") else 0
-    job, peak = getattr(trainer, "job", None), 0
+    job, phases = getattr(trainer, "job", None), getattr(trainer, "phases", ())
     with torch.no_grad():
-        for phase in getattr(trainer, "phases", ()):
+        for phase in phases:
             if hasattr(phase, "fresh_state"):
                 storages.add(phase.fresh_state(job))
-            if hasattr(phase, "run_bytes"):  # phases run one after another: the largest peak counts
-                peak = max(peak, int(phase.run_bytes(job)))
-    # what a hook reports is allocated where the run computes
-    extra += peak
+    # phases run one after another: the largest peak counts; it is allocated where the run computes
+    extra = max((int(p.run_bytes(job)) for p in phases if hasattr(p, "run_bytes")), default=0)
+    extra += int(trainer.run_bytes()) if hasattr(trainer, "run_bytes") else 0
     return (storages.host, storages.device + extra) if device.type == "cuda" else (storages.host + extra, 0)
 
 

@@ -133,17 +133,20 @@ class CollectEpisodes(Phase):
                               f"observation table, and {job.env.task} environments discover their observations as they "
                               f"run: use trainer=online, or predictor=none")
 
+    def copies(self, job) -> int:
+        """Environment copies per run stepped at once (``collect_batch`` episodes in all)."""
+        return max(1, min(self.n_sample, self.collect_batch // job.R))
+
     def run_bytes(self, job) -> int:
         """The peak of ``run`` beyond what the job holds (``ferl.run.footprint``'s hook): the
         collected rounds, their stack and the episodes kept, each (obs, actions int64, rewards
         float32, length int64) padded to T_max."""
-        copies = max(1, min(self.n_sample, self.collect_batch // job.R))
+        copies = self.copies(job)
         collected = job.R * copies * -(-self.n_sample // copies)
         return (2 * collected + job.R * self.n_sample) * episode_bytes(job.env.max_steps)
 
     def run(self, job, state) -> None:
-        copies = max(1, min(self.n_sample, self.collect_batch // job.R))
-        env = job.make_env(job.R * copies)
+        env = job.make_env(job.R * self.copies(job))
         episodes = collect_random_episodes(env, self.n_sample, job.R, job.generator)
         job.shared["random_steps"] = episodes.lengths.sum(1).cpu().numpy()  # env steps the data cost each run
         train, test, (n_train, n_test) = balance_and_split(

@@ -154,5 +154,6 @@ class OnlineTD(Phase):
         job.run.save_records("weights", job.R, state_weights_before=state["state_weights_before"].numpy(),
                              state_weights_after=job.actor.state_weights().cpu().numpy())
         last = max(1, self.T // 10)
-        job.metrics["reward_per_step_last10pct"] = rewards[:, -last:].mean(1, dtype=np.float64).tolist()  # float64: the same on any CPU (final_metrics)
+        # in float64, as final_metrics: the same sum on any CPU
+        job.metrics["reward_per_step_last10pct"] = rewards[:, -last:].mean(1, dtype=np.float64).tolist()
         job.count_agent_steps(self.T * job.R, state["actor_time"])
