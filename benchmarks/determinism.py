@@ -186,8 +186,9 @@ def emulate(overrides: list) -> None:
     from conftest import compose_config, train_job
     mode = AVX512Tails()
     with tempfile.TemporaryDirectory() as tmp:
-        cache = [f"preprocessor.cache_dir={tmp}/cache"] if "table5_1_pixel" in " ".join(overrides) else []
-        cfg = compose_config([*overrides, *cache])
+        cfg = compose_config(overrides)
+        if "cache_dir" in (cfg.get("preprocessor") or {}):  # fitted under the emulation, not loaded
+            cfg.preprocessor.cache_dir = f"{tmp}/cache"
         with mode:
             summary = train_job(cfg, Path(tmp) / "run")
     print(dict(mode.counts))

@@ -39,7 +39,7 @@ def start(out: Path, *overrides: str, env: dict | None = None) -> subprocess.Pop
 
 
 def stop(proc: subprocess.Popen) -> None:
-    """A background run killed: a failed test leaves none behind."""
+    """A background run killed (if it still runs): a failed test leaves none behind."""
     proc.kill()
     proc.wait()
 
@@ -121,25 +121,21 @@ def test_submitit_timeout_checkpoints_and_the_resubmitted_job_ends_as_uninterrup
 
     steps = training_steps(direct[0])
     whole, sweep = tmp_path / "whole", tmp_path / "sweep"
-    job = sweep / "0_ch3_floor"
-    for attempt in range(3):
-        args = [*(a for a in JOB if not a.startswith(("trainer.steps=", "trainer.checkpoint_every=", "trainer.log_every="))),
-                f"trainer.steps={steps}", "trainer.log_every=1000",
-                f"trainer.checkpoint_every={steps}"]  # no periodic checkpoint inside training: only the signal's
-        reference = start(whole, *args, f"hydra.run.dir={whole}")  # meanwhile, beside the submitit job
-        try:
+    job, reference = sweep / "0_ch3_floor", None
+    try:
+        for attempt in range(3):
+            args = [*(a for a in JOB if not a.startswith(("trainer.steps=", "trainer.checkpoint_every=", "trainer.log_every="))),
+                    f"trainer.steps={steps}", "trainer.log_every=1000",
+                    f"trainer.checkpoint_every={steps}"]  # no periodic checkpoint inside training: only the signal's
+            reference = start(whole, *args, f"hydra.run.dir={whole}")  # meanwhile, beside the submitit job
             cut = run_train("-m", "hydra/launcher=submitit_local", "hydra.launcher.timeout_min=1", *args,
                             f"hydra.sweep.dir={sweep}", timeout=300)
-        except BaseException:
-            stop(reference)
-            raise
-        if not (job / "summary.json").exists():
-            break
-        stop(reference)  # the job ended before submitit's signal: again, at least twice as long
-        assert attempt < 2, f"the job ended before submitit's signal three times, the last with {steps} steps"
-        steps = max(training_steps(summary(job)), 2 * steps)
-        shutil.rmtree(whole, ignore_errors=True), shutil.rmtree(sweep)
-    try:
+            if not (job / "summary.json").exists():
+                break
+            stop(reference)  # the job ended before submitit's signal: again, at least twice as long
+            assert attempt < 2, f"the job ended before submitit's signal three times, the last with {steps} steps"
+            steps = max(training_steps(summary(job)), 2 * steps)
+            shutil.rmtree(whole, ignore_errors=True), shutil.rmtree(sweep)
         assert cut.returncode != 0 and "has not produced any output" in cut.stdout + cut.stderr, cut.stderr[-3000:]
         assert 0 < checkpointed_step(job) < steps
         (folder,) = (p for p in (sweep / ".submitit").iterdir() if p.name != "%j")
@@ -150,7 +146,8 @@ def test_submitit_timeout_checkpoints_and_the_resubmitted_job_ends_as_uninterrup
                             "hydra.sweep.subdir=0_ch3_floor", timeout=300)
         assert resumed.returncode == 0, resumed.stderr[-3000:]
     except BaseException:
-        stop(reference)
+        if reference is not None:
+            stop(reference)
         raise
     finish(reference)
     assert summary(job)["metrics"] == summary(whole)["metrics"]
