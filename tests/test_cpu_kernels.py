@@ -69,3 +69,30 @@ def test_inductor_keeps_a_cache_per_vector_isa(tmp_path):
     assert folders["avx2"] == [str(tmp_path / ".cache" / "ferl" / "inductor" / "avx2"), "avx2"]
     assert folders["default"][0] == str(tmp_path / ".cache" / "ferl" / "inductor" / folders["default"][1])
     assert folders["default"][1] != "avx2"
+
+
+def test_the_discounted_return_is_the_exact_sum_in_step_order_whatever_blas_runs():
+    """The recorded return (``discounted_return``) against a float64 NumPy sum written out step by
+    step, and unchanged when the rewards pass through another BLAS call first (a matmul by the
+    identity, whose kernel choice used to decide the return's ninth digit)."""
+    import functools
+    import operator
+
+    import numpy as np
+    import torch
+
+    from ferl.trainers.episodes import discount_factors, discounted_return
+
+    gamma, steps = 0.95, 37
+    rewards = torch.tensor(np.random.default_rng(0).choice([-5.0, -1.0, -0.1, 5.0], size=(steps, 7)),
+                           dtype=torch.float32)
+    factors = discount_factors(gamma, steps)
+    assert factors == [functools.reduce(operator.mul, [gamma] * t, 1.0) for t in range(steps)]  # 1·γ·γ·…, in order
+    expected = np.zeros(7)
+    for t in range(steps):
+        expected = expected + factors[t] * rewards[t].numpy().astype(np.float64)
+    got = discounted_return(factors, rewards)
+    assert got.dtype == torch.float32
+    assert np.array_equal(got.numpy(), expected.astype(np.float32))
+    assert torch.equal(discounted_return(factors, torch.eye(steps) @ rewards), got)
+    assert np.allclose(got.numpy(), (gamma ** np.arange(steps)) @ rewards.numpy().astype(np.float64), rtol=1e-6)

@@ -25,7 +25,7 @@ from ferl.predictors.heads import scaled
 from ferl.random_blocks import Blocks, steps_per_block
 from ferl.run.directory import CheckpointTimer
 from ferl.run.tensorboard import log_embedding, log_weights
-from ferl.trainers.episodes import discovers_observations, observation_table
+from ferl.trainers.episodes import discount_factors, discounted_return, discovers_observations, observation_table
 from ferl.trainers.phased import Phase
 
 EMBEDDED_PROBES = 2000  # run 0's last probe visits in the projector (docs/records.md)
@@ -146,7 +146,7 @@ class ActorEpisodes(Phase):
         live = discovers_observations(job.env)
         self.obs_rows, self.row_gain = (rows, self.obs_scale) if live else (scaled(rows, self.obs_scale), 1.0)
         self.obs_offsets = torch.arange(job.R, device=job.device) * ids if table.dim() == 3 else None
-        self.discounts = job.actor.gamma ** torch.arange(job.env.max_steps, device=job.device, dtype=torch.float32)
+        self.discounts = discount_factors(job.actor.gamma, job.env.max_steps)
         self.fused = None
         if self.fuses(job):
             job.actor.prepare_for_compile()
@@ -223,7 +223,7 @@ class ActorEpisodes(Phase):
         actions, rewards, deltas = (torch.stack(v) for v in zip(*out))
         steps = env.t
         outcome = torch.stack([
-            self.discounts[:len(rewards)] @ rewards,  # discounted return (done runs got r = 0)
+            discounted_return(self.discounts, rewards),  # done runs got r = 0
             steps.float(), rewards.gather(0, (steps - 1).unsqueeze(0)).squeeze(0),  # terminal reward
             deltas.abs().sum(0) / steps.clamp(min=1), *(v.float() for v in env.outcomes().values())])
         return {"probes": visits[0], "actives": visits[1], "memories": visits[2:-2], "states": visits[-2],

@@ -180,3 +180,25 @@ def episode_tensors(job, ep: Episodes, predictor):
     a = F.one_hot(ep.actions, job.env.n_actions).float()
     r = predictor.reward_targets(job.env.reward_values, ep.rewards) if predictor is not None else None
     return y, a, r, ep.lengths
+
+
+def discount_factors(gamma: float, t_max: int) -> list[float]:
+    """γ^0 … γ^(t_max − 1) as Python floats (float64), each the product of the one before and γ:
+    IEEE multiplications in a fixed order, the same numbers on every CPU (a vectorised ``pow``
+    may round differently where it runs other kernels)."""
+    factors = [1.0]
+    for _ in range(t_max - 1):
+        factors.append(factors[-1] * gamma)
+    return factors[:t_max]
+
+
+def discounted_return(discounts: list[float], rewards: torch.Tensor) -> torch.Tensor:
+    """R_0^γ = Σ_t γ^t r_(t+1) (Eq. 2.37) of each run, (R,) float32, from the rewards
+    (steps, R): accumulated in float64, step by step. A float32 product ``discounts @ rewards``
+    sums in the order its BLAS kernel chooses, which differs between CPUs (AVX2 or AVX-512, Intel
+    or AMD) in the ninth digit; this order is fixed, so the recorded metric is the same everywhere
+    (docs/reliability.md, "Determinism across machines")."""
+    total = torch.zeros(rewards.shape[1:], dtype=torch.float64, device=rewards.device)
+    for t in range(len(rewards)):
+        total = total + discounts[t] * rewards[t].double()
+    return total.float()
