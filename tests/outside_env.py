@@ -45,10 +45,10 @@ gymnasium.register("CueRecall-v0", entry_point=CueRecall, max_episode_steps=10)
 
 class Faulty(CueRecall):
     """CueRecall with a MultiDiscrete([3, 2]) observation (symbol, whether the choice is now) whose
-    environment seeded ``bad_seed`` misbehaves at its ``at``-th step since that seeding (episodes
+    environment seeded ``bad_seed`` misbehaves from its ``at``-th step since that seeding (episodes
     included), as ``fault`` says: ``raise`` (ValueError), ``shape`` (an observation of 3 entries),
     ``range`` ([3, 1]: outside the space), ``nan_reward`` or ``inf_reward``. The step count is the
-    environment's state, so a resumed run's environment misbehaves at the same step."""
+    environment's state, so a resumed run's environment would misbehave again if it were stepped."""
 
     FAULTS = ("raise", "shape", "range", "nan_reward", "inf_reward")
 
@@ -69,7 +69,7 @@ class Faulty(CueRecall):
     def step(self, action):
         observation, reward, terminated, truncated, info = super().step(action)
         self.steps += 1
-        if not (self.bad and self.steps == self.at):
+        if not (self.bad and self.steps >= self.at):
             return observation, reward, terminated, truncated, info
         if self.fault == "raise":
             raise ValueError(f"operands could not be broadcast together with shapes (3,) (2,)\n(at step {self.steps})")

@@ -10,6 +10,7 @@ run that exploded keeps finite ones).
 import sys
 
 import torch
+from tqdm import tqdm
 
 
 class DivergenceGuard:
@@ -49,7 +50,8 @@ class DivergenceGuard:
             return
         self.diverged_at[run], self.reasons[run], self.details[run] = at, reason, dict(details)
         self.alive[run] = False
-        print(f"ferl: run {run} (seed {self.seeds[run]}): {reason}; frozen, the other runs go on", file=sys.stderr)
+        # tqdm.write: a line of its own, not the tail of the progress bar's
+        tqdm.write(f"ferl: run {run} (seed {self.seeds[run]}): {reason}; frozen, the other runs go on", file=sys.stderr)
 
     def void_failed_envs(self, metrics: dict) -> dict:
         """``metrics`` (name → one value per run, or a dict of such) with None for every run frozen
