@@ -41,3 +41,43 @@ class CueRecall(gymnasium.Env):
 
 
 gymnasium.register("CueRecall-v0", entry_point=CueRecall, max_episode_steps=10)
+
+
+class Faulty(CueRecall):
+    """CueRecall with a MultiDiscrete([3, 2]) observation (symbol, whether the choice is now) whose
+    environment seeded ``bad_seed`` misbehaves from its ``at``-th step since that seeding (episodes
+    included), as ``fault`` says: ``raise`` (ValueError), ``shape`` (an observation of 3 entries),
+    ``range`` ([3, 1]: outside the space), ``nan_reward`` or ``inf_reward``. The step count is the
+    environment's state, so a resumed run's environment would misbehave again if it were stepped."""
+
+    FAULTS = ("raise", "shape", "range", "nan_reward", "inf_reward")
+
+    def __init__(self, fault: str = "raise", at: int = 50, bad_seed: int = -1, delay: int = 2):
+        super().__init__(delay=delay)
+        assert fault in self.FAULTS, fault
+        self.fault, self.at, self.bad_seed, self.bad, self.steps = fault, at, bad_seed, False, 0
+        self.observation_space = spaces.MultiDiscrete([3, 2])
+
+    def observe(self):
+        return np.array(super().observe(), dtype=np.int64)
+
+    def reset(self, *, seed=None, options=None):
+        if seed is not None:
+            self.bad, self.steps = seed == self.bad_seed, 0
+        return super().reset(seed=seed, options=options)
+
+    def step(self, action):
+        observation, reward, terminated, truncated, info = super().step(action)
+        self.steps += 1
+        if not (self.bad and self.steps >= self.at):
+            return observation, reward, terminated, truncated, info
+        if self.fault == "raise":
+            raise ValueError(f"operands could not be broadcast together with shapes (3,) (2,)\n(at step {self.steps})")
+        if self.fault == "shape":
+            return np.zeros(3, np.int64), reward, terminated, truncated, info
+        if self.fault == "range":
+            return np.array([3, 1]), reward, terminated, truncated, info
+        return observation, float(self.fault.split("_")[0]), terminated, truncated, info
+
+
+gymnasium.register("Faulty-v0", entry_point=Faulty, max_episode_steps=10)

@@ -10,7 +10,6 @@ numbers into the run's `analysis/` folder and returns the figures.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -23,6 +22,7 @@ from ferl.analysis import floor_figures as figs
 from ferl.analysis.io import fmt, write_csv
 from ferl.analysis.records import Run
 from ferl.analysis.report import RunAnalysis
+from ferl.run.jsonio import strict_dumps
 
 ENV_KIND = "digit_floor"
 MI_BINS = 2            # see coding.pairwise_mutual_information
@@ -242,7 +242,7 @@ def write_tables(run: FloorRun, out: Path) -> list[str]:
     table("mutual_information.csv", ["class", *run.classes],
           [(name, *map(fmt, row)) for name, row in zip(run.classes, run.mutual_information)])
 
-    (out / "pair_clusters.json").write_text(json.dumps(_pair_clusters(run), indent=2) + "\n")
+    (out / "pair_clusters.json").write_text(strict_dumps(_pair_clusters(run), indent=2) + "\n")
     written.append("pair_clusters.json")
     return written
 

@@ -7,12 +7,13 @@ into markdown table cells through `cell`, which escapes the cell separator.
 from __future__ import annotations
 
 import csv
-import json
 import zipfile
 from pathlib import Path
 from typing import Iterable, Sequence
 
 import numpy as np
+
+from ferl.run.jsonio import strict_dumps
 
 
 def load_npz(path: Path) -> dict[str, np.ndarray]:
@@ -37,7 +38,7 @@ def write_csv(path: Path, header: Sequence[str], rows: Iterable) -> None:
 
 
 def write_json(path: Path, value) -> None:
-    path.write_text(json.dumps(value, indent=2, ensure_ascii=False) + "\n")
+    path.write_text(strict_dumps(value, indent=2, ensure_ascii=False) + "\n")
 
 
 def cell(text: str) -> str:

@@ -14,7 +14,6 @@ on held-out images.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -26,6 +25,7 @@ from ferl import stats
 from ferl.analysis import tmaze_figures as figs
 from ferl.analysis.coding import pca, subsampled_silhouette
 from ferl.analysis.io import fmt, write_csv
+from ferl.run.jsonio import strict_dumps
 
 RAW_FIGURE, PROCESSED_FIGURE = "Fig. 5.15", "Fig. 5.16"
 FIRST_PCS = 20                # Fig. 5.15(c): the first 20 of the 784 PCs
@@ -151,7 +151,7 @@ def write_tables(pre: Preprocessing, out: Path) -> list[str]:
                                           "last_sweep_mean": float(errors[:, -1].mean())},
         "cached": pre.cached,
     }
-    (out / "preprocessor.json").write_text(json.dumps(numbers, indent=2) + "\n")
+    (out / "preprocessor.json").write_text(strict_dumps(numbers, indent=2) + "\n")
     return ["preprocessor_explained_variance.csv", "preprocessor_reconstruction_error.csv",
             "preprocessor.json"]
 

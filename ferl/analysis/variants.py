@@ -15,7 +15,6 @@ agent's mean ± s.e.m. when it was run by at least two agents.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -29,6 +28,7 @@ from ferl.analysis.figures import band
 from ferl.analysis.io import fmt, table_lines, write_csv
 from ferl.analysis.records import Run
 from ferl.analysis.sweep import metric_values
+from ferl.run.jsonio import strict_dumps
 
 DISSERTATION_AGENT = "dissertation agent"
 # The metrics a task's row shows, in this order, where its summaries have them (CONTRACT §2).
@@ -76,7 +76,7 @@ def agent(manifest) -> str:
 
 def task_key(manifest) -> str:
     """The environment's facts but those of the view its agent had of it."""
-    return json.dumps({k: v for k, v in manifest.env.items() if k not in VIEW_KEYS}, sort_keys=True, default=str)
+    return strict_dumps({k: v for k, v in manifest.env.items() if k not in VIEW_KEYS}, sort_keys=True, default=str)
 
 
 @dataclass

@@ -23,10 +23,16 @@ return exceeds it counts as a success (``final_success_rate``, MiniGrid's reward
 with ``optimal_return`` (the environment's stated optimum) a run is ``solved`` when its final
 return is ≥ 0.95 of it and every success rate ≥ 0.95.
 
-A checkpoint holds every run's environment pickled (``Snapshot``: generators included), so a
-resumed run steps the same episodes as an uninterrupted one.
+A checkpoint holds every run's environment pickled (``ferl.envs.boundary.Guarded``: generators
+included), so a resumed run steps the same episodes as an uninterrupted one.
+
+Every run's environment is checked at the boundary (``ferl.envs.boundary``: every observation
+against its space, every reward for finiteness, every exception caught). A run whose environment
+fails is handed to ``on_fault`` — the training job's divergence guard, which freezes it like a
+diverged run (``ferl.run.guard``) while the other runs go on — with the env id, run, episode and
+step; its environment is never stepped again, in this process or a resumed one. Without
+``on_fault`` (the class used directly) the fault raises ``EnvironmentFault``.
 """
-import pickle
 from typing import Literal
 
 import gymnasium
@@ -35,20 +41,12 @@ import torch
 from gymnasium import spaces
 
 from ferl.config.params import ConfigError, Positive, PositiveInt, checked
+from ferl.envs.boundary import DETAIL, FAULT, Guarded
 from ferl.envs.encodings import ENCODINGS, BinaryObservation, NoEncoding
 
 
-class Snapshot(gymnasium.Wrapper):
-    """The wrapped environment's whole state as bytes (``ferl_state``), read and written through
-    the vector environment's ``get_attr`` / ``set_attr``, synchronous or asynchronous alike."""
-
-    @property
-    def ferl_state(self) -> bytes:
-        return pickle.dumps(self.env)
-
-    @ferl_state.setter
-    def ferl_state(self, state: bytes) -> None:
-        self.env = pickle.loads(state)
+class EnvironmentFault(RuntimeError):
+    """An outside environment failed (``ferl.envs.boundary``) and nothing freezes its run."""
 
 
 def make(env_id: str, kwargs: dict):
@@ -136,10 +134,13 @@ class GymnasiumEnv:
         self.done = torch.ones(n_runs, dtype=torch.bool, device=self.device)
         self.t = torch.zeros(n_runs, dtype=torch.long, device=self.device)
         self.episode_return = torch.zeros(n_runs, device=self.device)
+        self.episode = -1                    # episodes begun (the reset count − 1): the reports' episode
+        self.failed = [False] * n_runs       # runs whose environment failed (module docstring)
+        self.on_fault = None                 # on_fault(run, episode, reason, details), set by the training job
 
     def env_fn(self):
         env_id, kwargs, encoding, thresholds = self.id, self.kwargs, self.encoding, self.thresholds
-        return lambda: BinaryObservation(Snapshot(make(env_id, kwargs)), encoding, thresholds)
+        return lambda: BinaryObservation(Guarded(make(env_id, kwargs)), encoding, thresholds)
 
     # ---- observations -------------------------------------------------------------------------
     def identify(self, bits: np.ndarray) -> torch.Tensor:
@@ -164,12 +165,14 @@ class GymnasiumEnv:
     # ---- episodes -----------------------------------------------------------------------------
     def reset(self) -> torch.Tensor:
         """Every run's next episode (run r seeded with seed + r at the first one)."""
-        bits, _ = self.vector.reset(seed=None if self.seeded else self.seeds)
+        bits, info = self.vector.reset(seed=None if self.seeded else self.seeds)
         self.seeded = True
-        self.obs_id = self.identify(bits)
+        self.episode += 1
         self.done = torch.zeros_like(self.done)
         self.t = torch.zeros_like(self.t)
         self.episode_return = torch.zeros_like(self.episode_return)
+        self.report_faults(info, None)
+        self.obs_id = self.identify(bits)
         return self.observe()
 
     def env_actions(self, action: torch.Tensor) -> np.ndarray:
@@ -183,17 +186,34 @@ class GymnasiumEnv:
 
     def advance(self, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """One step of every run that has not ended: (rewards, terminated, truncated), each (R,)."""
-        bits, reward, terminated, truncated, _ = self.vector.step(self.env_actions(action))
+        bits, reward, terminated, truncated, info = self.vector.step(self.env_actions(action))
         active = ~self.done
         as_tensor = lambda x, dtype: torch.as_tensor(np.asarray(x), dtype=dtype, device=self.device)  # noqa: E731
         raw = torch.where(active, as_tensor(reward, torch.float32), 0.0)
         self.t = self.t + active.long()
+        self.report_faults(info, active)  # before the learner sees the step (a failed run's reward is 0)
         terminated = as_tensor(terminated, torch.bool) & active
         truncated = (as_tensor(truncated, torch.bool) | (self.t >= self.max_steps)) & active & ~terminated
         self.obs_id = torch.where(active, self.identify(bits), self.obs_id)
         self.episode_return = self.episode_return + raw
         self.done = self.done | terminated | truncated
         return raw * self.reward_scale, terminated, truncated
+
+    def report_faults(self, info: dict, active: torch.Tensor | None) -> None:
+        """Hand every run whose environment failed at this reset (``active`` None) or step to
+        ``on_fault`` (module docstring), once: the reason names the env id, episode and step."""
+        if FAULT not in info:
+            return
+        for r in np.flatnonzero(info["_" + FAULT]).tolist():
+            self.failed[r] = True
+            step = int(self.t[r])
+            where = "its reset" if active is None else f"step {step}" if bool(active[r]) else \
+                f"step {step} (after its episode ended, while it waited for the other runs)"
+            detail = info[DETAIL][r]
+            reason = f"env {self.id!r} {info[FAULT][r]} at episode {self.episode}, {where}" + (f": {detail}" if detail else "")
+            if self.on_fault is None:
+                raise EnvironmentFault(f"run {r} (seed {self.seeds[r]}): {reason}")
+            self.on_fault(r, self.episode, reason, {"env_id": self.id, "step": step})
 
     def step(self, action: torch.Tensor):
         reward, terminated, truncated = self.advance(action)
@@ -228,10 +248,14 @@ class GymnasiumEnv:
     def state_dict(self) -> dict:
         n = len(self.ids)
         return {"envs": self.vector.get_attr("ferl_state"), "seeded": self.seeded, "table": self.observation_table[:n].cpu(),
-                "obs_id": self.obs_id, "done": self.done, "t": self.t, "episode_return": self.episode_return}
+                "obs_id": self.obs_id, "done": self.done, "t": self.t, "episode_return": self.episode_return,
+                "episode": self.episode, "failed": list(self.failed)}
 
     def load_state_dict(self, state: dict) -> None:
         self.vector.set_attr("ferl_state", list(state["envs"]))
+        self.failed = list(state.get("failed", [False] * self.n_runs))
+        self.vector.set_attr("ferl_failed", self.failed)  # a failed environment stays dead, never stepped
+        self.episode = state.get("episode", -1)
         self.seeded = state["seeded"]
         self.ids.clear()
         self.observation_names.clear()

@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from ferl.compiled import warn
+from ferl.run.jsonio import strict_dumps
 
 MAGIC = b"ferl-preprocessor-cache 1\n"
 
@@ -49,7 +50,7 @@ def tensor_digest(x: torch.Tensor) -> str:
 
 
 def cache_key(preprocessor, images: torch.Tensor) -> str:
-    return json.dumps({"hparams": preprocessor.hparams, "images": tensor_digest(images)}, sort_keys=True, default=str)
+    return strict_dumps({"hparams": preprocessor.hparams, "images": tensor_digest(images)}, sort_keys=True, default=str)
 
 
 def entry_path(preprocessor, key: str, cache_dir) -> Path:
@@ -91,7 +92,7 @@ def write_entry(path: Path, key: str, state_dict: dict, errors: np.ndarray) -> N
                 "errors": torch.from_numpy(np.ascontiguousarray(errors))}, buffer)
     payload = buffer.getvalue()
     shapes = {**{name: list(x.shape) for name, x in state_dict.items()}, "errors": list(errors.shape)}
-    header = json.dumps({"key": key, "sha256": hashlib.sha256(payload).hexdigest(), "bytes": len(payload),
+    header = strict_dumps({"key": key, "sha256": hashlib.sha256(payload).hexdigest(), "bytes": len(payload),
                          "shapes": shapes}, sort_keys=True)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")

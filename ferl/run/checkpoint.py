@@ -31,6 +31,8 @@ from pathlib import Path
 
 import torch
 
+from ferl.run.jsonio import strict_dumps
+
 MAGIC = b"FERLCKPT"
 FORMAT = 1
 FIXED = struct.Struct("<8sIIQ32s")  # magic, format, header length, payload length, sha256
@@ -68,7 +70,7 @@ def encode(state: dict, identity: RunIdentity | None) -> bytes:
     buffer = io.BytesIO()
     torch.save(state, buffer)
     payload = buffer.getvalue()
-    header = json.dumps({"format": FORMAT, "config": identity.config if identity else None,
+    header = strict_dumps({"format": FORMAT, "config": identity.config if identity else None,
                          "choices": identity.choices if identity else {},
                          "device": identity.device if identity else None}).encode()
     digest = hashlib.sha256(header + payload).digest()

@@ -6,7 +6,6 @@ used and the last two are kept (``ferl.run.checkpoint``). A checkpoint also reme
 TensorBoard event file was when it was written; resuming cuts the files back to that, so the
 points a resumed run logs again appear once, not twice.
 """
-import json
 import os
 import shutil
 import signal
@@ -19,6 +18,7 @@ import numpy as np
 
 from ferl.run import checkpoint
 from ferl.run.checkpoint import Checkpoint, RunIdentity
+from ferl.run.jsonio import strict_dumps
 
 TB_EVENTS = "events.out.tfevents.*"  # the run's own event files (tb/analysis/ is analyze.py's)
 HYDRA_OWN = {".hydra", "train.log"}  # what Hydra writes into a run directory before main()
@@ -99,7 +99,7 @@ class RunDir:
     def save_json(self, name: str, content: dict) -> None:
         """``records/<name>.json``."""
         with atomic_path(self.path / "records" / f"{name}.json") as tmp:
-            tmp.write_text(json.dumps(content, indent=2) + "\n")
+            tmp.write_text(strict_dumps(content, indent=2) + "\n")
 
     def save_checkpoint(self, state: dict, writer=None) -> None:
         """Write ``state``; with the run's SummaryWriter, flush it first and record the length
@@ -143,7 +143,7 @@ class RunDir:
 
     def write_summary(self, summary: dict) -> None:
         with atomic_path(self.path / "summary.json") as tmp:
-            tmp.write_text(json.dumps(summary, indent=2) + "\n")
+            tmp.write_text(strict_dumps(summary, indent=2) + "\n")
 
 
 class CheckpointTimer:

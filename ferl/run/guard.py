@@ -10,6 +10,7 @@ run that exploded keeps finite ones).
 import sys
 
 import torch
+from tqdm import tqdm
 
 
 class DivergenceGuard:
@@ -18,6 +19,7 @@ class DivergenceGuard:
         self.alive = torch.ones(n_runs, 1, dtype=torch.bool, device=device)
         self.diverged_at = [None] * n_runs   # step (or episode) per run, None while healthy
         self.reasons = [None] * n_runs
+        self.details = [None] * n_runs       # what else the report says of a run frozen by ``freeze``
 
     def mask(self, delta: torch.Tensor) -> torch.Tensor:
         """TD errors (R, B) with those of frozen runs set to 0."""
@@ -40,14 +42,43 @@ class DivergenceGuard:
                   f"{self.reasons[r]}; frozen, the other runs go on", file=sys.stderr)
         self.alive &= ~new.unsqueeze(1)
 
+    def freeze(self, run: int, at: int, reason: str, details: dict) -> None:
+        """Freeze ``run`` at step (or episode) ``at`` for ``reason`` (one stderr line), with
+        ``details`` for its report (an outside environment's ``env_id`` and ``step``). A run frozen
+        already keeps its first reason."""
+        if self.diverged_at[run] is not None:
+            return
+        self.diverged_at[run], self.reasons[run], self.details[run] = at, reason, dict(details)
+        self.alive[run] = False
+        # tqdm.write: a line of its own, not the tail of the progress bar's
+        tqdm.write(f"ferl: run {run} (seed {self.seeds[run]}): {reason}; frozen, the other runs go on", file=sys.stderr)
+
+    def void_failed_envs(self, metrics: dict) -> dict:
+        """``metrics`` (name → one value per run, or a dict of such) with None for every run frozen
+        by ``freeze``: its episodes after the fault are stand-ins (module docstring)."""
+        failed = {r for r, d in enumerate(self.details) if d is not None}
+        if not failed:
+            return metrics
+
+        def void(value):
+            if isinstance(value, dict):
+                return {key: void(v) for key, v in value.items()}
+            if isinstance(value, list) and len(value) == len(self.seeds):
+                return [None if r in failed else v for r, v in enumerate(value)]
+            return value
+        return void(metrics)
+
     def report(self, unit: str = "step") -> list[dict]:
         """summary.json's `diverged`: one entry per diverged run."""
-        return [{"run": r, "seed": self.seeds[r], unit: self.diverged_at[r], "reason": self.reasons[r]}
+        return [{"run": r, "seed": self.seeds[r], unit: self.diverged_at[r], "reason": self.reasons[r],
+                 **{k: v for k, v in (self.details[r] or {}).items() if k != unit}}
                 for r in range(len(self.seeds)) if self.diverged_at[r] is not None]
 
     def state_dict(self) -> dict:
-        return {"alive": self.alive.cpu(), "diverged_at": self.diverged_at, "reasons": self.reasons}
+        return {"alive": self.alive.cpu(), "diverged_at": self.diverged_at, "reasons": self.reasons,
+                "details": self.details}
 
     def load_state_dict(self, state: dict) -> None:
         self.alive = state["alive"].to(self.alive.device)
         self.diverged_at, self.reasons = list(state["diverged_at"]), list(state["reasons"])
+        self.details = list(state.get("details", [None] * len(self.seeds)))

@@ -24,6 +24,8 @@ from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
+from ferl.run.jsonio import strict_dumps
+
 FILE = "progress.jsonl"  # one JSON object a line: the sweep's start, then each job's start and end
 BASIC_SWEEPER = "hydra._internal.core_plugins.basic_sweeper.BasicSweeper"
 
@@ -114,7 +116,7 @@ def record(path: Path, event) -> list[dict]:
             f.seek(0)
             events = [json.loads(line) for line in f if line.strip()]
             events.append(event(events))
-            f.write(json.dumps(events[-1]) + "\n")  # "a+": at the end, whatever the position
+            f.write(strict_dumps(events[-1]) + "\n")  # "a+": at the end, whatever the position
             f.flush()
             return events
         finally:
@@ -137,7 +139,7 @@ class SweepProgress(Callback):
     def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
         path = sweep_file(config)
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps({"event": "sweep", "time": time.time(), "jobs": planned_jobs(config)}) + "\n")
+        path.write_text(strict_dumps({"event": "sweep", "time": time.time(), "jobs": planned_jobs(config)}) + "\n")
 
     def on_job_start(self, config: DictConfig, **kwargs) -> None:
         if config.hydra.mode == RunMode.MULTIRUN:

@@ -6,7 +6,6 @@ histograms are ``<phase>/weights/<parameter>``. Nothing here draws a random numb
 tensor it is given, so logging never changes what a run computes; weights, images and
 embeddings are run 0's, logged once per phase.
 """
-import json
 import time
 
 import numpy as np
@@ -17,6 +16,7 @@ from tensorboard.plugins.hparams import api_pb2, metadata, plugin_data_pb2
 from tensorboard.plugins.hparams.summary_v2 import hparams_pb
 
 from ferl.images import as_images
+from ferl.run.jsonio import strict_dumps
 from ferl.stats import flat_metrics, mean_sd
 
 # ---- hparams --------------------------------------------------------------------------------
@@ -34,7 +34,7 @@ def flat_config(cfg) -> dict:
             elif isinstance(value, (bool, int, float, str)):
                 flat[name] = value
             else:
-                flat[name] = json.dumps(value)
+                flat[name] = strict_dumps(value)
 
     walk(OmegaConf.to_container(cfg, resolve=True), "")
     return flat

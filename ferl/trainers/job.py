@@ -74,6 +74,8 @@ class Job:
         self.actor = build(cfg.actor, n_runs=self.R, n_state=n_state, n_actions=self.env.n_actions,
                            seed=cfg.seed + seeds.actor).to(device)
         self.guard = DivergenceGuard(self.R, divergence_limit, self.seeds, device)
+        if hasattr(self.env, "on_fault"):  # an outside environment's failed run is frozen (ferl.envs.boundary)
+            self.env.on_fault = self.guard.freeze
         self.run = self.writer = self.stop = None
         # what a checkpoint saves of the run's course: finished phases, an unfinished one's state,
         # data one phase hands the next, the summary's metrics so far, the acting phases' steps and time

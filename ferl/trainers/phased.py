@@ -120,7 +120,8 @@ class PhasedTrainer:
 
     def summary(self, job: Job, wall_time: float) -> dict:
         return {
-            "experiment": job.cfg.name, "task": job.env.task, "seeds": job.seeds, "metrics": job.metrics,
+            "experiment": job.cfg.name, "task": job.env.task, "seeds": job.seeds,
+            "metrics": job.guard.void_failed_envs(job.metrics),
             "optimal": job.env.optimal(job.actor.gamma),
             "wall_time_s": wall_time,
             "agent_steps_per_s": job.progress["agent_steps"] / max(job.progress["actor_time"], 1e-9),
