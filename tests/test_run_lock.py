@@ -12,6 +12,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 import yaml
@@ -43,11 +44,7 @@ def hydra_seed(run_dir: Path) -> int:
 
 
 def assert_refused_by(stderr: str, run_dir: Path, pid: int) -> None:
-    class Result:  # stderr_lines takes a CompletedProcess
-        pass
-    result = Result()
-    result.stderr = stderr
-    lines = stderr_lines(result)
+    lines = stderr_lines(SimpleNamespace(stderr=stderr))
     assert len(lines) == 1, stderr
     assert lines[0].startswith(f"ferl: error: hydra.run.dir={run_dir} is in use by pid {pid} on host {HOST} "
                                f"(lock {run_dir / LOCK_FILE}): "), lines[0]
