@@ -21,7 +21,8 @@ from ferl.config.hydra_glue import (one_line_errors, optimized_value, release_st
 from ferl.config.params import ConfigError
 from ferl.config.validate import validate
 from ferl.data import DataError
-from ferl.run.directory import RunDir, check_run_dir, discard_if_new, restore_hydra_files
+from ferl.run.claim import owned_run_dir
+from ferl.run.directory import RunDir, discard_if_new
 from ferl.run.footprint import check_memory
 from ferl.run.resume import identity_of, resumed_run
 
@@ -42,13 +43,12 @@ def main(cfg: DictConfig) -> float | None:
     run_path = Path(hydra_cfg.runtime.output_dir)
     trainer = resumed = None
     # any other exception: one line naming the phase, the traceback in the run's train.log
-    with reported_by_phase(run_path, lambda: getattr(trainer, "phase", None) or "setup"):
+    with reported_by_phase(run_path, lambda: getattr(trainer, "phase", None) or "setup"), \
+            owned_run_dir(run_path) as claim:  # one process per run directory, for the whole run
         try:
             validate(cfg)
-            if (problem := check_run_dir(run_path, cfg.resume)) is not None:
-                raise ConfigError(problem)
+            claim(cfg)  # check, lock, check again, then .hydra/ (ferl/run/claim.py): before anything is written
             if cfg.resume:  # the run's own config (its checkpoint's) with the overrides given now
-                restore_hydra_files(run_path)  # Hydra rewrote .hydra/ for this launch
                 resumed = resumed_run(run_path, list(hydra_cfg.overrides.task), lambda d: resolve_device(d).type)
                 if resumed is not None:
                     cfg = resumed.config

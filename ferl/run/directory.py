@@ -19,11 +19,12 @@ import numpy as np
 from ferl.run import checkpoint
 from ferl.run.checkpoint import Checkpoint, RunIdentity
 from ferl.run.jsonio import strict_dumps
+from ferl.run.lock import LOCK_FILE, RunLock, held
 
 TB_EVENTS = "events.out.tfevents.*"  # the run's own event files (tb/analysis/ is analyze.py's)
-HYDRA_OWN = {".hydra", "train.log"}  # what Hydra writes into a run directory before main()
-HYDRA_FILES = ("config.yaml", "hydra.yaml", "overrides.yaml")  # .hydra/'s, rewritten by Hydra at every launch
-HYDRA_COPY = Path("checkpoints") / "hydra"  # the run's own .hydra/ files, put back when it is resumed
+HYDRA_OWN = {".hydra", "train.log"}  # what a launch writes into a run directory before its run starts
+HYDRA_FILES = ("config.yaml", "hydra.yaml", "overrides.yaml")  # .hydra/'s (ferl/run/claim.py writes them)
+HYDRA_COPY = Path("checkpoints") / "hydra"  # the run's own .hydra/ files, kept at its first checkpoint
 
 
 def check_run_dir(path: Path, resume: bool) -> str | None:
@@ -38,11 +39,27 @@ def check_run_dir(path: Path, resume: bool) -> str | None:
 
 
 def discard_if_new(path: Path) -> None:
-    """Remove a run directory that holds only Hydra's own files and empty folders (a config that failed)."""
-    if path.is_dir() and all(p.name in HYDRA_OWN or (p.is_dir() and not any(p.iterdir())) for p in path.iterdir()):
-        shutil.rmtree(path, ignore_errors=True)
-        if path.parent.is_dir() and not any(path.parent.iterdir()):
-            path.parent.rmdir()
+    """Remove a run directory that holds only Hydra's own files and empty folders (a config that
+    failed), under its lock: a fresh run directory that another process holds (it has not written
+    more than that yet) is that process's, and is left alone."""
+    if not is_new(path):
+        return
+    lock = held(path) or RunLock(path)
+    if lock.fd is None and not lock.acquire():
+        return
+    try:
+        if is_new(path):
+            shutil.rmtree(path, ignore_errors=True)
+            if path.parent.is_dir() and not any(path.parent.iterdir()):
+                path.parent.rmdir()
+    finally:
+        lock.release()
+
+
+def is_new(path: Path) -> bool:
+    """Whether ``path`` is a directory that holds only Hydra's files, a lock and empty folders."""
+    own = HYDRA_OWN | {LOCK_FILE}
+    return path.is_dir() and all(p.name in own or (p.is_dir() and not any(p.iterdir())) for p in path.iterdir())
 
 
 @contextmanager
@@ -60,13 +77,47 @@ def atomic_path(path: Path):
             os.remove(tmp)
 
 
+@contextmanager
+def atomic_dir(path: Path):
+    """Yield a temporary folder beside ``path``; on success it becomes ``path`` as a whole (a
+    folder already there is replaced), so an interruption never leaves part of it under its name."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp"))
+    try:
+        yield tmp
+        os.chmod(tmp, 0o755)  # mkdtemp creates 0700; results are meant to be shared
+        if path.exists():  # renamed aside first: a folder cannot be renamed over a full one
+            old = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp"))
+            os.replace(path, old / path.name)
+            os.replace(tmp, path)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, path)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def remove_leftovers(path: Path) -> list[Path]:
+    """Remove what ``atomic_path`` and ``atomic_dir`` left in the run directory ``path`` when a
+    process was killed mid-write (``.<name>.*.tmp``): called once its owner holds the run's lock,
+    so none of them is being written. The checkpoints' own leftovers are ``RunDir.resume``'s."""
+    found = [p for folder in (path, path / "records", path / ".hydra", path / HYDRA_COPY) if folder.is_dir()
+             for p in folder.glob(".*.tmp") if p.is_file()]
+    found += [p for folder in (path, path / "checkpoints") for p in folder.glob(".*hydra.*.tmp") if p.is_dir()]
+    for p in found:
+        shutil.rmtree(p) if p.is_dir() else p.unlink()
+    return found
+
+
 def restore_hydra_files(path: Path) -> None:
-    """Put the run's own ``.hydra/`` files back: Hydra rewrote them for this launch (a resume's
-    overrides), before main() could look; the copies were taken at the run's first checkpoint."""
+    """Put the run's own ``.hydra/`` files back from the copy taken at its first checkpoint, where
+    they differ: runs made before train.py wrote ``.hydra/`` itself (ferl/run/claim.py) had it
+    rewritten by Hydra at every launch, a refused one included."""
     for name in HYDRA_FILES:
-        if (path / HYDRA_COPY / name).is_file():
-            with atomic_path(path / ".hydra" / name) as tmp:
-                shutil.copyfile(path / HYDRA_COPY / name, tmp)
+        kept, own = path / HYDRA_COPY / name, path / ".hydra" / name
+        if kept.is_file() and not (own.is_file() and own.read_bytes() == kept.read_bytes()):
+            with atomic_path(own) as tmp:
+                shutil.copyfile(kept, tmp)
 
 
 class RunDir:
@@ -111,12 +162,14 @@ class RunDir:
         checkpoint.write(self.checkpoints, state, self.identity)
 
     def keep_hydra_files(self) -> None:
-        """Copy ``.hydra/``'s files once, at the run's first checkpoint (``restore_hydra_files``)."""
-        if (self.path / ".hydra").is_dir() and not (self.path / HYDRA_COPY).exists():
-            for name in HYDRA_FILES:
-                if (self.path / ".hydra" / name).is_file():
-                    with atomic_path(self.path / HYDRA_COPY / name) as tmp:
-                        shutil.copyfile(self.path / ".hydra" / name, tmp)
+        """Copy ``.hydra/``'s files at the run's first checkpoint (``restore_hydra_files``), as one
+        folder renamed into place: a copy cut short by a kill (made before that) is made again."""
+        source, copy = self.path / ".hydra", self.path / HYDRA_COPY
+        names = [name for name in HYDRA_FILES if (source / name).is_file()]
+        if names and not all((copy / name).is_file() for name in names):
+            with atomic_dir(copy) as tmp:
+                for name in names:
+                    shutil.copyfile(source / name, tmp / name)
 
     def resume(self):
         """The newest good checkpoint's state (None if the run has none; CheckpointError if

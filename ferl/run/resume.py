@@ -1,7 +1,8 @@
 """``resume=true`` continues the same run (docs/reliability.md, "Checkpoints and resume").
 
 The run's own config is the one its newest good checkpoint was written under (``RunIdentity``:
-Hydra rewrites ``.hydra/`` at every launch, so the checkpoint is where it is kept). A resume starts
+the checkpoint proves itself, and ``.hydra/`` of a run made before ferl/run/claim.py may have been
+rewritten by a later launch). A resume starts
 from that config and applies only the overrides given on its command line: a plain
 ``resume=true hydra.run.dir=DIR`` continues the run as it was configured, whatever the
 experiment's defaults are now. An override that changes the value of a key (or a config-group

@@ -12,6 +12,7 @@ stream, the divergence guard, the run directory and its TensorBoard writer, the 
 checkpoint saves (finished phases, the state of an unfinished one, data passed between phases)
 and the summary's metrics.
 """
+import time
 from dataclasses import dataclass
 
 import torch
@@ -84,6 +85,8 @@ class Job:
         self.unit = "step"   # what the guard reports a divergence in (a T-maze: "episode")
         self.fast = fast_path(cfg.compile, device)  # compile the phases' chunks of steps (ferl.compiled)
         self.compile_started = compile_seconds()  # a process may train several jobs (Hydra's joblib workers)
+        self.started = time.perf_counter()  # this process's share of wall_time_s (the trainer may start it earlier)
+        self.earlier_time = 0.0  # wall_time_s that earlier processes of the run spent, up to its checkpoint
 
     @property
     def shared(self) -> dict:
@@ -126,6 +129,7 @@ class Job:
         if a signal asked the run to stop."""
         if phase is not None:
             self.progress["partial"][phase] = state
+        self.progress["wall_time_s"] = self.wall_time()
         self.run.save_checkpoint({
             "progress": self.progress, "generator": self.generator.get_state(), "guard": self.guard.state_dict(),
             **{name: part.state_dict() for name, part in self.components().items()}}, self.writer)
@@ -139,3 +143,9 @@ class Job:
         for name, part in self.components().items():
             part.load_state_dict(saved[name])
         self.progress = saved["progress"]
+        self.earlier_time = self.progress.get("wall_time_s", 0.0)  # absent from checkpoints written before it
+
+    def wall_time(self) -> float:
+        """summary.json's ``wall_time_s`` so far: every process of the run, a resumed one's
+        predecessors up to the checkpoint it continues (their time after it is computed again)."""
+        return self.earlier_time + time.perf_counter() - self.started

@@ -61,6 +61,7 @@ class PhasedTrainer:
         """Build the components and what each phase prepares; check the run's optimized metric."""
         self.started = time.perf_counter()  # wall_time_s counts the building too
         self.job = Job(cfg, device, self.seed_offsets, self.divergence_limit)
+        self.job.started = self.started
         self.phases = [phase for phase in self.all_phases if phase.applies(self.job)]
         for phase in self.phases:
             phase.prepare(self.job)
@@ -105,7 +106,7 @@ class PhasedTrainer:
                     job.progress["shared"] = {}  # the finished run keeps parameters, not the data
                 job.checkpoint()
             self.phase = "summary"
-            summary = self.summary(job, time.perf_counter() - self.started)
+            summary = self.summary(job, job.wall_time())  # over every process of the run
             log_hparams(job.writer, job.cfg, summary, self.last_step)
         return summary
 
