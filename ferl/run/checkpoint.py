@@ -31,6 +31,8 @@ from pathlib import Path
 
 import torch
 
+from ferl.run.failures import writing
+
 MAGIC = b"FERLCKPT"
 FORMAT = 1
 FIXED = struct.Struct("<8sIIQ32s")  # magic, format, header length, payload length, sha256
@@ -157,7 +159,7 @@ def write(directory: Path, state: dict, identity: RunIdentity | None) -> None:
     last, previous = directory / LAST, directory / PREVIOUS
     fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{LAST}.", suffix=".tmp")
     try:
-        with os.fdopen(fd, "wb") as f:
+        with writing(last), os.fdopen(fd, "wb") as f:  # a full disk's error names last.pt
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
