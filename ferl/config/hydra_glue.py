@@ -19,12 +19,15 @@ import torch
 from omegaconf import OmegaConf
 
 from ferl.config.params import ConfigError
-from ferl.run.failures import Interrupted, disk_error, disk_line, hydra_os_error, interrupted_line
+from ferl.run.failures import (Interrupted, disk_error, disk_line, hydra_os_error, interrupted_line,
+                                quiet_disk_errors_in_threads)
 from ferl.stats import flat_metrics, mean_sd
 
 # conf/hydra/launcher/{joblib,submitit_local,submitit_slurm,ray}.yaml set our defaults on top of the plugins' configs
 # of the same name, which Hydra merges with a deprecation notice meant for configs one owns.
 warnings.filterwarnings("ignore", message=r"\s*'hydra/launcher/\w+' is validated against ConfigStore schema")
+
+quiet_disk_errors_in_threads()  # TensorBoard's writer thread on a full disk: the run's line reports it
 
 
 def jobs_per_machine(cpu_threads) -> int:

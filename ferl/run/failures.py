@@ -94,7 +94,7 @@ def disk_line(e: OSError, run_path: Path, shown=str) -> str:
     return f"{head}; no checkpoint was written yet: {remedy}, then run the command again"
 
 
-HYDRA_OS_ERROR = re.compile(r"^(?P<kind>\w+Error): \[Errno (?P<no>\d+)\] (?P<why>[^:]+): '(?P<path>.*)'$")
+HYDRA_OS_ERROR = re.compile(r"^(?P<kind>\w+Error): \[Errno (?P<no>\d+)\] (?P<why>[^:']+)(: '(?P<path>.*)')?$")
 
 
 def hydra_os_error(report: str) -> str | None:
@@ -106,7 +106,7 @@ def hydra_os_error(report: str) -> str | None:
     match = next((m for ln in reversed(lines) if (m := HYDRA_OS_ERROR.match(ln))), None)
     if match is None:
         return None
-    no, path = int(match["no"]), match["path"]
+    no, path = int(match["no"]), match["path"] or "the run directory's .hydra/ files"
     name = errno.errorcode.get(no, match["no"])
     if no in DISK:
         what, remedy = DISK[no]
@@ -140,3 +140,16 @@ def interrupted_line(signum: int, at: str, run_path: Path, shown=str) -> str:
     resume=true hydra.run.dir=runs/x continues``."""
     return (f"interrupted by {signal.Signals(signum).name} at {at}: checkpoint written to "
             f"{shown(Path(run_path) / 'checkpoints')}; resume=true hydra.run.dir={shown(run_path)} continues")
+
+
+def quiet_disk_errors_in_threads() -> None:
+    """A disk error in a writer thread (TensorBoard's) prints no traceback: the thread hands it
+    to the run's thread, whose line reports it. Other thread errors are printed as before."""
+    import threading
+    previous = threading.excepthook
+
+    def hook(args):
+        if disk_error(args.exc_value) is None:
+            previous(args)
+
+    threading.excepthook = hook
