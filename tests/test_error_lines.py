@@ -46,7 +46,7 @@ FULL_DISK = {
     "checkpoint": (".last.pt.*.tmp", 1, "predictors", "checkpoints/last.pt"),
     "records": (".episodes.npz.*.tmp", 0, "actor", "records/episodes.npz"),
     "summary": (".summary.json.*.tmp", 0, "summary", "summary.json"),
-    "tensorboard": ("events.out.tfevents.*", 3, None, "tb/events.out.tfevents."),
+    "tensorboard": ("events.out.tfevents.*", 12, None, "tb/events.out.tfevents."),
 }
 
 

@@ -8,6 +8,7 @@ docs/reliability.md). A signal that stopped a run (``ferl.run.directory.StopRequ
 checkpoint is written ends it with ``Interrupted`` and a line that says where it stopped.
 """
 import errno
+import os
 import re
 import signal
 from contextlib import contextmanager
@@ -44,15 +45,17 @@ def writing(path):
 
 
 def disk_error(e: BaseException) -> OSError | None:
-    """The OSError of a full disk, a read-only file system or the file-size limit behind ``e``
-    (itself, its cause or its context), else None."""
-    seen = set()
+    """The first OSError of a full disk, a read-only file system or the file-size limit behind
+    ``e`` (itself, its cause or its context: the write that failed first, not the writer
+    flushed on the way out that failed after it; the first that names its file), else None."""
+    seen, found = set(), []
     while e is not None and id(e) not in seen:
         if isinstance(e, OSError) and e.errno in DISK:
-            return e
+            found.append(e)
         seen.add(id(e))
         e = e.__cause__ or e.__context__
-    return None
+    named = [f for f in found if f.filename is not None]  # a library's own first try may name none
+    return (named or found or [None])[-1]
 
 
 def written_file(e: OSError, shown=str) -> str:
@@ -76,8 +79,8 @@ def _file_in_traceback(e: BaseException) -> str | None:
         tb = tb.tb_next
     for frame in reversed(frames):
         for key in FILE_LOCALS:
-            if isinstance(value := frame.f_locals.get(key), (str, Path)):
-                return str(value)
+            if isinstance(value := frame.f_locals.get(key), (str, bytes, Path)):  # TensorBoard's: bytes
+                return os.fsdecode(value)
     return None
 
 
