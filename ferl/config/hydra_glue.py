@@ -85,7 +85,8 @@ def reported_by_phase(run_path: Path, phase):
     try:
         yield
     except Interrupted as stop:  # the checkpoint is written (ferl.trainers.job)
-        print(f"ferl: {interrupted_line(stop.signum, stop.where, run_path, shown)}", file=sys.stderr)
+        # on a line of its own: the phase's progress bar is still open
+        print(f"\nferl: {interrupted_line(stop.signum, stop.where, run_path, shown)}", file=sys.stderr)
         raise
     except KeyboardInterrupt:  # SIGINT outside a phase's step loop (set-up, the summary)
         print(f"ferl: interrupted by SIGINT during {phase()} of {shown(run_path)}: {kept(run_path)}", file=sys.stderr)
