@@ -100,18 +100,21 @@ def reported_by_phase(run_path: Path, phase):
 def report_failure(e: Exception, run_path: Path, name: str) -> None:
     """The error's line on stderr and its traceback in the run's log, the line first for a disk
     error; the line says where the traceback is only where it could be written."""
+    full = os.environ.get("HYDRA_FULL_ERROR") == "1"  # the traceback on the terminal too, the line last
     disk = disk_error(e)
     if disk is not None:
         print(f"ferl: error: phase {name!r}: {disk_line(disk, run_path, shown)}", file=sys.stderr)
         log_traceback(run_path, f"phase {name!r} failed")
-    else:
-        log = log_traceback(run_path, f"phase {name!r} failed")
-        message = (str(e).strip().splitlines() or [""])[0]
-        where = f"traceback in {shown(log)}" if log is not None else "its traceback could not be written to train.log"
-        print(f"ferl: error: phase {name!r} of {shown(run_path)}: {type(e).__name__}: {message} "
-              f"({where}; HYDRA_FULL_ERROR=1 shows it here)", file=sys.stderr)
-    if os.environ.get("HYDRA_FULL_ERROR") == "1":
+        if full:
+            traceback.print_exc()
+        return
+    log = log_traceback(run_path, f"phase {name!r} failed")
+    if full:
         traceback.print_exc()
+    message = (str(e).strip().splitlines() or [""])[0]
+    where = f"traceback in {shown(log)}" if log is not None else "its traceback could not be written to train.log"
+    print(f"ferl: error: phase {name!r} of {shown(run_path)}: {type(e).__name__}: {message} "
+          f"({where}; HYDRA_FULL_ERROR=1 shows it here)", file=sys.stderr)
 
 
 def kept(run_path: Path) -> str:
