@@ -9,11 +9,16 @@ A directory holding `summary.json` is a run, any other a sweep of runs; what eac
 described in `ferl/analysis/runner.py` and docs/records.md ("Analysis").
 """
 
-import argparse
 import sys
-from pathlib import Path
 
-from ferl.analysis import runner
+try:  # Ctrl-C while the imports run: one line, not importlib's traceback
+    import argparse
+    from pathlib import Path
+
+    from ferl.analysis import runner
+except KeyboardInterrupt:
+    print("analyze.py: interrupted by SIGINT while starting: nothing was written", file=sys.stderr)
+    sys.exit(130)
 
 
 def main(argv: list[str] | None = None) -> int:

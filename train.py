@@ -8,23 +8,28 @@ The trainer is the config's ``trainer`` node (``_target_``); it builds the compo
 groups and trains them (ferl/trainers/, docs/architecture.md).
 """
 import sys
-from pathlib import Path
 
-import hydra
-import torch
-from hydra.core.hydra_config import HydraConfig
-from hydra.utils import instantiate
-from omegaconf import DictConfig
+try:  # Ctrl-C while torch loads: one line, not importlib's traceback (docs/reliability.md)
+    from pathlib import Path
 
-from ferl.config.hydra_glue import (one_line_errors, optimized_value, release_stderr, reported_by_phase,  # also:
-                                    resolve_device, summary_table)                        # the launcher resolver
-from ferl.config.params import ConfigError
-from ferl.config.validate import validate
-from ferl.data import DataError
-from ferl.run.claim import owned_run_dir
-from ferl.run.directory import RunDir, discard_if_new
-from ferl.run.footprint import check_memory
-from ferl.run.resume import identity_of, resumed_run
+    import hydra
+    import torch
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.utils import instantiate
+    from omegaconf import DictConfig
+
+    from ferl.config.hydra_glue import (one_line_errors, optimized_value, release_stderr, reported_by_phase,  # also:
+                                        resolve_device, summary_table)                        # the launcher resolver
+    from ferl.config.params import ConfigError
+    from ferl.config.validate import validate
+    from ferl.data import DataError
+    from ferl.run.claim import owned_run_dir
+    from ferl.run.directory import RunDir, discard_if_new
+    from ferl.run.footprint import check_memory
+    from ferl.run.resume import identity_of, resumed_run
+except KeyboardInterrupt:
+    print("ferl: interrupted by SIGINT while starting: nothing was written", file=sys.stderr)
+    sys.exit(130)
 
 
 def fail(message: str, run_path: Path) -> None:

@@ -40,7 +40,7 @@ class FloorRun:
 
     @classmethod
     def load(cls, run: Run) -> FloorRun:
-        return cls(run, run.records("floor_test"), run.records("weights"))
+        return cls(run, run.required("floor_test"), run.required("weights"))
 
     @property
     def summary(self) -> dict:

@@ -146,6 +146,14 @@ class Run:
             self.files[name] = self.checked(path, load_npz(path)) if path.is_file() else None
         return self.files[name]
 
+    def required(self, name: str) -> dict[str, np.ndarray]:
+        """`records/<name>.npz`, which this analysis cannot do without: FileNotFoundError naming
+        the file where the run has none (removed, or the run was cut before it wrote it)."""
+        found = self.records(name)
+        if found is None:
+            raise FileNotFoundError(f"records/{name}.npz is missing: the analysis of this run needs it")
+        return found
+
     def checked(self, path: Path, arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """``arrays`` without ``per_run``, once each array it names has summary.json's run count
         as its first axis (files written before ``per_run`` existed go unchecked)."""

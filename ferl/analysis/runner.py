@@ -22,7 +22,7 @@ from typing import Sequence
 import numpy as np
 
 from ferl import runs
-from ferl.analysis import beyond, dispatch, generic, published, variants
+from ferl.analysis import beyond, dispatch, generic, members, published, variants
 from ferl.analysis import sweep as sw
 from ferl.analysis.claims import VERDICTS, ClaimResult, Numbering, evaluate
 from ferl.analysis.io import write_json
@@ -142,6 +142,7 @@ def analyze_sweep(sweep_dir: Path, pages: Sequence[Path] = ()) -> list[RunOutcom
     """Analyze every run below `sweep_dir`, then the sweep as a whole (`ferl.analysis.sweep`)."""
     start = time.perf_counter()
     found = runs.find_runs(sweep_dir)
+    skipped = report_unfinished(sweep_dir)
     outcomes = analyze_runs(found)
     jobs = [sw.Job(o, summary) for o in outcomes
             if (summary := _read_summary(o.run_dir)) is not None]
@@ -164,14 +165,31 @@ def analyze_sweep(sweep_dir: Path, pages: Sequence[Path] = ()) -> list[RunOutcom
     wall["sum of the jobs' wall_time_s"] = sum(float(j.summary.get("wall_time_s", 0)) for j in jobs)
     wall["analysis wall time"] = time.perf_counter() - start
     lines = sw.report_lines(sweep, analysis, rows, out, wall) + findings
-    lines += ["", "## Jobs", ""] + jobs_table(sweep_dir, out, outcomes)
+    lines += ["", "## Jobs", ""] + jobs_table(sweep_dir, out, outcomes + skipped)
     (out / "report.md").write_text("\n".join(lines) + "\n")
     if pages:
         published.update_pages(pages, rows, wall, out / "report.md")
         print(f"{', '.join(map(str, pages))}: reproduction results updated")
-    print(f"{sweep_dir}: sweep of {len(found)} runs, {len(rows)} claims "
+    print(f"{sweep_dir}: sweep of {len(found)} runs{_skipped_note(sweep_dir, skipped)}, {len(rows)} claims "
           f"({sw.verdict_counts(rows)}) -> {out / 'report.md'}")
     return outcomes
+
+
+def report_unfinished(sweep_dir: Path) -> list[RunOutcome]:
+    """One stderr line for each member of the sweep that has no summary.json yet (still
+    running, killed or failed: `ferl.analysis.members`); their rows of the sweep's jobs table."""
+    skipped = []
+    for run_dir, why in members.unfinished(sweep_dir):
+        print(f"{PROG}: skipped {run_dir}: {why}", file=sys.stderr)
+        skipped.append(RunOutcome(run_dir, "?", "?", f"skipped: {why}"))
+    return skipped
+
+
+def _skipped_note(sweep_dir: Path, skipped: list[RunOutcome]) -> str:
+    """``; 2 skipped: 3, 7`` (the skipped members relative to the sweep), or nothing."""
+    if not skipped:
+        return ""
+    return f"; {len(skipped)} skipped: " + ", ".join(os.path.relpath(o.run_dir, sweep_dir) for o in skipped)
 
 
 def _usage_error(dirs: list[Path], pages: Sequence[Path]) -> str | None:
@@ -191,7 +209,9 @@ def _usage_error(dirs: list[Path], pages: Sequence[Path]) -> str | None:
 
 def main(dirs: list[Path], pages: Sequence[Path] = ()) -> int:
     """Analyze each directory (a run or a sweep); the exit status: 2 for a usage error or a
-    directory without runs, 1 when a run's analysis failed, else 0."""
+    directory without runs, 1 when a run's analysis failed (a damaged or missing file), else 0 —
+    also when members of a sweep were skipped for having no summary.json yet (each is named in
+    one line, and the sweep's header counts them)."""
     error = _usage_error(dirs, pages)
     if error is not None:
         print(f"{PROG}: error: {error}", file=sys.stderr)
@@ -201,7 +221,9 @@ def main(dirs: list[Path], pages: Sequence[Path] = ()) -> int:
         if (d / "summary.json").is_file():
             outcomes = [_safe_analyze_run(d)]
         elif not any(d.rglob("summary.json")):
-            print(f"{PROG}: error: {d}: no run (summary.json) found below it", file=sys.stderr)
+            skipped = report_unfinished(d)
+            print(f"{PROG}: error: {d}: no run (summary.json) found below it"
+                  + (f" ({len(skipped)} unfinished)" if skipped else ""), file=sys.stderr)
             status = 2
             continue
         else:

@@ -57,7 +57,7 @@ class TMazeRun:
 
     @classmethod
     def load(cls, run: Run) -> TMazeRun:
-        return cls(run, run.records("episodes"), run.records("junction") or {})
+        return cls(run, run.required("episodes"), run.records("junction") or {})
 
     # ---- the task ----
     @property

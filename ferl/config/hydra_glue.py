@@ -8,6 +8,7 @@ resolver and the warning filter below are in place wherever a job's config is co
 import io
 import logging
 import os
+import signal
 import sys
 import traceback
 import warnings
@@ -18,11 +19,15 @@ import torch
 from omegaconf import OmegaConf
 
 from ferl.config.params import ConfigError
+from ferl.run.failures import (Interrupted, disk_error, disk_line, hydra_os_error, interrupted_line,
+                                quiet_disk_errors_in_threads)
 from ferl.stats import flat_metrics, mean_sd
 
 # conf/hydra/launcher/{joblib,submitit_local,submitit_slurm,ray}.yaml set our defaults on top of the plugins' configs
 # of the same name, which Hydra merges with a deprecation notice meant for configs one owns.
 warnings.filterwarnings("ignore", message=r"\s*'hydra/launcher/\w+' is validated against ConfigStore schema")
+
+quiet_disk_errors_in_threads()  # TensorBoard's writer thread on a full disk: the run's line reports it
 
 
 def jobs_per_machine(cpu_threads) -> int:
@@ -44,7 +49,9 @@ def resolve_device(name: str) -> torch.device:
 @contextmanager
 def one_line_errors():
     """Hydra reports a bad override or group choice on several lines before main() runs;
-    condense that report into one line (CONTRACT §6) unless HYDRA_FULL_ERROR=1."""
+    condense that report into one line (CONTRACT §6) unless HYDRA_FULL_ERROR=1. An OSError
+    Hydra met creating the run directory or writing ``.hydra/`` is one line naming the path and
+    the reason; Ctrl-C before the run started, one line and exit code 130."""
     if os.environ.get("HYDRA_FULL_ERROR") == "1":
         yield
         return
@@ -54,8 +61,13 @@ def one_line_errors():
     except SystemExit as e:
         captured, sys.stderr = sys.stderr, real
         if e.code and isinstance(captured, io.StringIO):
-            print("ferl: error: " + condense_hydra_error(captured.getvalue()), file=sys.stderr)
+            report = captured.getvalue()
+            print("ferl: error: " + (hydra_os_error(report) or condense_hydra_error(report)), file=sys.stderr)
         raise
+    except KeyboardInterrupt:
+        sys.stderr = real
+        print("ferl: interrupted by SIGINT before the run started: nothing to resume", file=sys.stderr)
+        sys.exit(128 + signal.SIGINT)
     finally:
         if isinstance(sys.stderr, io.StringIO):
             sys.stderr = real
@@ -67,35 +79,68 @@ def reported_by_phase(run_path: Path, phase):
     naming the phase (``phase()``: the trainer's current one) and the run directory, and exit
     code 1; its traceback goes to the run's ``train.log`` (Hydra's job log), and to the terminal
     too with HYDRA_FULL_ERROR=1. The checkpoints are left as they are: the last one written
-    before the error is the one ``resume=true`` continues from."""
+    before the error is the one ``resume=true`` continues from. A full disk, a read-only file
+    system or the file-size limit (``ferl.run.failures``) gets its own line, printed before the
+    log is tried (it may be on the same disk); a stop signal, the line of where it stopped."""
     try:
         yield
+    except Interrupted as stop:  # the checkpoint is written (ferl.trainers.job)
+        # on a line of its own: the phase's progress bar is still open
+        print(f"\nferl: {interrupted_line(stop.signum, stop.where, run_path, shown)}", file=sys.stderr)
+        raise
+    except KeyboardInterrupt:  # SIGINT outside a phase's step loop (set-up, the summary)
+        print(f"ferl: interrupted by SIGINT during {phase()} of {shown(run_path)}: {kept(run_path)}", file=sys.stderr)
+        sys.exit(128 + signal.SIGINT)
     except Exception as e:  # noqa: BLE001 — every failure of a run is reported this way
-        name = phase()
-        log = log_traceback(run_path, f"phase {name!r} failed")
-        if os.environ.get("HYDRA_FULL_ERROR") == "1":
-            traceback.print_exc()
-        message = (str(e).strip().splitlines() or [""])[0]
-        print(f"ferl: error: phase {name!r} of {shown(run_path)}: {type(e).__name__}: {message} "
-              f"(traceback in {shown(log)}; HYDRA_FULL_ERROR=1 shows it here)", file=sys.stderr)
+        logging.raiseExceptions = False  # a log handler on a full disk fails silently, not with a traceback
+        report_failure(e, run_path, phase())
         sys.exit(1)
 
 
-def log_traceback(run_path: Path, message: str) -> Path:
-    """The exception being handled, with ``message``, into the run's log files only (Hydra's job
-    logging also prints to the terminal): its file handlers, else ``run_path/train.log``."""
+def report_failure(e: Exception, run_path: Path, name: str) -> None:
+    """The error's line on stderr and its traceback in the run's log, the line first for a disk
+    error; the line says where the traceback is only where it could be written."""
+    full = os.environ.get("HYDRA_FULL_ERROR") == "1"  # the traceback on the terminal too, the line last
+    disk = disk_error(e)
+    if disk is not None:
+        print(f"ferl: error: phase {name!r}: {disk_line(disk, run_path, shown)}", file=sys.stderr)
+        log_traceback(run_path, f"phase {name!r} failed")
+        if full:
+            traceback.print_exc()
+        return
+    log = log_traceback(run_path, f"phase {name!r} failed")
+    if full:
+        traceback.print_exc()
+    message = (str(e).strip().splitlines() or [""])[0]
+    where = f"traceback in {shown(log)}" if log is not None else "its traceback could not be written to train.log"
+    print(f"ferl: error: phase {name!r} of {shown(run_path)}: {type(e).__name__}: {message} "
+          f"({where}; HYDRA_FULL_ERROR=1 shows it here)", file=sys.stderr)
+
+
+def kept(run_path: Path) -> str:
+    """What an interruption outside the step loop leaves to resume from."""
+    if (Path(run_path) / "checkpoints" / "last.pt").is_file():
+        return f"its last checkpoint is kept; resume=true hydra.run.dir={shown(run_path)} continues"
+    return "no checkpoint was written yet: run the command again"
+
+
+def log_traceback(run_path: Path, message: str) -> Path | None:
+    """The exception being handled, with ``message``, into the run's log file only (Hydra's job
+    logging also prints to the terminal): its file handler's, else ``run_path/train.log``. None
+    where it could not be written (a full disk): that failure is swallowed, never a second traceback."""
     files = [h for h in logging.getLogger().handlers if isinstance(h, logging.FileHandler)]
-    if not files:
-        path = Path(run_path) / "train.log"
-        with open(path, "a") as f:
-            f.write(f"{message}\n{traceback.format_exc()}")
-        return path
+    path = Path(files[0].baseFilename) if files else Path(run_path) / "train.log"
     record = logging.getLogger(__name__).makeRecord(__name__, logging.ERROR, __file__, 0, message, None,
                                                    sys.exc_info())
-    for handler in files:
-        handler.handle(record)
-        handler.flush()
-    return Path(files[0].baseFilename)
+    text = (files[0].format(record) if files else f"{message}\n{traceback.format_exc()}").rstrip("\n") + "\n"
+    try:
+        for handler in files:
+            handler.flush()  # what the run logged before comes first
+        with open(path, "a") as f:
+            f.write(text)
+    except Exception:  # noqa: BLE001 — the error line is out already; the log is a best effort
+        return None
+    return path
 
 
 def shown(path: Path) -> str:

@@ -31,6 +31,7 @@ from pathlib import Path
 
 import torch
 
+from ferl.run.failures import writing
 from ferl.run.jsonio import strict_dumps
 
 MAGIC = b"FERLCKPT"
@@ -159,7 +160,7 @@ def write(directory: Path, state: dict, identity: RunIdentity | None) -> None:
     last, previous = directory / LAST, directory / PREVIOUS
     fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{LAST}.", suffix=".tmp")
     try:
-        with os.fdopen(fd, "wb") as f:
+        with writing(last), os.fdopen(fd, "wb") as f:  # a full disk's error names last.pt
             f.write(data)
             f.flush()
             os.fsync(f.fileno())

@@ -18,6 +18,7 @@ import numpy as np
 
 from ferl.run import checkpoint
 from ferl.run.checkpoint import Checkpoint, RunIdentity
+from ferl.run.failures import writing
 from ferl.run.jsonio import strict_dumps
 from ferl.run.lock import LOCK_FILE, RunLock, held
 
@@ -70,7 +71,8 @@ def atomic_path(path: Path):
     os.close(fd)
     os.chmod(tmp, 0o644)  # mkstemp creates 0600; results are meant to be shared
     try:
-        yield Path(tmp)
+        with writing(path):  # a failing write() names no file: the error line names this one
+            yield Path(tmp)
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
@@ -214,7 +216,7 @@ class CheckpointTimer:
         return True
 
 
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGUSR2)  # USR2: submitit's time-limit / pre-emption signal
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGUSR2, signal.SIGHUP)  # USR2: submitit's time-limit / pre-emption signal; HUP: a closed terminal (an ssh drop)
 
 
 class StopRequest:

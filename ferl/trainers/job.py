@@ -21,6 +21,7 @@ from hydra.utils import instantiate
 
 from ferl.compiled import compile_seconds, fast_path
 from ferl.config.params import ConfigError, signature, target
+from ferl.run.failures import Interrupted, where
 from ferl.run.guard import DivergenceGuard
 
 
@@ -133,8 +134,8 @@ class Job:
         self.run.save_checkpoint({
             "progress": self.progress, "generator": self.generator.get_state(), "guard": self.guard.state_dict(),
             **{name: part.state_dict() for name, part in self.components().items()}}, self.writer)
-        if self.stop.requested:
-            raise SystemExit(128 + self.stop.signal)
+        if self.stop.requested:  # train.py prints where, and exits 128 + the signal
+            raise Interrupted(self.stop.signal, where(phase, state, self.progress["done"]))
 
     def restore(self, saved: dict) -> None:
         """A checkpoint's progress, generator, guard and component states."""
