@@ -86,11 +86,13 @@ def test_a_file_where_the_run_directory_should_be(tmp_path):
     assert (tmp_path / "taken").read_text() == "a file\n"
 
 
-def test_a_read_only_run_directory_before_main(tmp_path):
-    """Hydra's own first write (.hydra/config.yaml) fails: one line, not a flattened traceback."""
+def test_a_read_only_run_directory_at_the_first_write(tmp_path):
+    """The run's first write (.hydra/, which train.py writes once the directory is its own) fails:
+    one line naming it, not a flattened traceback."""
     run_dir = tmp_path / "run"
     line = assert_one_clean_line(run_train(*TMAZE, f"hydra.run.dir={run_dir}", env=faulty(run_dir, "EROFS", "*")), 1)
-    assert line.startswith("ferl: error: read-only file system writing ") and "(errno EROFS)" in line, line
+    assert line.startswith(f"ferl: error: phase 'setup': read-only file system writing {run_dir / '.hydra'} "
+                           "(errno EROFS); no checkpoint was written yet"), line
     assert "File \"" not in line and " | " not in line
 
 
