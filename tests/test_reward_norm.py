@@ -1,12 +1,12 @@
 """A scalar reward head that learns each run's standardised reward (``reward_norm=popart``,
 ferl/predictors/popart.py; van Hasselt et al. 2016), so that an outside environment is learnt at
-its own reward scale (docs/usage.md, "Gymnasium environments").
+its own reward scale (docs/beyond.md, "Reward scale").
 
 The statistics are checked against numpy over the same rewards; the head's rescaling against its
 outputs before and after; the whole route against the delayed-recall environment of
 tests/outside_env.py at its native scale (rewards −0.1 and ±1, ``env.reward_scale=1``), which FERL
 trained online does not learn without the normalisation (2/10 runs at the optimum, 9/10 with it:
-docs/usage.md).
+docs/beyond.md).
 """
 import sys
 

@@ -1,13 +1,13 @@
 """Per-run reward normalisation of a scalar reward head (``reward_norm=popart``): PopArt, "Preserving
 Outputs Precisely, while Adaptively Rescaling Targets" (van Hasselt, Guez, Hessel, Mnih & Silver,
-NeurIPS 2016), so that an outside environment is learnt at its own reward scale (docs/usage.md,
-"Gymnasium environments").
+NeurIPS 2016), so that an outside environment is learnt at its own reward scale (docs/beyond.md,
+"Reward scale").
 
 Why: the linear reward head's squared error (Eq. 5.2) is what teaches a joint predictor's memory to
 keep what decides a later reward. Its gradient into the memory, ρ_r (r̂_t − r_t) W_rm, grows with the
 square of the rewards' scale, while the observation's cross entropy (Eq. 4.6) does not change. At a
 scale of ±1 or POPGym's ±1/T that gradient is too weak beside the observation's, and the memory never
-learns the cue (our measurement, docs/usage.md). The head therefore learns the standardised reward
+learns the cue (our measurement, docs/beyond.md). The head therefore learns the standardised reward
 
     z_t = (r_t − μ) / σ                                                   (van Hasselt et al., Eq. 6)
 
