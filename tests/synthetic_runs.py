@@ -305,7 +305,7 @@ def make_tmaze_run(run_dir: Path, *, n_runs: int = 2, n_episodes: int = 600,
             mine = np.flatnonzero(run_idx == r)
             acts[mine] = acts[rng.permutation(mine)]
     junction["hidden"] = acts
-    np.savez(records / "junction.npz",
+    np.savez(records / "probe.npz",
              **{k: v.astype(np.float16) if v.dtype.kind == "f" else v.astype(np.int64)
                 for k, v in junction.items()})
 

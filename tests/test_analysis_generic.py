@@ -146,3 +146,16 @@ def test_a_run_without_a_manifest_is_skipped(tmp_path, capsys):
     assert outcome.status == "skipped: no records/run.json"
     assert not (run_dir / "analysis").exists()
     assert "skipped, no records/run.json" in capsys.readouterr().out
+
+
+def test_prediction_error_title_fits_when_all_episodes_have_one_length():
+    """One episode length gives one column per split: a figure 3.1 inches wide, narrower than its
+    title unless the title is wrapped to it."""
+    from ferl.analysis import figures as figs
+    errors = np.random.default_rng(0).random((5, 1, 4))
+    title = "Fig. 4.5: prediction errors of the `joint` predictor, mean over 10 runs (table4_1_matching)"
+    fig = figs.prediction_errors(errors, errors, np.array([3]), np.arange(5), 3, "cross entropy", title)
+    fig.canvas.draw()
+    box, frame = fig._suptitle.get_window_extent(), fig.bbox
+    assert frame.x0 <= box.x0 and box.x1 <= frame.x1 and box.y1 <= frame.y1, (box, frame)
+    assert fig._suptitle.get_text().replace("\n", " ") == title

@@ -130,6 +130,14 @@ def test_shuffled_hidden_activations_do_not_separate(tmp_path):
     assert abs(np.nanmean(run.separation["hidden", "condition"])) < 0.1
 
 
+def test_a_run_recorded_with_the_old_name_junction_npz_is_still_read(tmp_path):
+    run_dir = make_tmaze_run(tmp_path / "run")
+    records = run_dir / "records"
+    (records / "probe.npz").rename(records / "junction.npz")
+    old = load_maze(run_dir)
+    assert len(old.junction["run"]) > 0 and judge(old)[HIDDEN_CLAIM] == HELD
+
+
 def test_regular_maze_gets_its_own_claims_and_steps_from_episodes(tmp_path):
     run = load_maze(make_tmaze_run(tmp_path / "run", matching=False, steps_to_goal=False))
     sources = set(judge(run))

@@ -62,7 +62,7 @@ def test_trains_end_to_end_and_learns(toy_run):
     assert summary["optimal"]["discounted_return"] == pytest.approx(0.95 ** 2)
     # the cue is only in the trace at the choice: an actor without memory is right half the time
     assert min(metrics["final_correct_rate"]) > 0.9, metrics
-    junction = np.load(toy_run / "records" / "junction.npz")  # activations at the choice, labelled by the cue
+    junction = np.load(toy_run / "records" / "probe.npz")  # activations at the choice, labelled by the cue
     assert set(np.unique(junction["cue"])) == {0, 1} and junction["memory_trace"].shape[1] == 4
     predictor = np.load(toy_run / "records" / "predictor.npz")
     errors = predictor["trace_error_train"]  # (R, epochs, T, t): learning lowers the prediction error

@@ -186,7 +186,7 @@ def test_tensorboard_serves_images_histograms_and_embeddings(server):
     assert {f"{FLOOR_RUN}/tb", f"{TMAZE_RUN}/tb"} <= set(server.get("/data/plugin/projector/runs"))
     for run, tag, n_points, header in (
             (FLOOR_RUN, "actor/hidden_test_digits:00300", 9 * 8, "class\toptimal_action\tgreedy_action"),
-            (TMAZE_RUN, "actor/hidden_at_junction:00300", None, "condition\tinitial_signal\tjunction_signal")):
+            (TMAZE_RUN, "actor/hidden_at_probe:00300", None, "condition\tinitial_signal\tjunction_signal")):
         info = server.get("/data/plugin/projector/info", run=f"{run}/tb")
         assert tag in [e["tensorName"] for e in info["embeddings"]]
         rows = server.get("/data/plugin/projector/metadata", raw=True, run=f"{run}/tb", name=tag).decode().splitlines()

@@ -66,7 +66,7 @@ def assert_same_as_uninterrupted(run_dir: Path, whole: Path) -> None:
     proc = train("resume=true", f"hydra.run.dir={run_dir}")
     assert proc.wait(timeout=300) == 0, proc.stderr.read()[-2000:]
     assert summary(run_dir)["metrics"] == summary(whole)["metrics"]
-    assert_same_records(run_dir, whole, ("predictor", "episodes", "junction"))
+    assert_same_records(run_dir, whole, ("predictor", "episodes", "probe"))
     assert_same_tb_log(run_dir, whole)
 
 

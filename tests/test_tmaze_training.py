@@ -31,7 +31,7 @@ def test_summary_and_records(small_run):
     assert ep["td_sampled"].shape == (2, 3, 10)
     pred = np.load(small_run / "records" / "predictor.npz")
     assert pred["joint_error_train"].shape == (2, 4, 8, 11)  # epochs 0…3, T = 3…10, t = 0…10
-    junction = np.load(small_run / "records" / "junction.npz")
+    junction = np.load(small_run / "records" / "probe.npz")
     assert junction["memory_joint"].shape[1] == 20 and junction["state"].shape[1] == 27 and junction["hidden"].shape[1] == 20
     assert set(np.unique(junction["condition"])) <= {0, 1, 2, 3}
     # every junction visit is also a step of its episode
@@ -48,7 +48,7 @@ def test_analyze_tmaze_run(small_run):
 def test_digit_tmaze_runs(tmp_path):
     result = run_train("experiment=table4_2_digit", *SMALL, f"hydra.run.dir={tmp_path / 'digit'}")
     assert result.returncode == 0, result.stderr[-2000:]
-    junction = np.load(tmp_path / "digit" / "records" / "junction.npz")
+    junction = np.load(tmp_path / "digit" / "records" / "probe.npz")
     assert junction["state"].shape[1] == 784 + 20
     # the actor sees the binarized junction digit times trainer.actor_obs_scale (0.1 here)
     pixels = np.unique(junction["state"][:, :784].astype(np.float32))
@@ -84,7 +84,7 @@ def test_algorithm2_pixel_run_records_and_cached_preprocessor(tmp_path):
     pred = np.load(tmp_path / "first" / "records" / "predictor.npz")
     assert pred["observation_error_train"].shape == pred["reward_error_train"].shape == (2, 4, 8, 11)
     assert np.isnan(pred["reward_error_train"][:, :, :, 0]).all()  # no reward before the first action
-    junction = np.load(tmp_path / "first" / "records" / "junction.npz")
+    junction = np.load(tmp_path / "first" / "records" / "probe.npz")
     assert junction["memory_observation"].shape[1] == junction["memory_reward"].shape[1] == 20
     assert junction["state"].shape[1] == 20 + 20 + 20  # processed y, m^y, m^r
 
@@ -92,7 +92,7 @@ def test_algorithm2_pixel_run_records_and_cached_preprocessor(tmp_path):
 def test_algorithm2_bit_run_state_is_observation_and_both_memories(tmp_path):
     result = run_train("experiment=table5_1_bit", *SMALL, f"hydra.run.dir={tmp_path / 'bit'}")
     assert result.returncode == 0, result.stderr[-2000:]
-    junction = np.load(tmp_path / "bit" / "records" / "junction.npz")
+    junction = np.load(tmp_path / "bit" / "records" / "probe.npz")
     assert junction["state"].shape[1] == 7 + 20 + 20
     assert not (tmp_path / "bit" / "records" / "preprocessor.npz").exists()
 

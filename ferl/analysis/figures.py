@@ -8,6 +8,7 @@ drawing helpers the chapter figures share.
 
 from __future__ import annotations
 
+import textwrap
 from typing import Sequence
 
 import numpy as np
@@ -21,6 +22,17 @@ def edges(centres: np.ndarray) -> np.ndarray:
         return np.array([c[0] - 0.5, c[0] + 0.5])
     mid = 0.5 * (c[1:] + c[:-1])
     return np.concatenate([[2 * c[0] - mid[0]], mid, [2 * c[-1] - mid[-1]]])
+
+
+def fitted_suptitle(fig: Figure, title: str) -> None:
+    """``fig.suptitle(title)`` with its lines wrapped at spaces until it fits the figure's width. A
+    figure sized for its panels (the prediction errors: one column per episode length) can be
+    narrower than its title: with one length only, 3.1 inches against a title of 7."""
+    text, lines = fig.suptitle(title), title.splitlines()
+    chars = max(map(len, lines))
+    while text.get_window_extent().width > 0.98 * fig.bbox.width and chars > 12:
+        chars = int(chars * 0.85)
+        text.set_text("\n".join(textwrap.fill(line, chars, break_long_words=False) for line in lines))
 
 
 def band(ax, x: np.ndarray, mean: np.ndarray, sem: np.ndarray, optimum: float | None,
@@ -119,5 +131,5 @@ def prediction_errors(train: np.ndarray, test: np.ndarray, lengths: np.ndarray,
                 ax.set_xlabel("step t")
         axes[row, 0].set_ylabel("predictor epoch")
     fig.colorbar(im, ax=axes, label=units, shrink=0.8, extend=extend)
-    fig.suptitle(title)
+    fitted_suptitle(fig, title)
     return fig

@@ -146,6 +146,12 @@ class Run:
             self.files[name] = self.checked(path, load_npz(path)) if path.is_file() else None
         return self.files[name]
 
+    def probes(self) -> dict[str, np.ndarray] | None:
+        """`records/probe.npz`, the activations at the environment's probe states (docs/records.md),
+        or `records/junction.npz`, its name in runs recorded before it was neutral."""
+        found = self.records("probe")
+        return found if found is not None else self.records("junction")
+
     def required(self, name: str) -> dict[str, np.ndarray]:
         """`records/<name>.npz`, which this analysis cannot do without: FileNotFoundError naming
         the file where the run has none (removed, or the run was cut before it wrote it)."""

@@ -53,11 +53,11 @@ class Projection:
 class TMazeRun:
     run: Run
     episodes: dict[str, np.ndarray]   # records/episodes.npz
-    junction: dict[str, np.ndarray]   # records/junction.npz; {} without junction visits
+    junction: dict[str, np.ndarray]   # records/probe.npz (the T-junction's visits); {} without any
 
     @classmethod
     def load(cls, run: Run) -> TMazeRun:
-        return cls(run, run.required("episodes"), run.records("junction") or {})
+        return cls(run, run.required("episodes"), run.probes() or {})
 
     # ---- the task ----
     @property

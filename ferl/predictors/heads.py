@@ -16,6 +16,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ferl.predictors.popart import normalised, rescale_head
+
 REWARD_OUTPUTS = ("bits", "linear", "none")
 ERROR_CHUNK = 1 << 20  # output values per chunk of sequences in prediction_errors
 
@@ -74,12 +76,14 @@ class OutputHeads(nn.Module):
     sigmoid + cross entropy, Eqs. 4.5–4.6, ``n_reward`` bits; "linear", one scalar + squared
     error, Eq. 5.2; "none": the observation predictor of ch. 5) of a predictor whose memory
     ``unroll``s to m (R, B, T+1, M). A subclass draws its memory's parameters, then calls
-    ``init_heads`` with the same per-run generators."""
+    ``init_heads`` with the same per-run generators. A linear reward head with ``reward_stats``
+    (``ferl.predictors.popart``) learns every run's standardised reward; None: the raw reward."""
 
     def init_heads(self, gaussian, n_obs: int, n_memory: int, n_reward: int, reward_output: str, predict_obs: bool,
                    gains: tuple, weights: tuple) -> None:
         """Head parameters from ``gaussian(*shape)`` (R, *shape); gains (β_y, β_r), error weights (ρ_y, ρ_r)."""
         self.reward_output, self.predict_obs = reward_output, predict_obs
+        self.reward_stats = None  # a RewardStatistics module where the reward is normalised (ferl.predictors.popart)
         (self.beta_y, self.beta_r), (self.rho_y, self.rho_r) = gains, weights
         n_r = 1 if reward_output == "linear" else n_reward
         self.W_ym, self.b_y = (gaussian(n_obs, n_memory), gaussian(n_obs)) if predict_obs else (None, None)
@@ -198,11 +202,24 @@ class OutputHeads(nn.Module):
         (linear), or None ("none")."""
         if self.reward_output == "none":
             return None
-        r = torch.cat([torch.zeros_like(rewards[..., :1]), rewards], -1).unsqueeze(-1)
         if self.reward_output == "linear":
-            return r
+            z = normalised(self.reward_stats, rewards) if self.reward_stats is not None else rewards
+            return torch.cat([torch.zeros_like(z[..., :1]), z], -1).unsqueeze(-1)
+        r = torch.cat([torch.zeros_like(rewards[..., :1]), rewards], -1).unsqueeze(-1)
         values = torch.as_tensor(reward_values, dtype=rewards.dtype, device=rewards.device)
         return (r == values).to(rewards.dtype)
 
+    @torch.no_grad()
+    def observe_rewards(self, rewards: torch.Tensor, lengths: torch.Tensor) -> None:
+        """Merge the rewards r_1 … r_T of new episodes (R, B, T_max), lengths (R, B), into the
+        reward statistics, and rescale the reward head so that its outputs in the environment's
+        units are preserved (PopArt, ``ferl.predictors.popart``); nothing without statistics."""
+        if self.reward_stats is None:
+            return
+        before = self.reward_stats.moments()
+        self.reward_stats.update(rewards, torch.arange(rewards.shape[-1], device=rewards.device) < lengths.unsqueeze(-1))
+        rescale_head(self.W_rm, self.b_r, before, self.reward_stats.moments())
+
     def describe_heads(self) -> dict:
-        return {"predicts_observation": self.predict_obs, "reward_output": self.reward_output}
+        norm = {} if self.reward_stats is None else {"reward_norm": "popart"}
+        return {"predicts_observation": self.predict_obs, "reward_output": self.reward_output, **norm}

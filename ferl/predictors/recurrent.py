@@ -20,6 +20,7 @@ from torch import nn
 
 from ferl.config.params import ArgumentError, NonNegative, NonNegativeInt, Positive, PositiveInt, checked
 from ferl.predictors.heads import REWARD_OUTPUTS, OutputHeads, clean, valid_steps
+from ferl.predictors.popart import RewardStatistics
 from ferl.predictors.training import PredictorBatch
 
 
@@ -40,7 +41,8 @@ class RecurrentPredictor(OutputHeads):
     "none"; ``predict_obs``). c_y, c_a scale the previous observation and action into the memory
     (§4.3.3); β_y, β_r the heads' gains and ρ_y, ρ_r their error weights (Eq. 4.6); ``lr`` is α of
     plain SGD on J(T) (``time_average``) or Σ_t E_t, one step per ``batch_size`` sequences;
-    ``init_std`` the spread of the Gaussian initial weights (§4.3.1)."""
+    ``init_std`` the spread of the Gaussian initial weights (§4.3.1); ``reward_norm`` popart: the
+    linear reward head learns each run's standardised reward (``ferl.predictors.popart``)."""
 
     kind = ""
     uses_beta_m = False  # β_m is the gain of the Elman memory's sigmoid (Eq. 4.3); others keep it 1
@@ -52,7 +54,7 @@ class RecurrentPredictor(OutputHeads):
                  c_a: NonNegative = 1.0, beta_m: Positive = 1.0, beta_y: Positive = 1.0, beta_r: Positive = 1.0,
                  rho_y: NonNegative = 1.0, rho_r: NonNegative = 1.0, lr: Positive = 0.05, init_std: NonNegative = 1.0,
                  predict_obs: bool = True, time_average: bool = False, batch_size: PositiveInt = 1,
-                 seed: NonNegativeInt = 0):
+                 seed: NonNegativeInt = 0, reward_norm: Literal["none", "popart"] = "none"):
         super().__init__()
         self.c_y, self.c_a, self.beta_m = c_y, c_a, beta_m
         self.lr, self.time_average, self.batch_size = lr, time_average, batch_size
@@ -66,6 +68,8 @@ class RecurrentPredictor(OutputHeads):
 
         self.init_memory(gaussian, gens, n_obs, n_actions, n_memory)
         self.init_heads(gaussian, n_obs, n_memory, n_reward, reward_output, predict_obs, (beta_y, beta_r), (rho_y, rho_r))
+        if reward_norm == "popart":
+            self.reward_stats = RewardStatistics(n_runs)
 
     @classmethod
     def check_config(cls, args: dict) -> None:
@@ -73,6 +77,8 @@ class RecurrentPredictor(OutputHeads):
             raise ArgumentError("reward_output", "bits or linear when predict_obs is false (a predictor needs an output)")
         if not cls.uses_beta_m and args["beta_m"] != 1:
             raise ArgumentError("beta_m", f"1 with memory={cls.kind} (β_m is the gain of the Elman memory's sigmoid)")
+        if args["reward_norm"] != "none" and args["reward_output"] != "linear":
+            raise ArgumentError("reward_norm", "none unless reward_output=linear (it standardises a scalar reward)")
 
     def init_memory(self, gaussian, generators: list, n_obs: int, n_actions: int, n_memory: int) -> None:
         """Draw the memory's parameters: ``gaussian(*shape, std=…)`` (R, *shape) per run."""

@@ -10,7 +10,8 @@ predictors step on observation ids (``Predictor.frozen_step``).
 What the records keep besides returns, lengths and TD errors is the environment's: its episode
 ``outcomes`` (per episode, in ``episodes.npz``; the boolean ones give ``final_<name>_rate`` and
 count towards ``solved``) and the activations at its ``probe`` states with its ``labels``
-(``junction.npz``, the T-junction in the T-mazes, Figs. 4.14–4.19).
+(``probe.npz``: the T-junction in the T-mazes, Figs. 4.14–4.19; named for what every episodic
+environment may declare, docs/records.md).
 """
 import numpy as np
 import torch
@@ -265,7 +266,7 @@ class ActorEpisodes(Phase):
                              gamma=np.float64(job.actor.gamma),
                              optimal_return=np.float64(optimal.get("discounted_return", np.nan)),
                              optimal_steps=np.float64(job.env.optimal_steps))
-        job.run.save_records("junction", job.R, **probes)
+        job.run.save_records("probe", job.R, **probes)
         self.log_probes(job, probes, records)
         job.metrics.update(final_metrics(records, self.optimum, self.final_window, self.rates, self.averages))
         job.metrics.update(sample_efficiency(records, job.shared.get("random_steps", np.zeros(job.R, np.int64)),
@@ -288,7 +289,7 @@ class ActorEpisodes(Phase):
         if len(visits) == 0:
             return
         episode = probes["episode"][visits]
-        log_embedding(job.writer, "actor/hidden_at_junction", probes["hidden"][visits], {
+        log_embedding(job.writer, "actor/hidden_at_probe", probes["hidden"][visits], {
             **{key: probes[key][visits] for key in job.env.labels()},
             "episode": episode, "steps_to_goal": probes["steps_to_goal"][visits],
             **{key: records[key][0, episode].astype(int) for key in self.rates}}, self.N)

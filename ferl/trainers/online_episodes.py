@@ -9,6 +9,8 @@ memory from its first episode, and after every episode
   drawn uniformly from it, one step on the summed loss of every ``replay_batch_size`` of them
   (the first-order sum of as many pattern-mode steps at its ``lr``; its own ``batch_size`` when
   null);
+* a predictor that normalises its scalar reward (``reward_norm=popart``, ``ferl.predictors.popart``)
+  merges the episode's rewards into its statistics, once;
 * its prediction error e_k (Eq. 4.8 per step, mean over the episode's steps, summed over the
   predictors) is measured *before* the predictors train on it — a held-out error — and tracked as
   ē_k = (1 − λ) ē_{k−1} + λ e_k (``error_ema`` λ; ē_0 = e_0).
@@ -34,6 +36,7 @@ import numpy as np
 import torch
 
 from ferl.config.params import ConfigError, Momentum, NonNegative, Positive, PositiveInt, UnitInterval, checked
+from ferl.predictors.popart import observe_rewards
 from ferl.predictors.recurrent import lookup_step
 from ferl.trainers.actor_episodes import ActorEpisodes
 from ferl.trainers.episodes import Episodes, episode_tensors
@@ -121,6 +124,7 @@ class OnlineEpisodes(ActorEpisodes):
         online["prediction_error"][:, k] = error.cpu().numpy()
         online["beta"][:, k] = self.beta_now.flatten().cpu().numpy()  # the β episode k acted with
         online["curiosity"][:, k] = self.eta_now
+        observe_rewards(job.predictors.values(), ep.rewards, ep.lengths)  # once per new episode, after its held-out error
         replay, slot = state["replay"], k % self.K
         for key, value in zip(("obs", "actions", "rewards", "lengths"), (ep.obs, ep.actions, ep.rewards, ep.lengths)):
             replay[key][:, slot] = value[:, 0]

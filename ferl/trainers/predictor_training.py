@@ -10,6 +10,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from ferl.predictors.popart import observe_rewards
 from ferl.run.directory import CheckpointTimer
 from ferl.run.tensorboard import log_weights
 from ferl.trainers.episodes import episode_bytes, episode_tensors
@@ -75,12 +76,14 @@ class TrainPredictors(Phase):
         trainable = train.lengths[0] <= job.env.optimal_steps + self.l_training - 1
         fit = train.select(torch.nonzero(trainable).squeeze(1).expand(R, -1))
         y, a, _, lengths = episode_tensors(job, fit, None)
+        partial = state["group"] or {}
+        if partial.get("names") != names:  # a fresh start: the fit's rewards set a normalised reward head's statistics
+            observe_rewards(members, fit.rewards, fit.lengths)
         batch = type(members[0]).training_batch(
             members, y, a, [p.reward_targets(job.env.reward_values, fit.rewards) for p in members], lengths)
         if job.fast and hasattr(batch, "fuse"):  # optional: a batch without it trains eagerly
             batch.fuse(job.device)
         splits = {(name, s): episode_tensors(job, data[s], p) for name, p in zip(names, members) for s in ("train", "test")}
-        partial = state["group"] or {}
         if partial.get("names") == names:
             errors, epochs, start = partial["errors"], partial["epochs"], partial["epoch"]
         else:
