@@ -162,6 +162,7 @@ class OnlineAlgorithm(PhasedTrainer):
 
     seed_offsets = SeedOffsets(actor=100_000)
     kind = "online"
+    episodic = True  # the kind of task it steps, checked against the environment before any work (ferl/config/swaps.py)
 
     @checked
     def __init__(self, n_episodes: PositiveInt, actor_obs_scale: Positive, replay_episodes: PositiveInt,
