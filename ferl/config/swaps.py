@@ -82,7 +82,8 @@ def drop_foreign_keys(cfg: DictConfig) -> None:
 def prune(node: DictConfig, path: tuple, typed: set[tuple]) -> None:
     """One node: a component (``_target_``) keeps the keys its constructor takes; a map of components
     (``predictor``) keeps its entries that are components."""
-    user = lambda p: any(p[:i] in typed for i in range(1, len(p) + 1))  # noqa: E731 — typed, or inside a typed node
+    # typed, inside a typed node, or holding a typed key
+    user = lambda p: any(t[:len(p)] == p or p[:len(t)] == t for t in typed)  # noqa: E731
     if "_target_" not in node:
         for key in list(node):
             child, where = node[key], (*path, key)

@@ -34,6 +34,7 @@ import numpy as np
 import torch
 
 from ferl.config.params import ConfigError, Momentum, NonNegative, Positive, PositiveInt, UnitInterval, checked
+from ferl.config.swaps import chosen
 from ferl.predictors.recurrent import lookup_step
 from ferl.trainers.actor_episodes import ActorEpisodes
 from ferl.trainers.episodes import Episodes, episode_tensors
@@ -58,8 +59,9 @@ class OnlineEpisodes(ActorEpisodes):
 
     def prepare(self, job) -> None:
         if not job.predictors:
-            raise ConfigError("predictor=none is not allowed with trainer=online: it trains predictors and actor "
-                              "together; a memoryless actor alone is the actor phase of trainer=algorithm1")
+            raise ConfigError(f"predictor=none is not allowed with {chosen('trainer', 'OnlineAlgorithm')}: it trains "
+                              "predictors and actor together; a memoryless actor alone is the actor phase of "
+                              "trainer=algorithm1")
         super().prepare(job)
         groups = {}
         for p in job.predictors.values():
