@@ -105,3 +105,22 @@ def test_a_refusal_names_the_trainer_the_user_chose(trainer):
     with pytest.raises(ConfigError) as e:
         instantiate(cfg.trainer).setup(cfg, torch.device("cpu"))
     assert str(e.value).startswith(f"predictor=none is not allowed with trainer={trainer}: "), str(e.value)
+
+
+@pytest.mark.parametrize("overrides,line", [
+    (["experiment=null"], "ferl: error: experiment=null is not allowed: a group's option cannot be null; "
+                          "experiment=none runs without an experiment"),
+    (["~experiment"], "ferl: error: ~experiment is not allowed: a run is named by its experiment; "
+                      "experiment=none runs without one"),
+    (["experiment=ch3_floor", "trainer=online"],
+     "ferl: error: trainer=online does not fit experiment=ch3_floor: OnlineAlgorithm trains on episodes, "
+     "and env=digit_floor (DigitFloor) is a continuing task"),
+])
+def test_train_py_refuses_in_one_line(tmp_path, overrides, line):
+    """Through train.py: exactly one line on stderr, exit status ≠ 0, no run directory."""
+    from conftest import run_train
+
+    result = run_train(*overrides, f"hydra.run.dir={tmp_path / 'run'}", timeout=120)
+    assert result.returncode != 0
+    assert result.stderr.strip().splitlines() == [line], result.stderr
+    assert not (tmp_path / "run").exists()

@@ -48,6 +48,9 @@ def validate(cfg: DictConfig) -> None:
     drop_foreign_keys(cfg)
     hydra = hydra_node(cfg)
     values = resolved(cfg)
+    if values.get("name") is None and hydra is not None and hydra.runtime.choices.get("experiment") is None:
+        raise ConfigError("~experiment is not allowed: a run is named by its experiment; "
+                          "experiment=none runs without one")
     check_arguments(RunSettings, {k: values[k] for k in ROOT_KEYS if k in values})
     try:
         for key, node in values.items():
