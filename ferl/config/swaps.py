@@ -86,7 +86,7 @@ def prune(node: DictConfig, path: tuple, typed: set[tuple]) -> None:
     user = lambda p: any(t[:len(p)] == p or p[:len(t)] == t for t in typed)  # noqa: E731
     if "_target_" not in node:
         for key in list(node):
-            child, where = node[key], (*path, key)
+            child, where = node._get_node(key), (*path, key)  # unresolved: a ??? or ${…} is the check's to name
             if isinstance(child, DictConfig) and "_target_" not in child and not user(where):
                 del node[key]  # an experiment's values for a component this option does not have
             elif isinstance(child, DictConfig):
@@ -97,10 +97,11 @@ def prune(node: DictConfig, path: tuple, typed: set[tuple]) -> None:
         return  # no constructor to ask: the check names what is wrong
     for key in [k for k in node if k != "_target_"]:
         where = (*path, key)
+        child = node._get_node(key)
         if key not in takes and not user(where):
             del node[key]
-        elif isinstance(node[key], DictConfig) and "_target_" in node[key]:
-            prune(node[key], where, typed)
+        elif isinstance(child, DictConfig) and "_target_" in child:
+            prune(child, where, typed)
 
 
 def taken(node: DictConfig) -> set[str] | None:
