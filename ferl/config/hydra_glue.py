@@ -62,7 +62,8 @@ def one_line_errors():
         captured, sys.stderr = sys.stderr, real
         if e.code and isinstance(captured, io.StringIO):
             report = captured.getvalue()
-            print("ferl: error: " + (hydra_os_error(report) or condense_hydra_error(report)), file=sys.stderr)
+            line = hydra_os_error(report) or null_group_choice(report, sys.argv[1:]) or condense_hydra_error(report)
+            print("ferl: error: " + line, file=sys.stderr)
         raise
     except KeyboardInterrupt:
         sys.stderr = real
@@ -154,6 +155,17 @@ def shown(path: Path) -> str:
 def release_stderr() -> None:
     """Hand stderr back once Hydra has composed the config (progress bars and errors go there)."""
     sys.stderr = sys.__stderr__
+
+
+def null_group_choice(report: str, arguments: list[str]) -> str | None:
+    """``experiment=null``: Hydra refuses a null group choice with a traceback; one line naming the
+    override and what is allowed instead (None for any other report)."""
+    if "Config group override must be a string or a list. Got NoneType" not in report:
+        return None
+    typed = next((a for a in arguments if a.partition("=")[2] == "null" and "." not in a.partition("=")[0]), "")
+    group = typed.partition("=")[0].lstrip("+~") or "a config group"
+    instead = "experiment=none runs without an experiment" if group == "experiment" else f"~{group} removes it"
+    return f"{typed or group + '=null'} is not allowed: a group's option cannot be null; {instead}"
 
 
 def condense_hydra_error(report: str) -> str:

@@ -30,6 +30,8 @@ class Algorithm(PhasedTrainer):
     ``final_window``, ``checkpoint_every``), and the job's (``checkpoint_minutes``,
     ``divergence_limit``); their meaning and values are in conf/trainer/algorithm1.yaml."""
 
+    episodic = True  # the kind of task it steps, checked against the environment before any work (ferl/config/swaps.py)
+
     seed_offsets = SeedOffsets(actor=100_000)
 
     @checked

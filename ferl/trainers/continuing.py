@@ -10,6 +10,8 @@ class OnlineTDTrainer(PhasedTrainer):
     """``steps`` online TD steps of every run (``OnlineTD``; ``compile``, a root key, compiles its
     chunks); subclasses put phases around them (``around``)."""
 
+    episodic = False  # the kind of task it steps, checked against the environment before any work (ferl/config/swaps.py)
+
     @checked
     def __init__(self, steps: PositiveInt, log_every: PositiveInt, checkpoint_every: PositiveInt,
                  checkpoint_minutes: NonNegative, divergence_limit: Positive, compile_group_runs: PositiveInt,

@@ -36,6 +36,7 @@ import numpy as np
 import torch
 
 from ferl.config.params import ConfigError, Momentum, NonNegative, Positive, PositiveInt, UnitInterval, checked
+from ferl.config.swaps import chosen
 from ferl.predictors.popart import observe_rewards
 from ferl.predictors.recurrent import lookup_step
 from ferl.trainers.actor_episodes import ActorEpisodes
@@ -61,8 +62,9 @@ class OnlineEpisodes(ActorEpisodes):
 
     def prepare(self, job) -> None:
         if not job.predictors:
-            raise ConfigError("predictor=none is not allowed with trainer=online: it trains predictors and actor "
-                              "together; a memoryless actor alone is the actor phase of trainer=algorithm1")
+            raise ConfigError(f"predictor=none is not allowed with {chosen('trainer', 'OnlineAlgorithm')}: it trains "
+                              "predictors and actor together; a memoryless actor alone is the actor phase of "
+                              "trainer=algorithm1")
         super().prepare(job)
         groups = {}
         for p in job.predictors.values():
@@ -166,6 +168,7 @@ class OnlineAlgorithm(PhasedTrainer):
 
     seed_offsets = SeedOffsets(actor=100_000)
     kind = "online"
+    episodic = True  # the kind of task it steps, checked against the environment before any work (ferl/config/swaps.py)
 
     @checked
     def __init__(self, n_episodes: PositiveInt, actor_obs_scale: Positive, replay_episodes: PositiveInt,
