@@ -78,7 +78,13 @@ class OutputHeads(nn.Module):
 
     def init_heads(self, gaussian, n_obs: int, n_memory: int, n_reward: int, reward_output: str, predict_obs: bool,
                    gains: tuple, weights: tuple) -> None:
-        """Head parameters from ``gaussian(*shape)`` (R, *shape); gains (β_y, β_r), error weights (ρ_y, ρ_r)."""
+        """Head parameters from ``gaussian(*shape)`` (R, *shape); gains (β_y, β_r), error weights (ρ_y, ρ_r).
+        ``n_reward``: the reward bits, one per reward value of the environment (None: it declares
+        none, e.g. a third-party one, and the reward can only be predicted as a scalar)."""
+        if reward_output == "bits" and n_reward is None:
+            raise ValueError("n_reward is required with reward_output=bits: one bit per reward value of the environment "
+                             "(its reward_values, which this one does not declare); use reward_output=linear "
+                             "(predictor=joint_scalar)")
         self.reward_output, self.predict_obs = reward_output, predict_obs
         (self.beta_y, self.beta_r), (self.rho_y, self.rho_r) = gains, weights
         n_r = 1 if reward_output == "linear" else n_reward

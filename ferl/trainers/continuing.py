@@ -2,6 +2,7 @@
 have nothing to test before or after it (Sallans & Hinton's large-action task);
 ``conf/trainer/online_td.yaml`` names this class and holds its arguments."""
 from ferl.config.params import NonNegative, NonNegativeInt, Positive, PositiveInt, checked
+from ferl.interfaces import ContinuingEnvironment
 from ferl.trainers.online import OnlineTD
 from ferl.trainers.phased import PhasedTrainer
 
@@ -9,6 +10,8 @@ from ferl.trainers.phased import PhasedTrainer
 class OnlineTDTrainer(PhasedTrainer):
     """``steps`` online TD steps of every run (``OnlineTD``; ``compile``, a root key, compiles its
     chunks); subclasses put phases around them (``around``)."""
+
+    environment = ContinuingEnvironment
 
     @checked
     def __init__(self, steps: PositiveInt, log_every: PositiveInt, checkpoint_every: PositiveInt,

@@ -34,6 +34,7 @@ import numpy as np
 import torch
 
 from ferl.config.params import ConfigError, Momentum, NonNegative, Positive, PositiveInt, UnitInterval, checked
+from ferl.interfaces import EpisodicEnvironment
 from ferl.predictors.recurrent import lookup_step
 from ferl.trainers.actor_episodes import ActorEpisodes
 from ferl.trainers.episodes import Episodes, episode_tensors
@@ -161,6 +162,7 @@ class OnlineAlgorithm(PhasedTrainer):
     when the config has one →] ``OnlineEpisodes``. Arguments as in conf/trainer/online.yaml."""
 
     seed_offsets = SeedOffsets(actor=100_000)
+    environment = EpisodicEnvironment
     kind = "online"
 
     @checked
