@@ -211,4 +211,5 @@ class OutputHeads(nn.Module):
         return (r == values).to(rewards.dtype)
 
     def describe_heads(self) -> dict:
-        return {"predicts_observation": self.predict_obs, "reward_output": self.reward_output}
+        bits = {"reward_bits": self.W_rm.shape[-2]} if self.reward_output == "bits" else {}  # N^r, the environment's
+        return {"predicts_observation": self.predict_obs, "reward_output": self.reward_output, **bits}
