@@ -31,7 +31,7 @@ def test_components_meet_their_protocols():
     assert isinstance(TMaze(2, gen), interfaces.EpisodicEnvironment)
     assert isinstance(DigitTMaze(2, gen, tiny_split(), digits, matching=True), interfaces.EpisodicEnvironment)
     assert isinstance(RBMPreprocessor(2, n_visible=16, n_hidden=4), interfaces.Preprocessor)
-    assert isinstance(ElmanPredictor(2, 7, 4), interfaces.Predictor)
+    assert isinstance(ElmanPredictor(2, 7, 4, n_reward=4), interfaces.Predictor)
     actor = FERLActor(2, 27, 4, 20, "sarsa", 0.95, Constant(0.05), Constant(1.0))
     assert isinstance(actor, interfaces.Actor)
 

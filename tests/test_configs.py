@@ -11,7 +11,7 @@ from omegaconf import OmegaConf
 
 from conftest import EXPERIMENTS, ROOT, run_train
 from ferl.config.hydra_glue import condense_hydra_error
-from ferl.config.params import ConfigError, check_node
+from ferl.config.params import ConfigError, check_node, target
 from ferl.config.validate import validate
 from ferl.data import DataError
 from ferl.trainers.job import Job, SeedOffsets
@@ -28,13 +28,17 @@ def test_experiment_composes_validates_and_builds(compose_cfg, name):
     HydraConfig.instance().set_config(cfg)
     assert cfg.name == (name if name != "none" else "digit_floor")  # none: the groups' defaults, named by the env
     validate(cfg)
-    job = Job(cfg, torch.device("cpu"), SeedOffsets(), cfg.trainer.divergence_limit)
+    # built as its trainer builds it: every component checked against its protocol (ferl/trainers/facts.py)
+    job = Job(cfg, torch.device("cpu"), SeedOffsets(), cfg.trainer.divergence_limit,
+              target(cfg.trainer._target_).environment)
     # the actor's state: the (processed) observation, as the preprocessor reports it, and every predictor's memory
     n_obs = job.preprocessor.output_size if cfg.get("preprocessor") else job.env.observation_size
     n_state = n_obs + sum(p.n_memory for p in (cfg.get("predictor") or {}).values())
     assert job.actor.state_weights().shape == (2, n_state, cfg.actor.n_hidden)
     for p_cfg, predictor in zip((cfg.get("predictor") or {}).values(), job.predictors.values()):
         assert predictor.memory_size == p_cfg.n_memory
+        if predictor.reward_output == "bits":  # one reward bit per reward value, read off the environment
+            assert predictor.W_rm.shape[1] == len(job.env.reward_values) == 4
     optimal = job.env.optimal(cfg.actor.gamma)
     if job.env.task == "tmaze":
         assert optimal["discounted_return"] == pytest.approx(4.3175)
@@ -72,7 +76,8 @@ def test_table_4_1_and_4_2_parameters(compose_cfg):
     cfg = compose_cfg(["experiment=table4_1_matching"])
     assert (cfg.env.corridor_length, cfg.env.max_steps, cfg.env.matching) == (3, 10, True)
     p, a, t = cfg.predictor.joint, cfg.actor, cfg.trainer
-    assert (p.n_memory, p.n_reward, p.rho_y, p.rho_r, p.c_y, p.c_a, p.beta_m, p.beta_y, p.lr) == (20, 4, 1, 4, 1, 1, 1, 1, 0.05)
+    assert (p.n_memory, p.rho_y, p.rho_r, p.c_y, p.c_a, p.beta_m, p.beta_y, p.lr) == (20, 1, 4, 1, 1, 1, 1, 0.05)
+    assert "n_reward" not in p  # N^r = 4, one bit per reward value: the environment's (ferl/trainers/facts.py)
     assert (a.n_hidden, a.lr.value, a.beta.start, a.beta.end, a.gamma) == (20, 0.05, 0, 10, 0.95)
     assert (t.n_sample, t.l_training, t.n_epoch, t.n_episodes) == (2000, 5, 400, 10000)
     digit = compose_cfg(["experiment=table4_2_digit"])
@@ -95,7 +100,8 @@ def test_table_5_1_parameters(compose_cfg):
         assert cfg.trainer.n_epoch == epochs and cfg.env.matching and cfg.actor.n_hidden == 20
     pixel = compose_cfg(["experiment=table5_1_pixel"])
     p = pixel.preprocessor
-    assert (p.n_visible, p.n_hidden, p.cd_k, p.sweeps) == (784, 20, 3, 600)
+    assert (p.n_hidden, p.cd_k, p.sweeps) == (20, 3, 600)
+    assert "n_visible" not in p  # 784 pixels: the environment's observation size (ferl/trainers/facts.py)
     assert pixel.env.reservoir_size == 100 and pixel.env.binarize_threshold is None
     assert len(set(pixel.env.digit_classes.values())) == 5  # Fig. 5.15: five digits
     assert compose_cfg(["experiment=table5_1_bit"]).trainer.n_sample == 2000
@@ -190,7 +196,9 @@ VALUE_ERRORS = [
 
 # what involves two components: rejected by the trainer's setup, once they are built
 SETUP_ERRORS = [
-    ("experiment=table5_1_pixel preprocessor.n_visible=700", "preprocessor"),
+    # a size stated against the environment's own (ferl/trainers/facts.py)
+    ("experiment=table5_1_pixel +preprocessor.n_visible=700", "preprocessor.n_visible=700 disagrees"),
+    ("experiment=table4_1_matching +predictor.joint.n_reward=3", "predictor.joint.n_reward=3 disagrees"),
     ("experiment=table5_1_bit preprocessor=rbm", "preprocessor"),
     ("trainer.test_per_class=450", "trainer.test_per_class"),
     ("optimized_metric=final_discounted_return", "optimized_metric"),

@@ -305,8 +305,8 @@ def test_prediction_errors_eq_4_8_and_nan_padding():
 
 def test_init_is_per_run_seeded_unit_gaussian():
     """Run r's initial parameters depend on seed + r only (not on n_runs); N(0, 1) by default."""
-    big = ElmanPredictor(4, 7, 4, seed=3)
-    small = ElmanPredictor(2, 7, 4, seed=5)
+    big = ElmanPredictor(4, 7, 4, n_reward=4, seed=3)
+    small = ElmanPredictor(2, 7, 4, n_reward=4, seed=5)
     for qb, qs in zip(big.parameters(), small.parameters()):
         torch.testing.assert_close(qb[2:], qs)
     flat = torch.cat([q.detach().flatten() for q in big.parameters()])
@@ -318,7 +318,7 @@ def test_reward_targets_bits_and_scalar():
     shifted so index t holds r_t; padding (reward 0) codes as all-zero bits."""
     env = SimpleNamespace(reward_values=(-5.0, -1.0, -0.1, 5.0))
     rewards = torch.tensor([[[-0.1, -1.0, 5.0, 0.0]]], dtype=torch.float64)
-    bits = ElmanPredictor(1, Y, A, reward_output="bits").reward_targets(env.reward_values, rewards)
+    bits = ElmanPredictor(1, Y, A, n_reward=4, reward_output="bits").reward_targets(env.reward_values, rewards)
     assert bits.shape == (1, 1, 5, 4)
     assert bits[0, 0].tolist() == [[0, 0, 0, 0], [0, 0, 1, 0], [0, 1, 0, 0], [0, 0, 0, 1], [0, 0, 0, 0]]
     scalar = ElmanPredictor(1, Y, A, reward_output="linear").reward_targets(env.reward_values, rewards)

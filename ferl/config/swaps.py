@@ -20,6 +20,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, open_dict
 
 from ferl.config.params import ArgumentError, ConfigError, plain, signature, target
+from ferl.interfaces import ContinuingEnvironment, EpisodicEnvironment
 
 GROUPS = ("env", "preprocessor", "predictor", "actor", "trainer", "data")
 
@@ -124,13 +125,13 @@ def continuing(env_class) -> bool:
 
 
 def check_fit(values: dict, hydra) -> None:
-    """A trainer that declares the kind of task it steps (``episodic``) against the environment's class:
-    one line naming the pair, before any work."""
+    """A trainer that declares the kind of task it steps (its ``environment`` protocol: episodic or
+    continuing) against the environment's class: one line naming the pair, before any work."""
     env, trainer = values.get("env"), values.get("trainer")
     if not (isinstance(env, dict) and isinstance(trainer, dict) and "_target_" in env and "_target_" in trainer):
         return
     trainer_class, env_class = target(trainer["_target_"]), target(env["_target_"])
-    wants = getattr(trainer_class, "episodic", None)
+    wants = {EpisodicEnvironment: True, ContinuingEnvironment: False}.get(getattr(trainer_class, "environment", None))
     if wants is None or wants != continuing(env_class):
         return
     steps = "episodes" if wants else "a continuing task"

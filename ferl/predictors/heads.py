@@ -81,7 +81,13 @@ class OutputHeads(nn.Module):
 
     def init_heads(self, gaussian, n_obs: int, n_memory: int, n_reward: int, reward_output: str, predict_obs: bool,
                    gains: tuple, weights: tuple) -> None:
-        """Head parameters from ``gaussian(*shape)`` (R, *shape); gains (β_y, β_r), error weights (ρ_y, ρ_r)."""
+        """Head parameters from ``gaussian(*shape)`` (R, *shape); gains (β_y, β_r), error weights (ρ_y, ρ_r).
+        ``n_reward``: the reward bits, one per reward value of the environment (None: it declares
+        none, e.g. a third-party one, and the reward can only be predicted as a scalar)."""
+        if reward_output == "bits" and n_reward is None:
+            raise ValueError("n_reward is required with reward_output=bits: one bit per reward value of the environment "
+                             "(its reward_values, which this one does not declare); use reward_output=linear "
+                             "(predictor=joint_scalar)")
         self.reward_output, self.predict_obs = reward_output, predict_obs
         self.reward_stats = None  # a RewardStatistics module where the reward is normalised (ferl.predictors.popart)
         (self.beta_y, self.beta_r), (self.rho_y, self.rho_r) = gains, weights
@@ -222,4 +228,5 @@ class OutputHeads(nn.Module):
 
     def describe_heads(self) -> dict:
         norm = {} if self.reward_stats is None else {"reward_norm": "popart"}
-        return {"predicts_observation": self.predict_obs, "reward_output": self.reward_output, **norm}
+        bits = {"reward_bits": self.W_rm.shape[-2]} if self.reward_output == "bits" else {}  # N^r, the environment's
+        return {"predicts_observation": self.predict_obs, "reward_output": self.reward_output, **norm, **bits}

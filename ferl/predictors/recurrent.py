@@ -38,7 +38,8 @@ def lookup_step(predictor, table: torch.Tensor, n_actions: int):
 
 class RecurrentPredictor(OutputHeads):
     """A memory of ``n_memory`` units and the output heads (``reward_output``: "bits", "linear",
-    "none"; ``predict_obs``). c_y, c_a scale the previous observation and action into the memory
+    "none"; ``predict_obs``); ``n_reward`` reward bits, one per reward value of the environment,
+    which the job passes (``ferl.trainers.facts``). c_y, c_a scale the previous observation and action into the memory
     (§4.3.3); β_y, β_r the heads' gains and ρ_y, ρ_r their error weights (Eq. 4.6); ``lr`` is α of
     plain SGD on J(T) (``time_average``) or Σ_t E_t, one step per ``batch_size`` sequences;
     ``init_std`` the spread of the Gaussian initial weights (§4.3.1); ``reward_norm`` popart: the
@@ -50,7 +51,7 @@ class RecurrentPredictor(OutputHeads):
 
     @checked
     def __init__(self, n_runs: PositiveInt, n_obs: PositiveInt, n_actions: PositiveInt, n_memory: PositiveInt = 20,
-                 n_reward: PositiveInt = 4, reward_output: Literal[REWARD_OUTPUTS] = "bits", c_y: NonNegative = 1.0,
+                 n_reward: PositiveInt | None = None, reward_output: Literal[REWARD_OUTPUTS] = "bits", c_y: NonNegative = 1.0,
                  c_a: NonNegative = 1.0, beta_m: Positive = 1.0, beta_y: Positive = 1.0, beta_r: Positive = 1.0,
                  rho_y: NonNegative = 1.0, rho_r: NonNegative = 1.0, lr: Positive = 0.05, init_std: NonNegative = 1.0,
                  predict_obs: bool = True, time_average: bool = False, batch_size: PositiveInt = 1,

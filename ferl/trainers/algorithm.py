@@ -14,6 +14,7 @@ preprocessor's phase first, which runs when the config has a preprocessor.
 from typing import Annotated
 
 from ferl.config.params import Allowed, NonNegative, NonNegativeInt, Positive, PositiveInt, checked
+from ferl.interfaces import EpisodicEnvironment
 from ferl.trainers.actor_episodes import ActorEpisodes
 from ferl.trainers.episodes import CollectEpisodes
 from ferl.trainers.job import SeedOffsets
@@ -30,9 +31,9 @@ class Algorithm(PhasedTrainer):
     ``final_window``, ``checkpoint_every``), and the job's (``checkpoint_minutes``,
     ``divergence_limit``); their meaning and values are in conf/trainer/algorithm1.yaml."""
 
-    episodic = True  # the kind of task it steps, checked against the environment before any work (ferl/config/swaps.py)
 
     seed_offsets = SeedOffsets(actor=100_000)
+    environment = EpisodicEnvironment
 
     @checked
     def __init__(self, n_sample: PositiveInt, collect_batch: PositiveInt,

@@ -2,6 +2,7 @@
 have nothing to test before or after it (Sallans & Hinton's large-action task);
 ``conf/trainer/online_td.yaml`` names this class and holds its arguments."""
 from ferl.config.params import NonNegative, NonNegativeInt, Positive, PositiveInt, checked
+from ferl.interfaces import ContinuingEnvironment
 from ferl.trainers.online import OnlineTD
 from ferl.trainers.phased import PhasedTrainer
 
@@ -10,7 +11,7 @@ class OnlineTDTrainer(PhasedTrainer):
     """``steps`` online TD steps of every run (``OnlineTD``; ``compile``, a root key, compiles its
     chunks); subclasses put phases around them (``around``)."""
 
-    episodic = False  # the kind of task it steps, checked against the environment before any work (ferl/config/swaps.py)
+    environment = ContinuingEnvironment
 
     @checked
     def __init__(self, steps: PositiveInt, log_every: PositiveInt, checkpoint_every: PositiveInt,

@@ -4,7 +4,10 @@ Data flows one way, and the components are built in that order from the config's
 (when a component's constructor takes ``data``, or a preprocessor needs images to fit) →
 environment → preprocessor → predictors → actor. Their sizes follow from what the modules
 report, not from YAML keys: the predictors read the (processed) observation, the actor's state is
-that observation followed by every predictor's memory. Run r of the batch uses seed + r; each
+that observation followed by every predictor's memory, and what the environment decides (its
+reward values, its observation size) reaches every constructor that takes it (``ferl.trainers.facts``).
+Each component is checked against its protocol as soon as it is built, so that one lacking an
+attribute is refused before anything is written. Run r of the batch uses seed + r; each
 component's weights are drawn from seed + its offset + r (``SeedOffsets``), so that they differ.
 
 The job also holds what every phase of a trainer shares: the generator of the batch's random
@@ -21,8 +24,10 @@ from hydra.utils import instantiate
 
 from ferl.compiled import compile_seconds, fast_path
 from ferl.config.params import ConfigError, signature, target
+from ferl.interfaces import Actor, Environment, Predictor, Preprocessor
 from ferl.run.failures import Interrupted, where
 from ferl.run.guard import DivergenceGuard
+from ferl.trainers.facts import check_conforms, facts_for
 
 
 @dataclass(frozen=True)
@@ -39,42 +44,42 @@ def takes(node, name: str) -> bool:
     return name in signature(target(node["_target_"]))[0]
 
 
-def build(node, **runtime):
+def build(node, prefix: str = "", **runtime):
     """instantiate a component; a value that only the data reveal as impossible (a reservoir larger
-    than a class's images) becomes a ConfigError naming it."""
+    than a class's images) becomes a ConfigError naming it (``prefix``: the node's key and a dot,
+    before the argument a constructor's message begins with)."""
     try:
         return instantiate(node, **runtime)
     except InstantiationException as e:
         cause = e.__cause__ or e
         if isinstance(cause, (ValueError, TypeError)):
-            raise ConfigError(str(cause).splitlines()[0]) from None
+            raise ConfigError(prefix + str(cause).splitlines()[0]) from None
         raise
 
 
 class Job:
     """The components of one batch of runs and the run it writes (see the module docstring)."""
 
-    def __init__(self, cfg, device: torch.device, seeds: SeedOffsets, divergence_limit: float):
+    def __init__(self, cfg, device: torch.device, seeds: SeedOffsets, divergence_limit: float,
+                 env_protocol: type = Environment):
+        """``env_protocol``: what the trainer's phases need of the environment (an episodic one for
+        Algorithms 1–2, a continuing one for online TD), checked as soon as it is built."""
         self.cfg, self.device, self.R = cfg, device, cfg.n_runs
         self.seeds = [cfg.seed + r for r in range(self.R)]
         self.generator = torch.Generator(device).manual_seed(cfg.seed)
-        pre_cfg, predictor_cfg = cfg.get("preprocessor"), cfg.get("predictor") or {}
-        needs_data = takes(cfg.env, "data") or pre_cfg is not None
+        needs_data = takes(cfg.env, "data") or cfg.get("preprocessor") is not None
         self.data = build(cfg.data).load() if needs_data else None
         self.env_seed = cfg.seed + seeds.env
         self.env = self.make_env(self.R)
-        self.preprocessor = build(pre_cfg, n_runs=self.R, seed=cfg.seed + seeds.preprocessor).to(device) \
-            if pre_cfg is not None else None
-        if self.preprocessor is not None and self.preprocessor.input_size != self.env.observation_size:
-            raise ConfigError(f"preprocessor takes {self.preprocessor.input_size} inputs, but the environment's "
-                              f"observations have {self.env.observation_size} values")
+        check_conforms(self.env, env_protocol, "env")
+        self.preprocessor = self.make_preprocessor(cfg.seed + seeds.preprocessor)
         self.n_obs = n_obs = self.preprocessor.output_size if self.preprocessor is not None else self.env.observation_size
-        self.predictors = {name: build(p, n_runs=self.R, n_obs=n_obs, n_actions=self.env.n_actions,
-                                       seed=cfg.seed + seeds.predictors * i).to(device)
-                           for i, (name, p) in enumerate(predictor_cfg.items())}
+        self.predictors = {name: self.make_part(p, f"predictor.{name}", Predictor, n_obs=n_obs,
+                                                n_actions=self.env.n_actions, seed=cfg.seed + seeds.predictors * i)
+                           for i, (name, p) in enumerate((cfg.get("predictor") or {}).items())}
         n_state = n_obs + sum(p.memory_size for p in self.predictors.values())
-        self.actor = build(cfg.actor, n_runs=self.R, n_state=n_state, n_actions=self.env.n_actions,
-                           seed=cfg.seed + seeds.actor).to(device)
+        self.actor = self.make_part(cfg.actor, "actor", Actor, n_state=n_state, n_actions=self.env.n_actions,
+                                    seed=cfg.seed + seeds.actor)
         self.guard = DivergenceGuard(self.R, divergence_limit, self.seeds, device)
         if hasattr(self.env, "on_fault"):  # an outside environment's failed run is frozen (ferl.envs.boundary)
             self.env.on_fault = self.guard.freeze
@@ -102,6 +107,27 @@ class Job:
         (summary.json's ``agent_steps_per_s``)."""
         self.progress["agent_steps"] += steps
         self.progress["actor_time"] += seconds
+
+    def make_part(self, node, key: str, protocol: type, **sizes):
+        """A batch of R runs of the component ``node`` (config key ``key``), given the sizes the job
+        computed and the environment's facts it takes (``ferl.trainers.facts``), on the job's device,
+        checked against ``protocol``."""
+        part = build(node, f"{key}.", n_runs=self.R, **sizes, **facts_for(node, key, self.env)).to(self.device)
+        check_conforms(part, protocol, key)
+        return part
+
+    def make_preprocessor(self, seed: int):
+        """The config's preprocessor (None without one). It fits on the data's training images
+        (N, P) and then transforms the environment's observations (R, O): P and O must agree."""
+        node = self.cfg.get("preprocessor")
+        if node is None:
+            return None
+        part = self.make_part(node, "preprocessor", Preprocessor, seed=seed)
+        pixels = self.data.train_images.shape[-1]
+        if part.input_size != self.env.observation_size or pixels != self.env.observation_size:
+            raise ConfigError(f"preprocessor takes {part.input_size} inputs and fits on images of {pixels} pixels, "
+                              f"but the environment's observations have {self.env.observation_size} values")
+        return part
 
     def make_env(self, n_runs: int):
         """A batch of ``n_runs`` environments of the config on the job's generator."""

@@ -37,6 +37,7 @@ import torch
 
 from ferl.config.params import ConfigError, Momentum, NonNegative, Positive, PositiveInt, UnitInterval, checked
 from ferl.config.swaps import chosen
+from ferl.interfaces import EpisodicEnvironment
 from ferl.predictors.popart import observe_rewards
 from ferl.predictors.recurrent import lookup_step
 from ferl.trainers.actor_episodes import ActorEpisodes
@@ -167,8 +168,8 @@ class OnlineAlgorithm(PhasedTrainer):
     when the config has one →] ``OnlineEpisodes``. Arguments as in conf/trainer/online.yaml."""
 
     seed_offsets = SeedOffsets(actor=100_000)
+    environment = EpisodicEnvironment
     kind = "online"
-    episodic = True  # the kind of task it steps, checked against the environment before any work (ferl/config/swaps.py)
 
     @checked
     def __init__(self, n_episodes: PositiveInt, actor_obs_scale: Positive, replay_episodes: PositiveInt,

@@ -15,6 +15,7 @@ from torch.utils.tensorboard import SummaryWriter
 
 from ferl.compiled import compile_seconds
 from ferl.config.params import ConfigError
+from ferl.interfaces import Environment
 from ferl.run.directory import RunDir, StopRequest
 from ferl.run.resume import identity_of
 from ferl.run.tensorboard import log_hparams
@@ -48,6 +49,7 @@ class PhasedTrainer:
     |TD error| beyond which a run is frozen and reported (``ferl.run.guard``)."""
 
     seed_offsets = SeedOffsets()
+    environment: type = Environment  # the protocol its phases need of the environment (checked at setup)
     kind = "phased"
     params: dict = {}  # the trainer's arguments, for records/run.json
     last_step = 0      # the step of the final TensorBoard points (the HParams session)
@@ -60,7 +62,7 @@ class PhasedTrainer:
     def setup(self, cfg, device: torch.device) -> None:
         """Build the components and what each phase prepares; check the run's optimized metric."""
         self.started = time.perf_counter()  # wall_time_s counts the building too
-        self.job = Job(cfg, device, self.seed_offsets, self.divergence_limit)
+        self.job = Job(cfg, device, self.seed_offsets, self.divergence_limit, self.environment)
         self.job.started = self.started
         self.phases = [phase for phase in self.all_phases if phase.applies(self.job)]
         for phase in self.phases:
