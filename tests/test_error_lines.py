@@ -190,3 +190,24 @@ def test_a_write_error_without_a_file_name_is_named():
         "no space left on device writing /r/checkpoints/last.pt (errno ENOSPC); no checkpoint was written yet")
     temporary = OSError(errno.EFBIG, "File too large", "/r/records/.episodes.npz.ab12cd.tmp")
     assert "writing /r/records/episodes.npz (errno EFBIG)" in disk_line(temporary, Path("/r"))
+
+
+def test_sighup_before_the_step_loop_one_line(tmp_path):
+    """SIGHUP while the run is being set up (the lock is held: the directory is the run's; the
+    MNIST floor is not yet stepping): one line saying what is left to resume from, exit 129, not
+    the signal's silent default. Sent once the lock file appears, it may land in the first steps
+    instead: then the step loop's line, exit 129 too."""
+    run_dir = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, str(ROOT / "train.py"), *eager(FLOOR), f"hydra.run.dir={run_dir}"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    deadline = time.time() + 120
+    while not (run_dir / ".ferl.lock").exists() and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.005)
+    proc.send_signal(signal.SIGHUP)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 128 + signal.SIGHUP, err[-3000:]
+    lines = [ln for ln in err.replace("\r", "\n").splitlines() if ln.strip() and "%|" not in ln]
+    assert len(lines) == 1 and "Traceback" not in err, err[-3000:]
+    assert lines[0].startswith("ferl: interrupted by SIGHUP "), lines[0]
+    if " during " in lines[0]:
+        assert lines[0].endswith("no checkpoint was written yet: run the command again"), lines[0]

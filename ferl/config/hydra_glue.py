@@ -84,18 +84,55 @@ def reported_by_phase(run_path: Path, phase):
     system or the file-size limit (``ferl.run.failures``) gets its own line, printed before the
     log is tried (it may be on the same disk); a stop signal, the line of where it stopped."""
     try:
-        yield
+        with stops_outside_the_loop():
+            yield
     except Interrupted as stop:  # the checkpoint is written (ferl.trainers.job)
         # on a line of its own: the phase's progress bar is still open
         print(f"\nferl: {interrupted_line(stop.signum, stop.where, run_path, shown)}", file=sys.stderr)
         raise
-    except KeyboardInterrupt:  # SIGINT outside a phase's step loop (set-up, the summary)
-        print(f"ferl: interrupted by SIGINT during {phase()} of {shown(run_path)}: {kept(run_path)}", file=sys.stderr)
-        sys.exit(128 + signal.SIGINT)
+    except (KeyboardInterrupt, Stopped) as stop:  # a signal outside a phase's step loop (set-up, the summary)
+        signum = getattr(stop, "signum", signal.SIGINT)
+        print(f"ferl: interrupted by {signal.Signals(signum).name} during {phase()} of {shown(run_path)}: "
+              f"{kept(run_path)}", file=sys.stderr)
+        sys.exit(128 + signum)
     except Exception as e:  # noqa: BLE001 — every failure of a run is reported this way
         logging.raiseExceptions = False  # a log handler on a full disk fails silently, not with a traceback
         report_failure(e, run_path, phase())
         sys.exit(1)
+
+
+class Stopped(BaseException):
+    """SIGHUP (a closed terminal, an ssh drop) outside a phase's step loop, where ``StopRequest``
+    does not poll: raised by the signal's handler, so that the run ends in one line (not silently,
+    by the signal's default action) with what it leaves to resume from. A BaseException, as KeyboardInterrupt: no
+    ``except Exception`` on the way takes it for an error of the run."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
+
+
+def _raise_stopped(signum, frame):
+    raise Stopped(signum)
+
+
+@contextmanager
+def stops_outside_the_loop():
+    """SIGHUP raises ``Stopped`` while the block runs; a phase's ``StopRequest`` takes it over inside
+    its step loop (and gives it back). SIGTERM keeps its handler outside the loop: a launcher may own
+    it (submitit's lets SLURM's SIGTERM pass while the job checkpoints on SIGUSR2). Only the main
+    thread can set handlers: elsewhere (a launcher's thread) the signal keeps its own."""
+    previous = {}
+    for signum in (signal.SIGHUP,):
+        try:
+            previous[signum] = signal.signal(signum, _raise_stopped)
+        except ValueError:
+            break
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
 
 
 def report_failure(e: Exception, run_path: Path, name: str) -> None:
