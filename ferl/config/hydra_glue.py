@@ -49,7 +49,7 @@ def resolve_device(name: str) -> torch.device:
 @contextmanager
 def one_line_errors():
     """Hydra reports a bad override or group choice on several lines before main() runs;
-    condense that report into one line (CONTRACT §6) unless HYDRA_FULL_ERROR=1. An OSError
+    condense that report into one line (docs/reliability.md, "Bad input") unless HYDRA_FULL_ERROR=1. An OSError
     Hydra met creating the run directory or writing ``.hydra/`` is one line naming the path and
     the reason; Ctrl-C before the run started, one line and exit code 130."""
     if os.environ.get("HYDRA_FULL_ERROR") == "1":

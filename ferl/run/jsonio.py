@@ -2,7 +2,7 @@
 
 Python's ``json`` writes a non-finite float as ``NaN`` / ``Infinity``, which no JSON parser but
 Python's accepts. ``strict_dumps`` maps each non-finite float (NumPy's included) to ``null`` —
-CONTRACT §2's value of a run without one; ``ferl.stats`` treats null and NaN alike — and dumps
+summary.json's value of a run without one (docs/records.md); ``ferl.stats`` treats null and NaN alike — and dumps
 with ``allow_nan=False``, so a value that escapes the mapping raises instead of being written.
 """
 import json
