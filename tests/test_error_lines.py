@@ -135,8 +135,11 @@ def test_signal_checkpoints_one_line_and_resumes(tmp_path, floor_whole, sig):
 def test_sigint_during_imports_one_line(tmp_path, script, module, prog):
     marker = tmp_path / "importing"
     env = {**os.environ, "PYTHONPATH": str(FAULTS), "FERL_SLOW_IMPORT": f"30:{module}:{marker}"}
+    # a terminal's Ctrl-C: SIGINT at its default even when this test runs in a background job
+    # (which inherits SIGINT ignored, and Python then installs no KeyboardInterrupt handler)
     proc = subprocess.Popen([sys.executable, str(ROOT / script), str(tmp_path)], env=env, cwd=ROOT,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.time() + 60
     while not marker.exists() and time.time() < deadline:
         time.sleep(0.02)
