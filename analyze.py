@@ -6,7 +6,8 @@
         # also paste the results into these pages: the scorecard, the claims table
 
 A directory holding `summary.json` is a run, any other a sweep of runs; what each gets is
-described in `ferl/analysis/runner.py` and docs/records.md ("Analysis").
+described in `ferl/analysis/runner.py` and docs/records.md ("Analysis"): ferl's generic analysis,
+with the dissertation's claims, figures and findings that `reproduction/` registers into it.
 """
 
 import sys
@@ -15,6 +16,7 @@ try:  # Ctrl-C while the imports run: one line, not importlib's traceback
     import argparse
     from pathlib import Path
 
+    import reproduction  # noqa: F401 — registers the dissertation's analyses (ferl.analysis.dispatch)
     from ferl.analysis import runner
 except KeyboardInterrupt:
     print("analyze.py: interrupted by SIGINT while starting: nothing was written", file=sys.stderr)

@@ -1,5 +1,5 @@
 """The same CPU kernels on every x86 CPU with AVX2, so that a run's numbers do not depend on
-whether the CPU also has AVX-512 (issue 8/8; docs/reliability.md, "Determinism across machines").
+whether the CPU also has AVX-512 (docs/reliability.md, "Determinism across machines").
 
 PyTorch and oneMKL pick their CPU kernels by the instructions a CPU has:
 

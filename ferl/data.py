@@ -47,6 +47,7 @@ class DataError(ValueError):
 
 @dataclass
 class MnistSplit:
+    """MNIST's training and test images with their labels, as the environments draw them (§3.4)."""
     train_images: torch.Tensor  # (N, 784) float32 in [0, 1]
     train_labels: torch.Tensor  # (N,) int64
     test_images: torch.Tensor

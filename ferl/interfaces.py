@@ -268,7 +268,7 @@ class Trainer(Protocol):
         """The flat names (``ferl.stats.flat_metrics``) of the summary.json metrics ``fit`` writes."""
 
     def fit(self, run, resume: bool) -> dict:
-        """Train; returns the summary.json dict (CONTRACT §2)."""
+        """Train; returns the summary.json dict (docs/records.md)."""
 
 
 def required_members(protocol: type) -> list[str]:

@@ -7,7 +7,7 @@
     r.scalars    # long: run, run_dir, tag, step, value, wall_time (TensorBoard's own reader)
     r.table()    # metrics joined with the config: one row per run × seed
 
-A run directory is one holding ``summary.json`` (CONTRACT §2); ``run`` is its path relative to
+A run directory is one holding ``summary.json`` (docs/records.md); ``run`` is its path relative to
 the folder given ("." for the run itself), ``run_dir`` its absolute path. Nested config keys are
 flattened with dots as in TensorBoard's HParams tab (``actor.n_hidden``), per-level metrics as
 ``ferl.stats.flat_metrics`` names them (``greedy_accuracy/0.125``). ``python -m ferl.runs DIR``
@@ -158,6 +158,8 @@ def scalars(path, tags=None) -> pd.DataFrame:
 
 @dataclass
 class Runs:
+    """A run or sweep read back as DataFrames: configs, metrics (a row per run × seed), TensorBoard
+    scalars (docs/usage.md, "TensorBoard and reading runs back")."""
     configs: pd.DataFrame
     metrics: pd.DataFrame
     scalars: pd.DataFrame

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 @dataclass(frozen=True)
 class Constant:
+    """The same value at every p: α or β held fixed."""
     value: float
 
     def __call__(self, progress: float) -> float:
@@ -16,6 +17,7 @@ class Constant:
 
 @dataclass(frozen=True)
 class Linear:
+    """start + (end − start)·p: β rising linearly 0 → 2 (§3.5) or 0 → 10 (Table 4.1)."""
     start: float
     end: float
 

@@ -63,6 +63,7 @@ def train_job(cfg, run_dir, resume: bool = False) -> dict:
 def train_sweep(root: Path, jobs: dict) -> dict:
     """A sweep directory as train.py -m leaves it: job name → overrides, each trained in process
     into ``root/name`` with its summary.json written, then the sweep analysed; returns the summaries."""
+    import reproduction  # noqa: F401 — registers the dissertation's analyses, as analyze.py does
     from ferl.analysis import runner
     from ferl.run.directory import RunDir
 

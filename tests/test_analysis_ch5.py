@@ -9,7 +9,7 @@ import json
 import numpy as np
 
 from ferl.analysis.claims import HELD, NOT_HELD
-from ferl.analysis.preprocessor import pcs_for_share
+from reproduction.preprocessor import pcs_for_share
 from synthetic_runs import DIGIT_CLASSES, assert_analysis_outputs, make_ch5_run
 from test_analysis_tmaze import claim_verdicts, judge, load_maze
 from test_analyze_cli import analyze

@@ -1,5 +1,5 @@
 """The analysis every run gets (ferl.analysis.generic) and the dispatch on what a run recorded
-(ferl.analysis.dispatch), on synthetic runs: a run of a task no chapter knows, a digit-floor
+(ferl.analysis.dispatch, with the chapters `reproduction` registers), on synthetic runs: a run of a task no chapter knows, a digit-floor
 run, T-mazes with predictors of every role, and a run without records/run.json."""
 
 import csv
@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ferl.analysis import ch3, ch4, ch5, dispatch, generic, runner
+import reproduction
+from ferl.analysis import dispatch, generic, runner
 from ferl.analysis.records import Manifest, predictor_role
 from synthetic_runs import (assert_analysis_outputs, load_run, make_floor_run, make_tmaze_run,
                             make_toy_run)
@@ -124,19 +125,19 @@ def manifest(kind: str, predictors: dict, trainer: dict = PHASED, memory: str = 
 
 
 def test_chapters_are_chosen_by_recorded_facts_not_names():
-    assert dispatch.chapter_of(manifest("digit_floor", {})) is ch3.CHAPTER
-    assert dispatch.chapter_of(manifest("tmaze", {"anything": "joint"})) is ch4.CHAPTER
-    assert dispatch.chapter_of(manifest("tmaze", {"a": "obs", "b": "rew"})) is ch5.CHAPTER
-    assert dispatch.chapter_of(manifest("tmaze", {"j1": "joint", "j2": "joint"})) is None
-    assert dispatch.chapter_of(manifest("tmaze", {"a": "obs"})) is None
-    assert dispatch.chapter_of(manifest("toy", {"joint": "joint"})) is None
+    assert dispatch.REGISTRY.chapter_of(manifest("digit_floor", {})) is reproduction.ch3.CHAPTER
+    assert dispatch.REGISTRY.chapter_of(manifest("tmaze", {"anything": "joint"})) is reproduction.ch4.CHAPTER
+    assert dispatch.REGISTRY.chapter_of(manifest("tmaze", {"a": "obs", "b": "rew"})) is reproduction.ch5.CHAPTER
+    assert dispatch.REGISTRY.chapter_of(manifest("tmaze", {"j1": "joint", "j2": "joint"})) is None
+    assert dispatch.REGISTRY.chapter_of(manifest("tmaze", {"a": "obs"})) is None
+    assert dispatch.REGISTRY.chapter_of(manifest("toy", {"joint": "joint"})) is None
     # the dissertation's claims speak to its procedure and memory only (§5.4's are findings of ours)
     online = {"kind": "online", "phases": ["online"]}
-    assert dispatch.chapter_of(manifest("tmaze", {"anything": "joint"}, trainer=online)) is None
-    assert dispatch.chapter_of(manifest("tmaze", {"a": "obs", "b": "rew"}, memory="lstm")) is None
-    assert ch4.CHAPTER.numbering(manifest("tmaze", {}, matching=True)) is ch4.MATCHING
-    assert ch5.CHAPTER.numbering(manifest("tmaze", {}, observation="image")) is ch5.DIGIT
-    assert ch5.CHAPTER.numbering(manifest("tmaze", {}, observation="bits")) is ch5.BIT
+    assert dispatch.REGISTRY.chapter_of(manifest("tmaze", {"anything": "joint"}, trainer=online)) is None
+    assert dispatch.REGISTRY.chapter_of(manifest("tmaze", {"a": "obs", "b": "rew"}, memory="lstm")) is None
+    assert reproduction.ch4.CHAPTER.numbering(manifest("tmaze", {}, matching=True)) is reproduction.ch4.MATCHING
+    assert reproduction.ch5.CHAPTER.numbering(manifest("tmaze", {}, observation="image")) is reproduction.ch5.DIGIT
+    assert reproduction.ch5.CHAPTER.numbering(manifest("tmaze", {}, observation="bits")) is reproduction.ch5.BIT
 
 
 def test_a_run_without_a_manifest_is_skipped(tmp_path, capsys):

@@ -8,9 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ferl.analysis import ch5, coding, dispatch, generic, tmaze
+from ferl.analysis import coding, dispatch, generic
 from ferl.analysis.claims import HELD, NOT_HELD, evaluate
-from ferl.analysis.tmaze import TMazeRun
+from reproduction import ch5, tmaze
+from reproduction.tmaze import TMazeRun
 from synthetic_runs import assert_analysis_outputs, load_run, make_floor_run, make_tmaze_run
 from test_analyze_cli import analyze, event_files
 
@@ -76,7 +77,7 @@ def load_maze(run_dir: Path) -> TMazeRun:
 
 def judge(maze: TMazeRun) -> dict[str, str]:
     """source → verdict of the claims of the chapter that the run's facts select."""
-    chapter = dispatch.chapter_of(maze.run.manifest)
+    chapter = dispatch.REGISTRY.chapter_of(maze.run.manifest)
     return {r.claim.source: r.verdict for r in evaluate(chapter.claims, maze)}
 
 
@@ -155,7 +156,7 @@ def test_chapter_5_figures_follow_the_predictors_roles_not_their_names(tmp_path)
     assert [p.name for p in run.run.predictors] == ["m_y", "m_r"]
     assert run.layers == ["memory_m_r", "memory_m_y", "state", "hidden"]
     assert {(m, "initial_signal") for m in ("memory_m_y", "memory_m_r")} <= set(run.separation)
-    assert dispatch.chapter_of(run.run.manifest) is ch5.CHAPTER
+    assert dispatch.REGISTRY.chapter_of(run.run.manifest) is ch5.CHAPTER
     num = ch5.CHAPTER.numbering(run.run.manifest)
     assert num is ch5.BIT
     figures = generic.analyze(run.run, num, tmp_path).figures | tmaze.make_figures(run, num)

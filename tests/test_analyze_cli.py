@@ -122,7 +122,7 @@ def test_a_diverged_run_is_left_out_of_the_clustering(tmp_path):
     """A run whose weights diverged has NaN activations: its dendrogram is skipped, not fatal."""
     import numpy as np
 
-    from ferl.analysis.floor import FloorRun
+    from reproduction.floor import FloorRun
 
     run_dir = make_floor_run(tmp_path / "run", n_runs=3)
     path = run_dir / "records" / "floor_test.npz"

@@ -1,6 +1,7 @@
 """The architecture's rules (docs/architecture.md), checked on the code: ferl's own components meet
 the protocols of ferl/interfaces.py, and imports follow the data flow — models never import
-trainers or analysis, trainers never import each other, analysis imports no model."""
+trainers or analysis, trainers never import each other, analysis imports no model, and ferl never
+imports the dissertation's analysis (reproduction/), which plugs into ferl's."""
 import ast
 from pathlib import Path
 
@@ -19,6 +20,7 @@ from ferl.schedules import Constant
 from test_digit_floor import tiny_split
 
 FERL = ROOT / "ferl"
+REPRODUCTION = ROOT / "reproduction"
 MODELS = ("envs", "preprocessors", "predictors", "actors")
 TRAINERS = ("floor", "algorithm")  # the procedures; the phases and the job are what they share
 
@@ -36,15 +38,15 @@ def test_components_meet_their_protocols():
     assert isinstance(actor, interfaces.Actor)
 
 
-def imports(path: Path) -> set[str]:
-    """The ferl modules a file imports."""
+def imports(path: Path, package: str = "ferl") -> set[str]:
+    """The modules of `package` that a file imports."""
     names = set()
     for node in ast.walk(ast.parse(path.read_text())):
         if isinstance(node, ast.ImportFrom) and node.module:
             names.add(node.module)
         elif isinstance(node, ast.Import):
             names.update(alias.name for alias in node.names)
-    return {n for n in names if n.startswith("ferl")}
+    return {n for n in names if n == package or n.startswith(f"{package}.")}
 
 
 @pytest.mark.parametrize("package", MODELS)
@@ -61,6 +63,16 @@ def test_trainers_never_import_each_other():
 
 
 def test_analysis_reads_records_not_models():
-    for path in (FERL / "analysis").glob("*.py"):
+    for path in [*(FERL / "analysis").glob("*.py"), *REPRODUCTION.glob("*.py")]:
         bad = {n for n in imports(path) if n.startswith(tuple(f"ferl.{p}" for p in (*MODELS, "trainers")))}
         assert not bad, (path, bad)
+
+
+def test_ferl_never_imports_the_reproduction():
+    """Data flows one way: reproduction/ registers its analyses into ferl.analysis.dispatch, and
+    no module of ferl imports it (analyze.py, outside ferl, does)."""
+    assert "ferl.analysis" in imports(REPRODUCTION / "__init__.py", "ferl")  # the other way it does
+    for path in FERL.rglob("*.py"):
+        bad = imports(path, "reproduction")
+        assert not bad, (path, bad)
+    assert imports(ROOT / "analyze.py", "reproduction") == {"reproduction"}

@@ -1,4 +1,4 @@
-"""The sweep report's "beyond the dissertation" section (ferl/analysis/beyond.py) on a real
+"""The sweep report's "beyond the dissertation" section (reproduction/beyond.py) on a real
 miniature sweep: online jobs with two memories at two corridor lengths, a phased job and an
 online job with curiosity. The memory-length table is checked against the runs' records read
 another way (an episode ended in a goal iff the environment says it ended in the rewarded one, or

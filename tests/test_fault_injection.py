@@ -280,6 +280,7 @@ def analysed(tmp_path_factory, whole) -> dict:
     import contextlib
     import io
 
+    import reproduction  # noqa: F401 — as analyze.py does
     from ferl.analysis import runner
 
     root, out = tmp_path_factory.mktemp("analysed"), {}
@@ -342,6 +343,7 @@ def test_analyze_a_sweep_with_damaged_runs_analyses_the_others(tmp_path, whole):
 
 @pytest.mark.parametrize("file, way", SWEEP_STOPS)
 def test_analyze_a_sweep_whose_damaged_run_stops_it(tmp_path, whole, file, way):
+    import reproduction  # noqa: F401 — as analyze.py does
     from ferl.analysis import runner
 
     sweep = tmp_path / "sweep"

@@ -18,7 +18,7 @@ pytest.importorskip("sb3_contrib")
 
 from conftest import ROOT, compose_config, train_job  # noqa: E402
 from ferl.analysis.records import Manifest  # noqa: E402
-from ferl.analysis.variants import VIEW_KEYS  # noqa: E402
+from reproduction.variants import VIEW_KEYS  # noqa: E402
 from ferl.envs.gymnasium_vector import GymnasiumEnv  # noqa: E402
 from ferl.run.directory import RunDir  # noqa: E402
 

@@ -11,13 +11,14 @@ import numpy as np
 import pytest
 import yaml
 
-from ferl.analysis import ch3, ch4, dispatch, published
+import reproduction
 from ferl.analysis import sweep as sw
 from ferl.analysis.claims import HELD, NOT_HELD, PARTLY, Claim, ClaimResult, Measured, evaluate
-from ferl.analysis.floor import FloorRun
 from ferl.analysis.report import RunOutcome
-from ferl.analysis.sweep_claims import SWEEP_CLAIMS
-from ferl.analysis.tmaze import TMazeRun
+from reproduction import ch3, ch4, noise_grid, published
+from reproduction.floor import FloorRun
+from reproduction.sweep_claims import SWEEP_CLAIMS
+from reproduction.tmaze import TMazeRun
 from synthetic_runs import load_run, make_floor_run, make_tmaze_run
 
 REPO = Path(__file__).resolve().parents[1]
@@ -84,7 +85,7 @@ def test_noise_grid_from_jobs_that_differ_only_in_training_noise(tmp_path):
     jobs.append(fake_job(tmp_path / "x", "floor", {"greedy_accuracy": {"0": [0.0]}},
                          overrides=["env.noise=1.0", "actor.n_hidden=40"],
                          facts={"env": {"noise": 1.0}}))
-    [grid] = sw.noise_grids(sw.Sweep(tmp_path, jobs))
+    [grid] = noise_grid.noise_grids(sw.Sweep(tmp_path, jobs))
     np.testing.assert_allclose(grid.train, [0.0, 0.5])
     np.testing.assert_allclose(grid.test, [0.0, 0.5, 1.0])
     np.testing.assert_allclose(grid.mean, truth)
@@ -111,7 +112,7 @@ def test_claims_are_judged_on_the_job_with_fewest_overrides(tmp_path):
             fake_job(tmp_path / "main", "coding", {}, facts={"actor": {"n_hidden": 20}},
                      verdict=HELD)]
     rows = sw.reproduction_rows(jobs, evaluate(SWEEP_CLAIMS, sw.Sweep(tmp_path, jobs)),
-                                dispatch.CLAIM_ORDER)
+                                reproduction.CLAIM_ORDER)
     [row] = [r for r in rows if r.job is not None]
     [across] = [r for r in rows if r.job is None]
     assert row.job.run_dir.name == "main" and row.result.verdict == HELD
@@ -151,7 +152,7 @@ def test_solved_claim_flips_at_all_runs_and_at_8_in_10(tmp_path, solved, expecte
 def test_generated_blocks_are_replaced_and_nothing_else(tmp_path):
     jobs = [fake_job(tmp_path / "job", "coding", {}, facts={"actor": {"n_hidden": 20}},
                      verdict=PARTLY)]
-    rows = sw.reproduction_rows(jobs, [], dispatch.CLAIM_ORDER)
+    rows = sw.reproduction_rows(jobs, [], reproduction.CLAIM_ORDER)
     (tmp_path / "docs").mkdir()
     readme, table = tmp_path / "README.md", tmp_path / "docs" / "reproduction.md"
     card, claims = published.SCORECARD, published.TABLE

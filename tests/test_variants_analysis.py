@@ -1,4 +1,4 @@
-"""The sweep report's "Agents side by side" section (ferl/analysis/variants.py) on a real
+"""The sweep report's "Agents side by side" section (reproduction/variants.py) on a real
 miniature sweep: the digit floor with the dissertation's actor and with the expected-energy
 actor, the regular T-maze with and without a predictor, and a matching T-maze that one agent ran
 (no table). Rows are checked against summary.json."""

@@ -62,6 +62,10 @@ def unroll(p: dict, states: torch.Tensor, prev_actions: torch.Tensor) -> torch.T
 
 
 class DRQNActor(SoftmaxActor):
+    """The DRQN baseline (Hausknecht & Stone 2015): a GRU over (observation, previous action) with a
+    linear Q head, acting by the FERL actor's softmax (Eq. 3.11) and learning from replayed whole
+    episodes by BPTT on the Huber TD loss with a target network (module docstring)."""
+
     @checked
     def __init__(self, n_runs: PositiveInt, n_state: PositiveInt, n_actions: PositiveInt, n_hidden: PositiveInt,
                  gamma: Discount, lr, beta, replay_episodes: PositiveInt = 1000, batch_episodes: PositiveInt = 16,

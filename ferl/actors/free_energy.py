@@ -54,6 +54,10 @@ def action_code_table(n_actions: int, code: str) -> torch.Tensor:
 
 
 class FERLActor(SoftmaxActor):
+    """The dissertation's actor (§3.2): an RBM over state and action nodes whose negative free
+    energy is Q, Q(s, a) ≈ −F(s, a) (Eq. 3.1), acting by the softmax of Eq. 3.11 and learning
+    online by θ ← θ + α δ (−∂F/∂θ) (Eqs. 3.5–3.10); batched over runs (module docstring)."""
+
     shared_buffers = ("codes",)
     @checked
     def __init__(self, n_runs: PositiveInt, n_state: PositiveInt, n_actions: PositiveInt, n_hidden: PositiveInt,

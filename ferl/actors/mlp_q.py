@@ -26,6 +26,10 @@ LR_NORMS = ("fan_in", "none")  # α / √(state inputs of a hidden node), or α 
 
 
 class MLPQActor(SoftmaxActor):
+    """The feed-forward Q-network baseline (Lin & Mitchell 1993): Q(s, a) = W_2[:, a]ᵀ σ(W_1ᵀ s + b_1)
+    + b_2[a] in place of the RBM of §4.2, with the FERL actor's TD rule and softmax (Eq. 3.11),
+    updated by θ ← θ + α δ ∂Q/∂θ (Eq. 3.10 with this Q; module docstring)."""
+
     @checked
     def __init__(self, n_runs: PositiveInt, n_state: PositiveInt, n_actions: PositiveInt, n_hidden: PositiveInt,
                  td_rule: Literal[TD_RULES], gamma: Discount, lr, beta, lr_norm: Literal[LR_NORMS] = "fan_in",

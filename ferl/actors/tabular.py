@@ -1,5 +1,5 @@
 """Tabular Q-learning: the oracle baseline's actor (``actor=oracle``, with the environment's
-``true_state`` view, CONTRACT §2).
+``true_state`` view, docs/records.md).
 
 Q(s, a) = sᵀ Θ[:, a] with Θ (R, S, nA). On one-hot states — the environment's true hidden state,
 e.g. (maze position, s0, s1) — Θ is the table of Q-values and the TD update (§3.2)
@@ -20,6 +20,9 @@ from ferl.config.params import Discount, NonNegativeInt, PositiveInt, checked
 
 
 class TabularQActor(SoftmaxActor):
+    """The oracle baseline's actor: Q(s, a) = sᵀ Θ[:, a] (a Q-table on one-hot true states),
+    Watkins' Q-learning by the TD update of §3.2 and the softmax of Eq. 3.11 (module docstring)."""
+
     @checked
     def __init__(self, n_runs: PositiveInt, n_state: PositiveInt, n_actions: PositiveInt,
                  td_rule: Literal[TD_RULES], gamma: Discount, lr, beta, init_value: float = 0.0,

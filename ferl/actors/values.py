@@ -1,4 +1,4 @@
-"""What the FERL actor's RBM says Q(s, a) is (``actor.q``, CONTRACT §2).
+"""What the FERL actor's RBM says Q(s, a) is (``actor.q``, docs/beyond.md).
 
 Every form is a function of the visible term c = sᵀb_s + aᵀb_a and the hidden inputs
 x_k = (W_shᵀs + W_ahᵀa + b_h)_k of the state-action pair (Eq. 3.1c):

@@ -1,11 +1,12 @@
-"""Dissertation claims as data, and the chapters that hold them.
+"""Claims of a publication as data, and the chapters that hold them.
 
-A `Claim` pairs a statement of the dissertation (with its section/figure) with a function
+A `Claim` pairs a statement of a publication (with its section/figure) with a function
 measuring the corresponding quantity on an analysed run and a threshold rule turning that
 measurement into "held", "partly" or "not held" (spelled out, where given, by its `criterion`).
 A `Chapter` is the set of claims and figure numbers that apply to a run whose recorded facts
-(`records/run.json`) match the chapter's model; the chapters themselves are `ch3`, `ch4`, `ch5`
-and `sweep_claims`, gathered in `chapters`.
+(`records/run.json`) match the chapter's model. This module holds no claim: the dissertation's
+chapters are `reproduction.ch3`, `ch4`, `ch5` and `sweep_claims`, registered through
+`ferl.analysis.dispatch`.
 """
 
 from __future__ import annotations
@@ -22,12 +23,15 @@ VERDICTS = (HELD, PARTLY, NOT_HELD)
 
 @dataclass(frozen=True)
 class Measured:
+    """What a claim's measure found on a run: the value its rule judges and the report's text."""
     value: Any   # what the rule judges
     text: str    # what the report prints
 
 
 @dataclass(frozen=True)
 class Claim:
+    """A statement of a publication, where it says so, how to measure it on a run and how to judge
+    the measurement."""
     text: str
     source: str
     measure: Callable[[Any], Measured | None]  # None: the run has no data for this claim
@@ -37,6 +41,7 @@ class Claim:
 
 @dataclass(frozen=True)
 class ClaimResult:
+    """A claim judged on one run (or across the jobs of a sweep)."""
     claim: Claim
     measured: Measured
     verdict: str
@@ -108,7 +113,7 @@ def mean_sd_text(values) -> str:
 
 @dataclass(frozen=True)
 class LayerFigures:
-    """Where the dissertation shows a junction layer: its activations, their PCA per phase with
+    """Where a publication shows a junction layer: its activations, their PCA per phase with
     the explained variance, and the projection on PC1–3 (None: not shown, not drawn)."""
     activations: str
     pca: str
@@ -117,7 +122,7 @@ class LayerFigures:
 
 @dataclass(frozen=True)
 class Numbering:
-    """The dissertation's figure numbers of one model on one task ("" where it has none).
+    """A publication's figure numbers of one model on one task ("" where it has none).
 
     `predictor_panels` gives a predictor role its panel of the prediction-error figure; `layers`
     maps a junction layer (`state`, `hidden`, `memory_<role>`, and `memory` for any other
@@ -141,7 +146,7 @@ class Numbering:
 
 @dataclass(frozen=True)
 class Chapter:
-    """The claims and figure numbers of one model of the dissertation, and which runs they
+    """The claims and figure numbers of one model of a publication, and which runs they
     apply to, decided on the run's recorded facts."""
     model: str                                   # the report's line on the model
     applies: Callable[[Manifest], bool]
@@ -150,5 +155,5 @@ class Chapter:
 
 
 def caption(number: str, text: str) -> str:
-    """A caption or title led by the dissertation's figure number, where it has one."""
+    """A caption or title led by the publication's figure number, where it has one."""
     return f"{number}: {text}" if number else text

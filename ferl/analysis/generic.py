@@ -8,8 +8,9 @@ the per-step δ of the sampled episodes. Continuing runs are read from `steps.np
 average of the reward and of |δ| per step. Every predictor named in run.json gets its error
 heatmaps from `predictor.npz`; an online run (`online.npz`) its predictors' held-out error, β and
 curiosity per episode. The summary table is mean ± s.d. over runs of every
-`summary.json` metric (`ferl.stats`). Where a chapter of the dissertation applies, its
-`Numbering` puts the dissertation's figure numbers into the captions.
+`summary.json` metric (`ferl.stats`). Where a registered chapter applies
+(`ferl.analysis.dispatch`), its `Numbering` puts its publication's figure numbers into the
+captions.
 """
 
 from __future__ import annotations

@@ -33,10 +33,12 @@ class RunAnalysis:
         self.results += other.results
 
 
-def claims_table(results: Sequence[ClaimResult]) -> list[str]:
-    """One row per claim; a criterion column where any claim states its rule."""
+def claims_table(results: Sequence[ClaimResult], reference: str = "") -> list[str]:
+    """One row per claim; a criterion column where any claim states its rule. `reference` names
+    the work the claims come from (`ferl.analysis.dispatch.Registry.reference`)."""
     if not results:
-        return ["No dissertation claim applies to this run."]
+        return [f"No {reference} claim applies to this run." if reference else
+                "No claim applies to this run."]
     criteria = any(r.claim.criterion for r in results)
     header = ["claim", "source", "measured", *(["criterion"] if criteria else []), "verdict"]
     return table_lines(header, [[r.claim.text, r.claim.source, r.measured.text,
@@ -44,13 +46,14 @@ def claims_table(results: Sequence[ClaimResult]) -> list[str]:
                                  f"**{r.verdict}**"] for r in results])
 
 
-def write_run_report(path: Path, analysis: RunAnalysis) -> None:
-    """`analysis/report.md` of one run: header, tables, claims, figure and data links."""
+def write_run_report(path: Path, analysis: RunAnalysis, reference: str = "") -> None:
+    """`analysis/report.md` of one run: header, tables, claims (of `reference`), figure and data
+    links."""
     lines = [f"# {analysis.title}", ""]
     lines += [f"- **{key}**: {value}" for key, value in analysis.header]
     for title, body in analysis.sections:
         lines += ["", f"## {title}", ""] + body
-    lines += ["", "## Claims", ""] + claims_table(analysis.results)
+    lines += ["", "## Claims", ""] + claims_table(analysis.results, reference)
     lines += ["", "## Figures", ""]
     lines += [f"- [{name}.png]({name}.png) — {caption}"
               for name, (_, caption) in analysis.figures.items()]

@@ -3,11 +3,11 @@
 A directory holding `summary.json` is a run: its `analysis/` folder is rebuilt (PNG figures,
 CSV/JSON data, `report.md`) and the figures are logged to its TensorBoard under
 `tb/analysis/` (replaced on every analysis). What a run gets is decided on what it recorded
-(`records/run.json`, `ferl.analysis.dispatch`); a run without run.json is skipped with a
-message. Any other directory is a sweep: every run below it is analyzed, and `DIR/analysis/`
-gets the sweep's aggregate tables, the Fig. 3.6 noise grid and the reproduction report
-(`ferl.analysis.sweep`), with the findings beyond the dissertation where the sweep has such
-jobs (`ferl.analysis.beyond`), its figures also logged to `DIR/analysis/tb/`.
+(`records/run.json`) and on what plug-ins registered (`ferl.analysis.dispatch.REGISTRY`); a run
+without run.json is skipped with a message. Any other directory is a sweep: every run below it
+is analyzed, and `DIR/analysis/` gets the sweep's aggregate tables and claims report
+(`ferl.analysis.sweep`) and the registered sweep sections, its figures also logged to
+`DIR/analysis/tb/`.
 """
 
 from __future__ import annotations
@@ -22,13 +22,13 @@ from typing import Sequence
 import numpy as np
 
 from ferl import runs
-from ferl.analysis import beyond, dispatch, generic, members, published, variants
+from ferl.analysis import generic, members
 from ferl.analysis import sweep as sw
 from ferl.analysis.claims import VERDICTS, ClaimResult, Numbering, evaluate
+from ferl.analysis.dispatch import REGISTRY, import_plugins
 from ferl.analysis.io import write_json
 from ferl.analysis.records import MANIFEST, Manifest, Run
 from ferl.analysis.report import RunAnalysis, RunOutcome, jobs_table, write_run_report
-from ferl.analysis.sweep_claims import SWEEP_CLAIMS
 
 PROG = "analyze.py"
 POOL_MIN_RUNS = 4  # a pool's workers take a few seconds to start: fewer runs are analyzed in turn
@@ -68,14 +68,15 @@ def _fresh(out: Path) -> Path:
 
 
 def run_analysis(run: Run, out: Path) -> RunAnalysis:
-    """The generic analysis of any run, its environment's figures and, where a chapter of the
-    dissertation applies, that chapter's figure numbers and claims (`dispatch`)."""
-    chapter = dispatch.chapter_of(run.manifest)
+    """The generic analysis of any run, its environment's figures and, where a registered chapter
+    applies, that chapter's figure numbers and claims (`ferl.analysis.dispatch`)."""
+    chapter = REGISTRY.chapter_of(run.manifest)
     num = chapter.numbering(run.manifest) if chapter else Numbering()
     analysis = generic.analyze(run, num, out)
-    analysis.header.append(("dissertation", chapter.model if chapter else
-                            "no chapter's model matches this run: generic figures, no claims"))
-    environment = dispatch.ENVIRONMENTS.get(run.manifest.env_kind)
+    if REGISTRY.reference:
+        analysis.header.append((REGISTRY.reference, chapter.model if chapter else
+                                "no chapter's model matches this run: generic figures, no claims"))
+    environment = REGISTRY.environments.get(run.manifest.env_kind)
     parts = environment(run, num, out) if environment is not None else None
     if parts is None:
         return analysis
@@ -101,7 +102,7 @@ def analyze_run(run_dir: Path) -> RunOutcome:
     publish_figures(analysis.figures, out, run_dir / "tb" / "analysis")
     write_json(out / "claims.json", [_claim_json(r) for r in analysis.results])
     analysis.data_files.append("claims.json")
-    write_run_report(out / "report.md", analysis)
+    write_run_report(out / "report.md", analysis, REGISTRY.reference)
 
     verdicts = {v: sum(r.verdict == v for r in analysis.results) for v in VERDICTS}
     print(f"{run_dir}: {len(analysis.figures)} figures, {len(analysis.results)} claims "
@@ -110,8 +111,10 @@ def analyze_run(run_dir: Path) -> RunOutcome:
                       [(name, caption) for name, (_, caption) in analysis.figures.items()])
 
 
-def _safe_analyze_run(run_dir: Path) -> RunOutcome:
-    """One failing run must not stop a sweep: report it in one line and go on."""
+def _safe_analyze_run(run_dir: Path, plugins: Sequence[str] = ()) -> RunOutcome:
+    """One failing run must not stop a sweep: report it in one line and go on. `plugins`: the
+    modules to import first (in a worker process, `dispatch.import_plugins`)."""
+    import_plugins(plugins)
     try:
         return analyze_run(run_dir)
     except Exception as exc:  # noqa: BLE001 — any failure is reported per run
@@ -135,11 +138,12 @@ def analyze_runs(found: list[Path]) -> list[RunOutcome]:
     if workers < 2 or len(found) < POOL_MIN_RUNS:
         return [_safe_analyze_run(r) for r in found]
     from joblib import Parallel, delayed  # loky's workers return the claims' functions too (cloudpickle)
-    return Parallel(n_jobs=workers)(delayed(_safe_analyze_run)(r) for r in found)
+    return Parallel(n_jobs=workers)(delayed(_safe_analyze_run)(r, REGISTRY.modules) for r in found)
 
 
 def analyze_sweep(sweep_dir: Path, pages: Sequence[Path] = ()) -> list[RunOutcome]:
-    """Analyze every run below `sweep_dir`, then the sweep as a whole (`ferl.analysis.sweep`)."""
+    """Analyze every run below `sweep_dir`, then the sweep as a whole (`ferl.analysis.sweep`,
+    then the registered sweep sections)."""
     start = time.perf_counter()
     found = runs.find_runs(sweep_dir)
     skipped = report_unfinished(sweep_dir)
@@ -148,10 +152,9 @@ def analyze_sweep(sweep_dir: Path, pages: Sequence[Path] = ()) -> list[RunOutcom
             if (summary := _read_summary(o.run_dir)) is not None]
     sweep = sw.Sweep(sweep_dir, jobs)
     out = _fresh(sweep_dir / "analysis")
-    analysis = sw.analyze_sweep(sweep, out)
-    rows = sw.reproduction_rows(jobs, evaluate(SWEEP_CLAIMS, sweep), dispatch.CLAIM_ORDER)
-    findings = beyond.report(jobs, out, analysis.figures, analysis.data_files)
-    findings += variants.report(jobs, out, analysis.figures, analysis.data_files)
+    analysis = sw.analyze_sweep(sweep, out, REGISTRY.sweep_title)
+    rows = sw.reproduction_rows(jobs, evaluate(REGISTRY.sweep_claims, sweep), REGISTRY.claim_order)
+    findings = [line for section in REGISTRY.sweep_sections for line in section(sweep, out, analysis)]
     publish_figures(analysis.figures, out, out / "tb")
     write_json(out / "claims.json",
                [_claim_json(r.result, job=None if r.job is None else str(r.job.run_dir),
@@ -164,11 +167,11 @@ def analyze_sweep(sweep_dir: Path, pages: Sequence[Path] = ()) -> list[RunOutcom
         wall["training wall time (make reproduce / make beyond)"] = float(train_wall.read_text())
     wall["sum of the jobs' wall_time_s"] = sum(float(j.summary.get("wall_time_s", 0)) for j in jobs)
     wall["analysis wall time"] = time.perf_counter() - start
-    lines = sw.report_lines(sweep, analysis, rows, out, wall) + findings
+    lines = sw.report_lines(sweep, analysis, rows, out, wall, REGISTRY.claims_heading) + findings
     lines += ["", "## Jobs", ""] + jobs_table(sweep_dir, out, outcomes + skipped)
     (out / "report.md").write_text("\n".join(lines) + "\n")
-    if pages:
-        published.update_pages(pages, rows, wall, out / "report.md")
+    if pages and REGISTRY.pages is not None:
+        REGISTRY.pages.update_pages(pages, rows, wall, out / "report.md")
         print(f"{', '.join(map(str, pages))}: reproduction results updated")
     print(f"{sweep_dir}: sweep of {len(found)} runs{_skipped_note(sweep_dir, skipped)}, {len(rows)} claims "
           f"({sw.verdict_counts(rows)}) -> {out / 'report.md'}")
@@ -200,9 +203,11 @@ def _usage_error(dirs: list[Path], pages: Sequence[Path]) -> str | None:
     single = [str(d) for d in dirs if (d / "summary.json").is_file()]
     if pages and single:
         return f"--readme takes sweep directories only, not the run {', '.join(single)}"
+    if pages and REGISTRY.pages is None:
+        return "--readme: no plug-in that writes pages is registered"
     for page in pages:
-        if not (page.is_file() and published.blocks_in(page.read_text())):
-            markers = " or ".join(f"{b!r} … {e!r}" for b, e in published.BLOCKS)
+        if not (page.is_file() and REGISTRY.pages.blocks_in(page.read_text())):
+            markers = " or ".join(f"{b!r} … {e!r}" for b, e in REGISTRY.pages.BLOCKS)
             return f"--readme {page}: needs a file with the marker lines {markers}"
     return None
 

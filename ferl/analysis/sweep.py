@@ -1,17 +1,14 @@
 """A sweep directory (the jobs of one or more Hydra multiruns) → its aggregate analysis.
 
-Every job keeps its own `analysis/` (CONTRACT §4); the sweep's `analysis/` gets:
+Every job keeps its own `analysis/` (docs/records.md, "Analysis"); the sweep's `analysis/` gets:
 
 * `metrics.csv` and one table per experiment: mean ± s.e.m. over runs of every
   `summary.json` metric, one column per variant of the experiment (a variant is a job's
-  overrides besides `experiment=…`; none = the dissertation's setting);
-* the training-noise × test-noise grid of Fig. 3.6 from the jobs of one experiment that
-  differ only in the environment's `noise` (run.json) and test every noise level (a
-  `greedy_accuracy` per level in summary.json);
-* the reproduction report: one row per dissertation claim, judged on the job that runs
-  the experiment as the dissertation did (the fewest overrides), the verdicts of the other
-  jobs beside it, and the claims only a comparison of jobs can judge
-  (`ferl.analysis.sweep_claims`).
+  overrides besides `experiment=…`; none = the setting of the experiment's YAML);
+* the claims report: one row per claim the jobs judged, judged on the job that runs the
+  experiment as its YAML does (the fewest overrides), the verdicts of the other jobs beside it,
+  and the claims only a comparison of jobs can judge (`Registry.sweep_claims`);
+* the sections that plug-ins register (`ferl.analysis.dispatch.Registry.sweep_sections`).
 
 Means and s.e.m. over runs are `ferl.stats`', metric names its flattening (`<metric>/<level>`).
 """
@@ -25,11 +22,9 @@ from functools import cached_property
 from pathlib import Path
 from typing import Sequence
 
-import numpy as np
 
 from ferl import runs, stats
 from ferl.analysis.claims import VERDICTS, Claim, ClaimResult
-from ferl.analysis.floor_figures import noise_grid_heatmap
 from ferl.analysis.io import fmt, table_lines, write_csv
 from ferl.analysis.records import Manifest
 from ferl.analysis.report import RunAnalysis, RunOutcome
@@ -124,6 +119,7 @@ def metric_values(summary: dict) -> dict[str, list]:
 
 @dataclass(frozen=True)
 class Aggregate:
+    """Mean ± s.e.m. over runs of one metric of one variant of an experiment."""
     experiment: str
     variant: str
     metric: str
@@ -159,46 +155,11 @@ def experiment_tables(rows: Sequence[Aggregate]) -> dict[str, list[str]]:
     return tables
 
 
-# ---- Fig. 3.6: training noise × test noise ------------------------------------
-
-@dataclass(frozen=True)
-class NoiseGrid:
-    experiment: str
-    train: np.ndarray   # (T,) training noise levels, ascending
-    test: np.ndarray    # (L,) test noise levels, ascending
-    mean: np.ndarray    # (T, L) greedy accuracy after training, mean over runs
-    sem: np.ndarray     # (T, L) s.e.m. over runs
-
-
-def noise_grids(sweep: Sweep) -> list[NoiseGrid]:
-    """One grid per set of jobs that differ only in `env.noise`, at ≥ 2 levels, and record a
-    greedy accuracy per test-noise level."""
-    grids = []
-    for experiment in dict.fromkeys(j.experiment for j in sweep.jobs):
-        for by_level in sweep.varying(experiment, "env", "noise"):
-            by_level = {float(k): j for k, j in by_level.items()
-                        if "greedy_accuracy" in j.summary.get("metrics", {})}
-            if len(by_level) >= 2:
-                grids.append(_noise_grid(experiment, by_level))
-    return grids
-
-
-def _noise_grid(experiment: str, by_level: dict[float, Job]) -> NoiseGrid:
-    train = np.array(sorted(by_level))
-    accuracy = {level: job.summary["metrics"]["greedy_accuracy"] for level, job in by_level.items()}
-    test = np.array(sorted({float(k) for acc in accuracy.values() for k in acc}))
-    mean, sem = np.full((len(train), len(test)), np.nan), np.full((len(train), len(test)), np.nan)
-    for t, level in enumerate(train):
-        for key, values in accuracy[level].items():
-            k = int(np.flatnonzero(np.isclose(test, float(key)))[0])
-            mean[t, k], sem[t, k], _ = stats.mean_sem(values)
-    return NoiseGrid(experiment, train, test, mean, sem)
-
-
 # ---- the reproduction report ---------------------------------------------------
 
 @dataclass(frozen=True)
 class ReportRow:
+    """A row of the claims report: the judged claim, the job that judged it, and the others."""
     result: ClaimResult
     job: Job | None                              # None: a claim judged across jobs
     others: tuple[tuple[Job, ClaimResult], ...]  # other jobs that judged the same claim
@@ -206,7 +167,7 @@ class ReportRow:
 
 def reproduction_rows(jobs: Sequence[Job], sweep_results: Sequence[ClaimResult],
                       order: Sequence[Claim]) -> list[ReportRow]:
-    """One row per claim, in the given (the dissertation's) order: the job with the fewest
+    """One row per claim, in the given order (the publication's): the job with the fewest
     overrides judges it (ties: sweep order)."""
     answered: dict[tuple[str, str], list[tuple[Job, ClaimResult]]] = {}
     for job in jobs:
@@ -246,34 +207,25 @@ def verdict_counts(rows: Sequence[ReportRow]) -> str:
     return ", ".join(f"{sum(r.result.verdict == v for r in rows)} {v}" for v in VERDICTS)
 
 
-def analyze_sweep(sweep: Sweep, out: Path) -> RunAnalysis:
-    """Write metrics.csv and the noise grids' CSVs; return the figures and data files."""
-    analysis = RunAnalysis(f"Reproduction report: sweep `{sweep.root}`")
+def analyze_sweep(sweep: Sweep, out: Path, title: str = "Sweep report") -> RunAnalysis:
+    """Write metrics.csv; return the analysis that the sweep's sections add figures and data
+    files to."""
+    analysis = RunAnalysis(f"{title}: sweep `{sweep.root}`")
     rows_data = aggregate(sweep.jobs)
     write_csv(out / "metrics.csv", ["experiment", "variant", "metric", "mean", "sem", "n_runs"],
               [(a.experiment, a.variant, a.metric, fmt(a.mean), fmt(a.sem), a.n)
                for a in rows_data])
     analysis.data_files.append("metrics.csv")
-
-    for g in noise_grids(sweep):
-        name = f"fig3_6_noise_grid_{g.experiment}"
-        write_csv(out / f"{name}.csv", ["train_noise", "test_noise", "accuracy_mean", "accuracy_sem"],
-                  [(fmt(tr), fmt(te), fmt(g.mean[t, k]), fmt(g.sem[t, k]))
-                   for t, tr in enumerate(g.train) for k, te in enumerate(g.test)])
-        analysis.data_files.append(f"{name}.csv")
-        analysis.figures[name] = (noise_grid_heatmap(g.train, g.test, g.mean, g.experiment),
-                                  f"Fig. 3.6 (all panels' noise pairs): greedy accuracy after "
-                                  f"training, `{g.experiment}`, training × test noise")
     return analysis
 
 
 def report_lines(sweep: Sweep, analysis: RunAnalysis, rows: Sequence[ReportRow],
-                 out: Path, wall: dict[str, float]) -> list[str]:
+                 out: Path, wall: dict[str, float], claims_heading: str = "Claims") -> list[str]:
     """`analysis/report.md` of a sweep: timing, claims, per-experiment tables, every figure."""
     lines = [f"# {analysis.title}", ""]
     lines += [f"- **{k}**: {v:.0f} s" for k, v in wall.items()]
     lines += [f"- **jobs**: {len(sweep.jobs)}; **claims**: {len(rows)} ({verdict_counts(rows)})",
-              "", "## Claims of the dissertation", ""]
+              "", f"## {claims_heading}", ""]
     lines += claims_rows_markdown(rows, out)
     tables = experiment_tables(aggregate(sweep.jobs))
     lines += ["", "## Experiments", "",

@@ -1,4 +1,4 @@
-"""The composed config checked before any work (CONTRACT §6): one line naming the key and what is allowed.
+"""The composed config checked before any work (docs/reliability.md): one line naming the key and what is allowed.
 
 The root keys are ``RunSettings``; every other node with a ``_target_`` (``env``, ``actor`` and its
 schedules, each ``predictor.<name>``, ``preprocessor``, ``data``, ``trainer``) is checked against

@@ -1,4 +1,4 @@
-"""Gymnasium views of the batched environments, for agents outside this project (CONTRACT §5).
+"""Gymnasium views of the batched environments, for agents outside this project (docs/usage.md).
 
 Every view wraps the class that training steps, not a re-implementation of it: the digit floor
 ``DigitFloor`` (§3.4), the regular and matching T-mazes ``TMaze`` (§4.3.1, §4.3.2) and the digit

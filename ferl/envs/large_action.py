@@ -23,6 +23,10 @@ from ferl.random_blocks import Blocks, steps_per_block
 
 
 class LargeActionTask:
+    """Sallans & Hinton (2004)'s large-action task, batched over runs: 12-bit states drawn at
+    random, 40-bit actions rewarded by their agreement with the key action of the nearest key
+    state (module docstring); continuing, optimum 40 a step."""
+
     task = "large_action"
 
     @checked

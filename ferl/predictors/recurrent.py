@@ -170,7 +170,7 @@ def memory_class(name: str):
 
 
 def predictor(memory: str = "elman", **kwargs) -> RecurrentPredictor:
-    """The predictor whose memory is ``memory`` (CONTRACT §2 ``predictor.<name>.memory``)."""
+    """The predictor whose memory is ``memory`` (``predictor.<name>.memory``, docs/architecture.md)."""
     return memory_class(memory)(**kwargs)
 
 

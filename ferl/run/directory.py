@@ -1,4 +1,4 @@
-"""The run directory of CONTRACT §2: tb/, summary.json, checkpoints/, records/.
+"""The run directory (docs/records.md): tb/, summary.json, checkpoints/, records/.
 
 Every file is written atomically (temporary file + rename), so an interruption never
 leaves a half-written checkpoint or summary behind. Checkpoints check themselves before they are
@@ -221,7 +221,7 @@ STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGUSR2, signal.SIGHUP)  #
 
 class StopRequest:
     """Turns SIGINT / SIGTERM / SIGUSR2 into a flag that the step loop polls between steps, so the
-    run can write a consistent checkpoint before it exits (CONTRACT §2, interruption)."""
+    run can write a consistent checkpoint before it exits (docs/reliability.md, interruption)."""
 
     def __init__(self):
         self.signal = None

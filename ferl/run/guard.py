@@ -14,6 +14,9 @@ from tqdm import tqdm
 
 
 class DivergenceGuard:
+    """Freezes a run whose TD errors stop being finite or exceed `limit`, leaving the batch's other
+    runs going; what it froze goes to summary.json's `diverged` (docs/records.md)."""
+
     def __init__(self, n_runs: int, limit: float, seeds: list[int], device):
         self.limit, self.seeds = float(limit), list(seeds)
         self.alive = torch.ones(n_runs, 1, dtype=torch.bool, device=device)

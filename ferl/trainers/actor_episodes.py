@@ -30,7 +30,7 @@ from ferl.trainers.episodes import discount_factors, discounted_return, discover
 from ferl.trainers.phased import Phase
 
 EMBEDDED_PROBES = 2000  # run 0's last probe visits in the projector (docs/records.md)
-SOLVED_SHARE = 0.95     # solved: return ≥ 0.95 × optimum and every outcome rate ≥ 0.95 (CONTRACT §2)
+SOLVED_SHARE = 0.95     # solved: return ≥ 0.95 × optimum and every outcome rate ≥ 0.95 (docs/records.md)
 
 
 class ActorEpisodes(Phase):
@@ -319,7 +319,7 @@ def solved_against(optimal: dict) -> tuple[str, float] | None:
 
 
 def meets_solved(returns: np.ndarray, rates: dict, optimal_return: float) -> np.ndarray:
-    """The ``solved`` criterion (CONTRACT §2) on window means: return ≥ 0.95 × optimum and every
+    """The ``solved`` criterion (docs/records.md) on window means: return ≥ 0.95 × optimum and every
     outcome rate (the correct-goal rate) ≥ 0.95."""
     solved = returns >= SOLVED_SHARE * optimal_return
     for values in rates.values():
@@ -353,7 +353,7 @@ def sample_efficiency(episodes: dict, random_steps: np.ndarray, optimum: tuple[s
 
 def final_metrics(episodes: dict, optimum: tuple[str, float] | None, window: int, rates: list,
                   averages: list = ()) -> dict:
-    """CONTRACT §2 episodic metrics over the last ``window`` (200) episodes, one value per run:
+    """The episodic metrics of docs/records.md over the last ``window`` (200) episodes, one value per run:
     discounted return, steps, the rate of every boolean outcome (``final_correct_goal_rate``), the
     mean of every float one (``final_return``) and its best window mean over all episodes
     (``best_return``) and, given an optimum, solved."""

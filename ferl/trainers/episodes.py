@@ -20,6 +20,8 @@ from ferl.trainers.phased import Phase
 
 @dataclass
 class Episodes:
+    """Whole episodes per run, padded to T_max: what the random collection of Algorithms 1–2 gives
+    the predictors (§4.2) and what replay stores."""
     obs: torch.Tensor       # (R, N, Tmax+1) observation ids y_0 … y_T
     actions: torch.Tensor   # (R, N, Tmax) action indices a_0 … a_{T−1}
     rewards: torch.Tensor   # (R, N, Tmax) rewards r_1 … r_T

@@ -164,7 +164,7 @@ class OnlineEpisodes(ActorEpisodes):
 
 
 class OnlineAlgorithm(PhasedTrainer):
-    """``trainer=online`` (CONTRACT §2): [the preprocessor's fit, as Algorithm 2's first phase,
+    """``trainer=online`` (docs/beyond.md): [the preprocessor's fit, as Algorithm 2's first phase,
     when the config has one →] ``OnlineEpisodes``. Arguments as in conf/trainer/online.yaml."""
 
     seed_offsets = SeedOffsets(actor=100_000)

@@ -80,7 +80,7 @@ class PhasedTrainer:
                 "phases": [p.name for p in self.phases], **self.params}
 
     def fit(self, run: RunDir, resume: bool) -> dict:
-        """Every phase not yet done; returns the summary.json dict (CONTRACT §2)."""
+        """Every phase not yet done; returns the summary.json dict (docs/records.md)."""
         job = self.job
         job.run = run
         if run.identity is None:  # driven in process: the checkpoints carry the job's own config

@@ -3,7 +3,7 @@ and of the RBM preprocessor (Figs. 5.15–5.16), drawn from run records.
 
 Like `floor_figures`, every function takes plain arrays and returns a
 `matplotlib.figure.Figure` built without pyplot. The numbers come from
-`ferl.analysis.tmaze` and, for the RBM preprocessor of §5.3.2, `ferl.analysis.preprocessor`;
+`reproduction.tmaze` and, for the RBM preprocessor of §5.3.2, `reproduction.preprocessor`;
 learning curves, TD errors and prediction errors are generic figures (`ferl.analysis.figures`).
 """
 

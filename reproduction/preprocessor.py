@@ -22,10 +22,10 @@ from typing import Sequence
 import numpy as np
 
 from ferl import stats
-from ferl.analysis import tmaze_figures as figs
 from ferl.analysis.coding import pca, subsampled_silhouette
 from ferl.analysis.io import fmt, write_csv
 from ferl.run.jsonio import strict_dumps
+from reproduction import tmaze_figures as figs
 
 RAW_FIGURE, PROCESSED_FIGURE = "Fig. 5.15", "Fig. 5.16"
 FIRST_PCS = 20                # Fig. 5.15(c): the first 20 of the 784 PCs

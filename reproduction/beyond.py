@@ -24,7 +24,7 @@ import numpy as np
 from ferl import stats
 from ferl.analysis.io import fmt, load_npz, table_lines, write_csv
 
-WINDOW = 200  # the final window of CONTRACT §2's tmaze metrics
+WINDOW = 200  # the final window of the tmaze metrics (docs/records.md, summary.json)
 
 
 @dataclass(frozen=True)

@@ -13,7 +13,7 @@ import numpy as np
 from ferl.analysis.claims import (HELD, NOT_HELD, PARTLY, Claim, Measured, at_least,
                                   held_only_if, mean_sd_text, only)
 from ferl.analysis.generic import EPISODE_WINDOW
-from ferl.analysis.tmaze import TMazeRun
+from reproduction.tmaze import TMazeRun
 
 Applies = Callable[[TMazeRun], bool]
 Measure = Callable[[TMazeRun], Measured | None]

@@ -2,7 +2,7 @@
 
 `FloorRun` reads the digit floor's records (docs/records.md) of a run whose environment is the
 digit floor (`env.kind` in run.json) and derives what the figures and the claims of
-`ferl.analysis.ch3` share: greedy accuracy (Fig. 3.6), median firing rates and their clustering
+`reproduction.ch3` share: greedy accuracy (Fig. 3.6), median firing rates and their clustering
 (Eq. 3.12, Figs. 3.11/3.13) and the pixel–label mutual information (Fig. 3.12). The reward
 curve of Fig. 3.4 is one of the generic figures (`ferl.analysis.generic`). `analyze` writes the
 numbers into the run's `analysis/` folder and returns the figures.
@@ -18,11 +18,11 @@ import numpy as np
 
 from ferl import stats
 from ferl.analysis import coding
-from ferl.analysis import floor_figures as figs
 from ferl.analysis.io import fmt, write_csv
 from ferl.analysis.records import Run
 from ferl.analysis.report import RunAnalysis
 from ferl.run.jsonio import strict_dumps
+from reproduction import floor_figures as figs
 
 ENV_KIND = "digit_floor"
 MI_BINS = 2            # see coding.pairwise_mutual_information
@@ -332,7 +332,7 @@ def _header(run: FloorRun) -> list[tuple[str, str]]:
 
 def analyze(run: Run, out: Path) -> tuple[FloorRun, RunAnalysis] | None:
     """The chapter-3 figures and data files of a digit-floor run, and the run as the claims of
-    `ferl.analysis.ch3` read it; None for a run without the test images' records (an actor that
+    `reproduction.ch3` read it; None for a run without the test images' records (an actor that
     saw the floor's true state, not its images)."""
     if run.records("floor_test") is None:
         return None

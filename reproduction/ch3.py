@@ -12,8 +12,8 @@ import numpy as np
 
 from ferl.analysis.claims import (HELD, NOT_HELD, PARTLY, Chapter, Claim, Measured, Numbering,
                                   all_or_some, at_least, at_most, mean_sd_text)
-from ferl.analysis.floor import ENV_KIND, PERCEPTUAL_PAIRS, FloorRun
 from ferl.analysis.records import Manifest
+from reproduction.floor import ENV_KIND, PERCEPTUAL_PAIRS, FloorRun
 
 # Thresholds of the verdict rules (fractions unless stated).
 NEAR_OPTIMAL = (0.8, 0.5)        # reward/step ÷ optimum

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from ferl.analysis.ch3 import SAME_ACTION_PAIRS_SOURCE
 from ferl.analysis.claims import HELD, NOT_HELD, PARTLY, VERDICTS, Claim, Measured
 from ferl.analysis.sweep import Sweep
+from reproduction.ch3 import SAME_ACTION_PAIRS_SOURCE
 
 
 def _hidden_size_verdicts(sweep: Sweep) -> Measured | None:

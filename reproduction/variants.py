@@ -31,7 +31,7 @@ from ferl.analysis.sweep import metric_values
 from ferl.run.jsonio import strict_dumps
 
 DISSERTATION_AGENT = "dissertation agent"
-# The metrics a task's row shows, in this order, where its summaries have them (CONTRACT §2).
+# The metrics a task's row shows, in this order, where its summaries have them (docs/records.md).
 HEADLINES = ("solved", "final_correct_goal_rate", "final_success_rate", "final_return", "best_return",
              "final_discounted_return", "reward_per_step_last10pct",
              "greedy_accuracy/0.125", "env_steps_to_solve", "env_steps_total", "wall_time_s", "agent_steps_per_s")

@@ -15,8 +15,8 @@ from ferl.analysis.claims import (Chapter, Claim, LayerFigures, Measured, Number
                                   threshold_claim)
 from ferl.analysis.generic import EPISODE_WINDOW
 from ferl.analysis.records import OBSERVATION, REWARD, Manifest
-from ferl.analysis.tmaze import ENV_KIND, TMazeRun
-from ferl.analysis.tmaze_claims import (CORRECT_GOAL, EARLY_EPOCHS, EARLY_SHARE, ERROR_DROP,
+from reproduction.tmaze import ENV_KIND, TMazeRun
+from reproduction.tmaze_claims import (CORRECT_GOAL, EARLY_EPOCHS, EARLY_SHARE, ERROR_DROP,
                                         GENERALISATION, MOST_VARIANCE, SEPARATED, SOLVED_RUNS,
                                         TD_DECREASE, Applies, correct_goal,
                                         learns_and_generalises, phase_means, predictor_learns,

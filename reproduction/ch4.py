@@ -11,8 +11,8 @@ from __future__ import annotations
 from ferl.analysis.claims import (Chapter, Claim, LayerFigures, Measured, Numbering, at_least,
                                   at_most, mean_sd_text, only)
 from ferl.analysis.records import JOINT, Manifest
-from ferl.analysis.tmaze import ENV_KIND, TMazeRun
-from ferl.analysis.tmaze_claims import (CORRECT_GOAL, SEPARATED, SOLVED_RUNS, STEPS_RATIO,
+from reproduction.tmaze import ENV_KIND, TMazeRun
+from reproduction.tmaze_claims import (CORRECT_GOAL, SEPARATED, SOLVED_RUNS, STEPS_RATIO,
                                         TD_DECREASE, Applies, correct_goal,
                                         learns_and_generalises, optimal_steps, phase_means,
                                         predictor_learns, separated_in_both, separates_more,
