@@ -1,20 +1,20 @@
 """The reproduction of Otsuka's dissertation, read from ferl's runs: its claims, its chapters'
 figures, the findings beyond it, and the pages of this repository that show the results.
 
-ferl's generic analysis (`ferl.analysis`) gives every run its learning curves, TD errors,
+ferl's generic analysis (``ferl.analysis``) gives every run its learning curves, TD errors,
 prediction errors and summary table; this package plugs into it through
-`ferl.analysis.dispatch.REGISTRY` when imported (`analyze.py` imports it), and ferl never imports
+``ferl.analysis.dispatch.REGISTRY`` when imported (``analyze.py`` imports it), and ferl never imports
 it back:
 
-* `floor` (digit floor, `floor_figures`) and `tmaze` (T-junction, `tmaze_figures`, with
-  `preprocessor` for the RBM of §5.3.2) add their environment's figures, by `env.kind`;
-* `ch3`, `ch4`, `ch5` hold the dissertation's claims and figure numbers by chapter
-  (`tmaze_claims` the measures chapters 4 and 5 share), `sweep_claims` those only a comparison
+* ``floor`` (digit floor, ``floor_figures``) and ``tmaze`` (T-junction, ``tmaze_figures``, with
+  ``preprocessor`` for the RBM of §5.3.2) add their environment's figures, by ``env.kind``;
+* ``ch3``, ``ch4``, ``ch5`` hold the dissertation's claims and figure numbers by chapter
+  (``tmaze_claims`` the measures chapters 4 and 5 share), ``sweep_claims`` those only a comparison
   of jobs can judge;
-* a sweep's sections: `noise_grid` (Fig. 3.6 across jobs), `beyond` (findings beyond the
-  dissertation, §5.4) and `variants` (agents side by side per task: the variants, the baselines
+* a sweep's sections: ``noise_grid`` (Fig. 3.6 across jobs), ``beyond`` (findings beyond the
+  dissertation, §5.4) and ``variants`` (agents side by side per task: the variants, the baselines
   and the third-party suites);
-* `published` pastes a sweep's results into README.md and docs/reproduction.md (`--readme`).
+* ``published`` pastes a sweep's results into README.md and docs/reproduction.md (``--readme``).
 """
 
 from __future__ import annotations
@@ -29,8 +29,8 @@ CLAIM_ORDER = ch3.CLAIMS + SWEEP_CLAIMS + ch4.CLAIMS + ch5.CLAIMS
 
 
 def register(registry: dispatch.Registry) -> None:
-    """Plug the dissertation's analyses into `registry` (what analysis a run gets is still
-    decided on what it recorded: `env.kind` and each chapter's `applies`)."""
+    """Plug the dissertation's analyses into ``registry`` (what analysis a run gets is still
+    decided on what it recorded: ``env.kind`` and each chapter's ``applies``)."""
     registry.reference = "dissertation"
     registry.sweep_title = "Reproduction report"
     registry.environments |= {floor.ENV_KIND: lambda run, num, out: floor.analyze(run, out),

@@ -1,11 +1,11 @@
 """Beyond the dissertation (§5.4): what a sweep of online, memory and curiosity runs shows,
 reported as findings of ours, never as claims of the dissertation.
 
-Read from what every T-maze job recorded (`records/run.json`, `summary.json`,
-`records/episodes.npz`):
+Read from what every T-maze job recorded (``records/run.json``, ``summary.json``,
+``records/episodes.npz``):
 
 * **memory-length curve**: the online jobs of the regular maze, by memory kind (the predictors'
-  `kind`) and corridor length T_min: solved runs, the correct-goal rate and — to tell a memory
+  ``kind``) and corridor length T_min: solved runs, the correct-goal rate and — to tell a memory
   that forgets from an agent that never finds the junction — the share of the last 200
   episodes that ended in a goal at all, and the correct share of those;
 * **sample efficiency**: per experiment, every training procedure side by side (the trainer's

@@ -1,7 +1,7 @@
-"""Chapter 3 (digit floor, §3.5.1–§3.5.3) as claims judged on a `FloorRun`.
+"""Chapter 3 (digit floor, §3.5.1–§3.5.3) as claims judged on a ``FloorRun``.
 
-They apply to a run whose environment is the digit floor (`env.kind` in run.json); the
-reward-free condition of §3.5.3 is the floor's `reward_condition` "none".
+They apply to a run whose environment is the digit floor (``env.kind`` in run.json); the
+reward-free condition of §3.5.3 is the floor's ``reward_condition`` "none".
 """
 
 from __future__ import annotations

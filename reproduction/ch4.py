@@ -1,8 +1,8 @@
-"""Chapter 4 (Algorithm 1, §4.3.1–§4.3.3) as claims judged on a `TMazeRun`, and its figure
+"""Chapter 4 (Algorithm 1, §4.3.1–§4.3.3) as claims judged on a ``TMazeRun``, and its figure
 numbers.
 
-They apply to a T-maze run (`env.kind` in run.json) whose only predictor predicts the
-observation and the reward bits together (role `joint`, Eq. 4.8); each claim is about one maze
+They apply to a T-maze run (``env.kind`` in run.json) whose only predictor predicts the
+observation and the reward bits together (role ``joint``, Eq. 4.8); each claim is about one maze
 variant: regular, matching, or digit matching (image observations).
 """
 

@@ -1,7 +1,7 @@
-"""Chapter 5 (Algorithm 2, §5.3.1–§5.3.2) as claims judged on a `TMazeRun`, and its figure
+"""Chapter 5 (Algorithm 2, §5.3.1–§5.3.2) as claims judged on a ``TMazeRun``, and its figure
 numbers.
 
-They apply to a T-maze run (`env.kind` in run.json) with an observation predictor (it predicts
+They apply to a T-maze run (``env.kind`` in run.json) with an observation predictor (it predicts
 the observation only, Eq. 5.1) and a scalar reward predictor (Eq. 5.2), whatever their names;
 panels (a)/(b) of Figs. 5.2/5.17 and the memories m^y, m^r of Figs. 5.7–5.8, 5.20–5.21 follow
 those roles. §5.3.1 is the matching maze with bit observations, §5.3.2 with noisy digit images
@@ -23,7 +23,7 @@ from reproduction.tmaze_claims import (CORRECT_GOAL, EARLY_EPOCHS, EARLY_SHARE, 
                                         separated_in_both, separates_more, separation_claim,
                                         solved, td_decreases, variance_claim)
 
-MOST_RUNS_SOLVED = (0.8, 0.5)     # share of runs `solved`: "8 of 10" near-optimal (§5.3.1)
+MOST_RUNS_SOLVED = (0.8, 0.5)     # share of runs ``solved``: "8 of 10" near-optimal (§5.3.1)
 HIGH_CORRECT_GOAL = (0.8, 0.6)    # final correct-goal rate, mean over runs: "high" (§5.3.2)
 NOISY_ERROR_DROP = 0.9            # final ÷ initial error of the pixel observation predictor,
                                   # whose noisy targets keep a high baseline (Fig. 5.17a)

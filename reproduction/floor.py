@@ -1,11 +1,11 @@
 """One digit-floor run (chapter 3) → its chapter figures and data files.
 
-`FloorRun` reads the digit floor's records (docs/records.md) of a run whose environment is the
-digit floor (`env.kind` in run.json) and derives what the figures and the claims of
-`reproduction.ch3` share: greedy accuracy (Fig. 3.6), median firing rates and their clustering
+``FloorRun`` reads the digit floor's records (docs/records.md) of a run whose environment is the
+digit floor (``env.kind`` in run.json) and derives what the figures and the claims of
+``reproduction.ch3`` share: greedy accuracy (Fig. 3.6), median firing rates and their clustering
 (Eq. 3.12, Figs. 3.11/3.13) and the pixel–label mutual information (Fig. 3.12). The reward
-curve of Fig. 3.4 is one of the generic figures (`ferl.analysis.generic`). `analyze` writes the
-numbers into the run's `analysis/` folder and returns the figures.
+curve of Fig. 3.4 is one of the generic figures (``ferl.analysis.generic``). ``analyze`` writes the
+numbers into the run's ``analysis/`` folder and returns the figures.
 """
 
 from __future__ import annotations
@@ -332,7 +332,7 @@ def _header(run: FloorRun) -> list[tuple[str, str]]:
 
 def analyze(run: Run, out: Path) -> tuple[FloorRun, RunAnalysis] | None:
     """The chapter-3 figures and data files of a digit-floor run, and the run as the claims of
-    `reproduction.ch3` read it; None for a run without the test images' records (an actor that
+    ``reproduction.ch3`` read it; None for a run without the test images' records (an actor that
     saw the floor's true state, not its images)."""
     if run.records("floor_test") is None:
         return None

@@ -1,9 +1,9 @@
 """Figures of chapter 3 (digit floor, Figs. 3.5–3.13), drawn from run records.
 
-Every function takes plain arrays and returns a `matplotlib.figure.Figure`
+Every function takes plain arrays and returns a ``matplotlib.figure.Figure``
 built without pyplot (so no global figure state; rendered by the Agg canvas
-when saved). The numbers come from `ferl.analysis.coding`; the reward curve of
-Fig. 3.4 is a generic figure (`ferl.analysis.figures`).
+when saved). The numbers come from ``ferl.analysis.coding``; the reward curve of
+Fig. 3.4 is a generic figure (``ferl.analysis.figures``).
 """
 
 from __future__ import annotations
@@ -63,7 +63,7 @@ def greedy_count_grid(counts: np.ndarray, classes: Sequence[str], arrangement: n
                       title: str) -> Figure:
     """Fig. 3.6 (a)/(b): greedy-action counts per class, laid out as the 3×3 patch.
 
-    `counts` is (R, C, nA); bars are the mean over runs with ±1 s.d. error bars,
+    ``counts`` is (R, C, nA); bars are the mean over runs with ±1 s.d. error bars,
     dots the individual runs; the optimal action's bar is highlighted.
     """
     n_runs, _, n_actions = counts.shape

@@ -1,7 +1,7 @@
 """Fig. 3.6 across jobs: the greedy accuracy after training on a grid of training noise × test
-noise, from the jobs of one experiment that differ only in the environment's `noise`
-(records/run.json) and test every noise level (a `greedy_accuracy` per level in summary.json).
-`make reproduce`'s noise_grid sweep runs such jobs.
+noise, from the jobs of one experiment that differ only in the environment's ``noise``
+(records/run.json) and test every noise level (a ``greedy_accuracy`` per level in summary.json).
+``make reproduce``'s noise_grid sweep runs such jobs.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ class NoiseGrid:
 
 
 def noise_grids(sweep: Sweep) -> list[NoiseGrid]:
-    """One grid per set of jobs that differ only in `env.noise`, at ≥ 2 levels, and record a
+    """One grid per set of jobs that differ only in ``env.noise``, at ≥ 2 levels, and record a
     greedy accuracy per test-noise level."""
     grids = []
     for experiment in dict.fromkeys(j.experiment for j in sweep.jobs):

@@ -1,8 +1,8 @@
 """The RBM observation preprocessor of chapter 5 (§5.2, §5.3.2; Figs. 5.15–5.16) in numbers.
 
-`Preprocessing` reads `records/preprocessor.npz` (docs/records.md) of a run with a preprocessor
-(`preprocessor` in run.json), the observation names of its environment and, where the
-environment records them, the digit class of each (`env.digit_classes`): the
+``Preprocessing`` reads ``records/preprocessor.npz`` (docs/records.md) of a run with a preprocessor
+(``preprocessor`` in run.json), the observation names of its environment and, where the
+environment records them, the digit class of each (``env.digit_classes``): the
 environment's observation table (every image of every observation's reservoir) and each
 run's RBM hidden expectations of it, the processed observations y. Observations of one digit
 class show the same reservoir, so one reservoir per distinct class is kept: the "500
@@ -35,7 +35,7 @@ FIGURE_RUN = 0                # Fig. 5.16 shows one trained RBM
 
 
 def pcs_for_share(ratio: np.ndarray, share: float = VARIANCE_SHARE) -> int:
-    """Fewest leading PCs whose explained-variance ratios add up to `share`."""
+    """Fewest leading PCs whose explained-variance ratios add up to ``share``."""
     return int(min(np.searchsorted(np.cumsum(ratio), share - 1e-12) + 1, len(ratio)))
 
 
@@ -49,8 +49,8 @@ class Preprocessing:
     @classmethod
     def from_records(cls, records: dict[str, np.ndarray], names: Sequence[str],
                      digit_classes: dict) -> Preprocessing:
-        """`names`: the observations in table order (id n·K + k is image k of names[n]);
-        `digit_classes`: name → digit class (env.digit_classes); a name without one is a
+        """``names``: the observations in table order (id n·K + k is image k of names[n]);
+        ``digit_classes``: name → digit class (env.digit_classes); a name without one is a
         class of its own."""
         n_ids = len(records["raw_observations"])
         if n_ids % len(names):

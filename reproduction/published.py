@@ -1,10 +1,10 @@
-"""The reproduction's results pasted into the repository's own pages (`analyze.py --readme FILE`).
+"""The reproduction's results pasted into the repository's own pages (``analyze.py --readme FILE``).
 
 A page holds generated blocks between marker lines and nothing else of it is touched:
 
-* the **claims table** (`docs/reproduction.md`): one row per claim, as in the sweep's report but
-  without links into `outputs/`, which are not committed;
-* the **scorecard** (`README.md`): held / partly / not held per chapter of the dissertation, with a
+* the **claims table** (``docs/reproduction.md``): one row per claim, as in the sweep's report but
+  without links into ``outputs/``, which are not committed;
+* the **scorecard** (``README.md``): held / partly / not held per chapter of the dissertation, with a
   link to the page that holds the claims table when that page is updated in the same call.
 """
 

@@ -9,7 +9,7 @@ from reproduction.ch3 import SAME_ACTION_PAIRS_SOURCE
 
 def _hidden_size_verdicts(sweep: Sweep) -> Measured | None:
     """The same-action-pair claim judged in jobs of one experiment that differ only in
-    `actor.n_hidden` (the first such set with two sizes or more)."""
+    ``actor.n_hidden`` (the first such set with two sizes or more)."""
     for experiment in dict.fromkeys(j.experiment for j in sweep.jobs):
         for by_size in sweep.varying(experiment, "actor", "n_hidden"):
             found = {int(n): job.verdict(SAME_ACTION_PAIRS_SOURCE) for n, job in by_size.items()}

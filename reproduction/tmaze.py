@@ -1,16 +1,16 @@
 """One T-maze run (chapters 4–5) → its junction and preprocessor figures and data files.
 
-`TMazeRun` reads the T-maze records of docs/records.md of a run whose environment is a T-maze
-(`env.kind` in run.json) and derives what its figures and the claims of `reproduction.ch4` and
-`reproduction.ch5` share: the behaviour's first and last episodes and the prediction errors'
+``TMazeRun`` reads the T-maze records of docs/records.md of a run whose environment is a T-maze
+(``env.kind`` in run.json) and derives what its figures and the claims of ``reproduction.ch4`` and
+``reproduction.ch5`` share: the behaviour's first and last episodes and the prediction errors'
 trend (Eq. 4.8; Figs. 4.5–4.8, 4.10–4.13, 5.2–5.6, 5.17–5.19), and the PCA projections of the
 activations at the T-junction with the silhouette of the task conditions and, for memories, of
 the initial signal on PC1–3 (Figs. 4.14–4.19, 5.7–5.13, 5.20–5.25). The maze variant comes from
-the environment's facts (`matching`, image observations), the optimum from `episodes.npz`, the
-observation names from `env.observation_names`. Its RBM preprocessor, where run.json names one,
-is analysed by `reproduction.preprocessor` (Figs. 5.15–5.16). Learning curves, TD errors and
-prediction errors are generic figures (`ferl.analysis.generic`). `analyze` writes the numbers
-into the run's `analysis/` folder and returns the figures.
+the environment's facts (``matching``, image observations), the optimum from ``episodes.npz``, the
+observation names from ``env.observation_names``. Its RBM preprocessor, where run.json names one,
+is analysed by ``reproduction.preprocessor`` (Figs. 5.15–5.16). Learning curves, TD errors and
+prediction errors are generic figures (``ferl.analysis.generic``). ``analyze`` writes the numbers
+into the run's ``analysis/`` folder and returns the figures.
 """
 
 from __future__ import annotations
@@ -126,9 +126,9 @@ class TMazeRun:
         """Figs. 4.5/4.10/5.2/5.17 in numbers: the error averaged over runs, step-lengths
         and steps t ≥ 1 (t = 0 predicts the random initial signal and cannot improve, §4.3.1).
 
-        `initial`/`final`: training data of the trained lengths at the first/last epoch;
-        `early_share`: share of that drop reached by the last logged epoch within the
-        first `early_epochs` of training (NaN when none was logged); `test`/`longer`: final
+        ``initial``/``final``: training data of the trained lengths at the first/last epoch;
+        ``early_share``: share of that drop reached by the last logged epoch within the
+        first ``early_epochs`` of training (NaN when none was logged); ``test``/``longer``: final
         test error of the trained / the longer, untrained lengths (NaN without the latter).
         """
         trained = p.lengths <= p.trained_max
@@ -362,7 +362,7 @@ def _header(run: TMazeRun, num: Numbering) -> list[tuple[str, str]]:
 
 def analyze(run: Run, num: Numbering, out: Path) -> tuple[TMazeRun, RunAnalysis]:
     """The junction and preprocessor figures and data files of a T-maze run, and the run as the
-    claims of `reproduction.ch4` and `ch5` read it."""
+    claims of ``reproduction.ch4`` and ``ch5`` read it."""
     maze = TMazeRun.load(run)
     return maze, RunAnalysis(f"T-maze ({maze.variant}): {run.experiment}", _header(maze, num),
                              figures=make_figures(maze, num), data_files=write_tables(maze, out))

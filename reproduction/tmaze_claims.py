@@ -1,6 +1,6 @@
-"""The measures that the T-maze claims of chapters 4 and 5 share, judged on a `TMazeRun`.
+"""The measures that the T-maze claims of chapters 4 and 5 share, judged on a ``TMazeRun``.
 
-A claim pairs one of them with the maze variant it is about (`claims.only`); a measure returns
+A claim pairs one of them with the maze variant it is about (``claims.only``); a measure returns
 None where the run lacks its data (a predictor role or a junction layer it did not record).
 """
 
@@ -18,7 +18,7 @@ from reproduction.tmaze import TMazeRun
 Applies = Callable[[TMazeRun], bool]
 Measure = Callable[[TMazeRun], Measured | None]
 
-SOLVED_RUNS = (1.0, 0.8)     # share of runs `solved` (summary.json): all / at least 8 in 10
+SOLVED_RUNS = (1.0, 0.8)     # share of runs ``solved`` (summary.json): all / at least 8 in 10
 STEPS_RATIO = (1.05, 1.25)   # final steps to the goal ÷ optimum, mean over runs
 CORRECT_GOAL = (0.95, 0.8)   # final correct-goal rate of the worst run
 TD_DECREASE = (0.1, 0.5)     # last ÷ first 200-episode mean |δ| of the worst run ("to ~0")
@@ -66,7 +66,7 @@ def td_decreases(run: TMazeRun) -> Measured:
 
 
 def predictor_learns(role: str, drop: float = ERROR_DROP) -> Measure:
-    """The first predictor of `role`: its error falls by `drop`, rapidly, and generalises."""
+    """The first predictor of ``role``: its error falls by ``drop``, rapidly, and generalises."""
     def measure(run: TMazeRun) -> Measured | None:
         p = run.predictor(role)
         if p is None:
@@ -146,8 +146,8 @@ def leading_variance(layer: str, n_pcs: int) -> Measure:
 def separation_claim(applies: Applies, layer: str, rule: Callable[[tuple[float, float]], str],
                      text: str, source: str, criterion: str = "") -> Claim:
     """A claim that the conditions separate in an actor layer at the T-junction: the state
-    nodes in both phases (`separated_in_both`: Figs. 4.15, 5.9, 5.22), the hidden nodes as the
-    training proceeds (`separates_more`: Figs. 4.17–4.19, 5.11–5.12, 5.24–5.25)."""
+    nodes in both phases (``separated_in_both``: Figs. 4.15, 5.9, 5.22), the hidden nodes as the
+    training proceeds (``separates_more``: Figs. 4.17–4.19, 5.11–5.12, 5.24–5.25)."""
     return Claim(text, source, only(applies, conditions_separate(layer)), rule, criterion)
 
 

@@ -1,10 +1,10 @@
 """Figures of the T-junction (chapter 4, Figs. 4.14–4.19; chapter 5, Figs. 5.7–5.13, 5.20–5.25)
 and of the RBM preprocessor (Figs. 5.15–5.16), drawn from run records.
 
-Like `floor_figures`, every function takes plain arrays and returns a
-`matplotlib.figure.Figure` built without pyplot. The numbers come from
-`reproduction.tmaze` and, for the RBM preprocessor of §5.3.2, `reproduction.preprocessor`;
-learning curves, TD errors and prediction errors are generic figures (`ferl.analysis.figures`).
+Like ``floor_figures``, every function takes plain arrays and returns a
+``matplotlib.figure.Figure`` built without pyplot. The numbers come from
+``reproduction.tmaze`` and, for the RBM preprocessor of §5.3.2, ``reproduction.preprocessor``;
+learning curves, TD errors and prediction errors are generic figures (``ferl.analysis.figures``).
 """
 
 from __future__ import annotations
@@ -69,8 +69,8 @@ def junction_pca(panels: Sequence[tuple], explained: Sequence[tuple],
                  steps_range: tuple[float, float], title: str) -> Figure:
     """Figs. 4.14(b)/4.15(b)/4.17(b) with the variance bars of Figs. 4.16/4.19(a).
 
-    `panels` holds (subtitle, scores (n, ≥2), condition (n,), steps_to_goal (n,)) per phase,
-    `explained` (label, explained-variance ratio) per phase.
+    ``panels`` holds (subtitle, scores (n, ≥2), condition (n,), steps_to_goal (n,)) per phase,
+    ``explained`` (label, explained-variance ratio) per phase.
     """
     fig = Figure(figsize=(15, 4.6), layout="constrained")
     axes = fig.subplots(1, len(panels) + 1)
@@ -109,7 +109,7 @@ def _pc3_scatter(ax, scores: np.ndarray, colors: np.ndarray, subtitle: str) -> N
 
 def junction_pca3d(panels: Sequence[tuple], condition_names: Sequence[str],
                    legend_title: str, title: str) -> Figure:
-    """Figs. 4.19(b)/5.10(b)/5.13(b)/5.23(b): projection on PC1–3; `panels` holds
+    """Figs. 4.19(b)/5.10(b)/5.13(b)/5.23(b): projection on PC1–3; ``panels`` holds
     (subtitle, scores (n, 3), condition)."""
     fig = Figure(figsize=(12, 5.5), layout="constrained")
     colors = np.array(_condition_colors(len(condition_names)))
@@ -125,7 +125,7 @@ def junction_pca3d(panels: Sequence[tuple], condition_names: Sequence[str],
 def class_pca(scores: np.ndarray, labels: np.ndarray, class_names: Sequence[str],
               subtitle: str, spectra: Sequence[tuple], title: str) -> Figure:
     """Figs. 5.15/5.16: (a) images projected on PC1–3, coloured by digit class; then one
-    panel of explained-variance ratios per (label, ratios) in `spectra` (Figs. 5.15(b–c),
+    panel of explained-variance ratios per (label, ratios) in ``spectra`` (Figs. 5.15(b–c),
     5.16(b))."""
     n_panels = 1 + len(spectra)
     fig = Figure(figsize=(5.5 + 4.5 * len(spectra), 4.8), layout="constrained")

@@ -1,13 +1,13 @@
 """Agents side by side (§5.4, beyond the dissertation): on every task of a sweep, the
 dissertation's agent against each variant of its components, as findings of ours.
 
-A *task* is what a run's environment recorded of itself (`records/run.json` `env`): runs whose
+A *task* is what a run's environment recorded of itself (``records/run.json`` ``env``): runs whose
 environments describe themselves alike faced the same task, whatever experiment or override
 produced them, and whatever view of it the agent had (the oracle's true state). An *agent* is
 what differs from the dissertation's components: the oracle's view, the actor's kind (the
 baselines: ``mlp_q``, ``drqn``, ``tabular_q``, an external ``recurrent_ppo``) and value form
-(`actor.q`), a preprocessor other than the RBM, no predictor where the dissertation has one
-(`predictor=none`), predictor memories other than Elman, a trainer other than the phased
+(``actor.q``), a preprocessor other than the RBM, no predictor where the dissertation has one
+(``predictor=none``), predictor memories other than Elman, a trainer other than the phased
 algorithms, curiosity. A task gets a table (the headline metrics of its summary, mean ± s.e.m.
 over runs), the finding of which agent leads it, and one learning-curve figure with every
 agent's mean ± s.e.m. when it was run by at least two agents.

@@ -1,12 +1,12 @@
 """Claims of a publication as data, and the chapters that hold them.
 
-A `Claim` pairs a statement of a publication (with its section/figure) with a function
+A ``Claim`` pairs a statement of a publication (with its section/figure) with a function
 measuring the corresponding quantity on an analysed run and a threshold rule turning that
-measurement into "held", "partly" or "not held" (spelled out, where given, by its `criterion`).
-A `Chapter` is the set of claims and figure numbers that apply to a run whose recorded facts
-(`records/run.json`) match the chapter's model. This module holds no claim: the dissertation's
-chapters are `reproduction.ch3`, `ch4`, `ch5` and `sweep_claims`, registered through
-`ferl.analysis.dispatch`.
+measurement into "held", "partly" or "not held" (spelled out, where given, by its ``criterion``).
+A ``Chapter`` is the set of claims and figure numbers that apply to a run whose recorded facts
+(``records/run.json``) match the chapter's model. This module holds no claim: the dissertation's
+chapters are ``reproduction.ch3``, ``ch4``, ``ch5`` and ``sweep_claims``, registered through
+``ferl.analysis.dispatch``.
 """
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ class ClaimResult:
 
 def only(applies: Callable[[Any], bool],
          measure: Callable[[Any], Measured | None]) -> Callable[[Any], Measured | None]:
-    """`measure` on the runs that `applies` accepts (the claim's model or maze variant); None,
+    """``measure`` on the runs that ``applies`` accepts (the claim's model or maze variant); None,
     no claim, on any other."""
     return lambda run: measure(run) if applies(run) else None
 
@@ -95,14 +95,14 @@ def threshold_claim(text: str, source: str, measure: Callable[[Any], Measured | 
                     limits: tuple[float, float], what: str, upper: bool = False,
                     note: str = "") -> Claim:
     """A claim judged by one number against (held, partly) limits: at least them, or at most
-    with `upper`; its criterion says so in words (`what`, then `note`)."""
+    with ``upper``; its criterion says so in words (``what``, then ``note``)."""
     if upper:
         return Claim(text, source, measure, at_most(*limits), at_most_text(what, limits) + note)
     return Claim(text, source, measure, at_least(*limits), at_least_text(what, limits) + note)
 
 
 def mean_sd_text(values) -> str:
-    """"mean ± s.d. (mean ± s.d., n runs)" over the runs that have a value (`ferl.stats`)."""
+    """"mean ± s.d. (mean ± s.d., n runs)" over the runs that have a value (``ferl.stats``)."""
     mean, sd, n = stats.mean_sd(values)
     if n < 2:
         return f"{mean:.3g} ({n} run{'' if n == 1 else 's'})"
@@ -124,8 +124,8 @@ class LayerFigures:
 class Numbering:
     """A publication's figure numbers of one model on one task ("" where it has none).
 
-    `predictor_panels` gives a predictor role its panel of the prediction-error figure; `layers`
-    maps a junction layer (`state`, `hidden`, `memory_<role>`, and `memory` for any other
+    ``predictor_panels`` gives a predictor role its panel of the prediction-error figure; ``layers``
+    maps a junction layer (``state``, ``hidden``, ``memory_<role>``, and ``memory`` for any other
     memory) to its figures."""
     learning_curves: str = ""
     td_errors: str = ""

@@ -6,7 +6,7 @@ the pixel–label mutual information behind Fig. 3.12, moving averages, and the
 PCA with the silhouette of labelled points on the leading PCs that scores the
 separation of T-junction activations (Figs. 4.14–4.19, 5.7–5.13, 5.20–5.25)
 and of digit classes (Figs. 5.15–5.16). Summary statistics over runs are
-`ferl.stats`'.
+``ferl.stats``'.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from scipy.special import entr
 def median_firing_rates(hidden: np.ndarray) -> np.ndarray:
     """MFR_c of Eq. (3.12): the median over the test images of class c.
 
-    `hidden` is (C, n, H), the action-averaged posterior (1/|A|) Σ_a P(h|z, a)
+    ``hidden`` is (C, n, H), the action-averaged posterior (1/|A|) Σ_a P(h|z, a)
     for each of the n test images z of each class; returns (C, H).
     """
     return np.median(np.asarray(hidden, dtype=np.float64), axis=1)
@@ -96,11 +96,11 @@ def pairwise_mutual_information(images_by_class: Sequence[np.ndarray],
 
     For classes C = {c1, c2} with equal prior P(C = c_j) = 1/2 and each pixel Z_i,
     I(Z_i; C) = H(Z_i) − Σ_j P(C = c_j) H(Z_i | C = c_j)   (§3.5.3),
-    averaged over pixels, in nats. `images_by_class` holds one (n_c, P) array
+    averaged over pixels, in nats. ``images_by_class`` holds one (n_c, P) array
     per class; returns the (C, C) matrix, diagonal 0. Low MI ⇒ perceptually
     similar classes.
 
-    Intensities are discretised into `bins` equal-width bins. The default, 2
+    Intensities are discretised into ``bins`` equal-width bins. The default, 2
     (ink vs. background, threshold 0.5), suits MNIST, whose intensities pile up
     at 0 and 1, so two bins keep nearly all the class information; it also keeps
     the plug-in estimator's upward bias, about (bins − 1)/(4n) nats for n
@@ -119,7 +119,7 @@ def pairwise_mutual_information(images_by_class: Sequence[np.ndarray],
 
 
 def moving_average(values: np.ndarray, window: int = 100) -> np.ndarray:
-    """Mean over the trailing `window` entries of the last axis (Fig. 3.4).
+    """Mean over the trailing ``window`` entries of the last axis (Fig. 3.4).
 
     (…, T) → (…, T − window + 1); entry t averages steps t … t + window − 1.
     """
@@ -169,7 +169,7 @@ def silhouette_score(points: np.ndarray, labels: np.ndarray) -> float:
 def pca(x: np.ndarray, n_components: int = 3) -> tuple[np.ndarray, np.ndarray]:
     """PCA by SVD of the centred data.
 
-    Returns the scores on the first `n_components` PCs, (n, n_components), zero where
+    Returns the scores on the first ``n_components`` PCs, (n, n_components), zero where
     there are fewer components (samples or units), and the explained-variance ratio
     of every PC, one per unit (zeros past the rank).
     """
@@ -186,14 +186,14 @@ def pca(x: np.ndarray, n_components: int = 3) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _subsample(n: int, size: int) -> np.ndarray:
-    """The same `size` of n indices every time (deterministic, in order)."""
+    """The same ``size`` of n indices every time (deterministic, in order)."""
     if n <= size:
         return np.arange(n)
     return np.sort(np.random.default_rng(0).choice(n, size, replace=False))
 
 
 def subsampled_silhouette(points: np.ndarray, labels: np.ndarray, max_points: int) -> float:
-    """`silhouette_score` of the same ≤ `max_points` points every time (bounds the O(n²)
+    """``silhouette_score`` of the same ≤ ``max_points`` points every time (bounds the O(n²)
     distances)."""
     keep = _subsample(len(points), max_points)
     return silhouette_score(np.asarray(points)[keep], np.asarray(labels)[keep])

@@ -1,22 +1,22 @@
-"""Which analysis a run gets, decided on what it recorded (`records/run.json`), and the registry
+"""Which analysis a run gets, decided on what it recorded (``records/run.json``), and the registry
 through which analyses beyond the generic ones plug in.
 
-Every run gets the generic figures (`ferl.analysis.generic`). On top of them, from a `Registry`:
+Every run gets the generic figures (``ferl.analysis.generic``). On top of them, from a ``Registry``:
 
-* the environment's own analysis, by `env.kind` (`Registry.environments`); an environment of a
+* the environment's own analysis, by ``env.kind`` (``Registry.environments``); an environment of a
   kind nobody registered has none;
 * the claims and figure numbers of the first chapter whose model the run's facts match
-  (`Chapter.applies`); a run that matches none is reported without claims.
+  (``Chapter.applies``); a run that matches none is reported without claims.
 
 A sweep gets, besides its generic tables, the claims only a comparison of jobs can judge
-(`sweep_claims`) and the sections of `sweep_sections`; `pages` pastes its results into pages of
-the repository (`analyze.py --readme`).
+(``sweep_claims``) and the sections of ``sweep_sections``; ``pages`` pastes its results into pages of
+the repository (``analyze.py --readme``).
 
 ferl registers nothing: a package that reads runs against a publication registers its chapters,
-environments and sweep sections into `REGISTRY` when imported (the dissertation's:
-`reproduction`, which `analyze.py` imports). The package never imports it back: data flows one
+environments and sweep sections into ``REGISTRY`` when imported (the dissertation's:
+``reproduction``, which ``analyze.py`` imports). The package never imports it back: data flows one
 way (docs/architecture.md). Each worker process of a parallel analysis imports the registered
-`modules` again, so that it sees the same registry.
+``modules`` again, so that it sees the same registry.
 """
 
 from __future__ import annotations
@@ -77,6 +77,6 @@ REGISTRY = Registry()
 
 def import_plugins(modules: Sequence[str]) -> None:
     """Import the plug-ins a parent process had registered (in a worker process, whose
-    `REGISTRY` starts empty); each registers itself on import."""
+    ``REGISTRY`` starts empty); each registers itself on import."""
     for name in modules:
         importlib.import_module(name)

@@ -1,8 +1,8 @@
 """The figures every run gets, whatever trained it: learning curves, TD errors and prediction
 errors (Figs. 3.4; 4.5–4.8, 4.10–4.13; 5.2–5.6, 5.17–5.19 where a chapter applies).
 
-Every function takes plain arrays and returns a `matplotlib.figure.Figure` built without pyplot
-(so no global figure state; rendered by the Agg canvas when saved). `band` and `edges` are the
+Every function takes plain arrays and returns a ``matplotlib.figure.Figure`` built without pyplot
+(so no global figure state; rendered by the Agg canvas when saved). ``band`` and ``edges`` are the
 drawing helpers the chapter figures share.
 """
 
@@ -50,7 +50,7 @@ def learning_curves(x: np.ndarray, panels: Sequence[tuple], each_run: tuple, win
     """Figs. 3.4, 4.6–4.7 / 4.11–4.12 / 5.3–5.5 / 5.18–5.19(a–b): moving averages, mean ±
     s.e.m. over runs, and one measure in every run (Figs. 4.6(b), 5.3(b), 5.18(b)).
 
-    `panels` holds (label, mean, sem, optimum or None) per measure, `each_run`
+    ``panels`` holds (label, mean, sem, optimum or None) per measure, ``each_run``
     (label, moving averages (R, len(x)), optimum or None).
     """
     ncols = 2
@@ -85,7 +85,7 @@ def td_errors(x: np.ndarray, mean: np.ndarray, sem: np.ndarray, window: int, n_r
               ) -> Figure:
     """Figs. 4.8/4.13/5.6/5.19(c–d): (a) moving average of the mean |δ|; (b) where recorded,
     the per-step δ of sampled episodes of one run (the dissertation's 1st run, run 0 here):
-    `sampled` = (δ (episodes, steps), episode numbers)."""
+    ``sampled`` = (δ (episodes, steps), episode numbers)."""
     fig = Figure(figsize=(12 if sampled is not None else 7, 4.2), layout="constrained")
     axes = fig.subplots(1, 2 if sampled is not None else 1, squeeze=False).ravel()
     band(axes[0], x, mean, sem, None)
@@ -109,7 +109,7 @@ def td_errors(x: np.ndarray, mean: np.ndarray, sem: np.ndarray, window: int, n_r
 def prediction_errors(train: np.ndarray, test: np.ndarray, lengths: np.ndarray,
                       epochs: np.ndarray, trained_max: int, units: str, title: str) -> Figure:
     """Figs. 4.5/4.10/5.2/5.17: run-mean error (E, nT, Tmax+1); rows train/test, one column
-    per T; `units` names the error measure on the colour bar."""
+    per T; ``units`` names the error measure on the colour bar."""
     n_lengths = len(lengths)
     # The untrained epoch 0 can be many times the rest; a 99th-percentile top (epoch 0
     # saturates) keeps the learning visible.

@@ -1,15 +1,15 @@
 """The analysis every run gets, whatever trained it: learning curves, TD errors, prediction
 errors and the summary table.
 
-Episodic runs (`env.episodic` in run.json) are read from `episodes.npz`: the moving average of
+Episodic runs (``env.episodic`` in run.json) are read from ``episodes.npz``: the moving average of
 the discounted return, the steps, the terminal reward and each boolean outcome the environment
-declares (`env.outcomes`, e.g. the T-maze's `correct_goal`), and of the episode-mean |δ|, with
-the per-step δ of the sampled episodes. Continuing runs are read from `steps.npz`: the moving
+declares (``env.outcomes``, e.g. the T-maze's ``correct_goal``), and of the episode-mean |δ|, with
+the per-step δ of the sampled episodes. Continuing runs are read from ``steps.npz``: the moving
 average of the reward and of |δ| per step. Every predictor named in run.json gets its error
-heatmaps from `predictor.npz`; an online run (`online.npz`) its predictors' held-out error, β and
+heatmaps from ``predictor.npz``; an online run (``online.npz``) its predictors' held-out error, β and
 curiosity per episode. The summary table is mean ± s.d. over runs of every
-`summary.json` metric (`ferl.stats`). Where a registered chapter applies
-(`ferl.analysis.dispatch`), its `Numbering` puts its publication's figure numbers into the
+``summary.json`` metric (``ferl.stats``). Where a registered chapter applies
+(``ferl.analysis.dispatch``), its ``Numbering`` puts its publication's figure numbers into the
 captions.
 """
 
@@ -59,13 +59,13 @@ class Curves:
         return next(iter(self.series.values())).shape[0]
 
     def mean_sem(self, key: str) -> tuple[np.ndarray, np.ndarray]:
-        """Mean and s.e.m. over runs (`ferl.stats.sem`) of one series."""
+        """Mean and s.e.m. over runs (``ferl.stats.sem``) of one series."""
         return self.series[key].mean(axis=0), stats.sem(self.series[key])
 
 
 def _moving(values: np.ndarray, window: int,
             max_points: int | None) -> tuple[np.ndarray, np.ndarray]:
-    """(x, (R, n) moving averages), every point or, with `max_points`, at most about that many."""
+    """(x, (R, n) moving averages), every point or, with ``max_points``, at most about that many."""
     ma = moving_average(values, window)
     stride = 1 if max_points is None else max(1, ma.shape[1] // max_points)
     keep = np.arange(0, ma.shape[1], stride)
@@ -135,7 +135,7 @@ def _prediction_table(p: PredictorErrors, out: Path) -> str:
 
 
 def _summary_rows(summary: dict) -> list[tuple[str, float, float, int]]:
-    """(metric, mean, s.d., runs) of every summary.json metric, flattened (`ferl.stats`)."""
+    """(metric, mean, s.d., runs) of every summary.json metric, flattened (``ferl.stats``)."""
     return [(name, *stats.mean_sd(values))
             for name, values in stats.flat_metrics(summary.get("metrics", {})).items()]
 
@@ -196,7 +196,7 @@ ONLINE_LABELS = {"prediction_error": "held-out prediction error\n(Eq. 4.8, summe
 
 
 def _online_figure(run: Run, online: dict) -> tuple:
-    """The online trainer's course (`online.npz`): the predictors' held-out error and the β and η
+    """The online trainer's course (``online.npz``): the predictors' held-out error and the β and η
     that follow from it, per episode."""
     window = min(EPISODE_WINDOW, online["beta"].shape[1])
     series = {k: _moving(online[k].astype(np.float64), window, None) for k in ONLINE_LABELS if k in online}

@@ -1,7 +1,7 @@
 """Reading records and writing the analysis' files: the helpers every analysis module shares.
 
-Numbers go to CSV with six significant digits (`fmt`), lists to JSON (`write_json`), and text
-into markdown table cells through `cell`, which escapes the cell separator.
+Numbers go to CSV with six significant digits (``fmt``), lists to JSON (``write_json``), and text
+into markdown table cells through ``cell``, which escapes the cell separator.
 """
 
 from __future__ import annotations

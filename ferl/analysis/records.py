@@ -1,14 +1,14 @@
-"""A run directory as the analysis sees it: what produced it (`records/run.json`), its
-`summary.json` and its records (docs/records.md).
+"""A run directory as the analysis sees it: what produced it (``records/run.json``), its
+``summary.json`` and its records (docs/records.md).
 
-Every decision of the analysis is taken on the facts of `records/run.json` — the task, the
+Every decision of the analysis is taken on the facts of ``records/run.json`` — the task, the
 environment's kind and observations, the trainer's phases and parameters, the preprocessor and
-each predictor's kind — never on experiment names or config `_target_`s. A predictor's *role*
+each predictor's kind — never on experiment names or config ``_target_``s. A predictor's *role*
 follows from what it predicts:
 
-* `joint`: the observation and the reward bits together (Algorithm 1, Eq. 4.8);
-* `observation`: the observation only (Algorithm 2's observation predictor, Eq. 5.1);
-* `reward`: a scalar reward only (Algorithm 2's reward predictor, Eq. 5.2).
+* ``joint``: the observation and the reward bits together (Algorithm 1, Eq. 4.8);
+* ``observation``: the observation only (Algorithm 2's observation predictor, Eq. 5.1);
+* ``reward``: a scalar reward only (Algorithm 2's reward predictor, Eq. 5.2).
 
 Any other predictor has no role: it gets the generic figures and no chapter's claims.
 """
@@ -43,7 +43,7 @@ def predictor_role(facts: dict) -> str | None:
 
 @dataclass(frozen=True)
 class Manifest:
-    """`records/run.json` (docs/records.md): what produced the run."""
+    """``records/run.json`` (docs/records.md): what produced the run."""
     task: str
     experiment: str
     trainer: dict
@@ -109,7 +109,7 @@ class Manifest:
 
 @dataclass(frozen=True)
 class PredictorErrors:
-    """One predictor's records of `predictor.npz`: Eq. (4.7)–(4.8) errors per epoch, step-length
+    """One predictor's records of ``predictor.npz``: Eq. (4.7)–(4.8) errors per epoch, step-length
     T and step t (Figs. 4.5/4.10, 5.2/5.17)."""
     name: str
     role: str | None
@@ -140,20 +140,20 @@ class Run:
         return cls(Path(run_dir), load_summary(run_dir), manifest)
 
     def records(self, name: str) -> dict[str, np.ndarray] | None:
-        """`records/<name>.npz` as arrays; None where the run has no such file."""
+        """``records/<name>.npz`` as arrays; None where the run has no such file."""
         if name not in self.files:
             path = self.run_dir / "records" / f"{name}.npz"
             self.files[name] = self.checked(path, load_npz(path)) if path.is_file() else None
         return self.files[name]
 
     def probes(self) -> dict[str, np.ndarray] | None:
-        """`records/probe.npz`, the activations at the environment's probe states (docs/records.md),
-        or `records/junction.npz`, its name in runs recorded before it was neutral."""
+        """``records/probe.npz``, the activations at the environment's probe states (docs/records.md),
+        or ``records/junction.npz``, its name in runs recorded before it was neutral."""
         found = self.records("probe")
         return found if found is not None else self.records("junction")
 
     def required(self, name: str) -> dict[str, np.ndarray]:
-        """`records/<name>.npz`, which this analysis cannot do without: FileNotFoundError naming
+        """``records/<name>.npz``, which this analysis cannot do without: FileNotFoundError naming
         the file where the run has none (removed, or the run was cut before it wrote it)."""
         found = self.records(name)
         if found is None:

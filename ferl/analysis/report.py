@@ -1,4 +1,4 @@
-"""The markdown reports: a run's `analysis/report.md` and the jobs table of a sweep's."""
+"""The markdown reports: a run's ``analysis/report.md`` and the jobs table of a sweep's."""
 
 from __future__ import annotations
 
@@ -34,8 +34,8 @@ class RunAnalysis:
 
 
 def claims_table(results: Sequence[ClaimResult], reference: str = "") -> list[str]:
-    """One row per claim; a criterion column where any claim states its rule. `reference` names
-    the work the claims come from (`ferl.analysis.dispatch.Registry.reference`)."""
+    """One row per claim; a criterion column where any claim states its rule. ``reference`` names
+    the work the claims come from (``ferl.analysis.dispatch.Registry.reference``)."""
     if not results:
         return [f"No {reference} claim applies to this run." if reference else
                 "No claim applies to this run."]
@@ -47,7 +47,7 @@ def claims_table(results: Sequence[ClaimResult], reference: str = "") -> list[st
 
 
 def write_run_report(path: Path, analysis: RunAnalysis, reference: str = "") -> None:
-    """`analysis/report.md` of one run: header, tables, claims (of `reference`), figure and data
+    """``analysis/report.md`` of one run: header, tables, claims (of ``reference``), figure and data
     links."""
     lines = [f"# {analysis.title}", ""]
     lines += [f"- **{key}**: {value}" for key, value in analysis.header]
@@ -74,7 +74,7 @@ class RunOutcome:
 
 
 def jobs_table(sweep_dir: Path, out: Path, outcomes: Sequence[RunOutcome]) -> list[str]:
-    """One row per job of a sweep, linking its report (from `out`) and counting its verdicts."""
+    """One row per job of a sweep, linking its report (from ``out``) and counting its verdicts."""
     rows = []
     for o in outcomes:
         name = os.path.relpath(o.run_dir, sweep_dir)

@@ -1,13 +1,13 @@
-"""`analyze.py`'s work: analyze run and sweep directories, write their `analysis/` folders.
+"""``analyze.py``'s work: analyze run and sweep directories, write their ``analysis/`` folders.
 
-A directory holding `summary.json` is a run: its `analysis/` folder is rebuilt (PNG figures,
-CSV/JSON data, `report.md`) and the figures are logged to its TensorBoard under
-`tb/analysis/` (replaced on every analysis). What a run gets is decided on what it recorded
-(`records/run.json`) and on what plug-ins registered (`ferl.analysis.dispatch.REGISTRY`); a run
+A directory holding ``summary.json`` is a run: its ``analysis/`` folder is rebuilt (PNG figures,
+CSV/JSON data, ``report.md``) and the figures are logged to its TensorBoard under
+``tb/analysis/`` (replaced on every analysis). What a run gets is decided on what it recorded
+(``records/run.json``) and on what plug-ins registered (``ferl.analysis.dispatch.REGISTRY``); a run
 without run.json is skipped with a message. Any other directory is a sweep: every run below it
-is analyzed, and `DIR/analysis/` gets the sweep's aggregate tables and claims report
-(`ferl.analysis.sweep`) and the registered sweep sections, its figures also logged to
-`DIR/analysis/tb/`.
+is analyzed, and ``DIR/analysis/`` gets the sweep's aggregate tables and claims report
+(``ferl.analysis.sweep``) and the registered sweep sections, its figures also logged to
+``DIR/analysis/tb/``.
 """
 
 from __future__ import annotations
@@ -35,11 +35,11 @@ POOL_MIN_RUNS = 4  # a pool's workers take a few seconds to start: fewer runs ar
 
 
 def publish_figures(figures: dict, out: Path, tb_dir: Path) -> None:
-    """Save every figure as PNG and log it to a fresh TensorBoard log `tb_dir` under
-    `analysis/<name>`.
+    """Save every figure as PNG and log it to a fresh TensorBoard log ``tb_dir`` under
+    ``analysis/<name>``.
 
     Each figure is rendered once by the Agg canvas and the same pixels go to both,
-    which is what `SummaryWriter.add_figure` logs, without drawing it twice more.
+    which is what ``SummaryWriter.add_figure`` logs, without drawing it twice more.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.image import imsave
@@ -69,7 +69,7 @@ def _fresh(out: Path) -> Path:
 
 def run_analysis(run: Run, out: Path) -> RunAnalysis:
     """The generic analysis of any run, its environment's figures and, where a registered chapter
-    applies, that chapter's figure numbers and claims (`ferl.analysis.dispatch`)."""
+    applies, that chapter's figure numbers and claims (``ferl.analysis.dispatch``)."""
     chapter = REGISTRY.chapter_of(run.manifest)
     num = chapter.numbering(run.manifest) if chapter else Numbering()
     analysis = generic.analyze(run, num, out)
@@ -89,7 +89,7 @@ def run_analysis(run: Run, out: Path) -> RunAnalysis:
 
 
 def analyze_run(run_dir: Path) -> RunOutcome:
-    """Rebuild `run_dir/analysis/`; return the run's line of a sweep report."""
+    """Rebuild ``run_dir/analysis/``; return the run's line of a sweep report."""
     summary = runs.load_summary(run_dir)
     task, experiment = str(summary.get("task")), str(summary.get("experiment", "?"))
     manifest = Manifest.load(run_dir)
@@ -112,8 +112,8 @@ def analyze_run(run_dir: Path) -> RunOutcome:
 
 
 def _safe_analyze_run(run_dir: Path, plugins: Sequence[str] = ()) -> RunOutcome:
-    """One failing run must not stop a sweep: report it in one line and go on. `plugins`: the
-    modules to import first (in a worker process, `dispatch.import_plugins`)."""
+    """One failing run must not stop a sweep: report it in one line and go on. ``plugins``: the
+    modules to import first (in a worker process, ``dispatch.import_plugins``)."""
     import_plugins(plugins)
     try:
         return analyze_run(run_dir)
@@ -142,7 +142,7 @@ def analyze_runs(found: list[Path]) -> list[RunOutcome]:
 
 
 def analyze_sweep(sweep_dir: Path, pages: Sequence[Path] = ()) -> list[RunOutcome]:
-    """Analyze every run below `sweep_dir`, then the sweep as a whole (`ferl.analysis.sweep`,
+    """Analyze every run below ``sweep_dir``, then the sweep as a whole (``ferl.analysis.sweep``,
     then the registered sweep sections)."""
     start = time.perf_counter()
     found = runs.find_runs(sweep_dir)
@@ -180,7 +180,7 @@ def analyze_sweep(sweep_dir: Path, pages: Sequence[Path] = ()) -> list[RunOutcom
 
 def report_unfinished(sweep_dir: Path) -> list[RunOutcome]:
     """One stderr line for each member of the sweep that has no summary.json yet (still
-    running, killed or failed: `ferl.analysis.members`); their rows of the sweep's jobs table."""
+    running, killed or failed: ``ferl.analysis.members``); their rows of the sweep's jobs table."""
     skipped = []
     for run_dir, why in members.unfinished(sweep_dir):
         print(f"{PROG}: skipped {run_dir}: {why}", file=sys.stderr)

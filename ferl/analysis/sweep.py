@@ -1,16 +1,16 @@
 """A sweep directory (the jobs of one or more Hydra multiruns) → its aggregate analysis.
 
-Every job keeps its own `analysis/` (docs/records.md, "Analysis"); the sweep's `analysis/` gets:
+Every job keeps its own ``analysis/`` (docs/records.md, "Analysis"); the sweep's ``analysis/`` gets:
 
-* `metrics.csv` and one table per experiment: mean ± s.e.m. over runs of every
-  `summary.json` metric, one column per variant of the experiment (a variant is a job's
-  overrides besides `experiment=…`; none = the setting of the experiment's YAML);
+* ``metrics.csv`` and one table per experiment: mean ± s.e.m. over runs of every
+  ``summary.json`` metric, one column per variant of the experiment (a variant is a job's
+  overrides besides ``experiment=…``; none = the setting of the experiment's YAML);
 * the claims report: one row per claim the jobs judged, judged on the job that runs the
   experiment as its YAML does (the fewest overrides), the verdicts of the other jobs beside it,
-  and the claims only a comparison of jobs can judge (`Registry.sweep_claims`);
-* the sections that plug-ins register (`ferl.analysis.dispatch.Registry.sweep_sections`).
+  and the claims only a comparison of jobs can judge (``Registry.sweep_claims``);
+* the sections that plug-ins register (``ferl.analysis.dispatch.Registry.sweep_sections``).
 
-Means and s.e.m. over runs are `ferl.stats`', metric names its flattening (`<metric>/<level>`).
+Means and s.e.m. over runs are ``ferl.stats``', metric names its flattening (``<metric>/<level>``).
 """
 
 from __future__ import annotations
@@ -29,9 +29,9 @@ from ferl.analysis.io import fmt, table_lines, write_csv
 from ferl.analysis.records import Manifest
 from ferl.analysis.report import RunAnalysis, RunOutcome
 
-SCALARS = ("wall_time_s", "agent_steps_per_s")   # summary.json figures besides `metrics`
+SCALARS = ("wall_time_s", "agent_steps_per_s")   # summary.json figures besides ``metrics``
 DISSERTATION_SETTING = "as in the dissertation"  # the variant of a job without overrides
-TRAIN_WALL_TIME = "train_wall_time_s"            # written by `make reproduce`
+TRAIN_WALL_TIME = "train_wall_time_s"            # written by ``make reproduce``
 
 
 def _job_overrides(run_dir: Path) -> tuple[str, ...]:
@@ -64,7 +64,7 @@ class Job:
 
     @property
     def label(self) -> str:
-        """`experiment` and its overrides, e.g. `ch3_floor env.noise=0.5`."""
+        """``experiment`` and its overrides, e.g. ``ch3_floor env.noise=0.5``."""
         return f"`{' '.join((self.experiment, *self.overrides))}`"
 
     @cached_property
@@ -76,8 +76,8 @@ class Job:
             return None
 
     def setting(self, part: str, key: str):
-        """A parameter of a part of the run as records/run.json states it (`env.noise`,
-        `actor.n_hidden`), None without one."""
+        """A parameter of a part of the run as records/run.json states it (``env.noise``,
+        ``actor.n_hidden``), None without one."""
         facts = None if self.manifest is None else getattr(self.manifest, part)
         return (facts or {}).get(key)
 
@@ -95,7 +95,7 @@ class Sweep:
         return [j for j in self.jobs if j.experiment == experiment]
 
     def varying(self, experiment: str, part: str, key: str) -> list[dict]:
-        """The jobs of `experiment` that differ only in `part.key` (the override of that
+        """The jobs of ``experiment`` that differ only in ``part.key`` (the override of that
         name), as sets {value: job}; one set per combination of the other overrides, fewest
         overrides first. The first job of a value stands for it (the same config and seed give
         the same numbers)."""
@@ -110,8 +110,8 @@ class Sweep:
 
 
 def metric_values(summary: dict) -> dict[str, list]:
-    """Every headline figure of a summary as per-run values, named as `ferl.stats` flattens
-    them (`greedy_accuracy/0.5`), then the run-level `SCALARS`."""
+    """Every headline figure of a summary as per-run values, named as ``ferl.stats`` flattens
+    them (``greedy_accuracy/0.5``), then the run-level ``SCALARS``."""
     out = stats.flat_metrics(summary.get("metrics", {}))
     out |= {name: [summary[name]] for name in SCALARS if name in summary}
     return out
@@ -221,7 +221,7 @@ def analyze_sweep(sweep: Sweep, out: Path, title: str = "Sweep report") -> RunAn
 
 def report_lines(sweep: Sweep, analysis: RunAnalysis, rows: Sequence[ReportRow],
                  out: Path, wall: dict[str, float], claims_heading: str = "Claims") -> list[str]:
-    """`analysis/report.md` of a sweep: timing, claims, per-experiment tables, every figure."""
+    """``analysis/report.md`` of a sweep: timing, claims, per-experiment tables, every figure."""
     lines = [f"# {analysis.title}", ""]
     lines += [f"- **{k}**: {v:.0f} s" for k, v in wall.items()]
     lines += [f"- **jobs**: {len(sweep.jobs)}; **claims**: {len(rows)} ({verdict_counts(rows)})",
