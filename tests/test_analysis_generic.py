@@ -11,9 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import reproduction
 from ferl.analysis import dispatch, generic, runner
+from ferl.analysis.claims import HELD, NOT_HELD, Chapter, Claim, Measured, Numbering
 from ferl.analysis.records import Manifest, predictor_role
+from ferl.analysis.report import RunAnalysis
+from reproduction import ch3, ch4, ch5
 from synthetic_runs import (assert_analysis_outputs, load_run, make_floor_run, make_tmaze_run,
                             make_toy_run)
 from test_analyze_cli import analyze, event_files
@@ -125,9 +127,9 @@ def manifest(kind: str, predictors: dict, trainer: dict = PHASED, memory: str = 
 
 
 def test_chapters_are_chosen_by_recorded_facts_not_names():
-    assert dispatch.REGISTRY.chapter_of(manifest("digit_floor", {})) is reproduction.ch3.CHAPTER
-    assert dispatch.REGISTRY.chapter_of(manifest("tmaze", {"anything": "joint"})) is reproduction.ch4.CHAPTER
-    assert dispatch.REGISTRY.chapter_of(manifest("tmaze", {"a": "obs", "b": "rew"})) is reproduction.ch5.CHAPTER
+    assert dispatch.REGISTRY.chapter_of(manifest("digit_floor", {})) is ch3.CHAPTER
+    assert dispatch.REGISTRY.chapter_of(manifest("tmaze", {"anything": "joint"})) is ch4.CHAPTER
+    assert dispatch.REGISTRY.chapter_of(manifest("tmaze", {"a": "obs", "b": "rew"})) is ch5.CHAPTER
     assert dispatch.REGISTRY.chapter_of(manifest("tmaze", {"j1": "joint", "j2": "joint"})) is None
     assert dispatch.REGISTRY.chapter_of(manifest("tmaze", {"a": "obs"})) is None
     assert dispatch.REGISTRY.chapter_of(manifest("toy", {"joint": "joint"})) is None
@@ -135,9 +137,9 @@ def test_chapters_are_chosen_by_recorded_facts_not_names():
     online = {"kind": "online", "phases": ["online"]}
     assert dispatch.REGISTRY.chapter_of(manifest("tmaze", {"anything": "joint"}, trainer=online)) is None
     assert dispatch.REGISTRY.chapter_of(manifest("tmaze", {"a": "obs", "b": "rew"}, memory="lstm")) is None
-    assert reproduction.ch4.CHAPTER.numbering(manifest("tmaze", {}, matching=True)) is reproduction.ch4.MATCHING
-    assert reproduction.ch5.CHAPTER.numbering(manifest("tmaze", {}, observation="image")) is reproduction.ch5.DIGIT
-    assert reproduction.ch5.CHAPTER.numbering(manifest("tmaze", {}, observation="bits")) is reproduction.ch5.BIT
+    assert ch4.CHAPTER.numbering(manifest("tmaze", {}, matching=True)) is ch4.MATCHING
+    assert ch5.CHAPTER.numbering(manifest("tmaze", {}, observation="image")) is ch5.DIGIT
+    assert ch5.CHAPTER.numbering(manifest("tmaze", {}, observation="bits")) is ch5.BIT
 
 
 def test_a_run_without_a_manifest_is_skipped(tmp_path, capsys):
@@ -160,3 +162,47 @@ def test_prediction_error_title_fits_when_all_episodes_have_one_length():
     box, frame = fig._suptitle.get_window_extent(), fig.bbox
     assert frame.x0 <= box.x0 and box.x1 <= frame.x1 and box.y1 <= frame.y1, (box, frame)
     assert fig._suptitle.get_text().replace("\n", " ") == title
+
+
+def test_ferl_alone_gives_the_generic_analysis_and_takes_a_plug_in(tmp_path, monkeypatch):
+    """ferl's analysis without reproduction/ (an empty registry): a digit-floor run gets the generic
+    figures only, no claim and no dissertation; a registry with an environment analysis and a chapter
+    of its own (a plug-in's) adds its section, its figure numbers and its judged claim."""
+    run_dir = make_floor_run(tmp_path / "floor")
+    generic_figures = set(generic.analyze(load_run(run_dir), Numbering(), tmp_path).figures)
+    monkeypatch.setattr(runner, "REGISTRY", dispatch.Registry())
+    outcome = runner.analyze_run(run_dir)
+    report = (run_dir / "analysis" / "report.md").read_text()
+    assert outcome.status == "analyzed" and outcome.results == []
+    assert {name for name, _ in outcome.figures} == generic_figures
+    assert "No claim applies to this run." in report
+    assert "dissertation" not in report and "Fig. 3." not in report
+
+    def floor_analysis(run, num, out):
+        return run, RunAnalysis("the floor, by a plug-in", sections=[("Plug-in", [f"{run.experiment}"])])
+
+    two_runs = Claim("Two runs were trained.", "§9.9", lambda run: Measured(len(run.summary["seeds"]), "runs"),
+                     lambda n: HELD if n == 2 else NOT_HELD)
+    chapter = Chapter("a toy model", lambda m: m.env_kind == "digit_floor",
+                      lambda m: Numbering(learning_curves="Fig. 9.1"), [two_runs])
+    monkeypatch.setattr(runner, "REGISTRY", dispatch.Registry(
+        reference="toy paper", environments={"digit_floor": floor_analysis}, chapters=[chapter]))
+    outcome = runner.analyze_run(run_dir)
+    report = (run_dir / "analysis" / "report.md").read_text()
+    assert [(r.claim, r.verdict) for r in outcome.results] == [(two_runs, HELD)]
+    assert report.startswith("# the floor, by a plug-in\n") and "\n## Plug-in\n" in report
+    assert "- **toy paper**: a toy model" in report and "| Two runs were trained. | §9.9 |" in report
+    assert dict(outcome.figures)["learning_curves"].startswith("Fig. 9.1: ")
+
+
+def test_the_workers_of_a_parallel_analysis_see_the_registered_plug_ins(tmp_path):
+    """From runner.POOL_MIN_RUNS runs on, runs are analysed in worker processes, whose registry
+    starts empty: each imports the registered plug-ins (here `reproduction`) and judges chapter 3's
+    claims as the parent process does."""
+    found = [make_floor_run(tmp_path / f"run_{k}", n_runs=2, steps=200) for k in range(runner.POOL_MIN_RUNS)]
+    outcomes = runner.analyze_runs(found)
+    serial = runner.analyze_run(found[0])
+    assert [o.status for o in outcomes] == ["analyzed"] * len(found)
+    assert serial.results and all(r.claim in ch3.CLAIMS for r in serial.results)
+    for outcome in outcomes:
+        assert [r.claim.text for r in outcome.results] == [r.claim.text for r in serial.results]
