@@ -3,14 +3,14 @@ figures, the findings beyond it, and the pages of this repository that show the 
 
 ferl's generic analysis (``ferl.analysis``) gives every run its learning curves, TD errors,
 prediction errors and summary table; this package plugs into it through
-``ferl.analysis.dispatch.REGISTRY`` when imported (``analyze.py`` imports it), and ferl never imports
-it back:
+``ferl.analysis.dispatch.REGISTRY`` when imported (``analyze.py`` imports it), and ferl never
+imports it back:
 
 * ``floor`` (digit floor, ``floor_figures``) and ``tmaze`` (T-junction, ``tmaze_figures``, with
   ``preprocessor`` for the RBM of §5.3.2) add their environment's figures, by ``env.kind``;
 * ``ch3``, ``ch4``, ``ch5`` hold the dissertation's claims and figure numbers by chapter
   (``tmaze_claims`` the measures chapters 4 and 5 share), ``sweep_claims`` those only a comparison
-  of jobs can judge;
+  of jobs can judge, ``scope`` the runs they speak to (the dissertation's components, algorithm);
 * a sweep's sections: ``noise_grid`` (Fig. 3.6 across jobs), ``beyond`` (findings beyond the
   dissertation, §5.4) and ``variants`` (agents side by side per task: the variants, the baselines
   and the third-party suites);

@@ -14,6 +14,7 @@ from ferl.analysis.claims import (HELD, NOT_HELD, PARTLY, Chapter, Claim, Measur
                                   all_or_some, at_least, at_most, mean_sd_text)
 from ferl.analysis.records import Manifest
 from reproduction.floor import ENV_KIND, PERCEPTUAL_PAIRS, FloorRun
+from reproduction.scope import dissertation_components
 
 # Thresholds of the verdict rules (fractions unless stated).
 NEAR_OPTIMAL = (0.8, 0.5)        # reward/step ÷ optimum
@@ -209,7 +210,7 @@ CLAIMS: list[Claim] = [
 
 
 def applies(manifest: Manifest) -> bool:
-    return manifest.env_kind == ENV_KIND and manifest.dissertation_components
+    return manifest.env_kind == ENV_KIND and dissertation_components(manifest)
 
 
 CHAPTER = Chapter("the FERL actor on the digit floor (chapter 3, §3.4–§3.5)", applies,

@@ -11,6 +11,7 @@ from __future__ import annotations
 from ferl.analysis.claims import (Chapter, Claim, LayerFigures, Measured, Numbering, at_least,
                                   at_most, mean_sd_text, only)
 from ferl.analysis.records import JOINT, Manifest
+from reproduction.scope import dissertation_algorithm
 from reproduction.tmaze import ENV_KIND, TMazeRun
 from reproduction.tmaze_claims import (CORRECT_GOAL, SEPARATED, SOLVED_RUNS, STEPS_RATIO,
                                         TD_DECREASE, Applies, correct_goal,
@@ -106,7 +107,7 @@ CLAIMS: list[Claim] = _maze_results(_REGULAR, [
 
 def applies(manifest: Manifest) -> bool:
     return (manifest.env_kind == ENV_KIND and list(manifest.roles.values()) == [JOINT]
-            and manifest.dissertation_algorithm)
+            and dissertation_algorithm(manifest))
 
 
 CHAPTER = Chapter("Algorithm 1, one joint predictor (chapter 4)", applies,

@@ -15,6 +15,7 @@ from ferl.analysis.claims import (Chapter, Claim, LayerFigures, Measured, Number
                                   threshold_claim)
 from ferl.analysis.generic import EPISODE_WINDOW
 from ferl.analysis.records import OBSERVATION, REWARD, Manifest
+from reproduction.scope import dissertation_algorithm
 from reproduction.tmaze import ENV_KIND, TMazeRun
 from reproduction.tmaze_claims import (CORRECT_GOAL, EARLY_EPOCHS, EARLY_SHARE, ERROR_DROP,
                                         GENERALISATION, MOST_VARIANCE, SEPARATED, SOLVED_RUNS,
@@ -221,7 +222,8 @@ CLAIMS: list[Claim] = [
 
 def applies(manifest: Manifest) -> bool:
     roles = manifest.roles.values()
-    return manifest.env_kind == ENV_KIND and OBSERVATION in roles and REWARD in roles and manifest.dissertation_algorithm
+    return (manifest.env_kind == ENV_KIND and OBSERVATION in roles and REWARD in roles
+            and dissertation_algorithm(manifest))
 
 
 CHAPTER = Chapter("Algorithm 2, separate observation and reward predictors (chapter 5)", applies,

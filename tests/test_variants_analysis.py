@@ -9,6 +9,7 @@ import pytest
 
 from conftest import TINY, train_sweep
 from ferl.analysis.records import Manifest
+from reproduction.scope import dissertation_components
 
 
 MAZE = ["n_runs=2", "trainer.n_sample=300", "trainer.n_epoch=2", "trainer.n_episodes=60", "trainer.final_window=20",
@@ -49,8 +50,8 @@ def test_one_table_per_task_with_every_agent(sweep):
 
 def test_only_the_dissertation_components_are_judged_by_its_claims(sweep):
     root, _ = sweep
-    assert Manifest.load(root / "floor_fe").dissertation_components
-    assert not Manifest.load(root / "floor_ee").dissertation_components
+    assert dissertation_components(Manifest.load(root / "floor_fe"))
+    assert not dissertation_components(Manifest.load(root / "floor_ee"))
     claims = (root / "floor_ee" / "analysis" / "report.md").read_text()
     assert "No dissertation claim applies" in claims
 
@@ -67,5 +68,5 @@ def test_the_finding_names_the_leader_among_the_agents_that_see_what_the_agent_s
     assert line.startswith(f"**Best: {agents[best]} (")
     assert (" FERL (dissertation agent " in line) == (best != "maze")
     assert "Ceiling (oracle on the true state)" in line
-    assert not Manifest.load(root / "maze_oracle").dissertation_components
-    assert not Manifest.load(root / "maze_mlp_q").dissertation_components
+    assert not dissertation_components(Manifest.load(root / "maze_oracle"))
+    assert not dissertation_components(Manifest.load(root / "maze_mlp_q"))

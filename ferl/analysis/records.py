@@ -81,26 +81,6 @@ class Manifest:
         """Observations are images (the digit mazes of §4.3.3 and §5.3.2, the digit floor)."""
         return self.env.get("observation") == "image"
 
-    @property
-    def dissertation_components(self) -> bool:
-        """The actor is the free-energy one (§3.2) with Q the free energy, a preprocessor, if any,
-        the RBM (§5.2), and the observations what the agent sees, without the continuous pixel
-        noise of §5.4's Gaussian-visible variant: baselines, other value forms, preprocessors and
-        observations are findings of ours, not claims to judge."""
-        return (self.actor.get("kind", "free_energy") == "free_energy"
-                and self.actor.get("q", "free_energy") == "free_energy"
-                and not self.env.get("true_state")
-                and (self.preprocessor is None or self.preprocessor.get("kind") == "rbm")
-                and not self.env.get("pixel_noise_std"))
-
-    @property
-    def dissertation_algorithm(self) -> bool:
-        """The dissertation's components, its predictors (Elman memories) trained in their own
-        phase before the actor (Algorithms 1–2): only then do chapters 4–5's claims speak to the
-        run. The online trainer and other memories (§5.4) are findings of ours."""
-        return (self.dissertation_components and "predictors" in self.trainer.get("phases", ())
-                and all(facts.get("kind") == "elman" for facts in self.predictors.values()))
-
     @cached_property
     def roles(self) -> dict[str, str | None]:
         """Predictor name → its role (module doc), in the order of run.json."""
