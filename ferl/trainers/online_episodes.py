@@ -142,9 +142,9 @@ class OnlineEpisodes(ActorEpisodes):
             batch.train_epoch([order] * len(members))
         state["predictor_time"] += time.perf_counter() - started
         if (k + 1) % self.log_every == 0:
-            window = slice(max(0, k - 199), k + 1)
+            window = slice(max(0, k + 1 - self.final_window), k + 1)
             for key, values in online.items():
-                job.writer.add_scalar(f"online/{key}_ma200", float(values[:, window].mean()), k + 1)
+                job.writer.add_scalar(f"online/{key}_ma{self.final_window}", float(values[:, window].mean()), k + 1)
 
     def as_episodes(self, job, episode: dict) -> Episodes:
         """The trajectory of ``play_episode`` as one padded episode per run, (R, 1, …)."""
