@@ -25,7 +25,8 @@ from typing import Literal
 import torch
 from torch.nn import functional as nnf
 
-from ferl.actors.softmax import TD_RULES, SoftmaxActor, run_generators
+from ferl import rng
+from ferl.actors.softmax import TD_RULES, SoftmaxActor
 from ferl.config.params import Discount, NonNegative, NonNegativeInt, PositiveInt, checked
 
 PARAMETERS = ("W_x", "W_h", "b_x", "b_h", "W_q", "b_q")
@@ -73,7 +74,7 @@ class DRQNActor(SoftmaxActor):
         self.replay_episodes, self.batch_episodes = replay_episodes, batch_episodes
         self.updates_per_episode, self.target_every = updates_per_episode, target_every
         # PyTorch's GRU initialisation U(−1/√H, 1/√H) unless init_std is given, per run from seed + r
-        generators = run_generators(seed, n_runs)
+        generators = rng.run_generators(seed, n_runs)
         bound = 1 / math.sqrt(n_hidden)
         shapes = {"W_x": (n_state + n_actions, 3 * n_hidden), "W_h": (n_hidden, 3 * n_hidden), "b_x": (3 * n_hidden,),
                   "b_h": (3 * n_hidden,), "W_q": (n_hidden, n_actions), "b_q": (n_actions,)}
@@ -88,7 +89,7 @@ class DRQNActor(SoftmaxActor):
         self.register_buffer("h", torch.zeros(n_runs, 1, n_hidden))
         self.register_buffer("a_prev", torch.zeros(n_runs, 1, n_actions))
         # the replay's draws for every run at once, from a seed that run 0's stream gives
-        self.generator = torch.Generator().manual_seed(int(torch.randint(2**62, (), generator=generators[0])))
+        self.generator = rng.generator(rng.child_seed(generators[0]))
         self.replay = None      # allocated by the first episode, whose length fixes T_max
         self.episodes = self.adam_steps = 0
 

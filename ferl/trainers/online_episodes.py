@@ -35,6 +35,7 @@ import time
 import numpy as np
 import torch
 
+from ferl import rng
 from ferl.config.params import ConfigError, Momentum, NonNegative, Positive, PositiveInt, UnitInterval, checked
 from ferl.config.swaps import chosen
 from ferl.interfaces import EpisodicEnvironment
@@ -42,7 +43,6 @@ from ferl.predictors.popart import observe_rewards
 from ferl.predictors.recurrent import lookup_step
 from ferl.trainers.actor_episodes import ActorEpisodes
 from ferl.trainers.episodes import Episodes, episode_tensors
-from ferl.trainers.job import SeedOffsets
 from ferl.trainers.observations import FitPreprocessor, log_observations
 from ferl.trainers.phased import PhasedTrainer
 
@@ -167,7 +167,7 @@ class OnlineAlgorithm(PhasedTrainer):
     """``trainer=online`` (CONTRACT §2): [the preprocessor's fit, as Algorithm 2's first phase,
     when the config has one →] ``OnlineEpisodes``. Arguments as in conf/trainer/online.yaml."""
 
-    seed_offsets = SeedOffsets(actor=100_000)
+    seed_offsets = rng.EPISODIC
     environment = EpisodicEnvironment
     kind = "online"
 
