@@ -41,6 +41,7 @@ from ferl.config.swaps import chosen
 from ferl.interfaces import EpisodicEnvironment
 from ferl.predictors.popart import observe_rewards
 from ferl.predictors.recurrent import lookup_step
+from ferl.replay import draw_episodes, store_episode, stored_episodes
 from ferl.trainers.actor_episodes import ActorEpisodes
 from ferl.trainers.episodes import Episodes, episode_tensors
 from ferl.trainers.observations import FitPreprocessor, log_observations
@@ -128,12 +129,11 @@ class OnlineEpisodes(ActorEpisodes):
         online["beta"][:, k] = self.beta_now.flatten().cpu().numpy()  # the β episode k acted with
         online["curiosity"][:, k] = self.eta_now
         observe_rewards(job.predictors.values(), ep.rewards, ep.lengths)  # once per new episode, after its held-out error
-        replay, slot = state["replay"], k % self.K
-        for key, value in zip(("obs", "actions", "rewards", "lengths"), (ep.obs, ep.actions, ep.rewards, ep.lengths)):
-            replay[key][:, slot] = value[:, 0]
-        filled = min(k + 1, self.K)
-        pick = torch.randint(filled, (job.R, self.n_replay), generator=job.generator, device=job.device)
-        sample = Episodes(replay["obs"], replay["actions"], replay["rewards"], replay["lengths"]).select(pick)
+        replay = state["replay"]
+        store_episode(replay, k, {"obs": ep.obs[:, 0], "actions": ep.actions[:, 0], "rewards": ep.rewards[:, 0],
+                                  "lengths": ep.lengths[:, 0]})
+        pick = draw_episodes(replay, k + 1, self.n_replay, job.generator, job.device)
+        sample = Episodes(**stored_episodes(replay, pick))
         order = torch.arange(self.n_replay, device=job.device).expand(job.R, -1)
         y, a, _, lengths = episode_tensors(job, sample, None)
         for members in self.groups:
