@@ -177,7 +177,11 @@ class DRQNActor(SoftmaxActor):
         return (errors.sum((1, 2)) / valid.sum((1, 2)).clamp(min=1)).sum()
 
     def adam_step(self, batch: dict, lr: float) -> None:
-        """One Adam step (Kingma & Ba 2015) of every run on its own loss."""
+        """One Adam step (Kingma & Ba 2015) of every run on its own loss. Written out rather than
+        torch.optim.Adam, which would change the runs' numbers: it updates the first moment by
+        ``lerp_`` (m + (1 − β1)(g − m), not β1 m + (1 − β1) g) and takes √(1 − β2^k) as a power,
+        so parameters differ by ~1 ulp from the second step on (tests/test_baselines.py holds the
+        two within 1e-5); the moments stay buffers of the module, checkpointed with it."""
         p = {name: value.detach().requires_grad_() for name, value in self.params().items()}
         with torch.enable_grad():
             grads = torch.autograd.grad(self.loss(p, batch), list(p.values()))
