@@ -42,7 +42,8 @@ this run with ferl's runs of the same task), ``records/episodes.npz``, the train
 form, by which a sweep report tells jobs apart (there is no Hydra config). Every finished training
 episode is recorded as the environment played it; runs finish different numbers of episodes within
 the same step budget, and ``episodes.npz`` needs one count for all runs, so every run is cut to
-the smallest count, and the final-200-episode metrics and ``solved`` are those of the cut records.
+the smallest count, and the final-window metrics (the last ``--final-window`` episodes, 200 as
+ferl's trainers) and ``solved`` are those of the cut records.
 A Gymnasium id's records add the undiscounted ``return`` (``final_return``) and, given a success
 threshold, ``success``; its ``solved`` needs ``--optimal-return``. There are no TD errors of
 ferl's kind (``td_abs_mean`` is NaN, ``td_sampled`` absent). ``env_steps_total`` and
@@ -73,11 +74,11 @@ from ferl.envs.encodings import ENCODINGS, BinaryObservation
 from ferl.envs.gymnasium_vector import GymnasiumEnv, make
 from ferl.envs.tmaze import TMaze
 from ferl.run.directory import RunDir, check_run_dir
-from ferl.trainers.actor_episodes import final_metrics, sample_efficiency, solved_against
+from ferl.stats import FINAL_WINDOW, final_metrics, sample_efficiency
+from ferl.trainers.actor_episodes import solved_against
 
 PROG = "recurrent_ppo.py"
 GAMMA = 0.95          # the T-mazes' discount (§4.3.1): returns comparable with ferl's runs and optimum
-FINAL_WINDOW = 200    # CONTRACT §2: the episodic metrics are over the last 200 episodes
 LSTM_SIZE = 64
 # sb3-contrib's RecurrentPPO defaults (n_steps 128, n_epochs 10, gae_lambda 0.95, clip_range 0.2,
 # ent_coef 0, vf_coef 0.5, max_grad_norm 0.5), with the RL Zoo's tuned ppo_lstm settings for its
@@ -165,6 +166,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--n-envs", type=int, default=8, help="parallel environments per run")
     parser.add_argument("--experiment", default="recurrent_ppo", help="the experiment name in summary.json")
     parser.add_argument("--gamma", type=float, default=GAMMA, help="PPO's discount and the records' (POPGym: 0.99)")
+    parser.add_argument("--final-window", type=int, default=FINAL_WINDOW,
+                        help="episodes behind the final_* metrics (ferl's trainer.final_window)")
     gym = parser.add_argument_group("Gymnasium ids (as ferl's env=gymnasium)")
     gym.add_argument("--encoding", default="auto", choices=ENCODINGS,
                      help="observations → bits (ferl/envs/encodings.py)")
@@ -173,7 +176,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     gym.add_argument("--optimal-return", type=float, help="the stated optimum of the undiscounted return (solved)")
     gym.add_argument("--success-threshold", type=float, help="an episode whose return exceeds it is a success")
     args = parser.parse_args(argv)
-    for name in ("runs", "steps", "n_envs"):
+    for name in ("runs", "steps", "n_envs", "final_window"):
         if getattr(args, name) < 1:
             parser.error(f"--{name.replace('_', '-')} must be ≥ 1, got {getattr(args, name)}")
     if not isinstance(args.env_kwargs, dict):
@@ -269,11 +272,12 @@ def train_run(args, task: Task, seed: int, checkpoint: Path) -> tuple[dict, int,
     return recorder.episodes, model.num_timesteps, seconds
 
 
-def progress(task: Task, episodes: dict) -> str:
-    """How a run ended, for its progress line: the T-maze's correct-goal rate, else the mean return."""
+def progress(task: Task, episodes: dict, window: int) -> str:
+    """How a run ended, for its progress line: the T-maze's correct-goal rate, else the mean return,
+    over its last ``window`` episodes."""
     name, label = ("correct_goal", "correct-goal rate") if "correct_goal" in task.rates else ("return", "mean return")
-    value = np.mean(episodes[name][-FINAL_WINDOW:]) if episodes[name] else float("nan")
-    return f"{label} over the last {FINAL_WINDOW} {value:.3f}"
+    value = np.mean(episodes[name][-window:]) if episodes[name] else float("nan")
+    return f"{label} over the last {window} {value:.3f}"
 
 
 def episode_records(task: Task, runs: list[dict]) -> tuple[dict, np.ndarray]:
@@ -286,15 +290,16 @@ def episode_records(task: Task, runs: list[dict]) -> tuple[dict, np.ndarray]:
     return cut, env_steps
 
 
-def metrics(task: Task, records: dict, env_steps: np.ndarray, steps_total: list[int], optimal: dict) -> dict:
-    """CONTRACT §2's episodic metrics by ferl's own functions; the step counts on the vector
-    environment's clock (module doc): all steps taken and, given an optimum, those when the first
-    solved window closed."""
+def metrics(task: Task, records: dict, env_steps: np.ndarray, steps_total: list[int], optimal: dict,
+            window: int) -> dict:
+    """CONTRACT §2's episodic metrics by ferl's own functions, over the last ``window`` episodes;
+    the step counts on the vector environment's clock (module doc): all steps taken and, given an
+    optimum, those when the first solved window closed."""
     optimum = solved_against(optimal)
-    result = {**final_metrics(records, optimum, FINAL_WINDOW, task.rates, task.averages),
+    result = {**final_metrics(records, optimum, window, task.rates, task.averages),
               "env_steps_total": steps_total}
     if optimum is not None:
-        solved = sample_efficiency(records, np.zeros(len(env_steps), np.int64), optimum, FINAL_WINDOW, task.rates)
+        solved = sample_efficiency(records, np.zeros(len(env_steps), np.int64), optimum, window, task.rates)
         closing = solved["episodes_to_solve"]
         result["env_steps_to_solve"] = [None if k is None else int(env_steps[r, k - 1]) for r, k in enumerate(closing)]
         result["episodes_to_solve"] = closing
@@ -310,7 +315,7 @@ def manifest(args, task: Task, n_episodes: int) -> dict:
     return {"task": env.task, "experiment": args.experiment,
             "trainer": {"class": "baselines/recurrent_ppo.py", "kind": "external", "phases": ["actor"],
                         "n_episodes": n_episodes, "steps": args.steps, "n_envs": args.n_envs, "env_id": args.env_id,
-                        "final_window": FINAL_WINDOW, "library": f"sb3-contrib {SB3_CONTRIB_VERSION}"},
+                        "final_window": args.final_window, "library": f"sb3-contrib {SB3_CONTRIB_VERSION}"},
             "env": {"class": f"{type(env).__module__}.{type(env).__qualname__}", **env.describe()},
             "preprocessor": None, "predictors": {},
             "actor": {"class": "sb3_contrib.RecurrentPPO", "kind": "recurrent_ppo", "policy": "MlpLstmPolicy",
@@ -337,11 +342,11 @@ def write_run(args, task: Task, run: RunDir, runs: list[dict], steps_total: list
     optimal = task.env.optimal(args.gamma)
     run.save_records("episodes", len(runs), **records, gamma=np.float64(args.gamma),
                      optimal_return=np.float64(optimal.get("discounted_return", np.nan)),
-                     optimal_steps=np.float64(task.env.optimal_steps))
+                     optimal_steps=np.float64(task.env.optimal_steps), final_window=np.int64(args.final_window))
     run.save_json("run", manifest(args, task, records["steps"].shape[1]))
     (run.path / ".hydra").mkdir(exist_ok=True)
     OmegaConf.save(OmegaConf.create(overrides(args)), run.path / ".hydra" / "overrides.yaml")
-    return {"metrics": metrics(task, records, env_steps, steps_total, optimal), "optimal": optimal}
+    return {"metrics": metrics(task, records, env_steps, steps_total, optimal, args.final_window), "optimal": optimal}
 
 
 def main(argv=None) -> None:
@@ -359,8 +364,8 @@ def main(argv=None) -> None:
         steps_total.append(steps)
         train_time += seconds
         print(f"{PROG}: run {r + 1}/{args.runs} (seed {seed}): {steps} steps in {seconds:.1f} s "
-              f"({steps / seconds:.0f} steps/s), {len(episodes['steps'])} episodes, {progress(task, episodes)}",
-              flush=True)
+              f"({steps / seconds:.0f} steps/s), {len(episodes['steps'])} episodes, "
+              f"{progress(task, episodes, args.final_window)}", flush=True)
     if min(len(episodes["steps"]) for episodes in runs) == 0:
         fail(f"a run finished no episode in {args.steps} steps: pass a larger --steps")
 

@@ -20,6 +20,8 @@ from pathlib import Path
 
 import torch
 
+from ferl.messages import warn
+
 CACHE_ENV = "TORCHINDUCTOR_CACHE_DIR"
 DEFAULT_CACHE = Path.home() / ".cache" / "ferl" / "inductor"
 _first_calls = [0.0]  # seconds this process has spent in compiled functions' first calls
@@ -55,11 +57,6 @@ def vector_isa() -> str:
     from torch._inductor.cpu_vec_isa import pick_vec_isa
     isa = pick_vec_isa()
     return "_".join(str(isa).split()) if isa else "none"
-
-
-def warn(message: str) -> None:
-    """One line on stderr, as ferl's other run-time messages."""
-    print(f"ferl: warning: {message}", file=sys.stderr)
 
 
 def compiler_missing(device: torch.device) -> str | None:

@@ -18,6 +18,13 @@ takes, the HParams column (``hparam/<metric>/<level>``) and the column of ``ferl
 
 The digit floor's greedy accuracy (Fig. 3.6) is here too: the trainer's summary and the analysis
 of its records score the same counts with it.
+
+So are the episodic tasks' final-window metrics (docs/records.md): ``final_metrics`` over the last
+W episodes, the ``solved`` criterion, ``sample_efficiency`` (the first window of W episodes that
+meets it) and ``window_means``. W is the run's ``trainer.final_window``, recorded with its episodes
+(``episodes.npz``'s ``final_window``, and ``records/run.json``); the analysis reads it back from
+there. ``FINAL_WINDOW`` (200 episodes: the moving average of Figs. 4.6–4.8 and 4.11–4.13) is only
+the window of runs that recorded none.
 """
 import math
 
@@ -83,3 +90,69 @@ def greedy_accuracy(greedy_counts: np.ndarray, optimal_action) -> np.ndarray:
         return np.full(counts.shape[:2], np.nan)
     correct = counts[:, :, scored, actions[scored]].sum(axis=-1)
     return correct / counts[:, :, scored, :].sum(axis=(-1, -2))
+
+
+FINAL_WINDOW = 200   # episodes; the window of a run that recorded none (module doc)
+SOLVED_SHARE = 0.95  # solved: return ≥ 0.95 × optimum and every outcome rate ≥ 0.95 (docs/records.md)
+
+
+def window_means(x: np.ndarray, window: int) -> np.ndarray:
+    """Means of every full window of ``window`` episodes (R, N) → (R, N − window + 1), in float64."""
+    c = np.cumsum(np.pad(x.astype(np.float64), ((0, 0), (1, 0))), 1)
+    return (c[:, window:] - c[:, :-window]) / window
+
+
+def meets_solved(returns: np.ndarray, rates: dict, optimal_return: float) -> np.ndarray:
+    """The ``solved`` criterion on window means: return ≥ 0.95 × optimum and every outcome rate
+    (the correct-goal rate) ≥ 0.95."""
+    solved = returns >= SOLVED_SHARE * optimal_return
+    for values in rates.values():
+        solved &= values >= SOLVED_SHARE
+    return solved
+
+
+def sample_efficiency(episodes: dict, random_steps: np.ndarray, optimum: tuple[str, float] | None, window: int,
+                      rates: list) -> dict:
+    """Environment steps per run (random collection included: ``random_steps`` (R,)): all of them,
+    and, where there is an ``optimum`` (record, optimal value), those until the first window of
+    ``window`` episodes that meets the ``solved`` criterion (its last episode included; None if
+    none does), with that episode's number (1-based)."""
+    steps = episodes["steps"].astype(np.int64)
+    used = np.asarray(random_steps)[:, None] + np.cumsum(steps, 1)  # (R, N) steps after each episode
+    if optimum is None:
+        return {"env_steps_total": used[:, -1].tolist()}
+    key, best = optimum
+    solved = meets_solved(window_means(episodes[key], window), {n: window_means(episodes[n], window) for n in rates}, best)
+    first = [int(np.argmax(row)) + window - 1 if row.any() else None for row in solved]
+    return {"env_steps_total": used[:, -1].tolist(),
+            "env_steps_to_solve": [int(used[r, k]) if k is not None else None for r, k in enumerate(first)],
+            "episodes_to_solve": [k + 1 if k is not None else None for k in first]}
+
+
+def final_metrics(episodes: dict, optimum: tuple[str, float] | None, window: int, rates: list,
+                  averages: list = ()) -> dict:
+    """The episodic metrics of summary.json over the last ``window`` episodes, one value per run:
+    discounted return, steps, the rate of every boolean outcome (``final_correct_goal_rate``), the
+    mean of every float one (``final_return``) and its best window mean over all episodes
+    (``best_return``) and, given an optimum, solved."""
+    last = slice(-window, None)
+
+    def final(name: str) -> np.ndarray:
+        # in float64: NumPy sums float32 in an order that depends on the CPU's vector width (AVX-512
+        # or AVX2); a float64 sum of float32 numbers is exact, in any order, unless they span more
+        # than ~29 binary orders of magnitude
+        return episodes[name][:, last].mean(1, dtype=np.float64)
+
+    rate = {name: final(name) for name in rates}
+    metrics = {"final_discounted_return": final("discounted_return").tolist(),
+               "final_steps_to_goal": final("steps").tolist(),
+               **{f"final_{name}_rate": values.tolist() for name, values in rate.items()},
+               **{f"final_{name}": final(name).tolist() for name in averages},
+               # the best window mean over the training: POPGym's "mean maximum episodic return" (MMER,
+               # Morad et al. 2023) with a window of episodes as its batch
+               **{f"best_{name}": window_means(episodes[name], min(window, episodes[name].shape[1])).max(1).tolist()
+                  for name in averages}}
+    if optimum is not None:
+        key, best = optimum
+        metrics["solved"] = meets_solved(final(key), rate, best).astype(int).tolist()
+    return metrics

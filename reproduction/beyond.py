@@ -6,8 +6,9 @@ Read from what every T-maze job recorded (``records/run.json``, ``summary.json``
 
 * **memory-length curve**: the online jobs of the regular maze, by memory kind (the predictors'
   ``kind``) and corridor length T_min: solved runs, the correct-goal rate and — to tell a memory
-  that forgets from an agent that never finds the junction — the share of the last 200
-  episodes that ended in a goal at all, and the correct share of those;
+  that forgets from an agent that never finds the junction — the share of the episodes of the
+  final window (each run's ``final_window``, 200 by default) that ended in a goal at all, and
+  the correct share of those;
 * **sample efficiency**: per experiment, every training procedure side by side (the trainer's
   kind, curiosity η, memory): solved runs, environment steps to solve (random collection
   included) per run, median and mean ± s.e.m. over the runs that solved, and how many never did.
@@ -23,8 +24,7 @@ import numpy as np
 
 from ferl import stats
 from ferl.analysis.io import fmt, load_npz, table_lines, write_csv
-
-WINDOW = 200  # the final window of the tmaze metrics (docs/records.md, summary.json)
+from ferl.analysis.records import recorded_window
 
 
 @dataclass(frozen=True)
@@ -53,12 +53,13 @@ def tmaze_jobs(jobs: Sequence) -> list:
 
 
 def goal_shares(job) -> tuple[np.ndarray, np.ndarray]:
-    """Per run, over the last 200 episodes: the share that ended in a goal, and the correct
-    share of those (NaN where none did)."""
+    """Per run, over the final window (the last ``final_window`` episodes, as the run recorded it):
+    the share that ended in a goal, and the correct share of those (NaN where none did)."""
     episodes = load_npz(job.run_dir / "records" / "episodes.npz")
     goal = abs(float(job.manifest.env.get("goal_reward", 5.0)))
-    reached = np.isclose(np.abs(episodes["terminal_reward"][:, -WINDOW:]), goal)
-    correct = episodes["correct_goal"][:, -WINDOW:].astype(bool)
+    last = slice(-recorded_window(episodes, job.manifest), None)
+    reached = np.isclose(np.abs(episodes["terminal_reward"][:, last]), goal)
+    correct = episodes["correct_goal"][:, last].astype(bool)
     n = reached.sum(1)
     return n / reached.shape[1], np.where(n > 0, (correct & reached).sum(1) / np.maximum(n, 1), np.nan)
 
@@ -99,8 +100,8 @@ def curve_figure(points: Sequence[CurvePoint]):
         for ax, field in ((axes[1], "correct"), (axes[2], "reached"), (axes[3], "correct_if_reached")):
             mean, sem = np.array([getattr(c, field) for c in mine]).T
             ax.errorbar(x, mean, yerr=np.nan_to_num(sem), marker="o", capsize=3, label=memory)
-    titles = ("solved runs (share)", "correct-goal rate, last 200 episodes",
-              "share of the last 200 episodes that reached a goal", "correct share of those")
+    titles = ("solved runs (share)", "correct-goal rate, final window",
+              "share of the final window's episodes that reached a goal", "correct share of those")
     corridors = sorted({c.corridor for c in points})
     for ax, title in zip(axes, titles):
         ax.set_xscale("log")

@@ -24,7 +24,7 @@ import numpy as np
 from ferl import stats
 from ferl.analysis.claims import LayerFigures, Numbering, caption
 from ferl.analysis.coding import nanmean, pca, subsampled_silhouette
-from ferl.analysis.generic import EPISODE_WINDOW, FIGURE_RUN
+from ferl.analysis.generic import FIGURE_RUN
 from ferl.analysis.io import fmt, write_csv
 from ferl.analysis.records import OBSERVATION, REWARD, PredictorErrors, Run
 from ferl.analysis.report import RunAnalysis
@@ -144,9 +144,9 @@ class TMazeRun:
 
     # ---- behaviour (Figs. 4.6–4.8, 4.11–4.13, 5.3–5.6, 5.18–5.19) ----
     def window_mean(self, key: str, first: bool) -> np.ndarray:
-        """(R,) mean of the first or last EPISODE_WINDOW episodes of each run."""
-        values = self.episodes[key].astype(np.float64)
-        return (values[:, :EPISODE_WINDOW] if first else values[:, -EPISODE_WINDOW:]).mean(axis=1)
+        """(R,) mean of the first or last ``final_window`` episodes of each run (the run's own)."""
+        values, window = self.episodes[key].astype(np.float64), self.run.final_window
+        return (values[:, :window] if first else values[:, -window:]).mean(axis=1)
 
     def metric(self, name: str) -> np.ndarray:
         return self.run.metric(name)

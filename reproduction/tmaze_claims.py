@@ -12,7 +12,6 @@ import numpy as np
 
 from ferl.analysis.claims import (HELD, NOT_HELD, PARTLY, Claim, Measured, at_least,
                                   held_only_if, mean_sd_text, only)
-from ferl.analysis.generic import EPISODE_WINDOW
 from reproduction.tmaze import TMazeRun
 
 Applies = Callable[[TMazeRun], bool]
@@ -21,7 +20,7 @@ Measure = Callable[[TMazeRun], Measured | None]
 SOLVED_RUNS = (1.0, 0.8)     # share of runs ``solved`` (summary.json): all / at least 8 in 10
 STEPS_RATIO = (1.05, 1.25)   # final steps to the goal ÷ optimum, mean over runs
 CORRECT_GOAL = (0.95, 0.8)   # final correct-goal rate of the worst run
-TD_DECREASE = (0.1, 0.5)     # last ÷ first 200-episode mean |δ| of the worst run ("to ~0")
+TD_DECREASE = (0.1, 0.5)     # last ÷ first final-window mean |δ| of the worst run ("to ~0")
 ERROR_DROP = 0.5             # final ÷ initial prediction error, training data
 EARLY_EPOCHS = 0.1           # "rapidly": within the first 10 % of the epochs …
 EARLY_SHARE = 0.5            # … at least half of the drop has happened
@@ -58,8 +57,9 @@ def td_decreases(run: TMazeRun) -> Measured:
     broken = ~np.isfinite(ratio)
     worst = np.inf if broken.any() else float(ratio.max())
     ok = ~broken
-    text = (f"mean |δ| over the first {EPISODE_WINDOW} episodes {mean_sd_text(first[ok])}, "
-            f"over the last {EPISODE_WINDOW} {mean_sd_text(last[ok])}; " if ok.any() else "")
+    window = run.run.final_window
+    text = (f"mean |δ| over the first {window} episodes {mean_sd_text(first[ok])}, "
+            f"over the last {window} {mean_sd_text(last[ok])}; " if ok.any() else "")
     text += (f"{int(broken.sum())} of {len(ratio)} runs with non-finite |δ| (diverged)"
              if broken.any() else f"last ÷ first in the worst run {worst:.3f}")
     return Measured(worst, text)

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from conftest import compose_config, eager, train_job
-from ferl.trainers.actor_episodes import SOLVED_SHARE, sample_efficiency
+from ferl.stats import SOLVED_SHARE, sample_efficiency
 from test_tmaze_resume import progress, records
 from test_train_cli import summary
 

@@ -6,7 +6,7 @@ A GRU reads the (processed) observation and the previous action, a linear head g
 
     x_t = (s_t, onehot(a_{t−1})),   h_t = GRU(x_t, h_{t−1}), h_{−1} = 0,   Q(h_t, ·) = W_q h_t + b_q
 
-(the GRU as torch.nn.GRUCell defines it, batched over runs: ``gru_step``). It acts by the same
+(the GRU as torch.nn.GRUCell defines and computes it, batched over runs: ``gru_step``). It acts by the same
 softmax / β schedule (Eq. 3.11) as the FERL actor, stepping h with every ``act``. It learns from
 replayed whole episodes (the "bootstrapped sequential updates" of §4 of the paper): after every
 episode, ``updates_per_episode`` Adam steps on ``batch_episodes`` episodes per run drawn from its
@@ -25,23 +25,21 @@ from typing import Literal
 import torch
 from torch.nn import functional as nnf
 
-from ferl.actors.softmax import TD_RULES, SoftmaxActor, run_generators
+from ferl import rng
+from ferl.actors.softmax import TD_RULES, SoftmaxActor
 from ferl.config.params import Discount, NonNegative, NonNegativeInt, PositiveInt, checked
+from ferl.predictors.gated import gru_cell
+from ferl.replay import draw_episodes, new_replay, store_episode, stored_episodes
 
 PARAMETERS = ("W_x", "W_h", "b_x", "b_h", "W_q", "b_q")
 ADAM_BETAS, ADAM_EPS = (0.9, 0.999), 1e-8
 
 
 def gru_step(p: dict, x: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
-    """h_t from x_t (R, B, X) and h_{t−1} (R, B, H): gates r, z and candidate n in PyTorch's
-    order, W_x (R, X, 3H), W_h (R, H, 3H), b_x and b_h (R, 3H)."""
+    """h_t from x_t (R, B, X) and h_{t−1} (R, B, H) by the GRU cell (``ferl.predictors.gated.gru_cell``):
+    W_x (R, X, 3H), W_h (R, H, 3H), b_x and b_h (R, 3H), the gates in PyTorch's order."""
     gx = torch.baddbmm(p["b_x"].unsqueeze(1), x, p["W_x"])
-    gh = torch.baddbmm(p["b_h"].unsqueeze(1), h, p["W_h"])
-    xr, xz, xn = gx.chunk(3, -1)
-    hr, hz, hn = gh.chunk(3, -1)
-    r, z = torch.sigmoid(xr + hr), torch.sigmoid(xz + hz)
-    n = torch.tanh(xn + r * hn)
-    return (1 - z) * n + z * h
+    return gru_cell(gx, torch.baddbmm(p["b_h"].unsqueeze(1), h, p["W_h"]), h)
 
 
 def q_values(p: dict, h: torch.Tensor) -> torch.Tensor:
@@ -77,7 +75,7 @@ class DRQNActor(SoftmaxActor):
         self.replay_episodes, self.batch_episodes = replay_episodes, batch_episodes
         self.updates_per_episode, self.target_every = updates_per_episode, target_every
         # PyTorch's GRU initialisation U(−1/√H, 1/√H) unless init_std is given, per run from seed + r
-        generators = run_generators(seed, n_runs)
+        generators = rng.run_generators(seed, n_runs)
         bound = 1 / math.sqrt(n_hidden)
         shapes = {"W_x": (n_state + n_actions, 3 * n_hidden), "W_h": (n_hidden, 3 * n_hidden), "b_x": (3 * n_hidden,),
                   "b_h": (3 * n_hidden,), "W_q": (n_hidden, n_actions), "b_q": (n_actions,)}
@@ -92,7 +90,7 @@ class DRQNActor(SoftmaxActor):
         self.register_buffer("h", torch.zeros(n_runs, 1, n_hidden))
         self.register_buffer("a_prev", torch.zeros(n_runs, 1, n_actions))
         # the replay's draws for every run at once, from a seed that run 0's stream gives
-        self.generator = torch.Generator().manual_seed(int(torch.randint(2**62, (), generator=generators[0])))
+        self.generator = rng.generator(rng.child_seed(generators[0]))
         self.replay = None      # allocated by the first episode, whose length fixes T_max
         self.episodes = self.adam_steps = 0
 
@@ -146,16 +144,11 @@ class DRQNActor(SoftmaxActor):
         """Store every run's episode — states (R, T_max+1, S), actions and rewards (R, T_max)
         padded after ``lengths`` (R,) actions, ``terminated`` (R,) ended in a terminal state —
         then the Adam steps on replayed episodes at step size ``lr``."""
+        episode = {"states": states, "actions": actions, "rewards": rewards, "lengths": lengths,
+                   "terminated": terminated}
         if self.replay is None:
-            self.replay = {"states": states.new_zeros(self.n_runs, self.replay_episodes, *states.shape[1:]),
-                           "actions": actions.new_zeros(self.n_runs, self.replay_episodes, actions.shape[1]),
-                           "rewards": rewards.new_zeros(self.n_runs, self.replay_episodes, rewards.shape[1]),
-                           "lengths": lengths.new_zeros(self.n_runs, self.replay_episodes),
-                           "terminated": terminated.new_zeros(self.n_runs, self.replay_episodes)}
-        slot = self.episodes % self.replay_episodes
-        for key, value in zip(("states", "actions", "rewards", "lengths", "terminated"),
-                              (states, actions, rewards, lengths, terminated)):
-            self.replay[key][:, slot] = value
+            self.replay = new_replay(episode, self.replay_episodes)
+        store_episode(self.replay, self.episodes, episode)
         self.episodes += 1
         for _ in range(self.updates_per_episode):
             self.adam_step(self.sample(), lr)
@@ -166,10 +159,8 @@ class DRQNActor(SoftmaxActor):
     def sample(self) -> dict:
         """``batch_episodes`` stored episodes per run, drawn uniformly with replacement, every
         run's in one draw."""
-        filled = min(self.episodes, self.replay_episodes)
-        index = torch.randint(filled, (self.n_runs, self.batch_episodes), generator=self.generator).to(self.W_q.device)
-        return {key: value[torch.arange(self.n_runs, device=index.device).unsqueeze(1), index]
-                for key, value in self.replay.items()}
+        index = draw_episodes(self.replay, self.episodes, self.batch_episodes, self.generator).to(self.W_q.device)
+        return stored_episodes(self.replay, index)
 
     def loss(self, p: dict, batch: dict) -> torch.Tensor:
         """Σ over runs of the mean Huber TD loss of the module docstring over the batch's steps."""
@@ -190,7 +181,11 @@ class DRQNActor(SoftmaxActor):
         return (errors.sum((1, 2)) / valid.sum((1, 2)).clamp(min=1)).sum()
 
     def adam_step(self, batch: dict, lr: float) -> None:
-        """One Adam step (Kingma & Ba 2015) of every run on its own loss."""
+        """One Adam step (Kingma & Ba 2015) of every run on its own loss. Written out rather than
+        torch.optim.Adam, which would change the runs' numbers: it updates the first moment by
+        ``lerp_`` (m + (1 − β1)(g − m), not β1 m + (1 − β1) g) and takes √(1 − β2^k) as a power,
+        so parameters differ by ~1 ulp from the second step on (tests/test_baselines.py holds the
+        two within 1e-5); the moments stay buffers of the module, checkpointed with it."""
         p = {name: value.detach().requires_grad_() for name, value in self.params().items()}
         with torch.enable_grad():
             grads = torch.autograd.grad(self.loss(p, batch), list(p.values()))

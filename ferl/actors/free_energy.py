@@ -25,8 +25,8 @@ from typing import Literal
 
 import torch
 
-from ferl import rbm
-from ferl.actors.softmax import TD_RULES, SoftmaxActor, check_schedules, run_generators, sample_categorical
+from ferl import rbm, rng
+from ferl.actors.softmax import TD_RULES, SoftmaxActor, check_schedules, sample_categorical
 from ferl.actors.values import FORMS, value_form
 from ferl.bits import from_bits, to_bits
 from ferl.config.params import ArgumentError, Discount, NonNegative, NonNegativeInt, Positive, PositiveInt, checked
@@ -81,7 +81,7 @@ class FERLActor(SoftmaxActor):
         n_bits = codes.shape[1]
         self.register_buffer("codes", codes)
         # Each run is initialised from its own seed, so run r does not depend on n_runs.
-        gens = run_generators(seed, n_runs)
+        gens = rng.run_generators(seed, n_runs)
         self.register_buffer("W_sh", torch.stack([torch.randn(n_state, n_hidden, generator=g) for g in gens]) * init_std)
         self.register_buffer("W_ah", torch.stack([torch.randn(n_bits, n_hidden, generator=g) for g in gens]) * init_std)
         # biases N(0, bias_init_std²), drawn after the weights so the weights do not depend on it

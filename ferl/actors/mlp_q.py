@@ -19,7 +19,8 @@ from typing import Literal
 
 import torch
 
-from ferl.actors.softmax import TD_RULES, SoftmaxActor, run_generators
+from ferl import rng
+from ferl.actors.softmax import TD_RULES, SoftmaxActor
 from ferl.config.params import Discount, NonNegative, NonNegativeInt, PositiveInt, checked
 
 LR_NORMS = ("fan_in", "none")  # α / √(state inputs of a hidden node), or α as given
@@ -38,7 +39,7 @@ class MLPQActor(SoftmaxActor):
         self.td_rule, self.gamma, self.td_fresh, self.n_hidden = td_rule, gamma, td_fresh, n_hidden
         self.lr_schedule, self.beta_schedule = lr, beta
         self.lr_divisor = math.sqrt(n_state) if lr_norm == "fan_in" else 1.0
-        gens = run_generators(seed, n_runs)
+        gens = rng.run_generators(seed, n_runs)
         draw = lambda *shape: torch.stack([torch.randn(*shape, generator=g) for g in gens]) * init_std  # noqa: E731
         self.register_buffer("W_1", draw(n_state, n_hidden))
         self.register_buffer("W_2", draw(n_hidden, n_actions))

@@ -44,12 +44,6 @@ def check_schedules(args: dict) -> None:
         raise ArgumentError("beta", "a schedule of inverse temperatures ≥ 0")
 
 
-def run_generators(seed: int, n_runs: int) -> list[torch.Generator]:
-    """One generator per run, seeded seed + r, so that run r's initial parameters do not depend
-    on how many runs share the batch."""
-    return [torch.Generator().manual_seed(seed + r) for r in range(n_runs)]
-
-
 class SoftmaxActor(nn.Module):
     """An actor choosing among its n actions by Eq. (3.11) and learning by a TD rule (§3.2).
 

@@ -1,10 +1,10 @@
 """The analysis every run gets, whatever trained it: learning curves, TD errors, prediction
 errors and the summary table.
 
-Episodic runs (``env.episodic`` in run.json) are read from ``episodes.npz``: the moving average of
-the discounted return, the steps, the terminal reward and each boolean outcome the environment
-declares (``env.outcomes``, e.g. the T-maze's ``correct_goal``), and of the episode-mean |δ|, with
-the per-step δ of the sampled episodes. Continuing runs are read from ``steps.npz``: the moving
+Episodic runs (``env.episodic`` in run.json) are read from ``episodes.npz``: the moving average,
+over the run's final window of episodes (``Run.final_window``), of the discounted return, the
+steps, the terminal reward and each boolean outcome the environment declares (``env.outcomes``,
+e.g. the T-maze's ``correct_goal``), and of the episode-mean |δ|, with the per-step δ of the sampled episodes. Continuing runs are read from ``steps.npz``: the moving
 average of the reward and of |δ| per step. Every predictor named in run.json gets its error
 heatmaps from ``predictor.npz``; an online run (``online.npz``) its predictors' held-out error, β and
 curiosity per episode. The summary table is mean ± s.d. over runs of every
@@ -28,7 +28,6 @@ from ferl.analysis.io import fmt, table_lines, write_csv
 from ferl.analysis.records import JOINT, OBSERVATION, REWARD, PredictorErrors, Run
 from ferl.analysis.report import RunAnalysis
 
-EPISODE_WINDOW = 200    # moving-average window of Figs. 4.6–4.8, 4.11–4.13 (episodes)
 STEP_WINDOW = 100       # moving-average window of Fig. 3.4 (steps)
 MAX_CURVE_POINTS = 2000  # a continuing run's curves are drawn at most this often: more adds nothing
 FIGURE_RUN = 0          # the dissertation's per-run panels show its 1st run
@@ -81,7 +80,7 @@ def curves(run: Run) -> Curves | None:
         averages = [k for k in recorded if episodes[k].dtype.kind == "f"]  # e.g. the undiscounted return
         keys = [k for k in ("discounted_return", "steps", "terminal_reward") if k in episodes]
         keys += averages + rates + ["td_abs_mean"]
-        window = min(EPISODE_WINDOW, episodes["td_abs_mean"].shape[1])
+        window = min(run.final_window, episodes["td_abs_mean"].shape[1])  # 200: Figs. 4.6–4.8, 4.11–4.13
         series = {}
         for key in keys:
             x, series[key] = _moving(episodes[key].astype(np.float64), window, None)
@@ -198,7 +197,7 @@ ONLINE_LABELS = {"prediction_error": "held-out prediction error\n(Eq. 4.8, summe
 def _online_figure(run: Run, online: dict) -> tuple:
     """The online trainer's course (``online.npz``): the predictors' held-out error and the β and η
     that follow from it, per episode."""
-    window = min(EPISODE_WINDOW, online["beta"].shape[1])
+    window = min(run.final_window, online["beta"].shape[1])
     series = {k: _moving(online[k].astype(np.float64), window, None) for k in ONLINE_LABELS if k in online}
     x = next(iter(series.values()))[0]
     panels = [(ONLINE_LABELS[k], ma.mean(0), stats.sem(ma), None) for k, (_, ma) in series.items()]

@@ -24,6 +24,7 @@ import numpy as np
 
 from ferl.analysis.io import load_npz
 from ferl.runs import load_summary
+from ferl.stats import FINAL_WINDOW
 
 MANIFEST = Path("records") / "run.json"
 JOINT, OBSERVATION, REWARD = "joint", "observation", "reward"
@@ -85,6 +86,14 @@ class Manifest:
     def roles(self) -> dict[str, str | None]:
         """Predictor name → its role (module doc), in the order of run.json."""
         return {name: predictor_role(facts) for name, facts in self.predictors.items()}
+
+
+def recorded_window(episodes: dict | None, manifest: Manifest) -> int:
+    """The run's ``trainer.final_window``: the episodes behind its final metrics, as recorded in
+    `episodes.npz` (or, by runs before it was, in run.json); ``ferl.stats.FINAL_WINDOW`` (200) for
+    a run that recorded neither."""
+    value = (episodes or {}).get("final_window", manifest.trainer.get("final_window"))
+    return FINAL_WINDOW if value is None else int(value)
 
 
 @dataclass(frozen=True)
@@ -164,6 +173,12 @@ class Run:
         """L_training of Algorithms 1–2: the predictors train on T_min … T_min + L_training − 1."""
         value = self.manifest.trainer.get("l_training")
         return None if value is None else int(value)
+
+    @cached_property
+    def final_window(self) -> int:
+        """The episodes behind the run's final metrics, which its episodic moving averages use too
+        (``recorded_window``)."""
+        return recorded_window(self.records("episodes"), self.manifest)
 
     @cached_property
     def predictors(self) -> list[PredictorErrors]:

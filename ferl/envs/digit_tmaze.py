@@ -15,7 +15,7 @@ once (Algorithm 2) and the episodes store, so the noise cannot be drawn at every
 reservoir image gets ``noise_copies`` noisy copies, drawn once when the maze is built, and the
 reservoir of an observation is its K images × C copies (id n·K·C + c·K + k: copy c of image k),
 from which every visit draws one afresh as before. The copies come from a stream of their own,
-seeded from the maze generator's seed (``NOISE_SEED_OFFSET``): every maze built for a job (the
+seeded from the maze generator's seed (``ferl.rng.IMAGE_NOISE``): every maze built for a job (the
 trainer builds more for its random episodes) has the same table, and the noise shifts no other
 random number. Observations of one digit class share their noisy copies, as they share images.
 """
@@ -23,13 +23,11 @@ from typing import Annotated
 
 import torch
 
+from ferl import rng
 from ferl.config.params import (Allowed, ArgumentError, NonNegative, NonNegativeInt, PositiveInt, UnitInterval,
                                 checked)
 from ferl.data import MnistSplit
 from ferl.envs.tmaze import TMaze, observation_names
-
-NOISE_SEED_OFFSET = 300_000  # the noisy copies' stream: maze seed + this (the weights' streams are seed + < 300 000)
-
 
 def class_images(data: MnistSplit, digit_classes: dict, image_index: int, reservoir_size: int,
                  threshold: float | None) -> dict:
@@ -72,7 +70,7 @@ class DigitTMaze(TMaze):
         self.pixel_noise_std, self.noise_copies = pixel_noise_std, noise_copies
         images = class_images(data, self.digit_classes, image_index, reservoir_size, binarize_threshold)
         if pixel_noise_std > 0:
-            stream = torch.Generator().manual_seed(generator.initial_seed() + NOISE_SEED_OFFSET)
+            stream = rng.generator(generator.initial_seed() + rng.IMAGE_NOISE)
             images = noisy_copies(images, self.digit_classes, pixel_noise_std, noise_copies, stream)
         super().__init__(n_runs, generator, images={k: v.to(device) for k, v in images.items()}, device=device, **maze)
 

@@ -40,6 +40,7 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
+from ferl import rng
 from ferl.config.params import ConfigError, Positive, PositiveInt, checked
 from ferl.envs.boundary import DETAIL, FAULT, Guarded
 from ferl.envs.encodings import ENCODINGS, BinaryObservation, NoEncoding
@@ -123,7 +124,7 @@ class GymnasiumEnv:
             ["(" + ",".join(map(str, np.unravel_index(i, self.sizes))) + ")" for i in range(self.n_actions)]
         self.success_threshold, self.optimal_return, self.vectorization = success_threshold, optimal_return, vectorization
         self.reward_scale = reward_scale
-        self.seeds = [seed + r for r in range(n_runs)]
+        self.seeds = rng.run_seeds(seed, n_runs)
         vector = gymnasium.vector.AsyncVectorEnv if vectorization == "async" else gymnasium.vector.SyncVectorEnv
         self.vector = vector([self.env_fn() for _ in range(n_runs)], autoreset_mode=gymnasium.vector.AutoresetMode.NEXT_STEP)
         self.observation_table = torch.zeros(max_observations, self.observation_size, device=self.device)

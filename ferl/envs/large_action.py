@@ -17,6 +17,7 @@ from typing import Literal
 
 import torch
 
+from ferl import rng
 from ferl.bits import to_bits
 from ferl.config.params import ArgumentError, NonNegativeInt, PositiveInt, checked
 from ferl.random_blocks import Blocks, steps_per_block
@@ -37,7 +38,7 @@ class LargeActionTask:
         self.observation_size, self.action_bits = state_bits, action_bits
         self.n_actions, self.states = 2 ** action_bits, states
         self.action_names = [f"bit{k}" for k in range(action_bits)]  # what each action node means
-        gens = [torch.Generator().manual_seed(seed + r) for r in range(n_runs)]
+        gens = rng.run_generators(seed, n_runs)
         self.keys = torch.stack([torch.randint(2, (key_states, state_bits), generator=g) for g in gens]).float().to(self.device)
         self.key_actions = torch.stack([torch.randint(2, (key_states, action_bits), generator=g) for g in gens]).float().to(self.device)
         self.blocks = Blocks(self._draw_states, steps_per_block(n_runs * state_bits))

@@ -29,12 +29,16 @@ def lstm_cell(x: torch.Tensor, U: torch.Tensor, state: torch.Tensor) -> torch.Te
     return torch.cat([torch.sigmoid(o) * torch.tanh(c), c], -1)
 
 
-def gru_cell(x: torch.Tensor, U: torch.Tensor, b_hn: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
-    """h_t (R, B, M) from the input drive x = W u + b (R, B, 3M) and h_{t−1}."""
+def gru_cell(x: torch.Tensor, h_drive: torch.Tensor, h: torch.Tensor, b_hn: torch.Tensor | None = None) -> torch.Tensor:
+    """h_t (R, B, M) from the input drive x = W u + b (R, B, 3M), the recurrent drive U h_{t−1}
+    (R, B, 3M) and h_{t−1}, the gates in PyTorch's order (r, z, n) and with its arithmetic
+    (torch.nn.GRUCell): n = tanh(x_n + r ⊙ (U_n h_{t−1} + b_hn)), h_t = n + z ⊙ (h_{t−1} − n).
+    b_hn (R, M): the recurrent bias of n where ``h_drive`` leaves it out. The one GRU cell of
+    ferl: the gated memory's and DRQN's (``ferl.actors.drqn``)."""
     x_r, x_z, x_n = x.chunk(3, -1)
-    h_r, h_z, h_n = torch.bmm(h, U.transpose(1, 2)).chunk(3, -1)
+    h_r, h_z, h_n = h_drive.chunk(3, -1)
     r, z = torch.sigmoid(x_r + h_r), torch.sigmoid(x_z + h_z)
-    n = torch.tanh(x_n + r * (h_n + b_hn.unsqueeze(1)))
+    n = torch.tanh(x_n + r * (h_n if b_hn is None else h_n + b_hn.unsqueeze(1)))
     return n + z * (h - n)
 
 
@@ -133,4 +137,4 @@ class GRUPredictor(GatedPredictor):
         return [self.W, self.U, self.b, self.b_hn]
 
     def cell(self, params: list, x: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
-        return gru_cell(x, params[1], params[3], state)
+        return gru_cell(x, torch.bmm(state, params[1].transpose(1, 2)), state, params[3])

@@ -114,31 +114,39 @@ class OutputHeads(nn.Module):
         y_hat = torch.sigmoid(z_y) if z_y is not None else None
         return y_hat, (torch.sigmoid(z_r) if self.reward_output == "bits" else z_r)
 
-    def step_errors(self, m, y, r, lengths) -> torch.Tensor:
-        """E_t of every step (R, B, T+1) from the memories m of cleaned sequences (Eqs. 4.6, 5.1,
-        5.2): the loss that BPTT differentiates; padded steps are 0."""
+    def head_losses(self, m, y, r) -> tuple:
+        """The loss of each head at every step, unweighted: (E_y, E_r), each (R, B, T+1) or None
+        without that head, from the memories m and the targets y, r. E_y = CE(y_t, ŷ_t) summed over
+        the observation's bits (Eqs. 4.6, 5.1); E_r = CE(r_t, r̂_t) over the reward bits (Eq. 4.6)
+        or ½ (r_t − r̂_t)² for a linear scalar reward (Eq. 5.2). The one formula of the loss."""
         z_y, z_r = self.head_inputs(m)
+        E_y = F.binary_cross_entropy_with_logits(z_y, y, reduction="none").sum(-1) if self.predict_obs else None
+        if self.reward_output == "none":
+            return E_y, None
+        E_r = (F.binary_cross_entropy_with_logits(z_r, r, reduction="none") if self.reward_output == "bits"
+               else 0.5 * (r - z_r).square()).sum(-1)
+        return E_y, E_r
+
+    def step_errors(self, m, y, r, lengths) -> torch.Tensor:
+        """E_t = ρ_y E_y + ρ_r E_r of every step (R, B, T+1) from the memories m of cleaned
+        sequences (``head_losses``): the loss that BPTT differentiates; padded steps are 0."""
+        E_y, E_r = self.head_losses(m, y, r)
         valid = valid_steps(lengths, y.shape[2])
         E = 0.0
-        if self.predict_obs:
-            E_y = F.binary_cross_entropy_with_logits(z_y, y, reduction="none").sum(-1)
+        if E_y is not None:
             E = self.rho_y * torch.where(valid, E_y, 0.0)
-        if self.reward_output != "none":
-            E_r = (F.binary_cross_entropy_with_logits(z_r, r, reduction="none") if self.reward_output == "bits"
-                   else 0.5 * (r - z_r).square()).sum(-1)
+        if E_r is not None:
             E = E + self.rho_r * torch.where(reward_steps(valid), E_r, 0.0)
         return E
 
     def weighted_errors(self, m, y, r, steps: torch.Tensor, reward_steps: torch.Tensor) -> torch.Tensor:
-        """Σ_b Σ_t steps_{b,t} E_t(b), the loss whose gradients ``head_gradients`` writes out
-        (Eqs. 4.6, 5.1, 5.2): a scalar to differentiate by autograd. Arguments as there."""
-        z_y, z_r = self.head_inputs(m)
+        """Σ_b Σ_t steps_{b,t} E_t(b) (``head_losses``), the loss whose gradients ``head_gradients``
+        writes out: a scalar to differentiate by autograd. Arguments as there."""
+        E_y, E_r = self.head_losses(m, y, r)
         loss = 0.0
-        if self.predict_obs:
-            loss = self.rho_y * (F.binary_cross_entropy_with_logits(z_y, y, reduction="none").sum(-1) * steps).sum()
-        if self.reward_output != "none":
-            E_r = (F.binary_cross_entropy_with_logits(z_r, r, reduction="none") if self.reward_output == "bits"
-                   else 0.5 * (r - z_r).square()).sum(-1)
+        if E_y is not None:
+            loss = self.rho_y * (E_y * steps).sum()
+        if E_r is not None:
             loss = loss + self.rho_r * (E_r * reward_steps).sum()
         return loss
 

@@ -18,6 +18,7 @@ from typing import Literal
 import torch
 from torch import nn
 
+from ferl import rng
 from ferl.config.params import ArgumentError, NonNegative, NonNegativeInt, Positive, PositiveInt, checked
 from ferl.predictors.heads import REWARD_OUTPUTS, OutputHeads, clean, valid_steps
 from ferl.predictors.popart import RewardStatistics
@@ -62,7 +63,7 @@ class RecurrentPredictor(OutputHeads):
         self.memory_size = n_memory
         # Each run is initialised from its own seed, so run r does not depend on n_runs (§4.3.1:
         # weights and biases from a spherical Gaussian of variance init_std²), memory then heads.
-        gens = [torch.Generator().manual_seed(seed + r) for r in range(n_runs)]
+        gens = rng.run_generators(seed, n_runs)
 
         def gaussian(*shape, std=init_std):
             return nn.Parameter(torch.stack([torch.randn(*shape, generator=g) for g in gens]) * std)

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ferl.compiled import warn
+from ferl.messages import warn
 from ferl.run.jsonio import strict_dumps
 
 MAGIC = b"ferl-preprocessor-cache 1\n"

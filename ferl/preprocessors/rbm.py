@@ -41,7 +41,7 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
-from ferl import rbm
+from ferl import rbm, rng
 from ferl.config.params import Momentum, NonNegative, NonNegativeInt, Positive, PositiveInt, checked
 from ferl.images import IMAGE_SIDE, as_images, tile, weight_images
 from ferl.interfaces import FitStopped
@@ -116,13 +116,13 @@ class RBMPreprocessor(nn.Module):
         self.cd_k, self.persistent, self.visible = cd_k, persistent, visible
         self.lr, self.weight_decay, self.batch_size, self.sweeps = lr, weight_decay, batch_size, sweeps
         self.momentum, self.initial_momentum, self.initial_momentum_sweeps = momentum, initial_momentum, initial_momentum_sweeps
-        gens = [torch.Generator().manual_seed(seed + r) for r in range(n_runs)]
+        gens = rng.run_generators(seed, n_runs)
         self.register_buffer("W", torch.stack([torch.randn(n_visible, n_hidden, generator=g) for g in gens]) * init_std)
         self.register_buffer("b_v", torch.zeros(n_runs, n_visible))
         self.register_buffer("b_h", torch.zeros(n_runs, n_hidden))
         # Run r trains on a stream seeded from its own generator after the weights were drawn:
         # independent of n_runs, and not a replay of the numbers that drew its weights.
-        self.train_seeds = [int(torch.randint(2**62, (), generator=g)) for g in gens]
+        self.train_seeds = [rng.child_seed(g) for g in gens]
         self.chains = None  # PCD: hidden states (R, C, H) of the persistent chains
 
     @property
@@ -135,7 +135,7 @@ class RBMPreprocessor(nn.Module):
 
     def run_generators(self) -> list:
         """Run r's training stream (shuffles and Gibbs samples) on the weights' device."""
-        return [torch.Generator(self.W.device).manual_seed(s) for s in self.train_seeds]
+        return rng.generators(self.train_seeds, self.W.device)
 
     # ---- the model -----------------------------------------------------------------------------
     @torch.no_grad()

@@ -24,13 +24,13 @@ import io
 import json
 import os
 import struct
-import sys
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
 
+from ferl import messages
 from ferl.run.failures import writing
 from ferl.run.jsonio import strict_dumps
 
@@ -140,14 +140,10 @@ def newest_good(directory: Path, warn=None) -> Checkpoint | None:
             problems.append(str(e))
             continue
         if problems:
-            (warn or warning)(f"{directory.parent}: {problems[0]}; resuming from the checkpoint before it, "
+            (warn or messages.warn)(f"{directory.parent}: {problems[0]}; resuming from the checkpoint before it, "
                               f"{directory.name}/{PREVIOUS}")
         return found
     raise CheckpointError("no good checkpoint: " + "; ".join(problems))
-
-
-def warning(message: str) -> None:
-    print(f"ferl: warning: {message}", file=sys.stderr)
 
 
 def write(directory: Path, state: dict, identity: RunIdentity | None) -> None:

@@ -24,7 +24,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 
 from ferl.config.params import ConfigError
-from ferl.run.checkpoint import warning
+from ferl.messages import warn
 from ferl.run.directory import atomic_dir, check_run_dir, remove_leftovers, restore_hydra_files
 from ferl.run.lock import LOCK_FILE, RunLock, holder
 
@@ -48,7 +48,7 @@ def claim(run_path: Path, cfg: DictConfig, lock: RunLock) -> None:
     if not lock.acquire():
         raise ConfigError(busy(run_path, holder(run_path)))
     if lock.left_by is not None:
-        warning(f"{run_path}: took over the lock that {lock.left_by} left ({LOCK_FILE}; that process is gone)")
+        warn(f"{run_path}: took over the lock that {lock.left_by} left ({LOCK_FILE}; that process is gone)")
     refuse_if_unfit(run_path, cfg.resume)
     remove_leftovers(run_path)
     if cfg.resume:

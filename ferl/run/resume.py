@@ -19,7 +19,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from ferl.config.params import ConfigError
 from ferl.config.validate import resolved
-from ferl.run.checkpoint import Checkpoint, CheckpointError, RunIdentity, newest_good, warning
+from ferl.messages import warn
+from ferl.run.checkpoint import Checkpoint, CheckpointError, RunIdentity, newest_good
 
 # The keys a resume may change, and why none of them changes the run's numbers. Every other key
 # is refused; among them, on purpose: compile (the compiled chunks round differently from the eager
@@ -78,7 +79,7 @@ def resumed_run(run_path: Path, given: list[str], device_type) -> Resumed | None
     except CheckpointError as e:
         raise ConfigError(f"cannot resume {run_path}: {e}") from None
     if chosen is None:
-        warning(f"{run_path} holds no checkpoint yet: the run starts from the beginning")
+        warn(f"{run_path} holds no checkpoint yet: the run starts from the beginning")
         return None
     saved = chosen.identity
     if saved.config is None:

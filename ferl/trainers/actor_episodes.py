@@ -26,11 +26,11 @@ from ferl.predictors.heads import scaled
 from ferl.random_blocks import Blocks, steps_per_block
 from ferl.run.directory import CheckpointTimer
 from ferl.run.tensorboard import log_embedding, log_weights
+from ferl.stats import final_metrics, sample_efficiency
 from ferl.trainers.episodes import discount_factors, discounted_return, discovers_observations, observation_table
 from ferl.trainers.phased import Phase
 
 EMBEDDED_PROBES = 2000  # run 0's last probe visits in the projector (docs/records.md)
-SOLVED_SHARE = 0.95     # solved: return ≥ 0.95 × optimum and every outcome rate ≥ 0.95 (docs/records.md)
 
 
 class ActorEpisodes(Phase):
@@ -109,9 +109,10 @@ class ActorEpisodes(Phase):
                 job.guard.check(torch.as_tensor(records["td_abs_mean"][:, checked:k + 1].T), checked, "episode")
             if (k + 1) % self.log_every == 0:
                 self.log_episodes(job.writer, records, k + 1, lr, float(torch.as_tensor(beta).mean()))
-                recent = slice(max(0, k - 199), k + 1)
-                bar.set_postfix(return_ma200=f"{records['discounted_return'][:, recent].mean():.3f}",
-                                **{f"{n}_ma200": f"{records[n][:, recent].mean():.2f}" for n in self.rates}, refresh=False)
+                recent, ma = slice(max(0, k + 1 - self.final_window), k + 1), f"ma{self.final_window}"
+                postfix = {f"{n}_{ma}": f"{records[n][:, recent].mean():.2f}" for n in self.rates}
+                bar.set_postfix({f"return_{ma}": f"{records['discounted_return'][:, recent].mean():.3f}", **postfix},
+                                refresh=False)
             if ((k + 1) % self.checkpoint_every == 0 or job.stop.requested or clock.due()) and k + 1 < self.N:
                 state["probes"] = probes = [concat_records(probes)] if probes else []
                 state["episode"] = k + 1
@@ -265,7 +266,7 @@ class ActorEpisodes(Phase):
         job.run.save_records("episodes", job.R, **records, td_sampled=state["td_sampled"], td_sampled_episodes=sampled,
                              gamma=np.float64(job.actor.gamma),
                              optimal_return=np.float64(optimal.get("discounted_return", np.nan)),
-                             optimal_steps=np.float64(job.env.optimal_steps))
+                             optimal_steps=np.float64(job.env.optimal_steps), final_window=np.int64(self.final_window))
         job.run.save_records("probe", job.R, **probes)
         self.log_probes(job, probes, records)
         job.metrics.update(final_metrics(records, self.optimum, self.final_window, self.rates, self.averages))
@@ -295,10 +296,11 @@ class ActorEpisodes(Phase):
             **{key: records[key][0, episode].astype(int) for key in self.rates}}, self.N)
 
     def log_episodes(self, writer, records, done: int, lr: float, beta: float) -> None:
-        """Moving averages over the last 200 episodes, mean over runs (Figs. 4.6–4.8, 4.11–4.13)."""
-        window = slice(max(0, done - 200), done)
+        """Moving averages over the last ``final_window`` episodes (200: Figs. 4.6–4.8, 4.11–4.13),
+        mean over runs, tagged ``actor/<name>_ma<final_window>``."""
+        window = slice(max(0, done - self.final_window), done)
         for name in ("discounted_return", "steps", "terminal_reward", "td_abs_mean", *self.rates):
-            writer.add_scalar(f"actor/{name}_ma200", float(records[name][:, window].mean()), done)
+            writer.add_scalar(f"actor/{name}_ma{self.final_window}", float(records[name][:, window].mean()), done)
         writer.add_scalar("schedule/learning_rate", lr, done)
         writer.add_scalar("schedule/beta", beta, done)
 
@@ -316,65 +318,3 @@ def solved_against(optimal: dict) -> tuple[str, float] | None:
         if optimal.get(key) is not None:
             return key, float(optimal[key])
     return None
-
-
-def meets_solved(returns: np.ndarray, rates: dict, optimal_return: float) -> np.ndarray:
-    """The ``solved`` criterion (docs/records.md) on window means: return ≥ 0.95 × optimum and every
-    outcome rate (the correct-goal rate) ≥ 0.95."""
-    solved = returns >= SOLVED_SHARE * optimal_return
-    for values in rates.values():
-        solved &= values >= SOLVED_SHARE
-    return solved
-
-
-def window_means(x: np.ndarray, window: int) -> np.ndarray:
-    """Means of every full window of ``window`` episodes (R, N) → (R, N − window + 1), in float64."""
-    c = np.cumsum(np.pad(x.astype(np.float64), ((0, 0), (1, 0))), 1)
-    return (c[:, window:] - c[:, :-window]) / window
-
-
-def sample_efficiency(episodes: dict, random_steps: np.ndarray, optimum: tuple[str, float] | None, window: int,
-                      rates: list) -> dict:
-    """Environment steps per run (random collection included: ``random_steps`` (R,)): all of them,
-    and, where there is an ``optimum`` (``solved_against``), those until the first window of
-    ``window`` episodes that meets the ``solved`` criterion (its last episode included; None if
-    none does), with that episode's number (1-based)."""
-    steps = episodes["steps"].astype(np.int64)
-    used = np.asarray(random_steps)[:, None] + np.cumsum(steps, 1)  # (R, N) steps after each episode
-    if optimum is None:
-        return {"env_steps_total": used[:, -1].tolist()}
-    key, best = optimum
-    solved = meets_solved(window_means(episodes[key], window), {n: window_means(episodes[n], window) for n in rates}, best)
-    first = [int(np.argmax(row)) + window - 1 if row.any() else None for row in solved]
-    return {"env_steps_total": used[:, -1].tolist(),
-            "env_steps_to_solve": [int(used[r, k]) if k is not None else None for r, k in enumerate(first)],
-            "episodes_to_solve": [k + 1 if k is not None else None for k in first]}
-
-
-def final_metrics(episodes: dict, optimum: tuple[str, float] | None, window: int, rates: list,
-                  averages: list = ()) -> dict:
-    """The episodic metrics of docs/records.md over the last ``window`` (200) episodes, one value per run:
-    discounted return, steps, the rate of every boolean outcome (``final_correct_goal_rate``), the
-    mean of every float one (``final_return``) and its best window mean over all episodes
-    (``best_return``) and, given an optimum, solved."""
-    last = slice(-window, None)
-
-    def final(name: str) -> np.ndarray:
-        # in float64: NumPy sums float32 in an order that depends on the CPU's vector width (AVX-512
-        # or AVX2); a float64 sum of float32 numbers is exact, in any order, unless they span more
-        # than ~29 binary orders of magnitude
-        return episodes[name][:, last].mean(1, dtype=np.float64)
-
-    rate = {name: final(name) for name in rates}
-    metrics = {"final_discounted_return": final("discounted_return").tolist(),
-               "final_steps_to_goal": final("steps").tolist(),
-               **{f"final_{name}_rate": values.tolist() for name, values in rate.items()},
-               **{f"final_{name}": final(name).tolist() for name in averages},
-               # the best window mean over the training: POPGym's "mean maximum episodic return" (MMER,
-               # Morad et al. 2023) with a window of episodes as its batch
-               **{f"best_{name}": window_means(episodes[name], min(window, episodes[name].shape[1])).max(1).tolist()
-                  for name in averages}}
-    if optimum is not None:
-        key, best = optimum
-        metrics["solved"] = meets_solved(final(key), rate, best).astype(int).tolist()
-    return metrics

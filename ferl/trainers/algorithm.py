@@ -13,11 +13,11 @@ preprocessor's phase first, which runs when the config has a preprocessor.
 """
 from typing import Annotated
 
+from ferl import rng
 from ferl.config.params import Allowed, NonNegative, NonNegativeInt, Positive, PositiveInt, checked
 from ferl.interfaces import EpisodicEnvironment
 from ferl.trainers.actor_episodes import ActorEpisodes
 from ferl.trainers.episodes import CollectEpisodes
-from ferl.trainers.job import SeedOffsets
 from ferl.trainers.observations import FitPreprocessor, log_observations
 from ferl.trainers.phased import PhasedTrainer
 from ferl.trainers.predictor_training import TrainPredictors
@@ -32,7 +32,7 @@ class Algorithm(PhasedTrainer):
     ``divergence_limit``); their meaning and values are in conf/trainer/algorithm1.yaml."""
 
 
-    seed_offsets = SeedOffsets(actor=100_000)
+    seed_offsets = rng.EPISODIC
     environment = EpisodicEnvironment
 
     @checked

@@ -8,7 +8,7 @@ that observation followed by every predictor's memory, and what the environment 
 reward values, its observation size) reaches every constructor that takes it (``ferl.trainers.facts``).
 Each component is checked against its protocol as soon as it is built, so that one lacking an
 attribute is refused before anything is written. Run r of the batch uses seed + r; each
-component's weights are drawn from seed + its offset + r (``SeedOffsets``), so that they differ.
+component's weights are drawn from seed + its offset + r (``ferl.rng``), so that they differ.
 
 The job also holds what every phase of a trainer shares: the generator of the batch's random
 stream, the divergence guard, the run directory and its TensorBoard writer, the progress that a
@@ -16,27 +16,19 @@ checkpoint saves (finished phases, the state of an unfinished one, data passed b
 and the summary's metrics.
 """
 import time
-from dataclasses import dataclass
 
 import torch
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 
+from ferl import rng
 from ferl.compiled import compile_seconds, fast_path
 from ferl.config.params import ConfigError, signature, target
 from ferl.interfaces import Actor, Environment, Predictor, Preprocessor
 from ferl.run.failures import Interrupted, where
+from ferl.rng import SeedOffsets
 from ferl.run.guard import DivergenceGuard
 from ferl.trainers.facts import check_conforms, facts_for
-
-
-@dataclass(frozen=True)
-class SeedOffsets:
-    """What is added to the run's seed for each component's initial weights."""
-    actor: int = 0
-    predictors: int = 10_000   # predictor i: + i × this
-    preprocessor: int = 200_000
-    env: int = 300_000         # an environment that draws its own task per run (``seed`` in its constructor)
 
 
 def takes(node, name: str) -> bool:
@@ -65,8 +57,8 @@ class Job:
         """``env_protocol``: what the trainer's phases need of the environment (an episodic one for
         Algorithms 1–2, a continuing one for online TD), checked as soon as it is built."""
         self.cfg, self.device, self.R = cfg, device, cfg.n_runs
-        self.seeds = [cfg.seed + r for r in range(self.R)]
-        self.generator = torch.Generator(device).manual_seed(cfg.seed)
+        self.seeds = rng.run_seeds(cfg.seed, self.R)
+        self.generator = rng.generator(cfg.seed, device)  # the batch's stream
         needs_data = takes(cfg.env, "data") or cfg.get("preprocessor") is not None
         self.data = build(cfg.data).load() if needs_data else None
         self.env_seed = cfg.seed + seeds.env

@@ -35,14 +35,15 @@ import time
 import numpy as np
 import torch
 
+from ferl import rng
 from ferl.config.params import ConfigError, Momentum, NonNegative, Positive, PositiveInt, UnitInterval, checked
 from ferl.config.swaps import chosen
 from ferl.interfaces import EpisodicEnvironment
 from ferl.predictors.popart import observe_rewards
 from ferl.predictors.recurrent import lookup_step
+from ferl.replay import draw_episodes, store_episode, stored_episodes
 from ferl.trainers.actor_episodes import ActorEpisodes
 from ferl.trainers.episodes import Episodes, episode_tensors
-from ferl.trainers.job import SeedOffsets
 from ferl.trainers.observations import FitPreprocessor, log_observations
 from ferl.trainers.phased import PhasedTrainer
 
@@ -128,12 +129,11 @@ class OnlineEpisodes(ActorEpisodes):
         online["beta"][:, k] = self.beta_now.flatten().cpu().numpy()  # the β episode k acted with
         online["curiosity"][:, k] = self.eta_now
         observe_rewards(job.predictors.values(), ep.rewards, ep.lengths)  # once per new episode, after its held-out error
-        replay, slot = state["replay"], k % self.K
-        for key, value in zip(("obs", "actions", "rewards", "lengths"), (ep.obs, ep.actions, ep.rewards, ep.lengths)):
-            replay[key][:, slot] = value[:, 0]
-        filled = min(k + 1, self.K)
-        pick = torch.randint(filled, (job.R, self.n_replay), generator=job.generator, device=job.device)
-        sample = Episodes(replay["obs"], replay["actions"], replay["rewards"], replay["lengths"]).select(pick)
+        replay = state["replay"]
+        store_episode(replay, k, {"obs": ep.obs[:, 0], "actions": ep.actions[:, 0], "rewards": ep.rewards[:, 0],
+                                  "lengths": ep.lengths[:, 0]})
+        pick = draw_episodes(replay, k + 1, self.n_replay, job.generator, job.device)
+        sample = Episodes(**stored_episodes(replay, pick))
         order = torch.arange(self.n_replay, device=job.device).expand(job.R, -1)
         y, a, _, lengths = episode_tensors(job, sample, None)
         for members in self.groups:
@@ -142,9 +142,9 @@ class OnlineEpisodes(ActorEpisodes):
             batch.train_epoch([order] * len(members))
         state["predictor_time"] += time.perf_counter() - started
         if (k + 1) % self.log_every == 0:
-            window = slice(max(0, k - 199), k + 1)
+            window = slice(max(0, k + 1 - self.final_window), k + 1)
             for key, values in online.items():
-                job.writer.add_scalar(f"online/{key}_ma200", float(values[:, window].mean()), k + 1)
+                job.writer.add_scalar(f"online/{key}_ma{self.final_window}", float(values[:, window].mean()), k + 1)
 
     def as_episodes(self, job, episode: dict) -> Episodes:
         """The trajectory of ``play_episode`` as one padded episode per run, (R, 1, …)."""
@@ -167,7 +167,7 @@ class OnlineAlgorithm(PhasedTrainer):
     """``trainer=online`` (docs/beyond.md): [the preprocessor's fit, as Algorithm 2's first phase,
     when the config has one →] ``OnlineEpisodes``. Arguments as in conf/trainer/online.yaml."""
 
-    seed_offsets = SeedOffsets(actor=100_000)
+    seed_offsets = rng.EPISODIC
     environment = EpisodicEnvironment
     kind = "online"
 

@@ -13,13 +13,14 @@ import time
 import torch
 from torch.utils.tensorboard import SummaryWriter
 
+from ferl import rng
 from ferl.compiled import compile_seconds
 from ferl.config.params import ConfigError
 from ferl.interfaces import Environment
 from ferl.run.directory import RunDir, StopRequest
 from ferl.run.resume import identity_of
 from ferl.run.tensorboard import log_hparams
-from ferl.trainers.job import Job, SeedOffsets
+from ferl.trainers.job import Job
 
 
 class Phase:
@@ -48,7 +49,7 @@ class PhasedTrainer:
     """Runs ``phases`` in order (``Trainer`` of ``ferl.interfaces``); ``divergence_limit`` is the
     |TD error| beyond which a run is frozen and reported (``ferl.run.guard``)."""
 
-    seed_offsets = SeedOffsets()
+    seed_offsets = rng.CONTINUING  # the components' seed offsets (ferl.rng)
     environment: type = Environment  # the protocol its phases need of the environment (checked at setup)
     kind = "phased"
     params: dict = {}  # the trainer's arguments, for records/run.json
