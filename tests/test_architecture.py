@@ -33,7 +33,22 @@ def test_components_meet_their_protocols():
     assert isinstance(RBMPreprocessor(2, n_visible=16, n_hidden=4), interfaces.Preprocessor)
     assert isinstance(ElmanPredictor(2, 7, 4, n_reward=4), interfaces.Predictor)
     actor = FERLActor(2, 27, 4, 20, "sarsa", 0.95, Constant(0.05), Constant(1.0))
-    assert isinstance(actor, interfaces.Actor)
+    assert isinstance(actor, interfaces.Actor) and isinstance(actor, interfaces.ActorViews)
+
+
+@pytest.mark.parametrize("protocol, base", [
+    (interfaces.Environment, interfaces.EnvironmentBase),
+    (interfaces.EpisodicEnvironment, interfaces.EpisodicEnvironmentBase),
+    (interfaces.Preprocessor, interfaces.PreprocessorBase),
+    (interfaces.TrainingBatch, interfaces.TrainingBatchBase),
+    (interfaces.Predictor, interfaces.PredictorBase),
+    (interfaces.Actor, interfaces.ActorBase),
+    (interfaces.Trainer, interfaces.TrainerBase)])
+def test_every_default_a_base_gives_is_a_member_its_protocol_declares(protocol, base):
+    """A hook exists once as a declared member and once as a default: a base class that gave a
+    member its protocol does not declare would bring back an undeclared, discovered hook."""
+    given = {name for cls in base.__mro__[:-1] for name in vars(cls) if not name.startswith("_")}
+    assert given and given <= set(interfaces.required_members(protocol))
 
 
 def imports(path: Path) -> set[str]:

@@ -27,6 +27,7 @@ from torch.nn import functional as nnf
 
 from ferl.actors.softmax import TD_RULES, SoftmaxActor, run_generators
 from ferl.config.params import Discount, NonNegative, NonNegativeInt, PositiveInt, checked
+from ferl.interfaces import EndedEpisode
 
 PARAMETERS = ("W_x", "W_h", "b_x", "b_h", "W_q", "b_q")
 ADAM_BETAS, ADAM_EPS = (0.9, 0.999), 1e-8
@@ -62,6 +63,11 @@ def unroll(p: dict, states: torch.Tensor, prev_actions: torch.Tensor) -> torch.T
 
 
 class DRQNActor(SoftmaxActor):
+    """A GRU Q-learner over the observation and the previous action (module docstring): it acts
+    with its memory and learns at ``end_episode`` from replayed whole episodes."""
+
+    learns_from_episodes = True  # nothing per step; its memory h steps in place with every act
+
     @checked
     def __init__(self, n_runs: PositiveInt, n_state: PositiveInt, n_actions: PositiveInt, n_hidden: PositiveInt,
                  gamma: Discount, lr, beta, replay_episodes: PositiveInt = 1000, batch_episodes: PositiveInt = 16,
@@ -112,11 +118,6 @@ class DRQNActor(SoftmaxActor):
     def hidden(self, h: torch.Tensor) -> torch.Tensor:
         return h
 
-    def begin_episode(self) -> None:
-        """h = 0 and no previous action in every run."""
-        self.h.zero_()
-        self.a_prev.zero_()
-
     @torch.no_grad()
     def evaluate(self, s: torch.Tensor):
         """F = −Q (R, B, nA) at the present memory h, stepped on s (R, B, S) by the previous
@@ -133,15 +134,12 @@ class DRQNActor(SoftmaxActor):
         self.a_prev.copy_(nnf.one_hot(a, self.n_actions).to(self.a_prev.dtype))
         return a, F_a, h, F_boot
 
-    def learn(self, s, a, h, delta, lr, s_next, a_next, F_next, h_next):
-        """Nothing per step: DRQN learns from replayed episodes (``end_episode``)."""
-        return F_next, h_next
-
-    def end_episode(self, states: torch.Tensor, actions: torch.Tensor, rewards: torch.Tensor,
-                    lengths: torch.Tensor, terminated: torch.Tensor, lr: float) -> None:
-        """Store every run's episode — states (R, T_max+1, S), actions and rewards (R, T_max)
-        padded after ``lengths`` (R,) actions, ``terminated`` (R,) ended in a terminal state —
-        then the Adam steps on replayed episodes at step size ``lr``."""
+    def end_episode(self, episode: EndedEpisode, lr: float) -> None:
+        """Store every run's episode (``EndedEpisode.padded``: states (R, T_max+1, S), actions and
+        rewards (R, T_max) padded after ``lengths`` (R,) actions, ``terminated`` (R,)), take the
+        Adam steps on replayed episodes at step size ``lr``, and forget the episode: h = 0 and no
+        previous action in every run. Nothing is learnt per step (``ActorBase.learn``)."""
+        states, actions, rewards, lengths, terminated = episode.padded()
         if self.replay is None:
             self.replay = {"states": states.new_zeros(self.n_runs, self.replay_episodes, *states.shape[1:]),
                            "actions": actions.new_zeros(self.n_runs, self.replay_episodes, actions.shape[1]),
@@ -158,6 +156,8 @@ class DRQNActor(SoftmaxActor):
         if self.episodes % self.target_every == 0:
             for name in PARAMETERS:
                 getattr(self, f"{name}_target").copy_(getattr(self, name))
+        self.h.zero_()
+        self.a_prev.zero_()
 
     def sample(self) -> dict:
         """``batch_episodes`` stored episodes per run, drawn uniformly with replacement, every

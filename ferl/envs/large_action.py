@@ -19,10 +19,11 @@ import torch
 
 from ferl.bits import to_bits
 from ferl.config.params import ArgumentError, NonNegativeInt, PositiveInt, checked
+from ferl.interfaces import EnvironmentBase
 from ferl.random_blocks import Blocks, steps_per_block
 
 
-class LargeActionTask:
+class LargeActionTask(EnvironmentBase):
     task = "large_action"
 
     @checked
@@ -94,7 +95,7 @@ class LargeActionTask:
         never = torch.zeros(self.n_runs, dtype=torch.bool, device=self.device)
         return obs, reward, never, never
 
-    def runs(self, index: slice) -> "LargeActionTask":
+    def slice_runs(self, index: slice) -> "LargeActionTask":
         """The task restricted to a slice of the runs; its state is a view of this batch's."""
         part = copy.copy(self)
         part.state, part.keys, part.key_actions = self.state[index], self.keys[index], self.key_actions[index]
