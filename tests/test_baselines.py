@@ -246,3 +246,41 @@ def test_an_ended_episode_is_laid_out_per_run_and_padded_to_t_max():
             assert a[run, t] == (actions[t, run] if t < steps else 0)
             assert r[run, t] == (rewards[t, run] if t < steps else 0.0)
     assert torch.equal(n, lengths) and n is not lengths and torch.equal(term, terminated)
+
+
+def test_the_continuing_td_phase_refuses_an_actor_that_learns_only_from_episodes():
+    """A continuing task has no episode ends, so ``end_episode`` would never come: refused in one
+    line before anything runs (``Actor.learns_from_episodes``)."""
+    from types import SimpleNamespace
+
+    from ferl.config.params import ConfigError
+    from ferl.trainers.online import OnlineTD
+    job = SimpleNamespace(actor=DRQNActor(R, S, NA, H, 0.9, **schedules()), env=SimpleNamespace(task="floor"), R=R)
+    with pytest.raises(ConfigError, match=r"^actor=drqn learns from whole episodes, and the continuing task floor"):
+        OnlineTD(10, 5, 5, 0.0, 1, 0).prepare(job)
+
+
+def test_an_actor_without_the_logging_views_records_no_hidden_activations():
+    """``ActorViews`` is optional: the probe records of an actor without ``hidden`` keep the rest."""
+    from types import SimpleNamespace
+
+    from ferl.interfaces import ActorViews
+    from ferl.trainers.actor_episodes import ActorEpisodes
+
+    class Viewless:  # an actor as far as the probe records are concerned, without the views
+        pass
+
+    steps = 4
+    probes = torch.zeros(steps, R, dtype=torch.bool)
+    probes[1, 0] = probes[2, 2] = True
+    ep = {"probes": probes, "memories": [torch.rand(steps, R, 3)], "states": torch.rand(steps, R, S),
+          "caches": torch.rand(steps, R, H)}
+    env = SimpleNamespace(labels=lambda: {"cue": torch.tensor([1, 0, 1])})
+    phase = ActorEpisodes.__new__(ActorEpisodes)
+    seen = {}
+    for actor in (Viewless(), DRQNActor(R, S, NA, H, 0.9, **schedules())):
+        seen[isinstance(actor, ActorViews)] = phase.probe_visits(SimpleNamespace(actor=actor, env=env,
+                                                                                 predictors={"m": None}), 7, ep)
+    assert set(seen[True]) - set(seen[False]) == {"hidden"}
+    assert seen[False]["run"].tolist() == [0, 2] and seen[False]["step"].tolist() == [1, 2]
+    assert torch.equal(seen[True]["hidden"], ep["caches"][[1, 2], [0, 2]].half())

@@ -86,7 +86,7 @@ class LargeActionTask(EnvironmentBase):
     def step_with(self, action: torch.Tensor, next_state: torch.Tensor):
         """The reward of ``action`` (R,) in the present state, then the next state: (next_state, reward)."""
         reward = self.reward(self.state, action)
-        self.state.copy_(next_state)  # in place: a view of some runs (``runs``) moves this batch's
+        self.state.copy_(next_state)  # in place: a view of some runs (``slice_runs``) moves this batch's
         return next_state, reward
 
     def step(self, action: torch.Tensor):

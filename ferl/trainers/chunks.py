@@ -48,8 +48,8 @@ def td_steps_by_groups(steps, groups: list[slice]):
     env.slice_runs, slices of the per-run arguments), so its updates land in the whole batch; runs are
     independent, so the grouping does not change what a run computes."""
     def by_groups(actor, env, generator, s, a, F_sa, x_sa, alive, lrs, betas, uniforms, *inputs):
-        parts = [steps(actor.slice_runs(g), env.slice_runs(g), generator, s[g], a[g], F_sa[g], x_sa[g], alive[g], lrs, betas,
-                       uniforms[:, g], *(x[:, g] for x in inputs)) for g in groups]
+        parts = [steps(actor.slice_runs(g), env.slice_runs(g), generator, s[g], a[g], F_sa[g], x_sa[g], alive[g],
+                       lrs, betas, uniforms[:, g], *(x[:, g] for x in inputs)) for g in groups]
         # s, a, F_sa, x_sa carry the runs first, rewards and TD errors (K, R) second
         return tuple(torch.cat(outs, 0 if i < 4 else 1) for i, outs in enumerate(zip(*parts)))
     return by_groups

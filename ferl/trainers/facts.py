@@ -51,9 +51,11 @@ NEEDS = {
                                      interfaces.EpisodicEnvironmentBase),
     interfaces.ContinuingEnvironment: ("a continuing environment", 'docs/architecture.md, "Add an environment"',
                                        interfaces.EnvironmentBase),
-    interfaces.Environment: ("an environment", 'docs/architecture.md, "Add an environment"', interfaces.EnvironmentBase),
+    interfaces.Environment: ("an environment", 'docs/architecture.md, "Add an environment"',
+                             interfaces.EnvironmentBase),
     interfaces.Preprocessor: ("a preprocessor", "ferl/interfaces.py, Preprocessor", interfaces.PreprocessorBase),
-    interfaces.Predictor: ("a predictor", 'docs/architecture.md, "Add a predictor (a memory)"', interfaces.PredictorBase),
+    interfaces.Predictor: ("a predictor", 'docs/architecture.md, "Add a predictor (a memory)"',
+                           interfaces.PredictorBase),
     interfaces.Actor: ("an actor", 'docs/architecture.md, "Add an actor"', interfaces.ActorBase),
 }
 
@@ -97,4 +99,5 @@ def check_conforms(part, protocol: type, key: str) -> None:
         what, where, base = NEEDS[protocol]
         hooks = [name for name in missing if name in dir(base)]
         defaults = f"; ferl.interfaces.{base.__name__} gives the defaults of {', '.join(hooks)}" if hooks else ""
-        raise ConfigError(f"{key}: {class_name(part)} lacks {', '.join(missing)} ({what} needs them: {where}{defaults})")
+        raise ConfigError(f"{key}: {class_name(part)} lacks {', '.join(missing)} "
+                          f"({what} needs them: {where}{defaults})")

@@ -4,7 +4,7 @@ One training step for every run:  observe s' → F(s', ·) for all actions → s
 → δ = r − γ F(s', a') + F(s, a) → θ ← θ + α δ (−∂F/∂θ) (Eq. 3.10)  (``ferl.actors.td``), in
 chunks of steps on random numbers drawn beforehand (``ferl.trainers.chunks``). α and β follow the
 actor's schedules over the phase's steps. The environment is any with ``step_inputs`` /
-``step_with`` (a step's random numbers as inputs, so a chunk can be compiled) and ``runs``.
+``step_with`` (a step's random numbers as inputs, so a chunk can be compiled) and ``slice_runs``.
 """
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
