@@ -79,3 +79,19 @@ def test_analysis_reads_records_not_models():
     for path in (FERL / "analysis").glob("*.py"):
         bad = {n for n in imports(path) if n.startswith(tuple(f"ferl.{p}" for p in (*MODELS, "trainers")))}
         assert not bad, (path, bad)
+
+
+def test_trainers_call_hooks_and_never_look_for_them():
+    """The phases call every member of a component directly: a ``hasattr``/``getattr`` in
+    ferl/trainers would be a hook discovered rather than declared. The config checks' hooks of a
+    ``_target_`` (``ferl.config.params.ConfigTarget``: any callable, no base class) are the exception."""
+    from ferl.config.params import ConfigTarget
+    allowed = set(interfaces.required_members(ConfigTarget))
+    found = []
+    for path in sorted((FERL / "trainers").glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Call) and getattr(node.func, "id", None) in ("hasattr", "getattr"):
+                name = node.args[1].value if isinstance(node.args[1], ast.Constant) else None
+                if name not in allowed:
+                    found.append(f"{path.name}:{node.lineno} {node.func.id}(…, {name!r})")
+    assert allowed == {"kwargs_to", "check_config", "resolve"} and found == []
