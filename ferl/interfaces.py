@@ -1,29 +1,38 @@
 """The interfaces the components of ferl meet through (docs/architecture.md).
 
 Data flows one way: environment → preprocessor → predictors → actor. Trainers and analysis talk
-to these protocols only, so a new environment, preprocessor, predictor, actor or trainer is one
-module with one YAML file whose ``_target_`` names it; nothing in ferl has to know its name.
+to these protocols only, so a new component is one module with one YAML file whose ``_target_``
+names it. Every component is batched over R independent runs (parameters and states carry the
+run dimension first; one call advances or updates every run) and says what it is (``describe``,
+kept in ``records/run.json``, from which analysis decides which figures and claims apply).
 
-Every component is batched over R independent runs: its parameters and states carry the run
-dimension first, and one call advances or updates every run. Each component also says what it
-is (``describe``): the dict ``records/run.json`` keeps, from which analysis decides which
-figures and claims apply to a run.
+A protocol declares every member that ferl calls, its hooks too, each with a default on the small
+base class beside it (``EnvironmentBase`` … ``ActorBase``, as acme's ``core.py``): a component
+that subclasses the base names only the hooks it changes, and ferl calls every member directly. A
+component is checked against its protocol when it is built (``missing_members``).
 
 Constructors receive their YAML keys plus what the trainer supplies (``n_runs``, sizes, ``seed``,
 ``generator``, ``device``, ``data`` where the constructor names it); the types and ranges of the
 YAML keys are the constructor's annotations (``ferl.config.params``), checked before any work.
 """
-from typing import Hashable, Protocol, Sequence, runtime_checkable
+from typing import Callable, Hashable, NamedTuple, Protocol, Sequence, runtime_checkable
 
 import torch
 from torch import Tensor
+from torch.nn import functional as nnf
 
-# A predictor's recurrent state: one tensor (R, ·) or a tuple of them (an LSTM's (h, c)).
-State = Tensor | tuple[Tensor, ...]
+State = Tensor | tuple[Tensor, ...]  # a predictor's recurrent state: (R, ·), or an LSTM's (h, c)
+
+
+class Checkpointed(Protocol):
+    """What a checkpoint keeps of a component: its parameters, its episode in progress."""
+    def state_dict(self) -> dict: ...
+
+    def load_state_dict(self, state: dict) -> None: ...
 
 
 @runtime_checkable
-class Environment(Protocol):
+class Environment(Checkpointed, Protocol):
     """R environments stepped together with one action per run (R,) of ``n_actions`` discrete actions.
 
     ``describe()`` holds at least ``task`` (the summary's task: which metrics a run reports),
@@ -37,6 +46,9 @@ class Environment(Protocol):
     observation_size: int
     task: str
     device: torch.device
+    # set by the training job: on_fault(run, episode, reason, details) freezes a run whose environment
+    # failed (ferl.envs.boundary); an environment that cannot fail never calls it (default None)
+    on_fault: Callable | None
 
     def reset(self) -> Tensor:
         """Start every run afresh; the observations (R, observation_size)."""
@@ -45,14 +57,9 @@ class Environment(Protocol):
         """Act in every run: (observations (R, O), rewards (R,), terminated (R,), truncated (R,))."""
 
     def optimal(self, gamma: float) -> dict[str, float]:
-        """The optimum a run is measured against, from the environment's definition
-        (``summary.json``'s ``optimal``)."""
+        """The optimum a run is measured against (``summary.json``'s ``optimal``)."""
 
     def describe(self) -> dict: ...
-
-    def state_dict(self) -> dict: ...
-
-    def load_state_dict(self, state: dict) -> None: ...
 
 
 @runtime_checkable
@@ -66,8 +73,13 @@ class ContinuingEnvironment(Environment, Protocol):
     def step_with(self, action: Tensor, *inputs) -> tuple[Tensor, Tensor]:
         """``step`` on one step's slice of ``step_inputs``: (observations, rewards)."""
 
-    def runs(self, index: slice) -> "ContinuingEnvironment":
+    def slice_runs(self, index: slice) -> "ContinuingEnvironment":
         """A view of a slice of the runs whose steps land in this batch."""
+
+
+class EnvironmentBase:
+    """The default of ``Environment``'s hook: nothing to report a fault to until the job sets it."""
+    on_fault: Callable | None = None
 
 
 @runtime_checkable
@@ -82,10 +94,7 @@ class EpisodicEnvironment(Environment, Protocol):
     boolean ones become ``final_<name>_rate`` metrics and count towards ``solved``), ``labels``
     (what the episode's probes are labelled with, e.g. the maze's condition) and ``probe`` (the
     runs whose present state is one whose activations the records keep, e.g. the T-junction).
-    An environment whose observations are not known in advance (a third-party one,
-    ``ferl.envs.gymnasium_vector``) sets ``discovers_observations = True`` and fills rows of its
-    table in place as it meets them: the phases then index the table live and compute nothing
-    from it ahead of the episodes.
+    Two hooks (defaults on ``EpisodicEnvironmentBase``) say how its episodes may be run.
     """
 
     max_steps: int
@@ -96,6 +105,13 @@ class EpisodicEnvironment(Environment, Protocol):
     obs_id: Tensor              # (R,) the id of every run's present observation
     done: Tensor                # (R,) bool
     t: Tensor                   # (R,) actions taken in the episode
+    # True when ``advance`` is tensor operations only (no branch on a tensor's value, no NumPy): an
+    # episode can then be one compiled graph (``ActorEpisodes.episode``)
+    traceable_steps: bool
+    # True when the observations are not known in advance (a third-party environment,
+    # ``ferl.envs.gymnasium_vector``): rows of the table are filled in place as they are met, so
+    # the phases index the table live and compute nothing from it ahead of the episodes
+    discovers_observations: bool
 
     def advance(self, action: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """``step`` without building the observations: (rewards, terminated, truncated)."""
@@ -111,13 +127,23 @@ class EpisodicEnvironment(Environment, Protocol):
         """(R,) bool: runs whose present state the records keep activations of."""
 
 
+class EpisodicEnvironmentBase(EnvironmentBase):
+    """The defaults of ``EpisodicEnvironment``'s hooks: eager episodes, a table known from the start."""
+    traceable_steps: bool = False
+    discovers_observations: bool = False
+
+
 @runtime_checkable
-class Preprocessor(Protocol):
+class Preprocessor(Checkpointed, Protocol):
     """Maps raw observations (…, input_size) to processed ones (R, …, output_size), run by run
     (chapter 5's RBM, §5.2). ``fit`` learns from the data's training images before the agent acts."""
 
     input_size: int
     output_size: int
+    # True when ``fit`` takes ``stop`` and ``resume`` (``fit(data, writer, stop, resume)``): ``stop()``
+    # is asked between steps of the fit; True raises ``FitStopped``, and ``resume=`` its state (the
+    # weights restored from the checkpoint) continues the fit. False: a stop waits for the fit's end
+    stoppable_fit: bool
 
     def fit(self, data, writer) -> dict:
         """Learn from ``data`` (train_images, test_images, test_labels, e.g. an ``MnistSplit``),
@@ -128,9 +154,10 @@ class Preprocessor(Protocol):
 
     def describe(self) -> dict: ...
 
-    # Optional: ``stoppable_fit = True`` and ``fit(data, writer, stop, resume)``: ``stop()`` is asked
-    # between steps of the fit; True raises ``FitStopped``, and ``resume=`` its state (the weights
-    # restored from the checkpoint) continues the fit. Without it a stop waits for the fit's end.
+
+class PreprocessorBase:
+    """The default of ``Preprocessor``'s hook: a fit that runs to its end."""
+    stoppable_fit: bool = False
 
 
 class FitStopped(Exception):
@@ -148,12 +175,17 @@ class TrainingBatch(Protocol):
     def train_epoch(self, orders: Sequence[Tensor]) -> None:
         """One epoch, member k taking the sequences in its order orders[k] (R, N)."""
 
-    # Optional: ``fuse(device)`` runs the next epochs on the fast path (compiled chunks of steps,
-    # ``ferl.compiled``) where it can; the trainer calls it with compile=true when it exists.
+    def fuse(self, device: torch.device) -> None:
+        """Run the next epochs on the fast path (compiled chunks of steps) where it can (compile=true)."""
+
+
+class TrainingBatchBase:
+    """The default of ``TrainingBatch``'s hook: epochs stay eager."""
+    def fuse(self, device: torch.device) -> None: ...
 
 
 @runtime_checkable
-class Predictor(Protocol):
+class Predictor(Checkpointed, Protocol):
     """A recurrent model of the history (§2.4, §4.2, §5.2) whose memory the actor sees.
 
     Sequences are padded batches: y (R, B, T+1, Y) observations, a (R, B, T, A) one-hot actions,
@@ -173,10 +205,9 @@ class Predictor(Protocol):
         """One step from y_{t−1} (R, Y) and one-hot a_{t−1} (R, A) (Eq. 4.3)."""
 
     def frozen_step(self, table: Tensor, n_actions: int):
-        """The step of the frozen predictor on observation ids: a function
-        (state, obs_id_prev (R,), action_prev (R,)) → state, where ``table`` (ids, Y) or per run
-        (R, ids, Y) holds the (processed) observation of every id. A predictor may precompute
-        what does not depend on the state (the Elman predictor's drive table)."""
+        """The frozen predictor's step on observation ids, (state, obs_id_prev (R,), action_prev (R,))
+        → state, ``table`` (ids, Y) or (R, ids, Y) the (processed) observation of every id; it may
+        precompute what does not depend on the state (the Elman predictor's drive table)."""
 
     def reward_targets(self, reward_values: Sequence[float], rewards: Tensor) -> Tensor | None:
         """Targets (R, B, T+1, ·) of rewards r_1 … r_T (R, B, T), or None without a reward output."""
@@ -191,20 +222,67 @@ class Predictor(Protocol):
     def prediction_errors(self, y: Tensor, a: Tensor, r: Tensor | None, lengths: Tensor) -> Tensor:
         """Prediction error of every step (R, B, T+1), NaN where there is none (Eq. 4.8)."""
 
+    def observation_error(self, state: State, y: Tensor) -> Tensor | None:
+        """ρ_y Σ_i |y_i − ŷ_i| (R,): how far the observation that ``state`` predicts is from y (R, Y)
+        (the online trainer's curiosity, §5.4); None for a predictor without an observation head."""
+
+    def observe_rewards(self, rewards: Tensor, lengths: Tensor) -> None:
+        """Take in the rewards of new episodes (R, B, T_max) with lengths (R, B), once each (a
+        normalised reward head's statistics, ``ferl.predictors.popart``)."""
+
     def describe(self) -> dict: ...
 
 
+class PredictorBase:
+    """The defaults of ``Predictor``'s hooks: no observation head, no reward statistics."""
+
+    def observation_error(self, state: State, y: Tensor) -> Tensor | None:
+        return None
+
+    def observe_rewards(self, rewards: Tensor, lengths: Tensor) -> None: ...
+
+
+class EndedEpisode(NamedTuple):
+    """Every run's ended episode, as ``Actor.end_episode`` takes it (valid during the call): as the
+    lockstep episode recorded it, ``steps`` ≤ T_max long, the states at every action (steps, R, S)
+    and after the last (R, 1, S), actions and raw rewards (steps, R), ``lengths`` (R,) the actions
+    of each run and ``terminated`` (R,) whether it ended in a terminal state (not at T_max)."""
+    states: Tensor
+    last_state: Tensor
+    actions: Tensor
+    rewards: Tensor
+    lengths: Tensor
+    terminated: Tensor
+    max_steps: int  # T_max
+
+    def padded(self) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """Per run, padded to T_max actions: states (R, T_max+1, S), actions and rewards
+        (R, T_max), lengths and terminated (R,) (computed here, for the actor that needs it)."""
+        pad, states = self.max_steps - len(self.actions), torch.cat([self.states.transpose(0, 1), self.last_state], 1)
+        return (nnf.pad(states, (0, 0, 0, pad)), nnf.pad(self.actions.T, (0, pad)), nnf.pad(self.rewards.T, (0, pad)),
+                self.lengths.clone(), self.terminated)
+
+
 @runtime_checkable
-class Actor(Protocol):
-    """Chooses actions from a state (R, B, S) and learns from TD errors (§3.2).
+class Actor(Checkpointed, Protocol):
+    """Chooses actions from a state (R, B, S) (§3.2) and learns, as acme's actors observe and update:
+    after every step from its TD error (``learn``) and after every episode from the whole episode
+    (``end_episode``). A TD actor (the FERL actor, Eq. 3.10) learns in ``learn``; a recurrent
+    Q-learner that replays whole episodes (``ferl.actors.drqn``) in ``end_episode``.
 
     ``evaluate`` gives every action's value as an energy F (lower is better: Q = −F) and a cache
     of what ``learn`` reuses; ``ferl.actors.td.td_step`` is the one online step that every trainer
-    takes with any actor.
+    takes with any actor. The fast path's members (``samples_with_generator``, ``slice_runs``,
+    ``prepare_for_compile``) say how its steps may be compiled; the hooks have defaults on
+    ``ActorBase``. What the records show of it is the optional ``ActorViews``.
     """
 
     n_runs: int
     gamma: float  # the discount of its TD errors (and of the returns the optimum is measured in)
+    # True when it learns only at ``end_episode`` (from replayed episodes), not per step: a continuing
+    # task, which has no episodes, cannot train it, and its ``act`` steps a memory in place, so its
+    # episodes stay eager
+    learns_from_episodes: bool
 
     def learning_rate(self, progress: float) -> float: ...
 
@@ -219,22 +297,21 @@ class Actor(Protocol):
         error bootstraps from at s (by the actor's TD rule); ``uniform`` (R, 1, 1) pre-drawn U(0, 1)."""
 
     def learn(self, s, a, cache_sa, delta, lr, s_next, a_next, F_next, cache_next) -> tuple[Tensor, Tensor]:
-        """Update on (s, a) with TD errors delta (R, B); returns F and the cache of (s', a') for
-        the next TD error (at the updated parameters where the actor's reading says so)."""
+        """After a step: update on (s, a) with TD errors delta (R, B); returns F and the cache of
+        (s', a') for the next TD error (at the updated parameters where the actor's reading says so)."""
 
-    def hidden(self, cache: Tensor) -> Tensor:
-        """The actor's hidden activations from a cache entry (R, B, ·), for the records."""
-
-    def state_weights(self) -> Tensor:
-        """Weights from the state nodes (R, S, ·), for images of what the actor attends to."""
+    def end_episode(self, episode: EndedEpisode, lr: float) -> None:
+        """After every run's episode has ended: learn from it at step size ``lr``, and forget it (a
+        memory the actor carries starts afresh with the next ``act``)."""
 
     @property
     def samples_with_generator(self) -> bool:
         """True when ``select`` draws from the generator itself (then a step's random numbers
         cannot be drawn ahead, and a step cannot be compiled)."""
 
-    def runs(self, index: slice) -> "Actor":
-        """A view of a slice of the runs whose updates land in this actor."""
+    def slice_runs(self, index: slice) -> "Actor":
+        """A view of a slice of the runs whose updates land in this actor (the fast path's groups
+        of runs, ``ferl.trainers.chunks``)."""
 
     def prepare_for_compile(self) -> None:
         """Lay the parameters out for a compiled step (their values unchanged)."""
@@ -242,20 +319,36 @@ class Actor(Protocol):
     def describe(self) -> dict: ...
 
 
+class ActorBase:
+    """The defaults of ``Actor``'s hooks: nothing learnt after a step or an episode (an actor
+    overrides the one it learns in), no random number drawn inside a step, no layout to prepare."""
+
+    learns_from_episodes: bool = False
+
+    @property
+    def samples_with_generator(self) -> bool:
+        return False
+
+    def learn(self, s, a, cache_sa, delta, lr, s_next, a_next, F_next, cache_next) -> tuple[Tensor, Tensor]:
+        return F_next, cache_next
+
+    def end_episode(self, episode: EndedEpisode, lr: float) -> None:
+        """Nothing."""
+
+    def prepare_for_compile(self) -> None:
+        """Nothing to lay out: the parameters' default layout serves a compiled step."""
+
+
 @runtime_checkable
-class EpisodeLearner(Protocol):
-    """An actor that carries a memory through an episode and learns from whole replayed episodes
-    (a recurrent Q-learner, ``ferl.actors.drqn``) rather than from each TD error: the episodic
-    phases tell it where an episode begins and hand it the episode when it has ended."""
+class ActorViews(Protocol):
+    """What the records and TensorBoard show of an actor, where it has them (optional: an actor
+    without them trains the same, without those records): Figs. 3.5, 4.14–4.19."""
 
-    def begin_episode(self) -> None:
-        """Forget the last episode (every run's memory back to its start)."""
+    def hidden(self, cache: Tensor) -> Tensor:
+        """The actor's hidden activations from a cache entry (R, B, ·), for the records."""
 
-    def end_episode(self, states: Tensor, actions: Tensor, rewards: Tensor, lengths: Tensor,
-                    terminated: Tensor, lr: float) -> None:
-        """Every run's episode — states (R, T_max+1, S), actions and rewards (R, T_max) padded after
-        ``lengths`` (R,) actions, ``terminated`` (R,) whether it ended in a terminal state — to
-        learn from at step size ``lr``."""
+    def state_weights(self) -> Tensor:
+        """Weights from the state nodes (R, S, ·), for images of what the actor attends to."""
 
 
 class Trainer(Protocol):
@@ -270,11 +363,26 @@ class Trainer(Protocol):
     def fit(self, run, resume: bool) -> dict:
         """Train; returns the summary.json dict (docs/records.md)."""
 
+    def starting_state(self) -> list:
+        """What ``fit`` allocates as it starts beyond ``setup`` (its phases' ``fresh_state``: records
+        of every step or episode), for the memory estimate (``ferl.run.footprint``)."""
+
+    def run_bytes(self) -> int:
+        """The peak bytes ``fit`` allocates later (collected episodes, training batches), for it too."""
+
+
+class TrainerBase:
+    """The defaults of ``Trainer``'s hooks: nothing allocated beyond what ``setup`` built."""
+    def starting_state(self) -> list:
+        return []
+
+    def run_bytes(self) -> int:
+        return 0
+
 
 def required_members(protocol: type) -> list[str]:
     """The attributes and methods ``protocol`` declares, in the order written, its bases' first:
-    what a component must have. Optional hooks are described in comments, not declared, so they
-    are never required (``TrainingBatch.fuse``, an environment's ``traceable_steps``)."""
+    what a component must have, its hooks too (a base class gives their defaults)."""
     names = []
     for cls in reversed(protocol.__mro__):
         if cls in (Protocol, object) or not getattr(cls, "_is_protocol", False):

@@ -10,14 +10,16 @@ episode, any other arm −1; every other step earns 0.
 import torch
 
 from ferl.config.params import PositiveInt, checked
+from ferl.interfaces import EpisodicEnvironmentBase
 
 N_ARMS = 5
 OBSERVATIONS = (*(f"cue_{k}" for k in range(N_ARMS)), "blank", "choose")
 STATE_KEYS = ("cue", "t", "done", "obs_id", "correct")
 
 
-class FiveArms:
-    """``n_runs`` cue-delay-choice episodes among five arms (``ferl.interfaces.EpisodicEnvironment``)."""
+class FiveArms(EpisodicEnvironmentBase):
+    """``n_runs`` cue-delay-choice episodes among five arms (``ferl.interfaces.EpisodicEnvironment``;
+    its hooks keep the defaults of ``EpisodicEnvironmentBase``: episodes run eagerly)."""
 
     task = "five_arms"
     action_names = tuple(f"arm_{k}" for k in range(N_ARMS))

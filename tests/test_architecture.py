@@ -35,7 +35,22 @@ def test_components_meet_their_protocols():
     assert isinstance(RBMPreprocessor(2, n_visible=16, n_hidden=4), interfaces.Preprocessor)
     assert isinstance(ElmanPredictor(2, 7, 4, n_reward=4), interfaces.Predictor)
     actor = FERLActor(2, 27, 4, 20, "sarsa", 0.95, Constant(0.05), Constant(1.0))
-    assert isinstance(actor, interfaces.Actor)
+    assert isinstance(actor, interfaces.Actor) and isinstance(actor, interfaces.ActorViews)
+
+
+@pytest.mark.parametrize("protocol, base", [
+    (interfaces.Environment, interfaces.EnvironmentBase),
+    (interfaces.EpisodicEnvironment, interfaces.EpisodicEnvironmentBase),
+    (interfaces.Preprocessor, interfaces.PreprocessorBase),
+    (interfaces.TrainingBatch, interfaces.TrainingBatchBase),
+    (interfaces.Predictor, interfaces.PredictorBase),
+    (interfaces.Actor, interfaces.ActorBase),
+    (interfaces.Trainer, interfaces.TrainerBase)])
+def test_every_default_a_base_gives_is_a_member_its_protocol_declares(protocol, base):
+    """A hook exists once as a declared member and once as a default: a base class that gave a
+    member its protocol does not declare would bring back an undeclared, discovered hook."""
+    given = {name for cls in base.__mro__[:-1] for name in vars(cls) if not name.startswith("_")}
+    assert given and given <= set(interfaces.required_members(protocol))
 
 
 def imports(path: Path, package: str = "ferl") -> set[str]:
@@ -76,3 +91,19 @@ def test_ferl_never_imports_the_reproduction():
         bad = imports(path, "reproduction")
         assert not bad, (path, bad)
     assert imports(ROOT / "analyze.py", "reproduction") == {"reproduction"}
+
+
+def test_trainers_call_hooks_and_never_look_for_them():
+    """The phases call every member of a component directly: a ``hasattr``/``getattr`` in
+    ferl/trainers would be a hook discovered rather than declared. The config checks' hooks of a
+    ``_target_`` (``ferl.config.params.ConfigTarget``: any callable, no base class) are the exception."""
+    from ferl.config.params import ConfigTarget
+    allowed = set(interfaces.required_members(ConfigTarget))
+    found = []
+    for path in sorted((FERL / "trainers").glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Call) and getattr(node.func, "id", None) in ("hasattr", "getattr"):
+                name = node.args[1].value if isinstance(node.args[1], ast.Constant) else None
+                if name not in allowed:
+                    found.append(f"{path.name}:{node.lineno} {node.func.id}(…, {name!r})")
+    assert allowed == {"kwargs_to", "check_config", "resolve"} and found == []

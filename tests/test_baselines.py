@@ -12,6 +12,7 @@ from ferl.actors.mlp_q import MLPQActor
 from ferl.actors.tabular import TabularQActor
 from ferl.actors.td import first_action, td_step
 from ferl.envs.tmaze import TMaze, maze_tables
+from ferl.interfaces import EndedEpisode
 from ferl.schedules import Constant
 
 R, S, NA, H = 3, 5, 4, 6
@@ -198,10 +199,88 @@ def test_drqn_replay_draws_per_run_and_resumes_from_its_extra_state(draws):
     actor = DRQNActor(R, S, NA, H, 0.9, batch_episodes=4, updates_per_episode=0, seed=0, **schedules())
     T = 4
     for k in range(draws):
-        actor.end_episode(torch.full((R, T + 1, S), float(k)), torch.zeros(R, T, dtype=torch.long),
-                          torch.zeros(R, T), torch.full((R,), T), torch.ones(R, dtype=torch.bool), 0.01)
+        actor.end_episode(EndedEpisode(torch.full((T, R, S), float(k)), torch.full((R, 1, S), float(k)),
+                                       torch.zeros(T, R, dtype=torch.long), torch.zeros(T, R), torch.full((R,), T),
+                                       torch.ones(R, dtype=torch.bool), T), 0.01)
     copy = DRQNActor(R, S, NA, H, 0.9, batch_episodes=4, updates_per_episode=0, seed=0, **schedules())
     copy.load_state_dict(actor.state_dict())
     first, again = actor.sample(), copy.sample()
     assert torch.equal(first["states"], again["states"])
     assert set(first["states"][:, :, 0, 0].flatten().tolist()) <= set(range(draws))
+
+
+def test_drqn_forgets_its_memory_when_the_episode_ends():
+    """``end_episode`` is where DRQN learns (nothing per step: ``learn`` leaves every weight) and
+    where its memory starts afresh: the next episode's first Q is the untrained h = 0 one."""
+    actor = DRQNActor(R, S, NA, H, 0.9, updates_per_episode=0, seed=2, **schedules())
+    s = torch.rand(R, 1, S, generator=torch.Generator().manual_seed(4))
+    F_fresh, _ = actor.evaluate(s)
+    weights = {k: v.clone() for k, v in actor.named_buffers() if k not in ("h", "a_prev")}
+    a, F_a, h, _ = actor.act(s, 1.0, torch.Generator().manual_seed(5))
+    assert actor.learn(s, a, h, torch.ones(R, 1), 0.1, s, a, F_a, h) == (F_a, h)
+    assert all(torch.equal(actor.get_buffer(k), v) for k, v in weights.items())
+    assert not torch.equal(actor.evaluate(s)[0], F_fresh)  # h and a_{t-1} moved on with the act
+    T = 3
+    actor.end_episode(EndedEpisode(torch.zeros(T, R, S), torch.zeros(R, 1, S), torch.zeros(T, R, dtype=torch.long),
+                                   torch.zeros(T, R), torch.full((R,), T), torch.ones(R, dtype=torch.bool), T), 0.01)
+    assert (actor.h == 0).all() and (actor.a_prev == 0).all()
+    assert torch.equal(actor.evaluate(s)[0], F_fresh)
+
+
+def test_an_ended_episode_is_laid_out_per_run_and_padded_to_t_max():
+    """``EndedEpisode.padded`` against the layout written out entry by entry: run r's states at
+    its steps, then the last state, then zeros; actions and rewards run-major, zero after the
+    lockstep episode's steps."""
+    steps, T_max = 3, 5
+    g = torch.Generator().manual_seed(6)
+    states, last = torch.rand(steps, R, S, generator=g), torch.rand(R, 1, S, generator=g)
+    actions, rewards = torch.randint(NA, (steps, R), generator=g), torch.rand(steps, R, generator=g)
+    lengths, terminated = torch.tensor([3, 1, 2]), torch.tensor([True, False, True])
+    s, a, r, n, term = EndedEpisode(states, last, actions, rewards, lengths, terminated, T_max).padded()
+    assert s.shape == (R, T_max + 1, S) and a.shape == r.shape == (R, T_max)
+    for run in range(R):
+        for t in range(T_max + 1):
+            want = states[t, run] if t < steps else last[run, 0] if t == steps else torch.zeros(S)
+            assert torch.equal(s[run, t], want)
+        for t in range(T_max):
+            assert a[run, t] == (actions[t, run] if t < steps else 0)
+            assert r[run, t] == (rewards[t, run] if t < steps else 0.0)
+    assert torch.equal(n, lengths) and n is not lengths and torch.equal(term, terminated)
+
+
+def test_the_continuing_td_phase_refuses_an_actor_that_learns_only_from_episodes():
+    """A continuing task has no episode ends, so ``end_episode`` would never come: refused in one
+    line before anything runs (``Actor.learns_from_episodes``)."""
+    from types import SimpleNamespace
+
+    from ferl.config.params import ConfigError
+    from ferl.trainers.online import OnlineTD
+    job = SimpleNamespace(actor=DRQNActor(R, S, NA, H, 0.9, **schedules()), env=SimpleNamespace(task="floor"), R=R)
+    with pytest.raises(ConfigError, match=r"^actor=drqn learns from whole episodes, and the continuing task floor"):
+        OnlineTD(10, 5, 5, 0.0, 1, 0).prepare(job)
+
+
+def test_an_actor_without_the_logging_views_records_no_hidden_activations():
+    """``ActorViews`` is optional: the probe records of an actor without ``hidden`` keep the rest."""
+    from types import SimpleNamespace
+
+    from ferl.interfaces import ActorViews
+    from ferl.trainers.actor_episodes import ActorEpisodes
+
+    class Viewless:  # an actor as far as the probe records are concerned, without the views
+        pass
+
+    steps = 4
+    probes = torch.zeros(steps, R, dtype=torch.bool)
+    probes[1, 0] = probes[2, 2] = True
+    ep = {"probes": probes, "memories": [torch.rand(steps, R, 3)], "states": torch.rand(steps, R, S),
+          "caches": torch.rand(steps, R, H)}
+    env = SimpleNamespace(labels=lambda: {"cue": torch.tensor([1, 0, 1])})
+    phase = ActorEpisodes.__new__(ActorEpisodes)
+    seen = {}
+    for actor in (Viewless(), DRQNActor(R, S, NA, H, 0.9, **schedules())):
+        seen[isinstance(actor, ActorViews)] = phase.probe_visits(SimpleNamespace(actor=actor, env=env,
+                                                                                 predictors={"m": None}), 7, ep)
+    assert set(seen[True]) - set(seen[False]) == {"hidden"}
+    assert seen[False]["run"].tolist() == [0, 2] and seen[False]["step"].tolist() == [1, 2]
+    assert torch.equal(seen[True]["hidden"], ep["caches"][[1, 2], [0, 2]].half())

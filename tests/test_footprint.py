@@ -18,6 +18,7 @@ from omegaconf import OmegaConf
 
 from conftest import ROOT, run_train, validated_config
 from ferl.config.params import ConfigError
+from ferl.interfaces import TrainerBase
 from ferl.run import footprint
 from ferl.run.footprint import check_memory, estimate, host_free
 
@@ -74,18 +75,9 @@ def test_the_default_configs_pass_and_their_estimate_grows_with_n_runs(overrides
 
 
 # ---- what the estimate counts ----------------------------------------------------------------------
-class HookPhase:
-    """Records allocated as it starts (R × 500 float32) and 1 MB a run it says it takes later."""
-
-    def fresh_state(self, job):
-        return {"records": np.zeros((job.R, 500), np.float32), "weights_again": job.weights}
-
-    def run_bytes(self, job) -> int:
-        return job.R * 10**6
-
-
-class HookTrainer:
-    """A trainer as a user may write one: weights (R × 1000 float32), a view of them, a fixed table."""
+class HookTrainer(TrainerBase):
+    """A trainer as a user may write one: weights (R × 1000 float32), a view of them, a fixed table;
+    records allocated as it starts (R × 500 float32) and 1 MB a run it says it takes later."""
 
     def setup(self, cfg, device):
         self.job = self
@@ -94,7 +86,12 @@ class HookTrainer:
         self.first = self.weights[0]  # a view: the same storage, counted once
         self.table = torch.zeros(250, device=device)
         self.lookup = lambda i: self.table[i]  # reached through a closure as well
-        self.phases = [HookPhase()]
+
+    def starting_state(self) -> list:
+        return [{"records": np.zeros((self.R, 500), np.float32), "weights_again": self.weights}]
+
+    def run_bytes(self) -> int:
+        return self.R * 10**6
 
 
 def test_the_estimate_counts_each_storage_once_fresh_state_and_the_hook():

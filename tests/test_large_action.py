@@ -58,7 +58,7 @@ def test_key_state_reading_draws_only_key_states():
 
 def test_run_views_and_state_dict():
     task = make_task(R=4)
-    part = task.runs(slice(1, 3))
+    part = task.slice_runs(slice(1, 3))
     next_states = task.step_inputs(1)[0][0]
     part.step_with(torch.zeros(2, dtype=torch.long), next_states[1:3])
     assert torch.equal(task.state[1:3], next_states[1:3])  # the view moved the batch

@@ -17,7 +17,7 @@ import torch
 
 from conftest import run_train
 from ferl.config.params import ConfigError
-from ferl.interfaces import EpisodicEnvironment, TrainingBatch, missing_members, required_members
+from ferl.interfaces import EpisodicEnvironment, EpisodicEnvironmentBase, TrainingBatch, missing_members, required_members
 from ferl.trainers.facts import check_conforms, facts_for
 from five_arms import FiveArms, Forgetful
 
@@ -94,11 +94,28 @@ def test_a_missing_attribute_is_named_in_one_line_before_any_file(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
-def test_optional_hooks_are_not_required():
-    """What a protocol only mentions as optional (a comment) is never asked for."""
+def test_hooks_are_declared_and_the_base_gives_their_defaults():
+    """A protocol declares its hooks as members; an environment that subclasses the base names
+    none of them and gets the defaults; one that neither defines them nor subclasses the base is
+    told which base gives them."""
     env = FiveArms(2, torch.Generator().manual_seed(0))
-    assert not hasattr(env, "traceable_steps") and not hasattr(env, "discovers_observations")
+    assert "traceable_steps" not in vars(FiveArms) and "discovers_observations" not in vars(FiveArms)
+    assert (env.traceable_steps, env.discovers_observations, env.on_fault) == (False, False, None)
     check_conforms(env, EpisodicEnvironment, "env")  # no error
-    assert "fuse" not in required_members(TrainingBatch)
+    assert {"traceable_steps", "discovers_observations", "on_fault"} <= set(required_members(EpisodicEnvironment))
+    assert "fuse" in required_members(TrainingBatch)
     assert missing_members(Forgetful(2, torch.Generator()), EpisodicEnvironment) == [
         "max_steps", "optimal_steps", "observation_names"]
+
+    class Unbased:  # FiveArms' members copied onto a class outside the base
+        pass
+
+    bare = Unbased()
+    bare.__dict__.update({name: getattr(env, name) for name in required_members(EpisodicEnvironment)
+                          if name not in dir(EpisodicEnvironmentBase) and name != "probe"})
+    bare.probe = env.probe
+    assert missing_members(bare, EpisodicEnvironment) == ["on_fault", "traceable_steps", "discovers_observations"]
+    with pytest.raises(ConfigError, match=r"lacks on_fault, traceable_steps, discovers_observations \(.*; "
+                                          r"ferl\.interfaces\.EpisodicEnvironmentBase gives the defaults of on_fault, "
+                                          r"traceable_steps, discovers_observations\)$"):
+        check_conforms(bare, EpisodicEnvironment, "env")

@@ -11,13 +11,14 @@ import torch
 from torch import nn
 
 from ferl.config.params import Positive, PositiveInt, UnitInterval, checked
+from ferl.interfaces import EpisodicEnvironmentBase, TrainingBatchBase
 from ferl.predictors.heads import OutputHeads, clean, valid_steps
 
 OBSERVATIONS = ("start_0", "start_1", "blank", "choose")
 STATE_KEYS = ("cue", "t", "done", "obs_id")
 
 
-class CueEnv:
+class CueEnv(EpisodicEnvironmentBase):
     """``n_runs`` cue-delay-choice episodes stepped together (``ferl.interfaces.EpisodicEnvironment``)."""
 
     task = "cue"
@@ -134,7 +135,7 @@ class TracePredictor(OutputHeads):
         return {"kind": "trace", "memory_size": self.memory_size, **self.describe_heads()}
 
 
-class TraceBatch:
+class TraceBatch(TrainingBatchBase):
     """One full-batch gradient step of the heads per epoch (the trace itself does not learn)."""
 
     def __init__(self, member: TracePredictor, y, a, r, lengths):

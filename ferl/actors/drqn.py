@@ -30,6 +30,7 @@ from ferl.actors.softmax import TD_RULES, SoftmaxActor
 from ferl.config.params import Discount, NonNegative, NonNegativeInt, PositiveInt, checked
 from ferl.predictors.gated import gru_cell
 from ferl.replay import draw_episodes, new_replay, store_episode, stored_episodes
+from ferl.interfaces import EndedEpisode
 
 PARAMETERS = ("W_x", "W_h", "b_x", "b_h", "W_q", "b_q")
 ADAM_BETAS, ADAM_EPS = (0.9, 0.999), 1e-8
@@ -63,6 +64,8 @@ class DRQNActor(SoftmaxActor):
     """The DRQN baseline (Hausknecht & Stone 2015): a GRU over (observation, previous action) with a
     linear Q head, acting by the FERL actor's softmax (Eq. 3.11) and learning from replayed whole
     episodes by BPTT on the Huber TD loss with a target network (module docstring)."""
+
+    learns_from_episodes = True  # nothing per step; its memory h steps in place with every act
 
     @checked
     def __init__(self, n_runs: PositiveInt, n_state: PositiveInt, n_actions: PositiveInt, n_hidden: PositiveInt,
@@ -114,11 +117,6 @@ class DRQNActor(SoftmaxActor):
     def hidden(self, h: torch.Tensor) -> torch.Tensor:
         return h
 
-    def begin_episode(self) -> None:
-        """h = 0 and no previous action in every run."""
-        self.h.zero_()
-        self.a_prev.zero_()
-
     @torch.no_grad()
     def evaluate(self, s: torch.Tensor):
         """F = −Q (R, B, nA) at the present memory h, stepped on s (R, B, S) by the previous
@@ -135,26 +133,25 @@ class DRQNActor(SoftmaxActor):
         self.a_prev.copy_(nnf.one_hot(a, self.n_actions).to(self.a_prev.dtype))
         return a, F_a, h, F_boot
 
-    def learn(self, s, a, h, delta, lr, s_next, a_next, F_next, h_next):
-        """Nothing per step: DRQN learns from replayed episodes (``end_episode``)."""
-        return F_next, h_next
-
-    def end_episode(self, states: torch.Tensor, actions: torch.Tensor, rewards: torch.Tensor,
-                    lengths: torch.Tensor, terminated: torch.Tensor, lr: float) -> None:
-        """Store every run's episode — states (R, T_max+1, S), actions and rewards (R, T_max)
-        padded after ``lengths`` (R,) actions, ``terminated`` (R,) ended in a terminal state —
-        then the Adam steps on replayed episodes at step size ``lr``."""
-        episode = {"states": states, "actions": actions, "rewards": rewards, "lengths": lengths,
+    def end_episode(self, episode: EndedEpisode, lr: float) -> None:
+        """Store every run's episode (``EndedEpisode.padded``: states (R, T_max+1, S), actions and
+        rewards (R, T_max) padded after ``lengths`` (R,) actions, ``terminated`` (R,)), take the
+        Adam steps on replayed episodes at step size ``lr``, and forget the episode: h = 0 and no
+        previous action in every run. Nothing is learnt per step (``ActorBase.learn``)."""
+        states, actions, rewards, lengths, terminated = episode.padded()
+        stored = {"states": states, "actions": actions, "rewards": rewards, "lengths": lengths,
                    "terminated": terminated}
         if self.replay is None:
-            self.replay = new_replay(episode, self.replay_episodes)
-        store_episode(self.replay, self.episodes, episode)
+            self.replay = new_replay(stored, self.replay_episodes)
+        store_episode(self.replay, self.episodes, stored)
         self.episodes += 1
         for _ in range(self.updates_per_episode):
             self.adam_step(self.sample(), lr)
         if self.episodes % self.target_every == 0:
             for name in PARAMETERS:
                 getattr(self, f"{name}_target").copy_(getattr(self, name))
+        self.h.zero_()
+        self.a_prev.zero_()
 
     def sample(self) -> dict:
         """``batch_episodes`` stored episodes per run, drawn uniformly with replacement, every

@@ -3,7 +3,7 @@ Eq. (3.11) over every action's energy F = −Q, the TD rules' bootstrap terms, a
 the actor's schedules over training. Actors say only how they evaluate and update Q
 (``evaluate``, ``learn``); the FERL actor adds its factored actions and Gibbs sampling.
 
-All parameters carry the run dimension first and are buffers, so ``runs`` can hand out views of
+All parameters carry the run dimension first and are buffers, so ``slice_runs`` can hand out views of
 a slice of the runs whose updates land in the whole batch.
 """
 import copy
@@ -13,6 +13,7 @@ from hydra.utils import instantiate
 from torch import nn
 
 from ferl.config.params import ArgumentError
+from ferl.interfaces import ActorBase
 
 TD_RULES = ("sarsa", "q", "expected_sarsa")
 
@@ -44,31 +45,25 @@ def check_schedules(args: dict) -> None:
         raise ArgumentError("beta", "a schedule of inverse temperatures ≥ 0")
 
 
-class SoftmaxActor(nn.Module):
+class SoftmaxActor(ActorBase, nn.Module):
     """An actor choosing among its n actions by Eq. (3.11) and learning by a TD rule (§3.2).
 
     Subclasses set ``td_rule``, ``gamma``, ``lr_schedule``, ``beta_schedule``, ``lr_divisor`` and
-    give ``evaluate(s) → (F (R, B, nA), cache (R, B, nA, ·))`` and ``learn``."""
+    give ``evaluate(s) → (F (R, B, nA), cache (R, B, nA, ·))`` and ``learn`` (or ``end_episode``);
+    ``ActorBase`` gives the other hooks' defaults."""
 
-    shared_buffers: tuple = ()  # buffers without a run dimension (``runs`` keeps them whole)
+    shared_buffers: tuple = ()  # buffers without a run dimension (``slice_runs`` keeps them whole)
 
     @classmethod
     def check_config(cls, args: dict) -> None:
         check_schedules(args)
 
-    @property
-    def samples_with_generator(self) -> bool:
-        return False
-
-    def runs(self, index: slice) -> "SoftmaxActor":
+    def slice_runs(self, index: slice) -> "SoftmaxActor":
         """This actor restricted to a slice of its runs. The parameters are views, so updates
         of the slice land in this actor's."""
         part = copy.copy(self)
         part._buffers = {name: b if name in self.shared_buffers else b[index] for name, b in self._buffers.items()}
         return part
-
-    def prepare_for_compile(self) -> None:
-        """Nothing to lay out: the parameters' default layout serves a compiled step."""
 
     def learning_rate(self, progress: float) -> float:
         """α of the schedule divided by the actor's ``lr_divisor`` (§3.5's normalisation)."""

@@ -15,7 +15,7 @@ import inspect
 import types
 import typing
 from dataclasses import dataclass
-from typing import Annotated, Any, Callable, Literal
+from typing import Annotated, Any, Callable, Literal, Protocol
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
@@ -30,6 +30,25 @@ class ArgumentError(ValueError):
     def __init__(self, key: str, expected: str):
         super().__init__(key, expected)
         self.key, self.expected = key, expected
+
+
+class ConfigTarget(Protocol):
+    """The optional hooks of a ``_target_`` that the config checks read. A target is any callable —
+    a class, a function (``ferl.predictors.recurrent.predictor``), a third-party one — so they are
+    looked up on it (``getattr`` with a default) rather than inherited from a base class."""
+
+    # (class, (names, …)): the class its ``**kwargs`` go to and the names it sets there itself
+    # (``signature``; ``DBNPreprocessor`` → each layer's RBM); default: its base class, none
+    kwargs_to: tuple
+
+    @classmethod
+    def check_config(cls, args: dict) -> None:
+        """Rules across several of its keys: ArgumentError for the key at fault (default: none)."""
+
+    @staticmethod
+    def resolve(values: dict) -> tuple[Callable, dict]:
+        """A factory's choice of the class it builds from one of its keys: (class, the other
+        values) (``predictor.<name>.memory``); the class is checked in its place (default: itself)."""
 
 
 @dataclass(frozen=True)

@@ -19,6 +19,7 @@ import torch
 from ferl.config.params import Allowed, ArgumentError, PositiveInt, UnitInterval, checked
 from ferl.data import MnistSplit, pixel_noise
 from ferl.envs.compass import ACTIONS
+from ferl.interfaces import EnvironmentBase
 from ferl.random_blocks import Blocks, steps_per_block
 
 MOVES = ((-1, 0), (0, 1), (1, 0), (0, -1))
@@ -103,7 +104,7 @@ def is_arrangement(rows) -> bool:
         all(c in DIGITS for c in labels)
 
 
-class DigitFloor:
+class DigitFloor(EnvironmentBase):
     """``n_runs`` digit floors (one per run) stepped together; positions are tile indices. A
     continuing task (§3.4 fn. 1): no step terminates or truncates."""
 
@@ -215,7 +216,7 @@ class DigitFloor:
         self.bank = torch.cat(bank)
         self.tile_image = tile_image
 
-    def runs(self, index: slice) -> "DigitFloor":
+    def slice_runs(self, index: slice) -> "DigitFloor":
         """These floors restricted to a slice of the runs. Their positions are a view, so moves
         (``step_with``) land in this batch's."""
         part = copy.copy(self)

@@ -44,6 +44,7 @@ from ferl import rng
 from ferl.config.params import ConfigError, Positive, PositiveInt, checked
 from ferl.envs.boundary import DETAIL, FAULT, Guarded
 from ferl.envs.encodings import ENCODINGS, BinaryObservation, NoEncoding
+from ferl.interfaces import EpisodicEnvironmentBase
 
 
 class EnvironmentFault(RuntimeError):
@@ -85,7 +86,7 @@ def default_max_steps(env) -> int | None:
     return None
 
 
-class GymnasiumEnv:
+class GymnasiumEnv(EpisodicEnvironmentBase):
     """R runs of the Gymnasium environment ``id`` (module docstring). Arguments: ``kwargs`` for
     ``gymnasium.make``; ``encoding`` of the observations (``ferl.envs.encodings``) with its
     ``thresholds``; ``max_steps`` T_max (null: the id's own); ``vectorization``; ``max_observations``

@@ -20,10 +20,11 @@ import torch
 from ferl import rng
 from ferl.bits import to_bits
 from ferl.config.params import ArgumentError, NonNegativeInt, PositiveInt, checked
+from ferl.interfaces import EnvironmentBase
 from ferl.random_blocks import Blocks, steps_per_block
 
 
-class LargeActionTask:
+class LargeActionTask(EnvironmentBase):
     """Sallans & Hinton (2004)'s large-action task, batched over runs: 12-bit states drawn at
     random, 40-bit actions rewarded by their agreement with the key action of the nearest key
     state (module docstring); continuing, optimum 40 a step."""
@@ -90,7 +91,7 @@ class LargeActionTask:
     def step_with(self, action: torch.Tensor, next_state: torch.Tensor):
         """The reward of ``action`` (R,) in the present state, then the next state: (next_state, reward)."""
         reward = self.reward(self.state, action)
-        self.state.copy_(next_state)  # in place: a view of some runs (``runs``) moves this batch's
+        self.state.copy_(next_state)  # in place: a view of some runs (``slice_runs``) moves this batch's
         return next_state, reward
 
     def step(self, action: torch.Tensor):
@@ -99,7 +100,7 @@ class LargeActionTask:
         never = torch.zeros(self.n_runs, dtype=torch.bool, device=self.device)
         return obs, reward, never, never
 
-    def runs(self, index: slice) -> "LargeActionTask":
+    def slice_runs(self, index: slice) -> "LargeActionTask":
         """The task restricted to a slice of the runs; its state is a view of this batch's."""
         part = copy.copy(self)
         part.state, part.keys, part.key_actions = self.state[index], self.keys[index], self.key_actions[index]

@@ -20,6 +20,7 @@ import torch
 
 from ferl.config.params import ArgumentError, PositiveInt, at_least, checked
 from ferl.envs.compass import ACTIONS, E, N, S, W
+from ferl.interfaces import EpisodicEnvironmentBase
 
 POSITION_BITS = ("start", "corridor", "junction", "goal_left", "goal_right")
 STATE_KEYS = ("position", "t", "done", "initial_signal", "junction_signal", "obs_id")
@@ -80,7 +81,7 @@ def optimal_return(corridor_length: int, max_steps: int, gamma: float, goal: flo
     return float(V[0].mean())
 
 
-class TMaze:
+class TMaze(EpisodicEnvironmentBase):
     """``n_runs`` T-mazes stepped together; ``done`` runs stay frozen until ``reset``
     (``ferl.interfaces.EpisodicEnvironment``)."""
 

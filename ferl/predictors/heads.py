@@ -16,6 +16,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ferl.interfaces import PredictorBase
 from ferl.predictors.popart import normalised, rescale_head
 
 REWARD_OUTPUTS = ("bits", "linear", "none")
@@ -71,7 +72,7 @@ def clean(y, a, r, lengths):
     return y, a, (torch.where(valid, r, 0.0) if r is not None else None)
 
 
-class OutputHeads(nn.Module):
+class OutputHeads(PredictorBase, nn.Module):
     """The observation head (``predict_obs``) and the reward head (``reward_output``: "bits",
     sigmoid + cross entropy, Eqs. 4.5–4.6, ``n_reward`` bits; "linear", one scalar + squared
     error, Eq. 5.2; "none": the observation predictor of ch. 5) of a predictor whose memory
@@ -113,6 +114,13 @@ class OutputHeads(nn.Module):
         z_y, z_r = self.head_inputs(m)
         y_hat = torch.sigmoid(z_y) if z_y is not None else None
         return y_hat, (torch.sigmoid(z_r) if self.reward_output == "bits" else z_r)
+
+    def observation_error(self, state, y: torch.Tensor) -> torch.Tensor | None:
+        """ρ_y Σ_i |y_i − ŷ_i| (R,) of the observation ŷ that ``state`` predicts against y (R, Y)
+        (Eq. 4.8's observation term); None without an observation head."""
+        if not self.predict_obs:
+            return None
+        return self.rho_y * (self.outputs(self.memory(state))[0] - y).abs().sum(-1)
 
     def head_losses(self, m, y, r) -> tuple:
         """The loss of each head at every step, unweighted: (E_y, E_r), each (R, B, T+1) or None

@@ -73,8 +73,7 @@ def rescale_head(W: torch.Tensor, b: torch.Tensor, before: tuple, after: tuple) 
 
 
 def observe_rewards(predictors, rewards: torch.Tensor, lengths: torch.Tensor) -> None:
-    """Every predictor that normalises its reward (``observe_rewards``) takes in new episodes'
-    rewards (R, B, T_max) with lengths (R, B); a predictor without the method is left alone."""
+    """Every predictor takes in new episodes' rewards (R, B, T_max) with lengths (R, B)
+    (``Predictor.observe_rewards``: one that normalises its reward updates its statistics)."""
     for p in predictors:
-        if hasattr(p, "observe_rewards"):
-            p.observe_rewards(rewards, lengths)
+        p.observe_rewards(rewards, lengths)

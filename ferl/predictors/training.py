@@ -12,6 +12,7 @@ import torch
 import torch.nn.functional as F
 
 from ferl.compiled import compiled
+from ferl.interfaces import TrainingBatchBase
 from ferl.predictors.heads import clean, valid_steps
 
 # SGD steps per compiled chunk: 8 at T = 7 compiles in ~40 s (16: ~80 s) and leaves the call's
@@ -31,7 +32,7 @@ def sgd_steps(members: list, memory: list, params: list, y, a, rs: list, steps, 
         torch._foreach_add_(params, grads, alpha=-lr)
 
 
-class PredictorBatch:
+class PredictorBatch(TrainingBatchBase):
     """Predictors with one ``batch_key`` and their training sequences (``Predictor.training_batch``)."""
 
     def __init__(self, predictors: list, y, a, rs: list, lengths, batch_size: int | None = None, summed: bool = False):

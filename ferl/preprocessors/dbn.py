@@ -30,13 +30,14 @@ import torch
 from torch import nn
 
 from ferl.config.params import ArgumentError, NonNegativeInt, PositiveInt, checked
+from ferl.interfaces import PreprocessorBase
 from ferl.preprocessors.cache import load_or_fit
 from ferl.preprocessors.rbm import RBMPreprocessor, fit_records, log_training
 
 LAYER_SEED_STRIDE = 2 ** 32  # layer l's runs: seed + l · this + r (no overlap below 2³² runs)
 
 
-class DBNPreprocessor(nn.Module):
+class DBNPreprocessor(PreprocessorBase, nn.Module):
     """Greedily trained stack of RBMs (Hinton, Osindero & Teh 2006), n_runs stacks at once.
 
     ``layers``: the sizes [V, H_1, …, H_L], V = the observation size (input_size) and H_L what the

@@ -44,7 +44,7 @@ from tqdm import tqdm
 from ferl import rbm, rng
 from ferl.config.params import Momentum, NonNegative, NonNegativeInt, Positive, PositiveInt, checked
 from ferl.images import IMAGE_SIDE, as_images, tile, weight_images
-from ferl.interfaces import FitStopped
+from ferl.interfaces import FitStopped, PreprocessorBase
 from ferl.preprocessors.cache import load_or_fit
 
 VISIBLE_MODES = ("mean_field", "binary")
@@ -89,7 +89,7 @@ def minibatch(images: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
     return images[torch.arange(idx.shape[0], device=idx.device).unsqueeze(1), idx]
 
 
-class RBMPreprocessor(nn.Module):
+class RBMPreprocessor(PreprocessorBase, nn.Module):
     """RBM observation preprocessor (§5.3.2), n_runs independent RBMs trained at once.
 
     §5.3.2 gives n_visible = 784, n_hidden = 20, cd_k = 3 and sweeps = 600. It gives none of

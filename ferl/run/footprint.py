@@ -4,13 +4,12 @@ The estimate runs the config's own code, so a user's component needs nothing add
 ``cfg.trainer`` is set up (its ``setup``, as train.py does it, eager) with n_runs = 1 and with
 n_runs = 2, the data loaded once for both. What a set-up trainer holds — every tensor and NumPy
 array reachable from it, each storage once: data, weights, tiles, reservoirs, test sets, blocks of
-random numbers — plus what its phases allocate as they start (``fresh_state``: records of every
-step or episode, replay, episode tables) gives bytes per run (the difference of the two probes)
-and fixed bytes (the rest), and the run needs fixed + n_runs × per run. What a phase allocates
-later while it runs (collected episodes, training batches, test activations) is added where the
-phase says how much (an optional ``run_bytes(job)``: its peak, including what earlier phases handed it;
-phases run one after another, so the largest counts; a trainer that is not phased may define
-``run_bytes()``).
+random numbers — plus what it allocates as it starts (``Trainer.starting_state``: its phases'
+``fresh_state``, records of every step or episode, replay, episode tables) gives bytes per run (the
+difference of the two probes) and fixed bytes (the rest), and the run needs fixed + n_runs × per
+run. What it allocates later while it runs (collected episodes, training batches, test
+activations) is added as the trainer says (``Trainer.run_bytes``: a phased trainer's largest
+``Phase.run_bytes``, which includes what earlier phases handed the phase; 0 by default).
 
 The limit is the memory free now: MemAvailable of /proc/meminfo (lowered to what the cgroup still
 allows, in a container), and on CUDA the device's free memory for the tensors. A run over it is
@@ -119,14 +118,9 @@ def probe(values: dict, n_runs: int, device: torch.device) -> tuple[int, int]:
     trainer.setup(cfg, device)
     storages = Storages()
     storages.add(trainer)
-    job, phases = getattr(trainer, "job", None), getattr(trainer, "phases", ())
     with torch.no_grad():
-        for phase in phases:
-            if hasattr(phase, "fresh_state"):
-                storages.add(phase.fresh_state(job))
-    # phases run one after another: the largest peak counts; it is allocated where the run computes
-    extra = max((int(p.run_bytes(job)) for p in phases if hasattr(p, "run_bytes")), default=0)
-    extra += int(trainer.run_bytes()) if hasattr(trainer, "run_bytes") else 0
+        storages.add(trainer.starting_state())
+    extra = int(trainer.run_bytes())  # allocated where the run computes
     return (storages.host, storages.device + extra) if device.type == "cuda" else (storages.host + extra, 0)
 
 

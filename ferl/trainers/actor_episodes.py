@@ -15,19 +15,18 @@ environment may declare, docs/records.md).
 """
 import numpy as np
 import torch
-from torch.nn import functional as nnf
 from tqdm import tqdm
 
 from ferl.actors.td import first_action, td_step
 from ferl.compiled import compiled, run_clock
 from ferl.images import IMAGE_SIDE, matrix_image, tile, weight_images
-from ferl.interfaces import EpisodeLearner
+from ferl.interfaces import ActorViews, EndedEpisode
 from ferl.predictors.heads import scaled
 from ferl.random_blocks import Blocks, steps_per_block
 from ferl.run.directory import CheckpointTimer
 from ferl.run.tensorboard import log_embedding, log_weights
 from ferl.stats import final_metrics, sample_efficiency
-from ferl.trainers.episodes import discount_factors, discounted_return, discovers_observations, observation_table
+from ferl.trainers.episodes import discount_factors, discounted_return, observation_table
 from ferl.trainers.phased import Phase
 
 EMBEDDED_PROBES = 2000  # run 0's last probe visits in the projector (docs/records.md)
@@ -58,7 +57,6 @@ class ActorEpisodes(Phase):
         self.rates = [name for name, v in outcomes.items() if v.dtype == torch.bool]  # e.g. correct_goal
         self.averages = [name for name, v in outcomes.items() if v.is_floating_point()]  # e.g. a return
         self.optimum = solved_against(job.env.optimal(job.actor.gamma))
-        self.episode_learner = isinstance(job.actor, EpisodeLearner)
         kinds = {**{k: np.int64 for k in outcomes}, **{k: bool for k in self.rates}, **{k: np.float32 for k in self.averages}}
         self.dtypes = {"discounted_return": np.float32, "steps": np.int64, "terminal_reward": np.float32,
                        "td_abs_mean": np.float32, **kinds}
@@ -145,7 +143,7 @@ class ActorEpisodes(Phase):
         # scaled once; an environment that discovers its observations fills the table in place, so
         # its rows are indexed live and scaled at each step (a gain of 1 costs nothing either way)
         rows = table.reshape(-1, table.shape[-1])
-        live = discovers_observations(job.env)
+        live = job.env.discovers_observations
         self.obs_rows, self.row_gain = (rows, self.obs_scale) if live else (scaled(rows, self.obs_scale), 1.0)
         self.obs_offsets = torch.arange(job.R, device=job.device) * ids if table.dim() == 3 else None
         self.discounts = discount_factors(job.actor.gamma, job.env.max_steps)
@@ -157,9 +155,9 @@ class ActorEpisodes(Phase):
     def fuses(self, job) -> bool:
         """Whether episodes run as one compiled graph (``ferl.compiled``): on the fast path, with an
         environment whose steps are tensor operations (``traceable_steps``) and an actor that
-        neither draws inside a step (Gibbs) nor learns from whole episodes."""
-        return (job.fast and getattr(job.env, "traceable_steps", False) and not job.actor.samples_with_generator
-                and not self.episode_learner)
+        neither draws inside a step (Gibbs) nor steps a memory in place (``learns_from_episodes``)."""
+        return (job.fast and job.env.traceable_steps and not job.actor.samples_with_generator
+                and not job.actor.learns_from_episodes)
 
     def state(self, job, obs_id: torch.Tensor, memories: list) -> torch.Tensor:
         """The actor's state (R, 1, S): the (processed) observation, then every predictor's memory."""
@@ -172,17 +170,13 @@ class ActorEpisodes(Phase):
         a run had ended, the probe visits (or None) and the trajectory: observation ids
         (steps + 1, R), actions (steps, R) and raw rewards (steps, R)."""
         job.env.reset()
-        if self.episode_learner:
-            job.actor.begin_episode()
         (uniform,) = self.uniforms.next()  # (T_max + 1, R, 1, 1)
         if self.fused is None:
             ep = self.episode(job, lr, beta, uniform, True)
         else:  # α and β as tensors, so that one graph serves every episode
             ep = self.fused(job, torch.tensor(lr, device=job.device),
                             torch.as_tensor(beta, dtype=torch.float32, device=job.device), uniform, False)
-        if self.episode_learner:
-            self.hand_over(job, torch.cat([ep["states"].transpose(0, 1), ep["last_state"]], 1),
-                           ep["actions"], ep["rewards"], ep["terminated"], lr)
+        job.actor.end_episode(self.ended_episode(job, ep), lr)
         return {"outcome": ep["outcome"], "td": torch.where(ep["actives"], ep["deltas"], torch.nan),
                 "probes": self.probe_visits(job, k, ep), "trajectory": (ep["obs"], ep["actions"], ep["rewards"])}
 
@@ -232,27 +226,25 @@ class ActorEpisodes(Phase):
                 "caches": visits[-1], "actions": actions, "rewards": rewards, "deltas": deltas,
                 "obs": torch.stack(obs), "last_state": s, "terminated": terminated_any, "outcome": outcome}
 
-    def hand_over(self, job, states: torch.Tensor, actions: torch.Tensor, rewards: torch.Tensor,
-                  terminated: torch.Tensor, lr: float) -> None:
-        """The ended episode, padded to T_max actions, to an actor that learns from episodes
-        (``ferl.interfaces.EpisodeLearner``): states (R, T_max+1, S), actions and rewards
-        (R, T_max), lengths and whether each ended in a terminal state (R,), from states
-        (R, steps+1, S) and actions, rewards (steps, R)."""
-        pad = job.env.max_steps - len(actions)
-        job.actor.end_episode(nnf.pad(states, (0, 0, 0, pad)), nnf.pad(actions.T, (0, pad)),
-                              nnf.pad(rewards.T, (0, pad)), job.env.t.clone(), terminated, lr)
+    def ended_episode(self, job, ep: dict) -> EndedEpisode:
+        """The episode that ``episode`` played, as the actor's ``end_episode`` takes it (laid out
+        per run only where the actor asks, ``EndedEpisode.padded``: most actors learn per step)."""
+        return EndedEpisode(ep["states"], ep["last_state"], ep["actions"], ep["rewards"], job.env.t, ep["terminated"],
+                            job.env.max_steps)
 
     def probe_visits(self, job, k: int, ep: dict) -> dict | None:
         """Activations at every probe visit of episode k after the action there was selected
-        (Figs. 4.14–4.19): memories, actor state and hidden nodes, with the episode's labels."""
+        (Figs. 4.14–4.19): memories, actor state and hidden nodes (where the actor shows them,
+        ``ActorViews``), with the episode's labels."""
         step, run = ep["probes"].nonzero(as_tuple=True)
         if len(run) == 0:
             return None
+        views = isinstance(job.actor, ActorViews)
         return {"run": run.cpu(), "episode": torch.full_like(run, k).cpu(), "step": step.cpu(),
                 **{key: v[run].cpu() for key, v in job.env.labels().items()},
                 **{f"memory_{name}": memory[step, run].half().cpu() for name, memory in zip(job.predictors, ep["memories"])},
                 "state": ep["states"][step, run].half().cpu(),
-                "hidden": job.actor.hidden(ep["caches"][step, run]).half().cpu()}
+                **({"hidden": job.actor.hidden(ep["caches"][step, run]).half().cpu()} if views else {})}
 
     def finish(self, job, state: dict) -> None:
         """Records, metrics, the final TensorBoard points; the phase's steps for the speed."""
@@ -276,8 +268,11 @@ class ActorEpisodes(Phase):
 
     def log_actor(self, job, step: int) -> None:
         """Run 0's weights: histograms, the state weights as a (state nodes × hidden) image and,
-        where the observation is an unprocessed image, its rows as 28 × 28 tiles."""
+        where the observation is an unprocessed image, its rows as 28 × 28 tiles (the last two
+        where the actor shows them, ``ActorViews``)."""
         log_weights(job.writer, "actor", job.actor, step)
+        if not isinstance(job.actor, ActorViews):
+            return
         W = job.actor.state_weights()
         job.writer.add_image("actor/W_sh_matrix", matrix_image(W[0]), step)
         if job.preprocessor is None and job.env.observation_size == IMAGE_SIDE ** 2:
@@ -286,7 +281,7 @@ class ActorEpisodes(Phase):
     def log_probes(self, job, probes: dict, records: dict) -> None:
         """Run 0's actor hidden activations at its last probe visits in the projector, labelled
         with the episode's labels and outcome (Figs. 4.14–4.19)."""
-        visits = np.flatnonzero(probes["run"] == 0)[-EMBEDDED_PROBES:] if probes else []
+        visits = np.flatnonzero(probes["run"] == 0)[-EMBEDDED_PROBES:] if "hidden" in probes else []
         if len(visits) == 0:
             return
         episode = probes["episode"][visits]

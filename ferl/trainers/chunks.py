@@ -44,12 +44,12 @@ def td_steps(actor, env, generator, s, a, F_sa, x_sa, alive, lrs, betas, uniform
 def td_steps_by_groups(steps, groups: list[slice]):
     """``steps`` (td_steps' signature) for one group of runs after another: temporal cache
     blocking. A group's weights stay in the CPU's caches for the whole chunk instead of every
-    step streaming all runs' weights from L3. Each group gets views of its runs (actor.runs,
-    env.runs, slices of the per-run arguments), so its updates land in the whole batch; runs are
+    step streaming all runs' weights from L3. Each group gets views of its runs (actor.slice_runs,
+    env.slice_runs, slices of the per-run arguments), so its updates land in the whole batch; runs are
     independent, so the grouping does not change what a run computes."""
     def by_groups(actor, env, generator, s, a, F_sa, x_sa, alive, lrs, betas, uniforms, *inputs):
-        parts = [steps(actor.runs(g), env.runs(g), generator, s[g], a[g], F_sa[g], x_sa[g], alive[g], lrs, betas,
-                       uniforms[:, g], *(x[:, g] for x in inputs)) for g in groups]
+        parts = [steps(actor.slice_runs(g), env.slice_runs(g), generator, s[g], a[g], F_sa[g], x_sa[g], alive[g],
+                       lrs, betas, uniforms[:, g], *(x[:, g] for x in inputs)) for g in groups]
         # s, a, F_sa, x_sa carry the runs first, rewards and TD errors (K, R) second
         return tuple(torch.cat(outs, 0 if i < 4 else 1) for i, outs in enumerate(zip(*parts)))
     return by_groups

@@ -130,7 +130,7 @@ class CollectEpisodes(Phase):
 
     def prepare(self, job) -> None:
         job.resources["episodes_per_run"] = self.n_sample  # the size of the next phases' data
-        if discovers_observations(job.env):
+        if job.env.discovers_observations:
             raise ConfigError(f"trainer: Algorithm 1's predictors learn from episodes collected beforehand, on ids of a fixed "
                               f"observation table, and {job.env.task} environments discover their observations as they "
                               f"run: use trainer=online, or predictor=none")
@@ -162,12 +162,6 @@ class CollectEpisodes(Phase):
 def episode_bytes(t_max: int) -> int:
     """Bytes of one padded episode of ``Episodes``."""
     return 8 * (t_max + 1) + 8 * t_max + 4 * t_max + 8
-
-
-def discovers_observations(env) -> bool:
-    """Whether the environment's observation table grows in place as it runs (``env=gymnasium``):
-    then nothing may be computed from the table ahead of the episodes."""
-    return getattr(env, "discovers_observations", False)
 
 
 def observation_table(job) -> ObservationTable:

@@ -31,7 +31,8 @@ class Fact:
 
 
 def _reward_values(env) -> tuple:
-    return tuple(getattr(env, "reward_values", ()) or ())
+    """The reward values an episodic environment declares; a continuing one declares none."""
+    return tuple(env.reward_values) if isinstance(env, interfaces.EpisodicEnvironment) else ()
 
 
 FACTS = (
@@ -43,14 +44,19 @@ FACTS = (
          lambda env: f"has observations of {env.observation_size} values"),
 )
 
-# what each protocol is called in an error line, and where its members are listed
+# what each protocol is called in an error line, where its members are listed, and the base class
+# that gives its hooks' defaults
 NEEDS = {
-    interfaces.EpisodicEnvironment: ("an episodic environment", 'docs/architecture.md, "Add an environment"'),
-    interfaces.ContinuingEnvironment: ("a continuing environment", 'docs/architecture.md, "Add an environment"'),
-    interfaces.Environment: ("an environment", 'docs/architecture.md, "Add an environment"'),
-    interfaces.Preprocessor: ("a preprocessor", "ferl/interfaces.py, Preprocessor"),
-    interfaces.Predictor: ("a predictor", 'docs/architecture.md, "Add a predictor (a memory)"'),
-    interfaces.Actor: ("an actor", 'docs/architecture.md, "Add an actor"'),
+    interfaces.EpisodicEnvironment: ("an episodic environment", 'docs/architecture.md, "Add an environment"',
+                                     interfaces.EpisodicEnvironmentBase),
+    interfaces.ContinuingEnvironment: ("a continuing environment", 'docs/architecture.md, "Add an environment"',
+                                       interfaces.EnvironmentBase),
+    interfaces.Environment: ("an environment", 'docs/architecture.md, "Add an environment"',
+                             interfaces.EnvironmentBase),
+    interfaces.Preprocessor: ("a preprocessor", "ferl/interfaces.py, Preprocessor", interfaces.PreprocessorBase),
+    interfaces.Predictor: ("a predictor", 'docs/architecture.md, "Add a predictor (a memory)"',
+                           interfaces.PredictorBase),
+    interfaces.Actor: ("an actor", 'docs/architecture.md, "Add an actor"', interfaces.ActorBase),
 }
 
 
@@ -90,5 +96,8 @@ def check_conforms(part, protocol: type, key: str) -> None:
     the members are listed; nothing when it conforms."""
     missing = interfaces.missing_members(part, protocol)
     if missing:
-        what, where = NEEDS[protocol]
-        raise ConfigError(f"{key}: {class_name(part)} lacks {', '.join(missing)} ({what} needs them: {where})")
+        what, where, base = NEEDS[protocol]
+        hooks = [name for name in missing if name in dir(base)]
+        defaults = f"; ferl.interfaces.{base.__name__} gives the defaults of {', '.join(hooks)}" if hooks else ""
+        raise ConfigError(f"{key}: {class_name(part)} lacks {', '.join(missing)} "
+                          f"({what} needs them: {where}{defaults})")

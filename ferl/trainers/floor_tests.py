@@ -16,6 +16,7 @@ from ferl.config.params import ConfigError
 from ferl.data import DataError, MnistSplit, add_pixel_noise
 from ferl.envs.digit_floor import NOISE_CLASS
 from ferl.images import as_images, tile, weight_images
+from ferl.interfaces import ActorViews
 from ferl.run.tensorboard import log_embedding, log_weights
 from ferl.stats import greedy_accuracy
 from ferl.trainers.phased import Phase
@@ -82,6 +83,9 @@ class GreedyTests(Phase):
         return job.env.describe()["observation"] == "image"
 
     def prepare(self, job) -> None:
+        if not isinstance(job.actor, ActorViews):  # the records are its hidden activations (Fig. 3.10)
+            raise ConfigError(f"actor: {type(job.actor).__qualname__} lacks hidden, state_weights (the floor's "
+                              "tests record them: ferl/interfaces.py, ActorViews)")
         if "floor_test_images" in job.resources:
             return
         try:
@@ -100,7 +104,7 @@ class GreedyTests(Phase):
         activations (A, H) three times over (x, hidden, probs × hidden) and their records (H twice,
         A probabilities); the noisy images once."""
         classes, n, pixels = job.resources["floor_test_images"].shape
-        A, H = job.env.n_actions, getattr(job.actor, "n_hidden", 0)
+        A, H = job.env.n_actions, job.actor.state_weights().shape[-1]  # W (R, S, H)
         return 4 * classes * n * (job.R * (3 * A * H + 3 * A + 2 * H) + pixels)
 
     def run(self, job, state) -> None:

@@ -73,8 +73,7 @@ class Job:
         self.actor = self.make_part(cfg.actor, "actor", Actor, n_state=n_state, n_actions=self.env.n_actions,
                                     seed=cfg.seed + seeds.actor)
         self.guard = DivergenceGuard(self.R, divergence_limit, self.seeds, device)
-        if hasattr(self.env, "on_fault"):  # an outside environment's failed run is frozen (ferl.envs.boundary)
-            self.env.on_fault = self.guard.freeze
+        self.env.on_fault = self.guard.freeze  # an outside environment's failed run is frozen (ferl.envs.boundary)
         self.run = self.writer = self.stop = None
         # what a checkpoint saves of the run's course: finished phases, an unfinished one's state,
         # data one phase hands the next, the summary's metrics so far, the acting phases' steps and time
@@ -129,10 +128,10 @@ class Job:
         return build(self.cfg.env, n_runs=n_runs, generator=self.generator, device=self.device, **extra)
 
     def components(self) -> dict:
-        """Every component that has parameters or state, by the name its checkpoint entry has."""
+        """Every component (each has state, ``Checkpointed``), by the name its checkpoint entry has."""
         parts = {"env": self.env, "preprocessor": self.preprocessor, "actor": self.actor,
                  **{f"predictor_{name}": p for name, p in self.predictors.items()}}
-        return {name: part for name, part in parts.items() if part is not None and hasattr(part, "state_dict")}
+        return {name: part for name, part in parts.items() if part is not None}
 
     def describe(self) -> dict:
         """What produced the run (``records/run.json``): each component's own description."""

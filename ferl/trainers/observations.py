@@ -7,7 +7,6 @@ from ferl.images import IMAGE_SIDE, as_images, matrix_image, tile
 from ferl.config.params import ConfigError
 from ferl.interfaces import FitStopped
 from ferl.run.tensorboard import log_weights
-from ferl.trainers.episodes import discovers_observations
 from ferl.trainers.phased import Phase
 
 
@@ -22,7 +21,7 @@ class FitPreprocessor(Phase):
         return job.preprocessor is not None
 
     def prepare(self, job) -> None:
-        if discovers_observations(job.env):
+        if job.env.discovers_observations:
             raise ConfigError(f"preprocessor: it processes the table of every observation once, and {job.env.task} "
                               f"environments discover their observations as they run: use ~preprocessor")
 
@@ -30,7 +29,7 @@ class FitPreprocessor(Phase):
         """The fit; where the preprocessor can stop between sweeps, a stop request checkpoints the
         fit so far (``{"fit": FitStopped.state}``), which ``resume`` continues exactly."""
         pre = job.preprocessor
-        if getattr(pre, "stoppable_fit", False):
+        if pre.stoppable_fit:
             try:
                 records = pre.fit(job.data, job.writer, stop=lambda: job.stop.requested,
                                   resume=state and state["fit"])
@@ -50,7 +49,7 @@ class FitPreprocessor(Phase):
 def log_observations(job) -> None:
     """What the agent observes: up to 8 images of every observation's reservoir (one row per
     observation of the environment's table), or the table of bit codes itself."""
-    if discovers_observations(job.env):
+    if job.env.discovers_observations:
         return  # none seen yet
     table, names = job.env.observation_table.float().cpu(), job.env.observation_names
     if table.shape[1] == IMAGE_SIDE ** 2:

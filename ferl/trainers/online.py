@@ -4,7 +4,7 @@ One training step for every run:  observe s' → F(s', ·) for all actions → s
 → δ = r − γ F(s', a') + F(s, a) → θ ← θ + α δ (−∂F/∂θ) (Eq. 3.10)  (``ferl.actors.td``), in
 chunks of steps on random numbers drawn beforehand (``ferl.trainers.chunks``). α and β follow the
 actor's schedules over the phase's steps. The environment is any with ``step_inputs`` /
-``step_with`` (a step's random numbers as inputs, so a chunk can be compiled) and ``runs``.
+``step_with`` (a step's random numbers as inputs, so a chunk can be compiled) and ``slice_runs``.
 """
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
@@ -17,7 +17,7 @@ from tqdm import tqdm
 from ferl.actors.td import first_action
 from ferl.compiled import run_clock
 from ferl.config.params import ConfigError
-from ferl.interfaces import EpisodeLearner
+from ferl.interfaces import ActorViews
 from ferl.random_blocks import Blocks, steps_per_block
 from ferl.run.directory import CheckpointTimer
 from ferl.trainers.chunks import chunk_length, compiled_td_steps, done_future, switch_interval, td_steps
@@ -51,7 +51,7 @@ class OnlineTD(Phase):
 
     def prepare(self, job) -> None:
         actor, R = job.actor, job.R
-        if isinstance(actor, EpisodeLearner):
+        if actor.learns_from_episodes:
             raise ConfigError(f"actor={actor.describe()['kind']} learns from whole episodes, and the continuing task "
                               f"{job.env.task} has none: use an episodic environment or another actor")
         self.action_uniforms = Blocks(
@@ -68,11 +68,13 @@ class OnlineTD(Phase):
         return ["reward_per_step_last10pct"]
 
     def fresh_state(self, job) -> dict:
-        """State at step 0: the first observation and action, the initial state weights."""
+        """State at step 0: the first observation and action, the initial state weights (where the
+        actor shows them, ``ActorViews``)."""
         s = job.env.reset().unsqueeze(1)
         a, F_sa, x_sa = first_action(job.actor, s, job.actor.inverse_temperature(0.0), job.generator,
                                      *self.action_uniforms.next())
-        return {"step": 0, "state_weights_before": job.actor.state_weights().cpu().clone(),
+        views = isinstance(job.actor, ActorViews)
+        return {"step": 0, "state_weights_before": job.actor.state_weights().cpu().clone() if views else None,
                 "s": s, "a": a, "F_sa": F_sa, "x_sa": x_sa,
                 "rewards": torch.zeros(self.T, job.R, device=job.device),
                 "td_errors": torch.zeros(self.T, job.R, device=job.device), "actor_time": 0.0,
@@ -151,8 +153,9 @@ class OnlineTD(Phase):
         """Records and the metric: mean reward per step over the last 10 % of the steps."""
         rewards = state["rewards"].T.cpu().numpy()
         job.run.save_records("steps", job.R, rewards=rewards, td_errors=state["td_errors"].T.cpu().numpy())
-        job.run.save_records("weights", job.R, state_weights_before=state["state_weights_before"].numpy(),
-                             state_weights_after=job.actor.state_weights().cpu().numpy())
+        if state["state_weights_before"] is not None:
+            job.run.save_records("weights", job.R, state_weights_before=state["state_weights_before"].numpy(),
+                                 state_weights_after=job.actor.state_weights().cpu().numpy())
         last = max(1, self.T // 10)
         # in float64, as final_metrics: the same sum on any CPU
         job.metrics["reward_per_step_last10pct"] = rewards[:, -last:].mean(1, dtype=np.float64).tolist()

@@ -72,8 +72,6 @@ class OnlineEpisodes(ActorEpisodes):
         for p in job.predictors.values():
             groups.setdefault(p.batch_key, []).append(p)
         self.groups = list(groups.values())
-        # (position among the predictors' states, predictor) of those that predict observations
-        self.observers = [(i, p) for i, p in enumerate(job.predictors.values()) if getattr(p, "predict_obs", False)]
 
     def fresh_state(self, job) -> dict:
         R, K, T = job.R, self.K, job.env.max_steps
@@ -107,11 +105,12 @@ class OnlineEpisodes(ActorEpisodes):
     @torch.no_grad()
     def reward_bonus(self, job, states: list, obs_id: torch.Tensor):
         """η_k e^y_t: the observation prediction error at the new observation (module docstring)."""
-        if self.eta_now == 0 or not self.observers:
+        if self.eta_now == 0:
             return None
         y = self.observations.lookup(obs_id)
-        error = sum(p.rho_y * (p.outputs(p.memory(states[i]))[0] - y).abs().sum(-1) for i, p in self.observers)
-        return self.eta_now * error
+        errors = [p.observation_error(x, y) for p, x in zip(job.predictors.values(), states)]
+        errors = [e for e in errors if e is not None]  # the predictors that predict observations
+        return self.eta_now * sum(errors) if errors else None
 
     def after_episode(self, job, k: int, episode: dict, state: dict) -> None:
         """Held-out error of episode k, then into the replay, then the predictors' BPTT steps."""

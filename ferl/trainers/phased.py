@@ -16,7 +16,7 @@ from torch.utils.tensorboard import SummaryWriter
 from ferl import rng
 from ferl.compiled import compile_seconds
 from ferl.config.params import ConfigError
-from ferl.interfaces import Environment
+from ferl.interfaces import Environment, TrainerBase
 from ferl.run.directory import RunDir, StopRequest
 from ferl.run.resume import identity_of
 from ferl.run.tensorboard import log_hparams
@@ -44,8 +44,18 @@ class Phase:
         """Do the phase, from ``state`` (what its last checkpoint saved) or from the start (None)."""
         raise NotImplementedError
 
+    def fresh_state(self, job: Job):
+        """What the phase allocates as it starts (records of every step or episode), as ``run``
+        begins from it; the memory estimate counts it (``ferl.run.footprint``). None: nothing."""
+        return None
 
-class PhasedTrainer:
+    def run_bytes(self, job: Job) -> int:
+        """The peak bytes ``run`` allocates beyond ``fresh_state``, including what earlier phases
+        handed it (collected episodes, training batches): the memory estimate's hook."""
+        return 0
+
+
+class PhasedTrainer(TrainerBase):
     """Runs ``phases`` in order (``Trainer`` of ``ferl.interfaces``); ``divergence_limit`` is the
     |TD error| beyond which a run is frozen and reported (``ferl.run.guard``)."""
 
@@ -75,6 +85,14 @@ class PhasedTrainer:
 
     def metric_names(self) -> list[str]:
         return [name for phase in self.phases for name in phase.metric_names(self.job)]
+
+    def starting_state(self) -> list:
+        """Every phase's ``fresh_state`` (``Trainer.starting_state``)."""
+        return [phase.fresh_state(self.job) for phase in self.phases]
+
+    def run_bytes(self) -> int:
+        """The largest phase's ``run_bytes``: phases run one after another (``Trainer.run_bytes``)."""
+        return max((int(phase.run_bytes(self.job)) for phase in self.phases), default=0)
 
     def describe(self) -> dict:
         return {"class": f"{type(self).__module__}.{type(self).__qualname__}", "kind": self.kind,

@@ -81,7 +81,7 @@ class TrainPredictors(Phase):
             observe_rewards(members, fit.rewards, fit.lengths)
         batch = type(members[0]).training_batch(
             members, y, a, [p.reward_targets(job.env.reward_values, fit.rewards) for p in members], lengths)
-        if job.fast and hasattr(batch, "fuse"):  # optional: a batch without it trains eagerly
+        if job.fast:  # a batch without a fast path stays eager (``TrainingBatchBase.fuse``)
             batch.fuse(job.device)
         splits = {(name, s): episode_tensors(job, data[s], p) for name, p in zip(names, members) for s in ("train", "test")}
         if partial.get("names") == names:
