@@ -30,6 +30,7 @@ run: $(STAMP)
 	echo "  records:     $$dir/records/ (what analysis reads)"
 
 test: $(STAMP)
+	$(PY) -m ruff check ferl    # lint rules: pyproject.toml [tool.ruff]
 	$(PY) -m pytest -n 2 -q
 
 # The whole dissertation: the nine experiments of CONTRACT §3 (the set of `experiment=glob(*)`,

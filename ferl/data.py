@@ -14,7 +14,6 @@ import gzip
 import hashlib
 from dataclasses import dataclass
 from pathlib import Path
-
 from typing import Annotated
 
 import numpy as np

@@ -28,9 +28,9 @@ from torch.nn import functional as nnf
 from ferl import rng
 from ferl.actors.softmax import TD_RULES, SoftmaxActor
 from ferl.config.params import Discount, NonNegative, NonNegativeInt, PositiveInt, checked
+from ferl.interfaces import EndedEpisode
 from ferl.predictors.gated import gru_cell
 from ferl.replay import draw_episodes, new_replay, store_episode, stored_episodes
-from ferl.interfaces import EndedEpisode
 
 PARAMETERS = ("W_x", "W_h", "b_x", "b_h", "W_q", "b_q")
 ADAM_BETAS, ADAM_EPS = (0.9, 0.999), 1e-8

@@ -11,8 +11,9 @@ chapters are ``reproduction.ch3``, ``ch4``, ``ch5`` and ``sweep_claims``, regist
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Callable, Sequence
+from typing import Any
 
 from ferl import stats
 from ferl.analysis.records import Manifest

@@ -22,9 +22,10 @@ way (docs/architecture.md). Each worker process of a parallel analysis imports t
 from __future__ import annotations
 
 import importlib
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Protocol, Sequence
+from typing import TYPE_CHECKING, Any, Protocol
 
 from ferl.analysis.claims import Chapter, Claim, Numbering
 from ferl.analysis.records import Manifest, Run

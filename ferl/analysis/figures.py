@@ -9,7 +9,7 @@ drawing helpers the chapter figures share.
 from __future__ import annotations
 
 import textwrap
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 from matplotlib.figure import Figure

@@ -17,11 +17,10 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
-from typing import Sequence
-
 
 from ferl import runs, stats
 from ferl.analysis.claims import VERDICTS, Claim, ClaimResult

@@ -19,8 +19,14 @@ import torch
 from omegaconf import OmegaConf
 
 from ferl.config.params import ConfigError
-from ferl.run.failures import (Interrupted, disk_error, disk_line, hydra_os_error, interrupted_line,
-                                quiet_disk_errors_in_threads)
+from ferl.run.failures import (
+    Interrupted,
+    disk_error,
+    disk_line,
+    hydra_os_error,
+    interrupted_line,
+    quiet_disk_errors_in_threads,
+)
 from ferl.stats import flat_metrics, mean_sd
 
 # conf/hydra/launcher/{joblib,submitit_local,submitit_slurm,ray}.yaml set our defaults on top of the plugins' configs

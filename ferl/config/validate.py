@@ -18,8 +18,17 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import MissingMandatoryValue
 
-from ferl.config.params import (Allowed, ConfigError, NonNegativeInt, PositiveInt, check_arguments, check_node,
-                                describe, signature, target)
+from ferl.config.params import (
+    Allowed,
+    ConfigError,
+    NonNegativeInt,
+    PositiveInt,
+    check_arguments,
+    check_node,
+    describe,
+    signature,
+    target,
+)
 from ferl.config.swaps import check_fit, drop_foreign_keys, hydra_node, pair, swapped_groups, typed_values
 
 DEVICES = ("auto", "cpu", "cuda")

@@ -24,10 +24,10 @@ from typing import Annotated
 import torch
 
 from ferl import rng
-from ferl.config.params import (Allowed, ArgumentError, NonNegative, NonNegativeInt, PositiveInt, UnitInterval,
-                                checked)
+from ferl.config.params import Allowed, ArgumentError, NonNegative, NonNegativeInt, PositiveInt, UnitInterval, checked
 from ferl.data import MnistSplit
 from ferl.envs.tmaze import TMaze, observation_names
+
 
 def class_images(data: MnistSplit, digit_classes: dict, image_index: int, reservoir_size: int,
                  threshold: float | None) -> dict:

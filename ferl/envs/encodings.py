@@ -19,7 +19,7 @@ observation space needs a declared encoding into {0, 1}^O:
 An encoding is a ``gymnasium.ObservationWrapper`` (``BinaryObservation``), so the same code serves
 ferl's vector of environments and any outside learner given the wrapped environment.
 """
-from typing import Callable
+from collections.abc import Callable
 
 import gymnasium
 import numpy as np

@@ -213,7 +213,7 @@ class DigitMazeBatch(MazeBatch):
 class BatchView(gymnasium.Env):
     """One run of a batched environment as a ``gymnasium.Env``; keyword arguments go to the batch."""
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": RENDER_FPS}
+    metadata = {"render_modes": ["rgb_array"], "render_fps": RENDER_FPS}  # noqa: RUF012 - gymnasium.Env's own attribute
     batch_type: type[Batch]
 
     def __init_subclass__(cls, batch_type: type[Batch], **kwargs):
@@ -254,7 +254,7 @@ class BatchVectorEnv(VectorEnv):
     autoreset). ``max_episode_steps`` (None or −1: none) adds a cut-off, as ``TimeLimit`` does for
     a single view; ``gymnasium.make_vec`` passes the registered one."""
 
-    metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": ["rgb_array"], "render_fps": RENDER_FPS}
+    metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": ["rgb_array"], "render_fps": RENDER_FPS}  # noqa: RUF012
     batch_type: type[Batch]
 
     def __init_subclass__(cls, batch_type: type[Batch], **kwargs):

@@ -56,7 +56,7 @@ def planned_jobs(config: DictConfig) -> int | None:
         loader = GlobalHydra.instance().config_loader() if GlobalHydra.instance().is_initialized() else None
         try:
             return sweep_size(arguments, loader)
-        except Exception:  # Hydra reports a bad sweep itself; then no total
+        except Exception:  # noqa: BLE001 - Hydra reports a bad sweep itself; then no total
             return None
     trials = OmegaConf.select(sweeper, "n_trials")
     return trials if isinstance(trials, int) and trials > 0 else None

@@ -25,8 +25,8 @@ from ferl import rng
 from ferl.compiled import compile_seconds, fast_path
 from ferl.config.params import ConfigError, signature, target
 from ferl.interfaces import Actor, Environment, Predictor, Preprocessor
-from ferl.run.failures import Interrupted, where
 from ferl.rng import SeedOffsets
+from ferl.run.failures import Interrupted, where
 from ferl.run.guard import DivergenceGuard
 from ferl.trainers.facts import check_conforms, facts_for
 
