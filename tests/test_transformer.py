@@ -1,0 +1,180 @@
+"""The transformer memory (ferl/predictors/transformer.py): its batched unroll against a per-run
+reference written from the module docstring with torch.nn.functional.scaled_dot_product_attention
+and NumPy's sinusoids; causal masking (a change at step t + k moves no memory before it, padding
+moves nothing); the online step with its key/value cache = the unroll; training through autograd
+lowers the loss and recalls a bit; the context checked against the environment's T_max."""
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from conftest import run_train
+from ferl.config.params import ConfigError, check_arguments
+from ferl.predictors.recurrent import predictor
+from ferl.predictors.training import PredictorBatch
+from ferl.predictors.transformer import TransformerPredictor
+from test_sizes import only_error_line
+
+Y, A, NR = 4, 3, 2
+
+
+def make(R=3, M=6, layers=2, heads=2, context=9, seed=0, **kw):
+    return predictor(memory="transformer", n_runs=R, n_obs=Y, n_actions=A, n_memory=M, n_reward=NR, layers=layers,
+                     heads=heads, context=context, seed=seed, c_y=0.7, c_a=1.3, **kw).double()
+
+
+def data(R, B, T, seed=1):
+    g = torch.Generator().manual_seed(seed)
+    y = torch.randint(0, 2, (R, B, T + 1, Y), generator=g).double()
+    a = F.one_hot(torch.randint(0, A, (R, B, T), generator=g), A).double()
+    return y, a
+
+
+def sinusoids(n: int, d: int) -> torch.Tensor:
+    """p_{s,2i} = sin(s/10000^{2i/d}), p_{s,2i+1} = cos(…), s = 0 … n−1, in NumPy."""
+    s, i = np.arange(n)[:, None], np.arange(d)[None, :]
+    angle = s / 10000.0 ** ((i - i % 2) / d)
+    return torch.from_numpy(np.where(i % 2 == 0, np.sin(angle), np.cos(angle)))
+
+
+def reference(p, run: int, y: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+    """m_0 … m_T (T+1, M) of one unpadded sequence y (T+1, Y), a (T, A), run ``run``'s weights alone:
+    the equations of the module docstring with torch's own layer norm and causal attention."""
+    P = {name: q[run] for name, q in p.named_parameters()}
+    M, H, T = p.memory_size, p.heads, a.shape[0]
+    u = torch.cat([torch.zeros(1, Y + A, dtype=y.dtype), torch.cat([p.c_y * y[:-1], p.c_a * a], 1)])
+    x = u @ P["W_in"].T + P["b_in"] + sinusoids(T + 1, M)
+    for layer in range(p.layers):
+        h = F.layer_norm(x, (M,), P["ln1_g"][layer], P["ln1_b"][layer])
+        q, k, v = (h @ P["W_qkv"][layer].T + P["b_qkv"][layer]).split(M, 1)
+        heads = [F.scaled_dot_product_attention(*(z[:, j * M // H:(j + 1) * M // H] for z in (q, k, v)), is_causal=True)
+                 for j in range(H)]
+        x = x + torch.cat(heads, 1) @ P["W_o"][layer].T + P["b_o"][layer]
+        h = F.layer_norm(x, (M,), P["ln2_g"][layer], P["ln2_b"][layer])
+        x = x + F.gelu(h @ P["W_1"][layer].T + P["b_1"][layer]) @ P["W_2"][layer].T + P["b_2"][layer]
+    return torch.tanh(F.layer_norm(x, (M,), P["lnf_g"], P["lnf_b"]))
+
+
+def perturbed_weights(p, seed=5):
+    """Biases and LN parameters away from their initial 0 and 1, so the reference checks them too."""
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for q in p.memory_parameters():
+            q.add_(0.3 * torch.randn(q.shape, generator=g, dtype=q.dtype))
+    return p
+
+
+def test_batched_unroll_equals_a_per_run_reference():
+    p = perturbed_weights(make(R=3, M=6, layers=2, heads=2))
+    y, a = data(3, 2, 7)
+    with torch.no_grad():
+        m = p.unroll(y, a)
+    assert m.shape == (3, 2, 8, 6)
+    for run in range(3):
+        for b in range(2):
+            torch.testing.assert_close(m[run, b], reference(p, run, y[run, b], a[run, b]))
+
+
+def test_a_change_at_step_t_moves_no_memory_before_it():
+    """Perturb the input at step s (y_s or a_s, read by m_{s+1}): m_0 … m_s are unchanged, m_{s+1} moves."""
+    p = perturbed_weights(make())
+    y, a = data(3, 2, 8)
+    with torch.no_grad():
+        m = p.unroll(y, a)
+        for s in (0, 3, 7):
+            y2, a2 = y.clone(), a.clone()
+            y2[:, :, s] += 2.0
+            a2[:, :, s] = a2[:, :, s].roll(1, -1)
+            for moved in (p.unroll(y2, a), p.unroll(y, a2)):
+                assert torch.equal(moved[:, :, : s + 1], m[:, :, : s + 1])
+                assert (moved[:, :, s + 1] - m[:, :, s + 1]).abs().amax() > 1e-3
+
+
+def test_padded_sequences_give_the_unpadded_memories():
+    """Sequences of 2, 5 and 8 steps padded to 8 with arbitrary values: each one's m_0 … m_T equal
+    its unroll alone; the padding is never attended to."""
+    p = perturbed_weights(make())
+    y, a = data(3, 3, 8)
+    g = torch.Generator().manual_seed(9)
+    lengths = [2, 5, 8]
+    for b, T in enumerate(lengths):
+        y[:, b, T + 1:] = torch.randn(y[:, b, T + 1:].shape, generator=g, dtype=y.dtype) * 5
+        a[:, b, T:] = torch.randn(a[:, b, T:].shape, generator=g, dtype=a.dtype) * 5
+    with torch.no_grad():
+        m = p.unroll(y, a)
+        for b, T in enumerate(lengths):
+            alone = p.unroll(y[:, b:b + 1, : T + 1], a[:, b:b + 1, :T])
+            torch.testing.assert_close(m[:, b:b + 1, : T + 1], alone, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("layers, heads, T", [(1, 1, 9), (2, 3, 9), (2, 2, 4)])
+def test_online_step_with_its_cache_equals_the_unroll(layers, heads, T):
+    """initial_state, then ``step`` T times (T = context: the cache full), gives m_0 … m_T of ``unroll``."""
+    p = perturbed_weights(make(M=6, layers=layers, heads=heads, context=9))
+    y, a = data(3, 1, T)
+    with torch.no_grad():
+        m = p.unroll(y, a)[:, 0]
+        state = p.initial_state()
+        assert state.shape == (3, 6 + 1 + layers * 2 * 10 * 6)
+        got = [p.memory(state)]
+        for t in range(T):
+            state = p.step(state, y[:, 0, t], a[:, 0, t])
+            got.append(p.memory(state))
+    torch.testing.assert_close(torch.stack(got, 1), m)
+
+
+def test_a_sequence_longer_than_the_context_is_refused():
+    p = make(context=4)
+    y, a = data(3, 1, 5)
+    with pytest.raises(ValueError, match="context=4 is shorter than the sequences' 5 steps"):
+        p.unroll(y, a)
+
+
+def test_training_lowers_the_loss_and_recalls_a_bit():
+    """Plain SGD through autograd (``PredictorBatch``), 2 runs: on sequences whose first observation is
+    a random bit and whose last reward bit repeats it 6 steps later, the held-out loss falls below
+    a tenth of its first value and the bit is recalled (chance 0.5)."""
+    from test_memories import delayed_bit
+
+    R, delay = 2, 6
+    p = predictor(memory="transformer", n_runs=R, n_obs=Y, n_actions=A, n_memory=12, n_reward=NR, lr=0.02, seed=4,
+                  rho_y=0.0, time_average=False, context=delay)
+    y, a, r, lengths, _ = delayed_bit(R, 48, delay, seed=0)
+    test = delayed_bit(R, 200, delay, seed=2)
+    with torch.no_grad():
+        first = p.loss(*test[:4]).mean(1)
+    batch = PredictorBatch([p], y, a, [r], lengths)
+    g = torch.Generator().manual_seed(1)
+    for _ in range(15):
+        batch.train_epoch([torch.rand(R, 48, generator=g).argsort(1)])
+    with torch.no_grad():
+        last = p.loss(*test[:4]).mean(1)
+        _, r_hat, _ = p.forward_sequences(*test[0:2], test[3])
+    assert (last < 0.1 * first).all(), (first, last)
+    accuracy = ((r_hat[:, :, -1, 0] > 0.5).long() == test[4]).double().mean(1)
+    assert (accuracy > 0.95).all(), accuracy
+
+
+def test_context_heads_and_layers_are_checked():
+    with pytest.raises(ConfigError, match=r"^predictor\.joint\.heads=4 is not allowed: a divisor of n_memory=6"):
+        check_arguments(predictor, {"memory": "transformer", "n_memory": 6, "heads": 4}, "predictor.joint.")
+    with pytest.raises(ConfigError, match=r"^predictor\.joint\.context=9 is not allowed: ≥ 10, the environment's T_max"):
+        check_arguments(predictor, {"memory": "transformer", "context": 9, "max_steps": 10}, "predictor.joint.")
+    with pytest.raises(ConfigError, match=r"^predictor\.joint\.layers=5 is not allowed"):
+        check_arguments(predictor, {"memory": "transformer", "layers": 5}, "predictor.joint.")
+    check_arguments(predictor, {"memory": "transformer", "context": 10, "max_steps": 10}, "predictor.joint.")
+    # the environment's T_max is the context where none is stated
+    p = predictor(memory="transformer", n_runs=1, n_obs=Y, n_actions=A, n_reward=NR, max_steps=13)
+    assert isinstance(p, TransformerPredictor) and p.context == 13 and p.describe()["context"] == 13
+    with pytest.raises(ValueError, match="context is needed"):
+        predictor(memory="transformer", n_runs=1, n_obs=Y, n_actions=A, n_reward=NR)
+
+
+def test_a_context_shorter_than_the_mazes_t_max_is_one_line_before_any_file(tmp_path):
+    """The regular maze of corridor 3 lasts at most T_max = 10 steps (table4_1_regular): context 9 is refused."""
+    run_dir = tmp_path / "out" / "run"
+    result = run_train("experiment=table4_1_regular", "trainer=online", "predictor.joint.memory=transformer",
+                       "+predictor.joint.context=9", f"hydra.run.dir={run_dir}")
+    assert only_error_line(result) == ("ferl: error: predictor.joint.context=9 is not allowed: ≥ 10, the environment's "
+                                       "T_max (env.max_steps): the memory attends to the whole episode")
+    assert not (tmp_path / "out").exists()
