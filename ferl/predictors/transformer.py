@@ -8,22 +8,26 @@ carries u_{s−1}. m_t is the output at token t, which attends to tokens 0 … t
     x_s = W_in u_{s−1} + b_in + p_s                         (u_{−1} = 0; p_s sinusoidal)
     x ← x + W_o Attn(LN_1(x)) + b_o                         (per layer, causal multi-head attention)
     x ← x + W_2 GELU(W_1 LN_2(x) + b_1) + b_2
-    m_t = LN_f(x_t)
+    m_t = tanh(LN_f(x_t))
 
 The GPT-2 block (Radford et al. 2019): pre-LN, residual stream of width d_model = N^m, a feed-forward
 layer of 4 N^m, a final LN, as Memory-RL's GPT memory (Ni et al. 2023, "When do transformers shine
-in RL?", github.com/twni2016/Memory-RL, ``policies/seq_models/gpt2_vanilla.py``) and POPGym's
-(Morad et al. 2023) use. Choices, and why:
+in RL?", github.com/twni2016/Memory-RL, ``policies/seq_models/gpt2_vanilla.py``) uses. (POPGym's
+attention memories, Morad et al. 2023, github.com/proroklab/popgym, ``popgym/baselines/models``,
+are linear attention and fast-weight programmers, not this softmax block.) Choices, and why:
 
-* ``layers`` = 1 and ``heads`` = 1 by default, Memory-RL's T-maze setting: recalling one cue
-  needs one attention hop; d_model = N^m so the actor's state keeps the size the other memories
-  give it.
+* ``layers`` = 1 and ``heads`` = 1 by default, as Memory-RL's ``configs/seq_models/gpt_default.py``:
+  recalling one cue needs one attention hop; d_model = N^m, so that the actor's state keeps the
+  size the other memories give it.
 * Sinusoidal positions (Vaswani et al. 2017), Memory-RL's default: fixed, so that a position first
   reached late in a run (long episodes are rare while the agent explores) is not an untrained
   embedding, and defined at every t.
 * Pre-LN (Xiong et al. 2020): trains without warm-up, which plain SGD (the predictors' optimiser,
   §4.3.1) does not have.
 * No dropout: the memory is deterministic, so the acting step equals the training unroll.
+* tanh on GPT-2's final LN: the actor's state then stays in (−1, 1), as with the gated memories'
+  h_t; the LN's output alone (entries of ±3 and more) made the FERL actor's TD error diverge in
+  its first episode (|δ| ≈ 1e20 in one of two runs on the regular maze, corridor 3).
 * Weights Gaussian with std 1/√fan-in; the residual projections W_o, W_2 also × 1/√(2 · layers)
   (GPT-2's scaling of the residual branches); biases 0, LN gains 1.
 
@@ -33,7 +37,8 @@ start token); null takes the environment's T_max (``max_steps``, which the job p
 Memory-RL's context is its episode length. A context shorter than T_max is refused. The online
 ``step`` keeps the keys and values of every layer for the context + 1 tokens in its state (a cache
 of fixed shape, (R, N^m + 1 + 2 · layers · (context + 1) · N^m)), so each step attends over the
-cache instead of recomputing the episode and gives the same m_t as ``unroll``.
+cache instead of recomputing the episode and gives the same m_t as ``unroll``. An episode never
+outgrows the cache: the environment ends it after T_max ≤ context steps.
 """
 import math
 from collections import namedtuple
