@@ -2,8 +2,8 @@
 reference written from the module docstring with torch.nn.functional.scaled_dot_product_attention
 and NumPy's sinusoids; causal masking (a change at step t + k moves no memory before it, padding
 moves nothing); the online step with its key/value cache = the unroll; training through autograd
-lowers the loss and recalls a bit, and online training through train.py lowers the prediction
-error; the context checked against the environment's T_max."""
+lowers the loss and recalls a bit, runs and members train apart, and online training through
+train.py lowers the prediction error; the context checked against the environment's T_max."""
 import json
 
 import numpy as np
@@ -198,3 +198,32 @@ def test_online_training_through_train_py_lowers_the_prediction_error(tmp_path):
     error = np.load(run_dir / "records" / "online.npz")["prediction_error"]
     assert error.shape == (2, 300) and np.isfinite(error).all()
     assert (error[:, -50:].mean(1) < 0.25 * error[:, :20].mean(1)).all(), error
+
+
+def test_runs_and_members_train_apart():
+    """One epoch of 2 runs × 2 members (chapter 5's observation and reward predictors, one
+    ``PredictorBatch`` along the run axis) = each (run, member) trained alone in a 1-run predictor
+    holding its parameters, on its sequences in its order: runs and members share nothing."""
+    y, a = data(2, 5, 6)
+    r = torch.randint(0, 2, (2, 5, 7, NR), generator=torch.Generator().manual_seed(3)).double()
+    lengths = torch.tensor([[6, 2, 4, 5, 1], [3, 6, 6, 2, 4]])
+    members = [make(R=2, M=4, layers=1, heads=2, seed=s, lr=0.1, batch_size=2) for s in (0, 7)]
+    orders = [torch.stack([torch.randperm(5, generator=torch.Generator().manual_seed(10 * k + run)) for run in range(2)])
+              for k in range(2)]
+    alone = []
+    for k, member in enumerate(members):
+        for run in range(2):
+            single = make(R=1, M=4, layers=1, heads=2, lr=0.1, batch_size=2)
+            with torch.no_grad():
+                for q, source in zip(single.parameters(), member.parameters()):
+                    q.copy_(source[run:run + 1])
+            PredictorBatch([single], y[run:run + 1], a[run:run + 1], [r[run:run + 1]], lengths[run:run + 1]) \
+                .train_epoch([orders[k][run:run + 1]])
+            alone.append([q[0] for q in single.parameters()])
+    before = [[q.detach().clone() for q in member.parameters()] for member in members]
+    PredictorBatch(members, y, a, [r, r], lengths).train_epoch(orders)
+    assert all(not torch.equal(q, q0) for member, b in zip(members, before) for q, q0 in zip(member.parameters(), b))
+    for k, member in enumerate(members):
+        for run in range(2):
+            for q, want in zip(member.parameters(), alone[2 * k + run]):
+                torch.testing.assert_close(q[run], want)
