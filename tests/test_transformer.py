@@ -16,6 +16,8 @@ from ferl.config.params import ConfigError, check_arguments
 from ferl.predictors.recurrent import predictor
 from ferl.predictors.training import PredictorBatch
 from ferl.predictors.transformer import TransformerPredictor
+from ferl.trainers.facts import facts_for
+from five_arms import FiveArms
 from test_sizes import only_error_line
 
 Y, A, NR = 4, 3, 2
@@ -227,3 +229,15 @@ def test_runs_and_members_train_apart():
         for run in range(2):
             for q, want in zip(member.parameters(), alone[2 * k + run]):
                 torch.testing.assert_close(q[run], want)
+
+
+def test_the_job_hands_t_max_to_the_transformer_alone():
+    """``max_steps`` is a fact of the environment (ferl/trainers/facts.py) that only a constructor
+    taking it gets; stated against the environment, it is refused."""
+    env = FiveArms(2, torch.Generator().manual_seed(0))
+    node = {"_target_": "ferl.predictors.recurrent.predictor", "memory": "transformer"}
+    assert facts_for(node, "predictor.joint", env) == {"n_reward": 3, "max_steps": env.max_steps}
+    assert "max_steps" not in facts_for({**node, "memory": "gru"}, "predictor.joint", env)
+    with pytest.raises(ConfigError, match=rf"^predictor\.joint\.max_steps=99 disagrees with the environment: .* "
+                                          rf"has episodes of at most {env.max_steps} steps; leave it out"):
+        facts_for({**node, "max_steps": 99}, "predictor.joint", env)
