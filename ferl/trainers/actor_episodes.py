@@ -21,12 +21,14 @@ from tqdm import tqdm
 from ferl.actors.td import first_action, td_step
 from ferl.compiled import compiled, run_clock
 from ferl.images import IMAGE_SIDE, matrix_image, tile, weight_images
+from ferl.config.params import Positive, PositiveInt
 from ferl.interfaces import EpisodeLearner
 from ferl.predictors.heads import scaled
 from ferl.random_blocks import Blocks, steps_per_block
 from ferl.run.directory import CheckpointTimer
 from ferl.run.tensorboard import log_embedding, log_weights
 from ferl.trainers.episodes import discount_factors, discounted_return, discovers_observations, observation_table
+from ferl.trainers.observations import log_observations
 from ferl.trainers.phased import Phase
 
 EMBEDDED_PROBES = 2000  # run 0's last probe visits in the projector (docs/records.md)
@@ -35,19 +37,23 @@ SOLVED_SHARE = 0.95     # solved: return ≥ 0.95 × optimum and every outcome r
 
 class ActorEpisodes(Phase):
     """``n_episodes`` SARSA(0) episodes (α, β by the actor's schedules over the episodes), logged
-    every ``log_every`` episodes, checkpointed every ``checkpoint_every`` (and by the clock);
-    every ``td_sample_every``-th episode keeps its per-step TD errors; the metrics are taken over
-    the last ``final_window`` episodes."""
+    every ``log_every`` episodes, checkpointed every ``checkpoint_every`` (and by the clock, every
+    ``checkpoint_minutes``; these three from the trainer's run node, ``job.control``); every
+    ``td_sample_every``-th episode keeps its per-step TD errors; the metrics are taken over the
+    last ``final_window`` episodes. The actor's observation is scaled by ``actor_obs_scale``."""
 
-    name = "actor"
-
-    def __init__(self, n_episodes: int, actor_obs_scale: float, log_every: int, td_sample_every: int,
-                 final_window: int, checkpoint_every: int, checkpoint_minutes: float):
-        self.N, self.obs_scale, self.log_every = n_episodes, actor_obs_scale, log_every
+    def __init__(self, n_episodes: PositiveInt, actor_obs_scale: Positive, td_sample_every: PositiveInt,
+                 final_window: PositiveInt):
+        self.N, self.obs_scale, self.last_step = n_episodes, actor_obs_scale, n_episodes
         self.td_sample_every, self.final_window = td_sample_every, final_window
-        self.checkpoint_every, self.checkpoint_minutes = checkpoint_every, checkpoint_minutes
+
+    def start(self, job) -> None:
+        log_observations(job)
 
     def prepare(self, job) -> None:
+        control = job.control
+        self.log_every, self.checkpoint_every, self.checkpoint_minutes = (
+            control.log_every, control.checkpoint_every, control.checkpoint_minutes)
         steps = job.env.max_steps + 1  # an episode's action draws: a_0 … a_{T_max}
         self.uniforms = Blocks(
             lambda n: (torch.rand(n, steps, job.R, 1, 1, generator=job.generator, device=job.device),),

@@ -10,11 +10,12 @@ rewards (R, N, T_max), lengths (R, N) — the same N for every run, so training 
 An id stands for the (processed) observation in ``ObservationTable``.
 """
 from dataclasses import dataclass
+from typing import Annotated
 
 import torch
 import torch.nn.functional as F
 
-from ferl.config.params import ConfigError
+from ferl.config.params import Allowed, ConfigError, PositiveInt
 from ferl.trainers.phased import Phase
 
 
@@ -119,7 +120,8 @@ class CollectEpisodes(Phase):
 
     name = "collect"
 
-    def __init__(self, n_sample: int, collect_batch: int, train_fraction: float):
+    def __init__(self, n_sample: PositiveInt, collect_batch: PositiveInt,
+                 train_fraction: Annotated[float, Allowed(lambda x: 0 < x < 1, "in (0, 1)")]):
         self.n_sample, self.collect_batch, self.train_fraction = n_sample, collect_batch, train_fraction
 
     def applies(self, job) -> bool:

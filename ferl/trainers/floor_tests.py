@@ -9,10 +9,12 @@
 The environment is a digit floor: it names its tile ``classes``, their ``class_optimal_action``,
 its ``arrangement``, ``action_names`` and training ``noise``.
 """
+from typing import Annotated, Literal
+
 import numpy as np
 import torch
 
-from ferl.config.params import ConfigError
+from ferl.config.params import Allowed, ConfigError, PositiveInt
 from ferl.data import DataError, MnistSplit, add_pixel_noise
 from ferl.envs.digit_floor import NOISE_CLASS
 from ferl.images import as_images, tile, weight_images
@@ -21,6 +23,11 @@ from ferl.stats import greedy_accuracy
 from ferl.trainers.phased import Phase
 
 EMBEDDED_PER_CLASS = 100  # test digits per class in the projector (TensorBoard tags: docs/records.md)
+
+
+def noise_levels(levels) -> bool:
+    """Test-noise levels: at least one, each a fraction of pixels in [0, 1]."""
+    return len(levels) > 0 and all(0 <= x <= 1 for x in levels)
 
 
 def floor_test_images(classes, data: MnistSplit, n_per_class: int, generator) -> torch.Tensor:
@@ -69,13 +76,16 @@ def json_values(x: np.ndarray) -> list:
 class GreedyTests(Phase):
     """The test phase ``when`` = "before" or "after" training: the actor's responses to the same
     ``test_per_class`` held-out images per class at every level of ``test_noise_levels`` (drawn
-    once, when the trainer is set up), at β of the end of training. After training it writes
+    once, when the trainer is set up), at β of the end of training; ``last_step``: the training
+    phase's steps, where the "after" test logs. After training it writes
     ``floor_test.npz`` and the metrics ``greedy_accuracy`` and ``greedy_accuracy_before`` (per
     test-noise level), and shows run 0's weights and test-digit activations in TensorBoard."""
 
-    def __init__(self, when: str, test_per_class: int, test_noise_levels: list, last_step: int):
-        self.when, self.name = when, f"test_{when}"
-        self.test_per_class, self.levels, self.last_step = test_per_class, list(test_noise_levels), last_step
+    def __init__(self, when: Literal["before", "after"], test_per_class: PositiveInt,
+                 test_noise_levels: Annotated[list[float], Allowed(noise_levels, "(noise levels in [0, 1], at least one)")],
+                 last_step: PositiveInt):
+        self.when, self.test_per_class, self.levels = when, test_per_class, list(test_noise_levels)
+        self.last_step = last_step if when == "after" else 0
 
     def applies(self, job) -> bool:
         """The tests show held-out images: not to an actor that sees the floor's true state."""

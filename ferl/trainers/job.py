@@ -60,11 +60,12 @@ def build(node, prefix: str = "", **runtime):
 class Job:
     """The components of one batch of runs and the run it writes (see the module docstring)."""
 
-    def __init__(self, cfg, device: torch.device, seeds: SeedOffsets, divergence_limit: float,
-                 env_protocol: type = Environment):
-        """``env_protocol``: what the trainer's phases need of the environment (an episodic one for
-        Algorithms 1–2, a continuing one for online TD), checked as soon as it is built."""
-        self.cfg, self.device, self.R = cfg, device, cfg.n_runs
+    def __init__(self, cfg, device: torch.device, seeds: SeedOffsets, control, env_protocol: type = Environment):
+        """``control``: the trainer's ``run`` node (``ferl.trainers.phased.RunControl``: logging,
+        checkpoint intervals, divergence limit), which every phase reads; ``env_protocol``: what the
+        trainer's phases need of the environment (an episodic one for Algorithms 1–2, a continuing
+        one for online TD), checked as soon as it is built."""
+        self.cfg, self.device, self.R, self.control = cfg, device, cfg.n_runs, control
         self.seeds = [cfg.seed + r for r in range(self.R)]
         self.generator = torch.Generator(device).manual_seed(cfg.seed)
         needs_data = takes(cfg.env, "data") or cfg.get("preprocessor") is not None
@@ -80,7 +81,7 @@ class Job:
         n_state = n_obs + sum(p.memory_size for p in self.predictors.values())
         self.actor = self.make_part(cfg.actor, "actor", Actor, n_state=n_state, n_actions=self.env.n_actions,
                                     seed=cfg.seed + seeds.actor)
-        self.guard = DivergenceGuard(self.R, divergence_limit, self.seeds, device)
+        self.guard = DivergenceGuard(self.R, control.divergence_limit, self.seeds, device)
         if hasattr(self.env, "on_fault"):  # an outside environment's failed run is frozen (ferl.envs.boundary)
             self.env.on_fault = self.guard.freeze
         self.run = self.writer = self.stop = None

@@ -35,16 +35,12 @@ import time
 import numpy as np
 import torch
 
-from ferl.config.params import ConfigError, Momentum, NonNegative, Positive, PositiveInt, UnitInterval, checked
+from ferl.config.params import ConfigError, Momentum, NonNegative, Positive, PositiveInt, UnitInterval
 from ferl.config.swaps import chosen
-from ferl.interfaces import EpisodicEnvironment
 from ferl.predictors.popart import observe_rewards
 from ferl.predictors.recurrent import lookup_step
 from ferl.trainers.actor_episodes import ActorEpisodes
 from ferl.trainers.episodes import Episodes, episode_tensors
-from ferl.trainers.job import SeedOffsets
-from ferl.trainers.observations import FitPreprocessor, log_observations
-from ferl.trainers.phased import PhasedTrainer
 
 
 class OnlineEpisodes(ActorEpisodes):
@@ -52,18 +48,18 @@ class OnlineEpisodes(ActorEpisodes):
     β following their held-out error and the curiosity bonus (module docstring). Records
     ``online.npz``: per run and episode the held-out error, β and η, and the phase's time split."""
 
-    name = "online"
-
-    def __init__(self, *args, replay_episodes: int, replay_sample: int, replay_batch_size: int | None,
-                 beta_error_ratio: float, error_ema: float, curiosity: float, curiosity_anneal: float):
-        super().__init__(*args)
+    def __init__(self, n_episodes: PositiveInt, actor_obs_scale: Positive, td_sample_every: PositiveInt,
+                 final_window: PositiveInt, replay_episodes: PositiveInt, replay_sample: PositiveInt,
+                 replay_batch_size: PositiveInt | None, beta_error_ratio: Momentum, error_ema: UnitInterval,
+                 curiosity: NonNegative, curiosity_anneal: NonNegative):
+        super().__init__(n_episodes, actor_obs_scale, td_sample_every, final_window)
         self.K, self.n_replay, self.replay_batch = replay_episodes, replay_sample, replay_batch_size
         self.tau, self.ema, self.eta, self.anneal = beta_error_ratio, error_ema, curiosity, curiosity_anneal
         self.eta_now, self.beta_now = 0.0, None
 
     def prepare(self, job) -> None:
         if not job.predictors:
-            raise ConfigError(f"predictor=none is not allowed with {chosen('trainer', 'OnlineAlgorithm')}: it trains "
+            raise ConfigError(f"predictor=none is not allowed with {chosen('trainer', 'OnlineEpisodes')}: it trains "
                               "predictors and actor together; a memoryless actor alone is the actor phase of "
                               "trainer=algorithm1")
         super().prepare(job)
@@ -161,33 +157,3 @@ class OnlineEpisodes(ActorEpisodes):
         super().finish(job, state)
         job.run.save_records("online", job.R, **state["online"], predictor_time_s=np.float64(state["predictor_time"]),
                              actor_time_s=np.float64(state["active_time"] - state["predictor_time"]))
-
-
-class OnlineAlgorithm(PhasedTrainer):
-    """``trainer=online`` (CONTRACT §2): [the preprocessor's fit, as Algorithm 2's first phase,
-    when the config has one →] ``OnlineEpisodes``. Arguments as in conf/trainer/online.yaml."""
-
-    seed_offsets = SeedOffsets(actor=100_000)
-    environment = EpisodicEnvironment
-    kind = "online"
-
-    @checked
-    def __init__(self, n_episodes: PositiveInt, actor_obs_scale: Positive, replay_episodes: PositiveInt,
-                 replay_sample: PositiveInt, replay_batch_size: PositiveInt | None, beta_error_ratio: Momentum, error_ema: UnitInterval,
-                 curiosity: NonNegative, curiosity_anneal: NonNegative, log_every: PositiveInt,
-                 td_sample_every: PositiveInt, final_window: PositiveInt, checkpoint_every: PositiveInt,
-                 checkpoint_minutes: NonNegative, divergence_limit: Positive):
-        self.params = dict(n_episodes=n_episodes, actor_obs_scale=actor_obs_scale, replay_episodes=replay_episodes,
-                           replay_sample=replay_sample, replay_batch_size=replay_batch_size, beta_error_ratio=beta_error_ratio, error_ema=error_ema,
-                           curiosity=curiosity, curiosity_anneal=curiosity_anneal, final_window=final_window)
-        self.last_step = n_episodes
-        super().__init__([
-            FitPreprocessor(),
-            OnlineEpisodes(n_episodes, actor_obs_scale, log_every, td_sample_every, final_window, checkpoint_every,
-                           checkpoint_minutes, replay_episodes=replay_episodes, replay_sample=replay_sample,
-                           replay_batch_size=replay_batch_size,
-                           beta_error_ratio=beta_error_ratio, error_ema=error_ema, curiosity=curiosity,
-                           curiosity_anneal=curiosity_anneal)], divergence_limit)
-
-    def start(self, job) -> None:
-        log_observations(job)

@@ -10,6 +10,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from ferl.config.params import NonNegativeInt, PositiveInt
 from ferl.predictors.popart import observe_rewards
 from ferl.run.directory import CheckpointTimer
 from ferl.run.tensorboard import log_weights
@@ -20,17 +21,17 @@ from ferl.trainers.phased import Phase
 class TrainPredictors(Phase):
     """``n_epoch`` epochs of every predictor on lengths up to T_min + ``l_training`` − 1, errors
     every ``error_every`` epochs, a checkpoint every ``checkpoint_every_epochs`` (and by the
-    clock, ``checkpoint_minutes``). Records ``predictor.npz``."""
+    clock, the run node's ``checkpoint_minutes``). Records ``predictor.npz``."""
 
     name = "predictors"
 
     def applies(self, job) -> bool:
         return bool(job.predictors)
 
-    def __init__(self, l_training: int, n_epoch: int, error_every: int, checkpoint_every_epochs: int,
-                 checkpoint_minutes: float):
+    def __init__(self, l_training: PositiveInt, n_epoch: NonNegativeInt, error_every: PositiveInt,
+                 checkpoint_every_epochs: PositiveInt):
         self.l_training, self.n_epoch, self.error_every = l_training, n_epoch, error_every
-        self.checkpoint_every_epochs, self.checkpoint_minutes = checkpoint_every_epochs, checkpoint_minutes
+        self.checkpoint_every_epochs = checkpoint_every_epochs
 
     def run_bytes(self, job) -> int:
         """The peak of ``run`` (``ferl.run.footprint``'s hook): the collected episodes, each as
@@ -92,7 +93,7 @@ class TrainPredictors(Phase):
             epochs, start = [0], 0
             for name, p in zip(names, members):
                 log_weights(job.writer, f"predictor_{name}", p, 0)
-        clock = CheckpointTimer(self.checkpoint_minutes)
+        clock = CheckpointTimer(job.control.checkpoint_minutes)
         for epoch in (bar := tqdm(range(start + 1, self.n_epoch + 1), desc=f"predictor {'+'.join(names)}",
                                   unit="epoch", initial=start, total=self.n_epoch, mininterval=1.0)):
             orders = [torch.rand(R, y.shape[1], generator=job.generator, device=job.device).argsort(1) for _ in members]
