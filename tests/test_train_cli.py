@@ -104,7 +104,7 @@ def checkpointed_step(run_dir) -> int:
         progress = checkpoint.read(run_dir / "checkpoints" / "last.pt").state()["progress"]
     except checkpoint.CheckpointError:  # not written yet
         return 0
-    return (progress["partial"].get("actor") or {}).get("step", 0)
+    return (progress["partial"].get("continuing_td") or {}).get("step", 0)
 
 
 def interrupt_and_resume(tmp_path, args: list, steps: int, sig: int, expected_code: int,

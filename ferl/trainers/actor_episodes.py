@@ -13,6 +13,8 @@ count towards ``solved``) and the activations at its ``probe`` states with its `
 (``probe.npz``: the T-junction in the T-mazes, Figs. 4.14–4.19; named for what every episodic
 environment may declare, docs/records.md).
 """
+from typing import NamedTuple
+
 import numpy as np
 import torch
 from torch.nn import functional as nnf
@@ -104,7 +106,7 @@ class ActorEpisodes(Phase):
             outcome = episode["outcome"].cpu().numpy()  # one host copy per episode
             for i, key in enumerate(self.outcome_names):
                 records[key][:, k] = outcome[i]
-            state["agent_steps"] += int(outcome[1].sum())
+            state["agent_steps"] += int(records["steps"][:, k].sum())
             if episode["probes"] is not None:
                 probes.append(episode["probes"])
             if k % self.td_sample_every == 0:
@@ -188,7 +190,8 @@ class ActorEpisodes(Phase):
         if self.episode_learner:
             self.hand_over(job, torch.cat([ep["states"].transpose(0, 1), ep["last_state"]], 1),
                            ep["actions"], ep["rewards"], ep["terminated"], lr)
-        return {"outcome": ep["outcome"], "td": torch.where(ep["actives"], ep["deltas"], torch.nan),
+        return {"outcome": ep["outcome"], "lengths": ep["lengths"].clone(),
+                "td": torch.where(ep["actives"], ep["deltas"], torch.nan),
                 "probes": self.probe_visits(job, k, ep), "trajectory": (ep["obs"], ep["actions"], ep["rewards"])}
 
     def episode(self, job, lr, beta, uniform, until_done: bool) -> dict:
@@ -206,11 +209,11 @@ class ActorEpisodes(Phase):
         memories = [p.memory(x) for p, x in zip(predictors, m)]
         s = self.state(job, env.obs_id, memories)
         a, F_sa, x_sa = first_action(actor, s, beta, job.generator, uniform[0])
-        visits, out, obs = [], [], [env.obs_id]
+        record, obs = [], [env.obs_id]
         terminated_any = torch.zeros_like(env.done)
         for t in range(env.max_steps):
             active = ~env.done
-            visits.append((env.probe & active, active, *memories, s[:, 0], x_sa[:, 0]))
+            visit = (env.probe & active, active, tuple(memories), s[:, 0], x_sa[:, 0])  # before the step
             obs_prev, action = env.obs_id, a.squeeze(1)
             r, terminated, _ = env.advance(action)
             terminated_any = terminated_any | terminated
@@ -222,20 +225,19 @@ class ActorEpisodes(Phase):
             a, F_sa, x_sa, delta = td_step(actor, s, a, F_sa, x_sa, r if bonus is None else r + bonus, s_next,
                                            lr, beta, job.generator, uniform[t + 1],
                                            job.guard.alive, (terminated | ~active).unsqueeze(1), active.unsqueeze(1))
-            out.append((action, r, delta.squeeze(1)))
+            record.append(Step(*visit, action, r, delta.squeeze(1)))
             s = s_next
             if until_done and bool(env.done.all()):
                 break
-        visits = [torch.stack(v) for v in zip(*visits)]
-        actions, rewards, deltas = (torch.stack(v) for v in zip(*out))
-        steps = env.t
-        outcome = torch.stack([
-            discounted_return(self.discounts, rewards),  # done runs got r = 0
-            steps.float(), rewards.gather(0, (steps - 1).unsqueeze(0)).squeeze(0),  # terminal reward
-            deltas.abs().sum(0) / steps.clamp(min=1), *(v.float() for v in env.outcomes().values())])
-        return {"probes": visits[0], "actives": visits[1], "memories": visits[2:-2], "states": visits[-2],
-                "caches": visits[-1], "actions": actions, "rewards": rewards, "deltas": deltas,
-                "obs": torch.stack(obs), "last_state": s, "terminated": terminated_any, "outcome": outcome}
+        ep, steps = stacked(record), env.t
+        outcome = torch.stack([  # in the order of outcome_names
+            discounted_return(self.discounts, ep.reward),  # done runs got r = 0
+            steps.float(), ep.reward.gather(0, (steps - 1).unsqueeze(0)).squeeze(0),  # terminal reward
+            ep.delta.abs().sum(0) / steps.clamp(min=1), *(v.float() for v in env.outcomes().values())])
+        return {"probes": ep.probe, "actives": ep.active, "memories": ep.memories, "states": ep.state,
+                "caches": ep.cache, "actions": ep.action, "rewards": ep.reward, "deltas": ep.delta,
+                "obs": torch.stack(obs), "last_state": s, "terminated": terminated_any, "outcome": outcome,
+                "lengths": steps}
 
     def hand_over(self, job, states: torch.Tensor, actions: torch.Tensor, rewards: torch.Tensor,
                   terminated: torch.Tensor, lr: float) -> None:
@@ -275,8 +277,10 @@ class ActorEpisodes(Phase):
         job.run.save_records("probe", job.R, **probes)
         self.log_probes(job, probes, records)
         job.metrics.update(final_metrics(records, self.optimum, self.final_window, self.rates, self.averages))
-        job.metrics.update(sample_efficiency(records, job.shared.get("random_steps", np.zeros(job.R, np.int64)),
-                                             self.optimum, self.final_window, self.rates))
+        random_steps = job.outputs.random_steps  # None: no random collection before
+        if random_steps is None:
+            random_steps = np.zeros(job.R, np.int64)
+        job.metrics.update(sample_efficiency(records, random_steps, self.optimum, self.final_window, self.rates))
         job.count_agent_steps(state["agent_steps"], state["active_time"])
 
     def log_actor(self, job, step: int) -> None:
@@ -307,6 +311,26 @@ class ActorEpisodes(Phase):
             writer.add_scalar(f"actor/{name}_ma200", float(records[name][:, window].mean()), done)
         writer.add_scalar("schedule/learning_rate", lr, done)
         writer.add_scalar("schedule/beta", beta, done)
+
+
+class Step(NamedTuple):
+    """One step of an episode of every run, as ``ActorEpisodes.episode`` keeps it (a NamedTuple, so
+    that it traces under torch.compile in the fused episode); ``stacked`` over the steps, each field
+    gains a leading step axis."""
+    probe: torch.Tensor    # (R,) bool: at a probe state, the run's episode on
+    active: torch.Tensor   # (R,) bool: the run's episode on
+    memories: tuple        # every predictor's memory m_t, (R, M) each
+    state: torch.Tensor    # (R, S) the actor's state s_t
+    cache: torch.Tensor    # (R, ·) the actor's cache of (s_t, a_t)
+    action: torch.Tensor   # (R,) a_t
+    reward: torch.Tensor   # (R,) the raw reward r_(t+1)
+    delta: torch.Tensor    # (R,) the TD error δ_t
+
+
+def stacked(steps: list[Step]) -> Step:
+    """The steps of an episode as one ``Step`` whose fields are stacked over the steps (steps, R, …)."""
+    return Step(*(tuple(torch.stack(m) for m in zip(*field)) if isinstance(field[0], tuple) else torch.stack(field)
+                  for field in zip(*steps)))
 
 
 def concat_records(parts: list) -> dict:

@@ -116,9 +116,9 @@ class ContinuingTD(Phase):
                 progress = [(t + k) / T for k in range(self.chunk)]
                 lrs = torch.tensor([actor.learning_rate(p) for p in progress], device=job.device)
                 betas = torch.tensor([actor.inverse_temperature(p) for p in progress], device=job.device)
-                s, a, F_sa, x_sa, r, delta = self.td_steps(
-                    actor, env, job.generator, s, a, F_sa, x_sa, job.guard.alive, lrs, betas, *inputs)
-                rewards[t:t + self.chunk], td_errors[t:t + self.chunk] = r, delta
+                out = self.td_steps(actor, env, job.generator, s, a, F_sa, x_sa, job.guard.alive, lrs, betas, *inputs)
+                s, a, F_sa, x_sa = out.s, out.a, out.F_sa, out.x_sa
+                rewards[t:t + self.chunk], td_errors[t:t + self.chunk] = out.rewards, out.deltas
                 done = t + self.chunk
                 if done % self.log_every == 0 or done == T:
                     job.guard.check(td_errors[state["checked"]:done], state["checked"])

@@ -92,10 +92,10 @@ class GreedyTests(Phase):
         return job.env.describe()["observation"] == "image"
 
     def prepare(self, job) -> None:
-        if "floor_test_images" in job.resources:
+        if job.prepared.floor_test_images is not None:  # the other test phase drew them
             return
         try:
-            job.resources["floor_test_images"] = floor_test_images(job.env.classes, job.data, self.test_per_class,
+            job.prepared.floor_test_images = floor_test_images(job.env.classes, job.data, self.test_per_class,
                                                                    job.generator)
         except DataError as e:
             raise ConfigError(f"trainer.test_per_class={self.test_per_class} is not allowed: {e}") from None
@@ -109,27 +109,28 @@ class GreedyTests(Phase):
         """The peak of ``run`` (``ferl.run.footprint``'s hook): per run and test image, float32
         activations (A, H) three times over (x, hidden, probs × hidden) and their records (H twice,
         A probabilities); the noisy images once."""
-        classes, n, pixels = job.resources["floor_test_images"].shape
+        classes, n, pixels = job.prepared.floor_test_images.shape
         A, H = job.env.n_actions, getattr(job.actor, "n_hidden", 0)
         return 4 * classes * n * (job.R * (3 * A * H + 3 * A + 2 * H) + pixels)
 
     def run(self, job, state) -> None:
-        result = evaluate_floor(job.actor, job.resources["floor_test_images"], self.levels, job.env.noise,
+        result = evaluate_floor(job.actor, job.prepared.floor_test_images, self.levels, job.env.noise,
                                 job.actor.inverse_temperature(1.0), job.generator)
         step = 0 if self.when == "before" else self.last_step
         self.log_actor(job, step)
         self.log_accuracy(job, result, step)
         if self.when == "before":
-            job.shared["floor_test_before"] = result
+            job.outputs.floor_test_before = result
             return
         self.log_test_digits(job, result, step)
-        before, env = job.shared.pop("floor_test_before"), job.env
+        before, env = job.outputs.floor_test_before, job.env
+        job.outputs.floor_test_before = None
         job.run.save_records(
             "floor_test", job.R, noise_levels=np.asarray(self.levels, dtype=np.float64),
             classes=np.array(env.classes), optimal_action=env.class_optimal_action.astype(np.int64),
             action_names=np.array(env.action_names), arrangement=env.arrangement,
             probe_noise=np.float64(env.noise), beta=np.float64(job.actor.inverse_temperature(1.0)),
-            clean_images=job.resources["floor_test_images"].cpu().numpy().astype(np.float16),
+            clean_images=job.prepared.floor_test_images.cpu().numpy().astype(np.float16),
             probe_images=result["probe_images"],
             **{f"{key}_{phase}": res[key] for phase, res in (("before", before), ("after", result))
                for key in ("greedy_counts", "probs", "hidden", "hidden_marginal")})
@@ -153,7 +154,7 @@ class GreedyTests(Phase):
     def log_test_digits(self, job, after: dict, step: int) -> None:
         """Sample observations (clean test images and the noisy ones the actor was probed with,
         one row per class) and run 0's hidden activations per test digit in the projector."""
-        env, images, writer = job.env, job.resources["floor_test_images"], job.writer
+        env, images, writer = job.env, job.prepared.floor_test_images, job.writer
         n = min(8, images.shape[1])
         writer.add_image("test/observations_clean", tile(as_images(images[:, :n])), step)
         writer.add_image("test/observations_noisy", tile(as_images(after["probe_images"][:, :n])), step)

@@ -12,7 +12,8 @@ component's weights are drawn from seed + its offset + r (``SeedOffsets``), so t
 
 The job also holds what every phase of a trainer shares: the generator of the batch's random
 stream, the divergence guard, the run directory and its TensorBoard writer, the progress that a
-checkpoint saves (finished phases, the state of an unfinished one, data passed between phases)
+checkpoint saves (finished phases, the state of an unfinished one, what phases hand on:
+``ferl.trainers.handoffs``)
 and the summary's metrics.
 """
 import time
@@ -28,6 +29,7 @@ from ferl.interfaces import Actor, Environment, Predictor, Preprocessor
 from ferl.run.failures import Interrupted, where
 from ferl.run.guard import DivergenceGuard
 from ferl.trainers.facts import check_conforms, facts_for
+from ferl.trainers.handoffs import PhaseOutputs, Prepared
 
 
 @dataclass(frozen=True)
@@ -87,8 +89,9 @@ class Job:
         self.run = self.writer = self.stop = None
         # what a checkpoint saves of the run's course: finished phases, an unfinished one's state,
         # data one phase hands the next, the summary's metrics so far, the acting phases' steps and time
-        self.progress = {"done": [], "partial": {}, "shared": {}, "metrics": {}, "agent_steps": 0, "actor_time": 0.0}
-        self.resources = {}  # what phases prepare at every start (not saved: drawn again alike)
+        self.progress = {"done": [], "partial": {}, "shared": PhaseOutputs(), "metrics": {}, "agent_steps": 0,
+                         "actor_time": 0.0}
+        self.prepared = Prepared()  # what phases prepare at every start (not saved: drawn again alike)
         self.unit = "step"   # what the guard reports a divergence in (a T-maze: "episode")
         self.fast = fast_path(cfg.compile, device)  # compile the phases' chunks of steps (ferl.compiled)
         self.compile_started = compile_seconds()  # a process may train several jobs (Hydra's joblib workers)
@@ -96,7 +99,8 @@ class Job:
         self.earlier_time = 0.0  # wall_time_s that earlier processes of the run spent, up to its checkpoint
 
     @property
-    def shared(self) -> dict:
+    def outputs(self) -> PhaseOutputs:
+        """What earlier phases handed on (``ferl.trainers.handoffs``)."""
         return self.progress["shared"]
 
     @property

@@ -145,7 +145,7 @@ class OnlineEpisodes(ActorEpisodes):
     def as_episodes(self, job, episode: dict) -> Episodes:
         """The trajectory of ``play_episode`` as one padded episode per run, (R, 1, …)."""
         obs, actions, rewards = episode["trajectory"]
-        T, lengths = job.env.max_steps, episode["outcome"][1].long()
+        T, lengths = job.env.max_steps, episode["lengths"].long()
         steps = torch.arange(T + 1, device=job.device).unsqueeze(1)
         pad = lambda x, fill: torch.nn.functional.pad(x, (0, 0, 0, T + 1 - x.shape[0]), value=fill)  # noqa: E731
         obs = torch.where(steps <= lengths, pad(obs, -1), -1)

@@ -21,6 +21,7 @@ from ferl.interfaces import ContinuingEnvironment, EpisodicEnvironment, Environm
 from ferl.run.directory import RunDir, StopRequest
 from ferl.run.resume import identity_of
 from ferl.run.tensorboard import log_hparams
+from ferl.trainers.handoffs import PhaseOutputs
 from ferl.trainers.job import Job, SeedOffsets
 
 
@@ -140,7 +141,7 @@ class PhasedTrainer:
                 job.progress["done"].append(phase.name)
                 if phase is self.phases[-1]:
                     job.stop = StopRequest()  # finished: a late signal no longer stops it
-                    job.progress["shared"] = {}  # the finished run keeps parameters, not the data
+                    job.progress["shared"] = PhaseOutputs()  # the finished run keeps parameters, not the data
                 job.checkpoint()
             self.phase = "summary"
             summary = self.summary(job, job.wall_time())  # over every process of the run

@@ -1,6 +1,6 @@
 """Algorithm 1's predictor phase (§4.3.1, Eqs. 4.1–4.8; §5.2 for Algorithm 2's several predictors).
 
-Every predictor trains on the collected episodes (``job.shared["episodes"]``) for N_epoch epochs,
+Every predictor trains on the collected episodes (``job.outputs.episodes``) for N_epoch epochs,
 each in its own shuffled order per epoch; those with one ``batch_key`` train as one
 ``training_batch``. The prediction error of Eq. (4.7) — per step t and episode length T, mean
 over the sequences, on the training and the test data — is measured every ``error_every``
@@ -37,7 +37,7 @@ class TrainPredictors(Phase):
         """The peak of ``run`` (``ferl.run.footprint``'s hook): the collected episodes, each as
         float32 tensors y (T_max+1, Y + a reward), a (T_max, A) for every predictor's two splits, the
         training set and its batch, and two error arrays (T_max+1) per episode."""
-        n, T = job.resources.get("episodes_per_run", 0), job.env.max_steps
+        n, T = job.prepared.episodes_per_run, job.env.max_steps
         tensors = 4 * ((T + 1) * (job.n_obs + 1) + T * job.env.n_actions)
         return job.R * n * (episode_bytes(T) + (len(job.predictors) + 2) * tensors + 2 * 4 * (T + 1))
 
@@ -69,8 +69,8 @@ class TrainPredictors(Phase):
 
     def train_group(self, job, names: list, state: dict) -> dict:
         """The named predictors for N_epoch epochs, from the epoch a checkpoint left them at."""
-        data, R = job.shared["episodes"], job.R
-        train = data["train"]
+        data, R = job.outputs.episodes, job.R
+        train = data.train
         members = [job.predictors[name] for name in names]
         # the training set proper: lengths T_min … T_min + L_training − 1; balancing laid the
         # lengths out in the same blocks in every run, so run 0's positions hold for all
@@ -84,7 +84,8 @@ class TrainPredictors(Phase):
             members, y, a, [p.reward_targets(job.env.reward_values, fit.rewards) for p in members], lengths)
         if job.fast and hasattr(batch, "fuse"):  # optional: a batch without it trains eagerly
             batch.fuse(job.device)
-        splits = {(name, s): episode_tensors(job, data[s], p) for name, p in zip(names, members) for s in ("train", "test")}
+        splits = {(name, s): episode_tensors(job, getattr(data, s), p) for name, p in zip(names, members)
+                  for s in ("train", "test")}
         if partial.get("names") == names:
             errors, epochs, start = partial["errors"], partial["epochs"], partial["epoch"]
         else:
