@@ -47,6 +47,7 @@ class Phase:
     ``_target_`` and its own keys); it is named by its key there, and implements ``run``."""
 
     name = ""
+    last_step = 0  # the step or episode of its last TensorBoard points (0: it logs none of its own)
 
     def applies(self, job: Job) -> bool:
         """Whether the job's components call for this phase (a preprocessor's fit needs one)."""
@@ -62,8 +63,6 @@ class Phase:
     def metric_names(self, job: Job) -> list[str]:
         """The flat summary.json metrics it writes into ``job.metrics``."""
         return []
-
-    last_step = 0  # the step or episode of its last TensorBoard points (0: it logs none of its own)
 
     def run(self, job: Job, state) -> None:
         """Do the phase, from ``state`` (what its last checkpoint saved) or from the start (None)."""
