@@ -37,13 +37,13 @@ GROUP_RUNS = OmegaConf.load(ROOT / "conf" / "trainer" / "digit_floor.yaml").comp
 
 
 def torch_actor_phase(runs: int, steps: int, device: str, compiled: bool) -> dict:
-    """Agent-steps/s of the online TD phase (ferl/trainers/online.py; the actor phase only, as in
+    """Agent-steps/s of the online TD phase (ferl/trainers/continuing_td.py; the TD phase only, as in
     summary.json), timed on a second pass over the same job; and the seconds the first pass took
     beyond the second."""
     overrides = [f"n_runs={runs}", f"trainer.steps={steps}", "trainer.test_per_class=1", f"trainer.log_every={steps}",
                  f"trainer.checkpoint_every={steps}", "experiment=ch3_floor", f"compile={str(compiled).lower()}"]
     with bench_job(overrides, device) as (trainer, job):
-        online = phase(trainer, "actor")
+        online = phase(trainer, "continuing_td")
         state = online.fresh_state(job)
         seconds = []
         for _ in range(2):

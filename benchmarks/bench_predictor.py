@@ -42,7 +42,7 @@ def training_data(runs: int, device: str):
     with bench_job([f"experiment={EXPERIMENT}", f"n_runs={runs}"], device) as (trainer, job):
         phase(trainer, "collect").run(job, None)
     training = phase(trainer, "predictors")
-    train = job.shared["episodes"]["train"]
+    train = job.outputs.episodes.train
     trainable = train.lengths[0] <= job.env.optimal_steps + training.l_training - 1
     fit = train.select(torch.nonzero(trainable).squeeze(1).expand(runs, -1))
     predictor = job.predictors["joint"]

@@ -101,11 +101,11 @@ def predictor_flops(experiment: str, cfg, predictors: dict, Y: int, A: int) -> f
         if not collect:  # online training: its replay steps are not counted here
             return float("nan")
         collect[0].run(job, None)
-        data = job.shared["episodes"]
+        data = job.outputs.episodes
         T_max_train = job.env.optimal_steps + phase(trainer, "predictors").l_training - 1
-        train = data["train"].lengths.cpu().numpy()
+        train = data.train.lengths.cpu().numpy()
         trained = train[train <= T_max_train]
-        every = np.concatenate([train.ravel(), data["test"].lengths.cpu().numpy().ravel()])
+        every = np.concatenate([train.ravel(), data.test.lengths.cpu().numpy().ravel()])
     total = 0.0
     for p in predictors.values():
         M, O = p["memory_size"], outputs(p, Y)

@@ -37,6 +37,8 @@ EPISODIC = SeedOffsets(actor=100_000)
 # maze built for a job (the training one, the single-run views of ferl.envs.gym) draws the same.
 # (Equal to ``SeedOffsets.env``: a digit maze takes no ``seed``, so the two never meet.)
 IMAGE_NOISE = 300_000
+# what a trainer's config calls them (conf/trainer/*.yaml: seed_offsets)
+NAMED_OFFSETS = {"episodic": EPISODIC, "continuing": CONTINUING}
 
 SEED_BOUND = 2 ** 62  # child seeds are drawn from [0, SEED_BOUND)
 

@@ -1,7 +1,8 @@
 """The architecture's rules (docs/architecture.md), checked on the code: ferl's own components meet
-the protocols of ferl/interfaces.py, and imports follow the data flow — models never import
-trainers or analysis, trainers never import each other, analysis imports no model, and ferl never
-imports the dissertation's analysis (reproduction/), which plugs into ferl's."""
+the protocols of ferl/interfaces.py, imports follow the data flow — models never import
+trainers or analysis, analysis imports no model, and ferl never imports the dissertation's analysis
+(reproduction/), which plugs into ferl's — and a trainer is written in config: its phases, not a
+class of its own."""
 import ast
 from pathlib import Path
 
@@ -22,7 +23,6 @@ from test_digit_floor import tiny_split
 FERL = ROOT / "ferl"
 REPRODUCTION = ROOT / "reproduction"
 MODELS = ("envs", "preprocessors", "predictors", "actors")
-TRAINERS = ("floor", "algorithm")  # the procedures; the phases and the job are what they share
 
 
 def test_components_meet_their_protocols():
@@ -71,10 +71,21 @@ def test_models_import_no_trainer_and_no_analysis(package):
         assert not bad, (path, bad)
 
 
-def test_trainers_never_import_each_other():
-    for name in TRAINERS:
-        bad = {n for n in imports(FERL / "trainers" / f"{name}.py") if n.rsplit(".", 1)[-1] in TRAINERS}
-        assert not bad, (name, bad)
+def test_every_trainer_is_written_in_config():
+    """Every conf/trainer option builds the one trainer class, PhasedTrainer, from its phases; no
+    module of ferl/ defines another procedure in Python (a class with fit, or a PhasedTrainer's subclass)."""
+    for path in (ROOT / "conf" / "trainer").glob("*.yaml"):
+        text = path.read_text()
+        assert "_target_: ferl.trainers.phased.PhasedTrainer" in text or "\n  - algorithm1\n" in text \
+            or "\n  - online\n" in text, path
+    for path in FERL.rglob("*.py"):
+        tree = ast.parse(path.read_text())
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ClassDef):
+                bases = {b.id if isinstance(b, ast.Name) else getattr(b, "attr", "") for b in node.bases}
+                methods = {f.name for f in node.body if isinstance(f, ast.FunctionDef)}
+                is_trainer = "PhasedTrainer" in bases or ({"setup", "fit"} <= methods and "Protocol" not in bases)
+                assert not is_trainer or node.name == "PhasedTrainer", (path, node.name)
 
 
 def test_analysis_reads_records_not_models():

@@ -254,10 +254,13 @@ def test_the_continuing_td_phase_refuses_an_actor_that_learns_only_from_episodes
     from types import SimpleNamespace
 
     from ferl.config.params import ConfigError
-    from ferl.trainers.online import OnlineTD
-    job = SimpleNamespace(actor=DRQNActor(R, S, NA, H, 0.9, **schedules()), env=SimpleNamespace(task="floor"), R=R)
+    from ferl.trainers.continuing_td import ContinuingTD
+    from ferl.trainers.phased import RunControl
+    job = SimpleNamespace(actor=DRQNActor(R, S, NA, H, 0.9, **schedules()), env=SimpleNamespace(task="floor"), R=R,
+                          control=RunControl(log_every=5, checkpoint_every=5, checkpoint_minutes=0.0,
+                                             divergence_limit=1e6))
     with pytest.raises(ConfigError, match=r"^actor=drqn learns from whole episodes, and the continuing task floor"):
-        OnlineTD(10, 5, 5, 0.0, 1, 0).prepare(job)
+        ContinuingTD(10, 1, 0).prepare(job)
 
 
 def test_an_actor_without_the_logging_views_records_no_hidden_activations():

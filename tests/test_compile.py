@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from conftest import train_job
-from ferl.trainers import chunks, online
+from ferl.trainers import chunks, continuing_td
 from ferl.trainers.chunks import chunk_length
 
 TINY = ["n_runs=3", "trainer.steps=480", "trainer.log_every=160", "trainer.checkpoint_every=160",
@@ -52,10 +52,10 @@ def test_prefetched_random_numbers_change_no_run(compose_cfg, tmp_path, monkeypa
     runs: the same draws in the same order, so every run is bit-identical to drawing in turn."""
     monkeypatch.setattr(chunks, "MAX_CHUNK", 4)  # many chunks, so many prefetches
     threads = []
-    draw = online.OnlineTD.chunk_inputs
-    monkeypatch.setattr(online.OnlineTD, "chunk_inputs",
+    draw = continuing_td.ContinuingTD.chunk_inputs
+    monkeypatch.setattr(continuing_td.ContinuingTD, "chunk_inputs",
                         lambda self, env: threads.append(threading.current_thread().name) or draw(self, env))
-    many = f"n_runs={online.PREFETCH_MIN_RUNS}"  # fewer runs draw in turn anyway
+    many = f"n_runs={continuing_td.PREFETCH_MIN_RUNS}"  # fewer runs draw in turn anyway
     prefetched = run(compose_cfg, tmp_path, "prefetched", many, "trainer.prefetch=3")
     assert threads and all(name.startswith("ferl-random") for name in threads)
     threads.clear()

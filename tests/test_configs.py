@@ -12,6 +12,7 @@ from omegaconf import OmegaConf
 from conftest import EXPERIMENTS, ROOT, run_train
 from ferl.config.hydra_glue import condense_hydra_error
 from ferl.config.params import ConfigError, check_node, target
+from ferl.config.swaps import settings_read
 from ferl.config.validate import validate
 from ferl.data import DataError
 from ferl.trainers.job import Job, SeedOffsets
@@ -29,8 +30,8 @@ def test_experiment_composes_validates_and_builds(compose_cfg, name):
     assert cfg.name == (name if name != "none" else "digit_floor")  # none: the groups' defaults, named by the env
     validate(cfg)
     # built as its trainer builds it: every component checked against its protocol (ferl/trainers/facts.py)
-    job = Job(cfg, torch.device("cpu"), SeedOffsets(), cfg.trainer.divergence_limit,
-              target(cfg.trainer._target_).environment)
+    trainer = instantiate(cfg.trainer)
+    job = Job(cfg, torch.device("cpu"), SeedOffsets(), trainer.control, trainer.environment)
     # the actor's state: the (processed) observation, as the preprocessor reports it, and every predictor's memory
     n_obs = job.preprocessor.output_size if cfg.get("preprocessor") else job.env.observation_size
     n_state = n_obs + sum(p.n_memory for p in (cfg.get("predictor") or {}).values())
@@ -58,6 +59,8 @@ def test_every_option_file_is_its_constructors_signature():
     files = [p for p in (ROOT / "conf").glob("*/*.yaml") if p.parent.name not in ("experiment", "hparams_search")]
     assert len(files) >= 12
     for path in files:
+        if path.parent.name == "trainer":
+            continue  # phases that read the trainer's settings: composed below
         own = OmegaConf.load(path)
         # an option that extends another of its group (trainer/algorithm2_pixel → algorithm1)
         bases = [OmegaConf.load(path.parent / f"{d}.yaml") for d in own.get("defaults", []) if d != "_self_"]
@@ -70,6 +73,28 @@ def test_every_option_file_is_its_constructors_signature():
                 assert name in ("env",), f"{path}: a global option may set keys of the env only"
                 continue  # actor/oracle's env.true_state: a key of another group's constructor
             check_node(part, f"{path.parent.name}.")
+
+
+@pytest.mark.parametrize("name", sorted(p.stem for p in (ROOT / "conf" / "trainer").glob("*.yaml")))
+def test_every_trainer_is_phases_and_a_run_node(compose_cfg, name):
+    """Each trainer option is the phased trainer: its phases (each a target with its own keys), the
+    run node every trainer shares, and settings that users override, each read by a phase or the
+    run node: nothing else, and no setting that nothing reads."""
+    cfg = compose_cfg(["experiment=none", f"trainer={name}"])
+    node = cfg.trainer
+    assert node._target_ == "ferl.trainers.phased.PhasedTrainer"
+    assert node.run._target_ == "ferl.trainers.phased.RunControl" and node.phases
+    fixed = {"_target_", "phases", "run", "kind", "environment", "seed_offsets"}
+    assert settings_read(node, "trainer") == set(node) - fixed
+    check_node(OmegaConf.to_container(node, resolve=True), "trainer.")  # every phase against its target
+
+
+def test_a_setting_that_no_phase_reads_is_refused(compose_cfg):
+    cfg = compose_cfg(["experiment=table4_1_matching", "+trainer.n_episode=5"])
+    HydraConfig.instance().set_config(cfg)
+    with pytest.raises(ConfigError, match=r"^trainer.n_episode is not allowed: no phase reads it; trainer takes "
+                                          r"actor_obs_scale, checkpoint_every, collect_batch, "):
+        validate(cfg)
 
 
 def test_table_4_1_and_4_2_parameters(compose_cfg):
@@ -182,7 +207,7 @@ VALUE_ERRORS = [
     ("experiment=table4_2_digit ~env.digit_classes.corridor", "env.digit_classes.corridor"),
     ("experiment=table4_1_matching predictor.joint.n_memory=0", "predictor.joint.n_memory"),
     ("experiment=table4_1_matching trainer.train_fraction=1.0", "trainer.train_fraction"),
-    ("experiment=table4_1_matching trainer.checkpoint_every_epochs=0", "trainer.checkpoint_every_epochs"),
+    ("experiment=table4_1_matching trainer.phases.predictors.checkpoint_every_epochs=0", "trainer.phases.predictors.checkpoint_every_epochs"),
     ("experiment=table4_2_digit trainer.actor_obs_scale=0", "trainer.actor_obs_scale"),
     ("experiment=table5_1_pixel preprocessor.cd_k=0", "preprocessor.cd_k"),
     ("experiment=table5_1_pixel preprocessor.n_hidden=0", "preprocessor.n_hidden"),

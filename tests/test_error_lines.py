@@ -123,7 +123,7 @@ def test_signal_checkpoints_one_line_and_resumes(tmp_path, floor_whole, sig):
     assert len(lines) == 1 and "Traceback" not in err, err[-3000:]
     step = checkpointed_step(cut)
     assert 0 < step < 8000
-    assert lines[0] == (f"ferl: interrupted by {signal.Signals(sig).name} at phase 'actor', step {step}: checkpoint "
+    assert lines[0] == (f"ferl: interrupted by {signal.Signals(sig).name} at phase 'continuing_td', step {step}: checkpoint "
                         f"written to {cut / 'checkpoints'}; resume=true hydra.run.dir={cut} continues")
     result = run_train(*FLOOR, "resume=true", f"hydra.run.dir={cut}")
     assert result.returncode == 0, result.stderr[-2000:]

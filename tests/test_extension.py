@@ -18,7 +18,7 @@ from toy_components import CueEnv, TracePredictor
 
 TESTS = Path(__file__).resolve().parent
 TOY = [f"hydra.searchpath=[file://{TESTS / 'toy' / 'conf'}]", "experiment=toy_cue"]
-NAMES = ("toy_components", "CueEnv", "TracePredictor", "toy_cue", "toy_trace")
+NAMES = ("toy_components", "CueEnv", "TracePredictor", "toy_cue", "toy_trace", "toy_phases", "ActorWeightNorm")
 
 
 @pytest.fixture(scope="module")
@@ -85,3 +85,22 @@ def test_nothing_in_ferl_names_the_toys():
             assert not any(name in text for name in NAMES), path
     for path in (ROOT / "conf").rglob("*.yaml"):
         assert not any(name in path.read_text() for name in NAMES), path
+
+
+def test_a_phase_from_tests_is_inserted_by_yaml_alone(tmp_path):
+    """tests/toy/conf/trainer/toy_weight_norm.yaml adds tests/toy_phases.py's ActorWeightNorm to
+    Algorithm 1's phases; train.py runs it after the actor phase, and its metric is the 1-norm of
+    the trained actor's state weights, as the final checkpoint holds them (computed here in NumPy)."""
+    from ferl.run import checkpoint
+
+    run_dir = tmp_path / "run"
+    result = run_train(*TOY, "trainer=toy_weight_norm", "trainer.n_epoch=2", "trainer.n_episodes=60",
+                       "trainer.log_every=20", "trainer.td_sample_every=20", "trainer.final_window=20",
+                       "compile=false", f"hydra.run.dir={run_dir}", env={**os.environ, "PYTHONPATH": str(TESTS)})
+    assert result.returncode == 0, result.stderr[-3000:]
+    manifest = json.loads((run_dir / "records" / "run.json").read_text())
+    assert manifest["trainer"]["phases"] == ["collect", "predictors", "actor", "weight_norm"]
+    norms = json.loads((run_dir / "summary.json").read_text())["metrics"]["actor_weight_norm"]
+    W = checkpoint.read(run_dir / "checkpoints" / "last.pt").state()["actor"]["W_sh"].numpy().astype(np.float64)
+    assert norms == pytest.approx(np.abs(W).reshape(len(W), -1).sum(1), rel=1e-5)
+    assert len(norms) == 2 and norms[0] != norms[1]  # the trained weights of each run

@@ -31,7 +31,7 @@ from ferl.run import checkpoint
 from ferl.run.checkpoint import CheckpointError, RunIdentity
 
 TMAZE = ["experiment=table4_1_regular", "n_runs=2", "trainer.n_sample=200", "trainer.n_epoch=20",
-         "trainer.checkpoint_every_epochs=5", "trainer.n_episodes=300", "trainer.checkpoint_every=100",
+         "trainer.phases.predictors.checkpoint_every_epochs=5", "trainer.n_episodes=300", "trainer.checkpoint_every=100",
          "trainer.log_every=100"]  # checkpoints after episodes 100 and 200 and after the actor phase
 PIXEL = ["experiment=table5_1_pixel", "n_runs=2", "env.reservoir_size=5", "preprocessor.sweeps=20",
          "trainer.n_sample=200", "trainer.n_epoch=2", "trainer.n_episodes=50", "trainer.log_every=25",

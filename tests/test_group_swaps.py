@@ -80,7 +80,7 @@ def test_a_swapped_schedule_is_the_experiments():
 @pytest.mark.parametrize("overrides,message", [
     # a key the user typed is never dropped: refused as without a swap, naming the key
     (["experiment=ch3_floor", "trainer=online_td", "+trainer.n_sample=5"],
-     "trainer.n_sample is not allowed: OnlineTDTrainer takes"),
+     "trainer.n_sample is not allowed: no phase reads it; trainer takes checkpoint_every, compile_group_runs, "),
     (["experiment=table4_2_digit", "predictor=separate", "predictor.joint.c_y=0.5"],
      "predictor.joint.c_y=0.5 is not allowed: expected a component"),
 ])
@@ -113,7 +113,7 @@ def test_a_refusal_names_the_trainer_the_user_chose(trainer):
     (["~experiment"], "ferl: error: ~experiment is not allowed: a run is named by its experiment; "
                       "experiment=none runs without one"),
     (["experiment=ch3_floor", "trainer=online"],
-     "ferl: error: trainer=online does not fit experiment=ch3_floor: OnlineAlgorithm trains on episodes, "
+     "ferl: error: trainer=online does not fit experiment=ch3_floor: its phases train on episodes, "
      "and env=digit_floor (DigitFloor) is a continuing task"),
 ])
 def test_train_py_refuses_in_one_line(tmp_path, overrides, line):

@@ -98,14 +98,14 @@ def test_submitit_local_job_array(tmp_path, direct):
         assert job_dir.parent == sweep and job_return.hydra_cfg.hydra.job.id == job_id
         log = (folder / f"{job_id}_0_log.out").read_text()
         assert f"summary:     {job_dir / 'summary.json'}" in log and "Job completed successfully" in log
-        assert "actor: 100%" in (folder / f"{job_id}_0_log.err").read_text()  # the progress bar
+        assert "continuing_td: 100%" in (folder / f"{job_id}_0_log.err").read_text()  # the progress bar
         done.add(job_dir.name)
     assert done == {f"{n}_ch3_floor" for n in range(len(SEEDS))}
 
 
 def checkpointed_step(job_dir: Path) -> int:
     progress = checkpoint.read(job_dir / "checkpoints" / "last.pt").state()["progress"]
-    return (progress["partial"].get("actor") or {}).get("step", 0)
+    return (progress["partial"].get("continuing_td") or {}).get("step", 0)
 
 
 def test_submitit_timeout_checkpoints_and_the_resubmitted_job_ends_as_uninterrupted(tmp_path, direct):

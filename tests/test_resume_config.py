@@ -16,7 +16,7 @@ from ferl.run.checkpoint import RunIdentity
 from ferl.run.resume import ALLOWED, apply_overrides, resumed_run
 
 TMAZE = ["experiment=table4_1_regular", "n_runs=2", "trainer.n_sample=200", "trainer.n_epoch=20",
-         "trainer.checkpoint_every_epochs=5", "trainer.n_episodes=300", "trainer.checkpoint_every=100",
+         "trainer.phases.predictors.checkpoint_every_epochs=5", "trainer.n_episodes=300", "trainer.checkpoint_every=100",
          "trainer.log_every=100"]
 
 
@@ -74,9 +74,9 @@ def test_a_key_the_run_does_not_have_is_a_change(tmp_path):
 
 def test_allowed_keys_are_applied(tmp_path):
     run = saved_run(tmp_path)
-    cfg = resumed_run(run, ["cpu_threads=2", "device=cpu", "trainer.checkpoint_minutes=0.5",
-                            "trainer.checkpoint_every_epochs=2", "memory_check=false"], cpu).config
-    assert (cfg.cpu_threads, cfg.device, cfg.trainer.checkpoint_minutes, cfg.trainer.checkpoint_every_epochs,
+    cfg = resumed_run(run, ["cpu_threads=2", "device=cpu", "trainer.run.checkpoint_minutes=0.5",
+                            "trainer.phases.predictors.checkpoint_every_epochs=2", "memory_check=false"], cpu).config
+    assert (cfg.cpu_threads, cfg.device, cfg.trainer.run.checkpoint_minutes, cfg.trainer.phases.predictors.checkpoint_every_epochs,
             cfg.memory_check) == (2, "cpu", 0.5, 2, False)
 
 

@@ -17,7 +17,7 @@ from test_train_cli import summary
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ["experiment=table4_1_matching", "n_runs=2", "trainer.n_sample=200", "trainer.n_epoch=60",
-        "trainer.error_every=5", "trainer.checkpoint_every_epochs=5", "trainer.n_episodes=1500",
+        "trainer.error_every=5", "trainer.phases.predictors.checkpoint_every_epochs=5", "trainer.n_episodes=1500",
         "trainer.checkpoint_every=100", "trainer.log_every=100"]
 
 

@@ -11,7 +11,7 @@ import torch
 
 from conftest import ROOT, TINY, assert_same_tb_log, eager, run_train
 from ferl.run import checkpoint
-from ferl.trainers.online import PREFETCH_MIN_RUNS
+from ferl.trainers.continuing_td import PREFETCH_MIN_RUNS
 
 
 def summary(run_dir):
@@ -104,7 +104,7 @@ def checkpointed_step(run_dir) -> int:
         progress = checkpoint.read(run_dir / "checkpoints" / "last.pt").state()["progress"]
     except checkpoint.CheckpointError:  # not written yet
         return 0
-    return (progress["partial"].get("actor") or {}).get("step", 0)
+    return (progress["partial"].get("continuing_td") or {}).get("step", 0)
 
 
 def interrupt_and_resume(tmp_path, args: list, steps: int, sig: int, expected_code: int,
@@ -146,11 +146,11 @@ def test_large_action_task_resumes_equal_to_uninterrupted(tmp_path):
 
 
 def test_kill_9_resumes_from_a_checkpoint_the_clock_wrote(tmp_path):
-    """No step count reaches checkpoint_every inside the run: only trainer.checkpoint_minutes
+    """No step count reaches checkpoint_every inside the run: only trainer.run.checkpoint_minutes
     writes checkpoints. kill -9 (no handler) leaves the last one intact, and the resumed run
     ends as an uninterrupted one."""
     args = [*TINY, "trainer.steps=8000", "trainer.checkpoint_every=1000000", "trainer.log_every=500",
-            "trainer.checkpoint_minutes=0.002"]
+            "trainer.run.checkpoint_minutes=0.002"]
     interrupt_and_resume(tmp_path, args, 8000, signal.SIGKILL, -signal.SIGKILL, settle=0.3)
 
 

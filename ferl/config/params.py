@@ -170,6 +170,9 @@ def check_arguments(fn, values: dict, prefix: str = "") -> None:
             raise ConfigError(f"{prefix}{key} is not allowed: {getattr(fn, '__name__', fn)} takes {', '.join(params)}")
         if isinstance(value, dict) and "_target_" in value:
             check_node(value, f"{prefix}{key}.")
+        elif components(value):  # a map of components (a trainer's phases): each against its target
+            for name, part in value.items():
+                check_node(part, f"{prefix}{key}.{name}.")
         elif key in hints and not conforms(value, hints[key]):
             where, value, annotation = entry_at_fault(key, value, hints[key])
             raise ConfigError(f"{prefix}{where}={value!r} is not allowed: expected {describe(annotation)}")
@@ -182,6 +185,12 @@ def check_arguments(fn, values: dict, prefix: str = "") -> None:
         except ArgumentError as e:
             shown = f"={args[e.key]!r}" if e.key in args else ""
             raise ConfigError(f"{prefix}{e.key}{shown} is not allowed: {e.expected}") from None
+
+
+def components(value) -> bool:
+    """Whether ``value`` is a non-empty map of component nodes (each with a ``_target_``)."""
+    return isinstance(value, dict) and bool(value) and all(isinstance(v, dict) and "_target_" in v
+                                                           for v in value.values())
 
 
 def target(path: str):

@@ -29,7 +29,16 @@ from ferl.config.params import (
     signature,
     target,
 )
-from ferl.config.swaps import check_fit, drop_foreign_keys, hydra_node, pair, swapped_groups, typed_values
+from ferl.config.swaps import (
+    check_fit,
+    check_settings,
+    drop_foreign_keys,
+    hydra_node,
+    pair,
+    setting_named,
+    swapped_groups,
+    typed_values,
+)
 
 DEVICES = ("auto", "cpu", "cuda")
 
@@ -64,9 +73,10 @@ def validate(cfg: DictConfig) -> None:
     try:
         for key, node in values.items():
             if key not in ROOT_KEYS:
+                check_settings(cfg, key)
                 check_tree(node, key)
     except ConfigError as e:
-        raise blamed_on_swap(e, hydra) from None
+        raise blamed_on_swap(setting_named(e, cfg), hydra) from None
     check_fit(values, hydra)
     if values.get("device") == "cuda" and not torch.cuda.is_available():
         raise ConfigError("device=cuda but no CUDA device is available: use device=auto or device=cpu")

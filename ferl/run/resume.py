@@ -37,9 +37,9 @@ ALLOWED = {
                    "(tested: a resume on 2 threads ends as the 1-thread run)",
     "memory_check": "whether the memory estimate is checked before the run starts",
     "optimized_metric": "which summary.json metric main() returns to a sweeper",
-    "trainer.checkpoint_minutes": "checkpoints by the clock: a checkpoint at any step or episode leaves the numbers "
+    "trainer.run.checkpoint_minutes": "checkpoints by the clock: a checkpoint at any step or episode leaves the numbers "
                                   "as they are (tests/test_train_cli.py, tests/test_tmaze_resume.py)",
-    "trainer.checkpoint_every_epochs": "the predictor phase's checkpoint interval, likewise",
+    "trainer.phases.predictors.checkpoint_every_epochs": "the predictor phase's checkpoint interval, likewise",
     "preprocessor.cache_dir": "where fitted preprocessors are cached: a hit gives the weights a fit gives",
 }
 ABSENT = "(absent)"

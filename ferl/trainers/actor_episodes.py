@@ -13,12 +13,15 @@ count towards ``solved``) and the activations at its ``probe`` states with its `
 (``probe.npz``: the T-junction in the T-mazes, Figs. 4.14–4.19; named for what every episodic
 environment may declare, docs/records.md).
 """
+from typing import NamedTuple
+
 import numpy as np
 import torch
 from tqdm import tqdm
 
 from ferl.actors.td import first_action, td_step
 from ferl.compiled import compiled, run_clock
+from ferl.config.params import Positive, PositiveInt
 from ferl.images import IMAGE_SIDE, matrix_image, tile, weight_images
 from ferl.interfaces import ActorViews, EndedEpisode
 from ferl.predictors.heads import scaled
@@ -27,6 +30,7 @@ from ferl.run.directory import CheckpointTimer
 from ferl.run.tensorboard import log_embedding, log_weights
 from ferl.stats import final_metrics, sample_efficiency
 from ferl.trainers.episodes import discount_factors, discounted_return, observation_table
+from ferl.trainers.observations import log_observations
 from ferl.trainers.phased import Phase
 
 EMBEDDED_PROBES = 2000  # run 0's last probe visits in the projector (docs/records.md)
@@ -34,19 +38,23 @@ EMBEDDED_PROBES = 2000  # run 0's last probe visits in the projector (docs/recor
 
 class ActorEpisodes(Phase):
     """``n_episodes`` SARSA(0) episodes (α, β by the actor's schedules over the episodes), logged
-    every ``log_every`` episodes, checkpointed every ``checkpoint_every`` (and by the clock);
-    every ``td_sample_every``-th episode keeps its per-step TD errors; the metrics are taken over
-    the last ``final_window`` episodes."""
+    every ``log_every`` episodes, checkpointed every ``checkpoint_every`` (and by the clock, every
+    ``checkpoint_minutes``; these three from the trainer's run node, ``job.control``); every
+    ``td_sample_every``-th episode keeps its per-step TD errors; the metrics are taken over the
+    last ``final_window`` episodes. The actor's observation is scaled by ``actor_obs_scale``."""
 
-    name = "actor"
-
-    def __init__(self, n_episodes: int, actor_obs_scale: float, log_every: int, td_sample_every: int,
-                 final_window: int, checkpoint_every: int, checkpoint_minutes: float):
-        self.N, self.obs_scale, self.log_every = n_episodes, actor_obs_scale, log_every
+    def __init__(self, n_episodes: PositiveInt, actor_obs_scale: Positive, td_sample_every: PositiveInt,
+                 final_window: PositiveInt):
+        self.N, self.obs_scale, self.last_step = n_episodes, actor_obs_scale, n_episodes
         self.td_sample_every, self.final_window = td_sample_every, final_window
-        self.checkpoint_every, self.checkpoint_minutes = checkpoint_every, checkpoint_minutes
+
+    def start(self, job) -> None:
+        log_observations(job)
 
     def prepare(self, job) -> None:
+        control = job.control
+        self.log_every, self.checkpoint_every, self.checkpoint_minutes = (
+            control.log_every, control.checkpoint_every, control.checkpoint_minutes)
         steps = job.env.max_steps + 1  # an episode's action draws: a_0 … a_{T_max}
         self.uniforms = Blocks(
             lambda n: (torch.rand(n, steps, job.R, 1, 1, generator=job.generator, device=job.device),),
@@ -96,7 +104,7 @@ class ActorEpisodes(Phase):
             outcome = episode["outcome"].cpu().numpy()  # one host copy per episode
             for i, key in enumerate(self.outcome_names):
                 records[key][:, k] = outcome[i]
-            state["agent_steps"] += int(outcome[1].sum())
+            state["agent_steps"] += int(records["steps"][:, k].sum())
             if episode["probes"] is not None:
                 probes.append(episode["probes"])
             if k % self.td_sample_every == 0:
@@ -177,7 +185,8 @@ class ActorEpisodes(Phase):
             ep = self.fused(job, torch.tensor(lr, device=job.device),
                             torch.as_tensor(beta, dtype=torch.float32, device=job.device), uniform, False)
         job.actor.end_episode(self.ended_episode(job, ep), lr)
-        return {"outcome": ep["outcome"], "td": torch.where(ep["actives"], ep["deltas"], torch.nan),
+        return {"outcome": ep["outcome"], "lengths": ep["lengths"].clone(),
+                "td": torch.where(ep["actives"], ep["deltas"], torch.nan),
                 "probes": self.probe_visits(job, k, ep), "trajectory": (ep["obs"], ep["actions"], ep["rewards"])}
 
     def episode(self, job, lr, beta, uniform, until_done: bool) -> dict:
@@ -195,11 +204,11 @@ class ActorEpisodes(Phase):
         memories = [p.memory(x) for p, x in zip(predictors, m)]
         s = self.state(job, env.obs_id, memories)
         a, F_sa, x_sa = first_action(actor, s, beta, job.generator, uniform[0])
-        visits, out, obs = [], [], [env.obs_id]
+        record, obs = [], [env.obs_id]
         terminated_any = torch.zeros_like(env.done)
         for t in range(env.max_steps):
             active = ~env.done
-            visits.append((env.probe & active, active, *memories, s[:, 0], x_sa[:, 0]))
+            visit = (env.probe & active, active, tuple(memories), s[:, 0], x_sa[:, 0])  # before the step
             obs_prev, action = env.obs_id, a.squeeze(1)
             r, terminated, _ = env.advance(action)
             terminated_any = terminated_any | terminated
@@ -211,25 +220,24 @@ class ActorEpisodes(Phase):
             a, F_sa, x_sa, delta = td_step(actor, s, a, F_sa, x_sa, r if bonus is None else r + bonus, s_next,
                                            lr, beta, job.generator, uniform[t + 1],
                                            job.guard.alive, (terminated | ~active).unsqueeze(1), active.unsqueeze(1))
-            out.append((action, r, delta.squeeze(1)))
+            record.append(Step(*visit, action, r, delta.squeeze(1)))
             s = s_next
             if until_done and bool(env.done.all()):
                 break
-        visits = [torch.stack(v) for v in zip(*visits)]
-        actions, rewards, deltas = (torch.stack(v) for v in zip(*out))
-        steps = env.t
-        outcome = torch.stack([
-            discounted_return(self.discounts, rewards),  # done runs got r = 0
-            steps.float(), rewards.gather(0, (steps - 1).unsqueeze(0)).squeeze(0),  # terminal reward
-            deltas.abs().sum(0) / steps.clamp(min=1), *(v.float() for v in env.outcomes().values())])
-        return {"probes": visits[0], "actives": visits[1], "memories": visits[2:-2], "states": visits[-2],
-                "caches": visits[-1], "actions": actions, "rewards": rewards, "deltas": deltas,
-                "obs": torch.stack(obs), "last_state": s, "terminated": terminated_any, "outcome": outcome}
+        ep, steps = stacked(record), env.t
+        outcome = torch.stack([  # in the order of outcome_names
+            discounted_return(self.discounts, ep.reward),  # done runs got r = 0
+            steps.float(), ep.reward.gather(0, (steps - 1).unsqueeze(0)).squeeze(0),  # terminal reward
+            ep.delta.abs().sum(0) / steps.clamp(min=1), *(v.float() for v in env.outcomes().values())])
+        return {"probes": ep.probe, "actives": ep.active, "memories": ep.memories, "states": ep.state,
+                "caches": ep.cache, "actions": ep.action, "rewards": ep.reward, "deltas": ep.delta,
+                "obs": torch.stack(obs), "last_state": s, "terminated": terminated_any, "outcome": outcome,
+                "lengths": steps}
 
     def ended_episode(self, job, ep: dict) -> EndedEpisode:
         """The episode that ``episode`` played, as the actor's ``end_episode`` takes it (laid out
         per run only where the actor asks, ``EndedEpisode.padded``: most actors learn per step)."""
-        return EndedEpisode(ep["states"], ep["last_state"], ep["actions"], ep["rewards"], job.env.t, ep["terminated"],
+        return EndedEpisode(ep["states"], ep["last_state"], ep["actions"], ep["rewards"], ep["lengths"], ep["terminated"],
                             job.env.max_steps)
 
     def probe_visits(self, job, k: int, ep: dict) -> dict | None:
@@ -262,8 +270,10 @@ class ActorEpisodes(Phase):
         job.run.save_records("probe", job.R, **probes)
         self.log_probes(job, probes, records)
         job.metrics.update(final_metrics(records, self.optimum, self.final_window, self.rates, self.averages))
-        job.metrics.update(sample_efficiency(records, job.shared.get("random_steps", np.zeros(job.R, np.int64)),
-                                             self.optimum, self.final_window, self.rates))
+        random_steps = job.outputs.random_steps  # None: no random collection before
+        if random_steps is None:
+            random_steps = np.zeros(job.R, np.int64)
+        job.metrics.update(sample_efficiency(records, random_steps, self.optimum, self.final_window, self.rates))
         job.count_agent_steps(state["agent_steps"], state["active_time"])
 
     def log_actor(self, job, step: int) -> None:
@@ -298,6 +308,26 @@ class ActorEpisodes(Phase):
             writer.add_scalar(f"actor/{name}_ma{self.final_window}", float(records[name][:, window].mean()), done)
         writer.add_scalar("schedule/learning_rate", lr, done)
         writer.add_scalar("schedule/beta", beta, done)
+
+
+class Step(NamedTuple):
+    """One step of an episode of every run, as ``ActorEpisodes.episode`` keeps it (a NamedTuple, so
+    that it traces under torch.compile in the fused episode); ``stacked`` over the steps, each field
+    gains a leading step axis."""
+    probe: torch.Tensor    # (R,) bool: at a probe state, the run's episode on
+    active: torch.Tensor   # (R,) bool: the run's episode on
+    memories: tuple        # every predictor's memory m_t, (R, M) each
+    state: torch.Tensor    # (R, S) the actor's state s_t
+    cache: torch.Tensor    # (R, ·) the actor's cache of (s_t, a_t)
+    action: torch.Tensor   # (R,) a_t
+    reward: torch.Tensor   # (R,) the raw reward r_(t+1)
+    delta: torch.Tensor    # (R,) the TD error δ_t
+
+
+def stacked(steps: list[Step]) -> Step:
+    """The steps of an episode as one ``Step`` whose fields are stacked over the steps (steps, R, …)."""
+    return Step(*(tuple(torch.stack(m) for m in zip(*field)) if isinstance(field[0], tuple) else torch.stack(field)
+                  for field in zip(*steps)))
 
 
 def concat_records(parts: list) -> dict:

@@ -11,6 +11,7 @@ import math
 import sys
 from concurrent.futures import Future
 from contextlib import contextmanager
+from typing import NamedTuple
 
 import torch
 
@@ -20,13 +21,27 @@ from ferl.compiled import compiled
 MAX_CHUNK = 16  # steps per call of td_steps (a divisor of the logging and checkpoint intervals)
 
 
+class TDChunk(NamedTuple):
+    """What a chunk of K TD steps hands back (a NamedTuple, so it traces under torch.compile): the
+    state, action, its free energy and cache after the chunk, and every step's rewards and TD errors."""
+    s: torch.Tensor        # (R, 1, S)
+    a: torch.Tensor        # (R, 1)
+    F_sa: torch.Tensor     # (R, 1)
+    x_sa: torch.Tensor     # (R, 1, ·)
+    rewards: torch.Tensor  # (K, R)
+    deltas: torch.Tensor   # (K, R)
+
+
+RUN_AXIS = TDChunk(s=0, a=0, F_sa=0, x_sa=0, rewards=1, deltas=1)  # where each field holds the runs
+
+
 def td_steps(actor, env, generator, s, a, F_sa, x_sa, alive, lrs, betas, uniforms, *inputs):
     """len(lrs) online TD steps of every run (``td_step``, §3.2); step k uses α = lrs[k],
     β = betas[k], the action uniforms (R, 1, 1) and the environment's random inputs of index k
     (``env.step_inputs``; Gibbs action selection draws from ``generator`` instead, and is not compiled).
 
     s (R, 1, S), a (R, 1), F_sa (R, 1), x_sa (R, 1, ·): the state, action, its free energy and
-    cache before the chunk; returns them after it, with rewards and TD errors (K, R).
+    cache before the chunk; returns them after it, with rewards and TD errors (K, R): a ``TDChunk``.
     Runs with ``alive`` False (R, 1) keep their parameters (the divergence guard).
     """
     rewards, deltas = [], []
@@ -38,7 +53,7 @@ def td_steps(actor, env, generator, s, a, F_sa, x_sa, alive, lrs, betas, uniform
         rewards.append(r)
         deltas.append(delta.squeeze(1))
         s = s_next
-    return s, a, F_sa, x_sa, torch.stack(rewards), torch.stack(deltas)
+    return TDChunk(s, a, F_sa, x_sa, torch.stack(rewards), torch.stack(deltas))
 
 
 def td_steps_by_groups(steps, groups: list[slice]):
@@ -50,8 +65,7 @@ def td_steps_by_groups(steps, groups: list[slice]):
     def by_groups(actor, env, generator, s, a, F_sa, x_sa, alive, lrs, betas, uniforms, *inputs):
         parts = [steps(actor.slice_runs(g), env.slice_runs(g), generator, s[g], a[g], F_sa[g], x_sa[g], alive[g],
                        lrs, betas, uniforms[:, g], *(x[:, g] for x in inputs)) for g in groups]
-        # s, a, F_sa, x_sa carry the runs first, rewards and TD errors (K, R) second
-        return tuple(torch.cat(outs, 0 if i < 4 else 1) for i, outs in enumerate(zip(*parts)))
+        return TDChunk(*(torch.cat(outs, axis) for outs, axis in zip(zip(*parts), RUN_AXIS)))
     return by_groups
 
 

@@ -10,11 +10,13 @@ rewards (R, N, T_max), lengths (R, N) — the same N for every run, so training 
 An id stands for the (processed) observation in ``ObservationTable``.
 """
 from dataclasses import dataclass
+from typing import Annotated
 
 import torch
 import torch.nn.functional as F
 
-from ferl.config.params import ConfigError
+from ferl.config.params import Allowed, ConfigError, PositiveInt
+from ferl.trainers.handoffs import SplitEpisodes
 from ferl.trainers.phased import Phase
 
 
@@ -116,12 +118,13 @@ class ObservationTable:
 class CollectEpisodes(Phase):
     """Algorithm 1's data (§4.3.1): ``n_sample`` random-policy episodes per run, balanced over the
     lengths T_min … T_max and split ``train_fraction`` / rest into training and test data (handed
-    to the next phases as ``job.shared["episodes"]``, with the steps they took, ``"random_steps"``). ``collect_batch`` episodes are stepped at
+    to the next phases as ``job.outputs.episodes``, with the steps they took, ``random_steps``). ``collect_batch`` episodes are stepped at
     once (speed only: the draws do not depend on it)."""
 
     name = "collect"
 
-    def __init__(self, n_sample: int, collect_batch: int, train_fraction: float):
+    def __init__(self, n_sample: PositiveInt, collect_batch: PositiveInt,
+                 train_fraction: Annotated[float, Allowed(lambda x: 0 < x < 1, "in (0, 1)")]):
         self.n_sample, self.collect_batch, self.train_fraction = n_sample, collect_batch, train_fraction
 
     def applies(self, job) -> bool:
@@ -129,7 +132,7 @@ class CollectEpisodes(Phase):
         return bool(job.predictors)
 
     def prepare(self, job) -> None:
-        job.resources["episodes_per_run"] = self.n_sample  # the size of the next phases' data
+        job.prepared.episodes_per_run = self.n_sample  # the size of the next phases' data
         if job.env.discovers_observations:
             raise ConfigError(f"trainer: Algorithm 1's predictors learn from episodes collected beforehand, on ids of a fixed "
                               f"observation table, and {job.env.task} environments discover their observations as they "
@@ -150,10 +153,10 @@ class CollectEpisodes(Phase):
     def run(self, job, state) -> None:
         env = job.make_env(job.R * self.copies(job))
         episodes = collect_random_episodes(env, self.n_sample, job.R, job.generator)
-        job.shared["random_steps"] = episodes.lengths.sum(1).cpu().numpy()  # env steps the data cost each run
+        job.outputs.random_steps = episodes.lengths.sum(1).cpu().numpy()  # env steps the data cost each run
         train, test, (n_train, n_test) = balance_and_split(
             episodes, job.env.optimal_steps, job.env.max_steps, self.train_fraction, job.generator)
-        job.shared["episodes"] = {"train": train, "test": test, "n_train": n_train, "n_test": n_test}
+        job.outputs.episodes = SplitEpisodes(train, test, n_train, n_test)
         job.writer.add_scalar("collect/train_sequences", train.lengths.shape[1], 0)
         job.writer.add_scalar("collect/test_sequences", test.lengths.shape[1], 0)
         job.writer.add_scalar("collect/train_per_length", n_train, 0)
@@ -166,7 +169,8 @@ def episode_bytes(t_max: int) -> int:
 
 def observation_table(job) -> ObservationTable:
     """The observations the predictors and the actor see: processed where a phase stored them."""
-    return ObservationTable(job.shared.get("observations", job.env.observation_table))
+    processed = job.outputs.observations
+    return ObservationTable(processed if processed is not None else job.env.observation_table)
 
 
 def episode_tensors(job, ep: Episodes, predictor):

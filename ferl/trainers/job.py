@@ -12,7 +12,8 @@ component's weights are drawn from seed + its offset + r (``ferl.rng``), so that
 
 The job also holds what every phase of a trainer shares: the generator of the batch's random
 stream, the divergence guard, the run directory and its TensorBoard writer, the progress that a
-checkpoint saves (finished phases, the state of an unfinished one, data passed between phases)
+checkpoint saves (finished phases, the state of an unfinished one, what phases hand on:
+``ferl.trainers.handoffs``)
 and the summary's metrics.
 """
 import time
@@ -29,6 +30,7 @@ from ferl.rng import SeedOffsets
 from ferl.run.failures import Interrupted, where
 from ferl.run.guard import DivergenceGuard
 from ferl.trainers.facts import check_conforms, facts_for
+from ferl.trainers.handoffs import PhaseOutputs, Prepared
 
 
 def takes(node, name: str) -> bool:
@@ -52,11 +54,12 @@ def build(node, prefix: str = "", **runtime):
 class Job:
     """The components of one batch of runs and the run it writes (see the module docstring)."""
 
-    def __init__(self, cfg, device: torch.device, seeds: SeedOffsets, divergence_limit: float,
-                 env_protocol: type = Environment):
-        """``env_protocol``: what the trainer's phases need of the environment (an episodic one for
-        Algorithms 1–2, a continuing one for online TD), checked as soon as it is built."""
-        self.cfg, self.device, self.R = cfg, device, cfg.n_runs
+    def __init__(self, cfg, device: torch.device, seeds: SeedOffsets, control, env_protocol: type = Environment):
+        """``control``: the trainer's ``run`` node (``ferl.trainers.phased.RunControl``: logging,
+        checkpoint intervals, divergence limit), which every phase reads; ``env_protocol``: what the
+        trainer's phases need of the environment (an episodic one for Algorithms 1–2, a continuing
+        one for online TD), checked as soon as it is built."""
+        self.cfg, self.device, self.R, self.control = cfg, device, cfg.n_runs, control
         self.seeds = rng.run_seeds(cfg.seed, self.R)
         self.generator = rng.generator(cfg.seed, device)  # the batch's stream
         needs_data = takes(cfg.env, "data") or cfg.get("preprocessor") is not None
@@ -72,13 +75,14 @@ class Job:
         n_state = n_obs + sum(p.memory_size for p in self.predictors.values())
         self.actor = self.make_part(cfg.actor, "actor", Actor, n_state=n_state, n_actions=self.env.n_actions,
                                     seed=cfg.seed + seeds.actor)
-        self.guard = DivergenceGuard(self.R, divergence_limit, self.seeds, device)
+        self.guard = DivergenceGuard(self.R, control.divergence_limit, self.seeds, device)
         self.env.on_fault = self.guard.freeze  # an outside environment's failed run is frozen (ferl.envs.boundary)
         self.run = self.writer = self.stop = None
         # what a checkpoint saves of the run's course: finished phases, an unfinished one's state,
         # data one phase hands the next, the summary's metrics so far, the acting phases' steps and time
-        self.progress = {"done": [], "partial": {}, "shared": {}, "metrics": {}, "agent_steps": 0, "actor_time": 0.0}
-        self.resources = {}  # what phases prepare at every start (not saved: drawn again alike)
+        self.progress = {"done": [], "partial": {}, "shared": PhaseOutputs(), "metrics": {}, "agent_steps": 0,
+                         "actor_time": 0.0}
+        self.prepared = Prepared()  # what phases prepare at every start (not saved: drawn again alike)
         self.unit = "step"   # what the guard reports a divergence in (a T-maze: "episode")
         self.fast = fast_path(cfg.compile, device)  # compile the phases' chunks of steps (ferl.compiled)
         self.compile_started = compile_seconds()  # a process may train several jobs (Hydra's joblib workers)
@@ -86,7 +90,8 @@ class Job:
         self.earlier_time = 0.0  # wall_time_s that earlier processes of the run spent, up to its checkpoint
 
     @property
-    def shared(self) -> dict:
+    def outputs(self) -> PhaseOutputs:
+        """What earlier phases handed on (``ferl.trainers.handoffs``)."""
         return self.progress["shared"]
 
     @property

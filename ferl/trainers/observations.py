@@ -13,7 +13,7 @@ from ferl.trainers.phased import Phase
 class FitPreprocessor(Phase):
     """Algorithm 2's first phase (§5.3.2): the preprocessor learns from the training images, then
     processes the table of every observation, per run: what the predictors and the actor see
-    from now on (``job.shared["observations"]``). Records ``preprocessor.npz``."""
+    from now on (``job.outputs.observations``). Records ``preprocessor.npz``."""
 
     name = "preprocessor"
 
@@ -41,7 +41,7 @@ class FitPreprocessor(Phase):
         log_weights(job.writer, "preprocessor", pre, records["reconstruction_error"].shape[1])
         raw = job.env.observation_table
         with torch.no_grad():
-            job.shared["observations"] = processed = pre.transform(raw)
+            job.outputs.observations = processed = pre.transform(raw)
         job.run.save_records("preprocessor", job.R, **records, raw_observations=raw.cpu().numpy().astype(np.float16),
                              processed_observations=processed.cpu().numpy().astype(np.float16))
 

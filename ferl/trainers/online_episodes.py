@@ -35,17 +35,13 @@ import time
 import numpy as np
 import torch
 
-from ferl import rng
-from ferl.config.params import ConfigError, Momentum, NonNegative, Positive, PositiveInt, UnitInterval, checked
+from ferl.config.params import ConfigError, Momentum, NonNegative, Positive, PositiveInt, UnitInterval
 from ferl.config.swaps import chosen
-from ferl.interfaces import EpisodicEnvironment
 from ferl.predictors.popart import observe_rewards
 from ferl.predictors.recurrent import lookup_step
 from ferl.replay import draw_episodes, store_episode, stored_episodes
 from ferl.trainers.actor_episodes import ActorEpisodes
 from ferl.trainers.episodes import Episodes, episode_tensors
-from ferl.trainers.observations import FitPreprocessor, log_observations
-from ferl.trainers.phased import PhasedTrainer
 
 
 class OnlineEpisodes(ActorEpisodes):
@@ -53,18 +49,18 @@ class OnlineEpisodes(ActorEpisodes):
     β following their held-out error and the curiosity bonus (module docstring). Records
     ``online.npz``: per run and episode the held-out error, β and η, and the phase's time split."""
 
-    name = "online"
-
-    def __init__(self, *args, replay_episodes: int, replay_sample: int, replay_batch_size: int | None,
-                 beta_error_ratio: float, error_ema: float, curiosity: float, curiosity_anneal: float):
-        super().__init__(*args)
+    def __init__(self, n_episodes: PositiveInt, actor_obs_scale: Positive, td_sample_every: PositiveInt,
+                 final_window: PositiveInt, replay_episodes: PositiveInt, replay_sample: PositiveInt,
+                 replay_batch_size: PositiveInt | None, beta_error_ratio: Momentum, error_ema: UnitInterval,
+                 curiosity: NonNegative, curiosity_anneal: NonNegative):
+        super().__init__(n_episodes, actor_obs_scale, td_sample_every, final_window)
         self.K, self.n_replay, self.replay_batch = replay_episodes, replay_sample, replay_batch_size
         self.tau, self.ema, self.eta, self.anneal = beta_error_ratio, error_ema, curiosity, curiosity_anneal
         self.eta_now, self.beta_now = 0.0, None
 
     def prepare(self, job) -> None:
         if not job.predictors:
-            raise ConfigError(f"predictor=none is not allowed with {chosen('trainer', 'OnlineAlgorithm')}: it trains "
+            raise ConfigError(f"predictor=none is not allowed with {chosen('trainer', 'OnlineEpisodes')}: it trains "
                               "predictors and actor together; a memoryless actor alone is the actor phase of "
                               "trainer=algorithm1")
         super().prepare(job)
@@ -148,7 +144,7 @@ class OnlineEpisodes(ActorEpisodes):
     def as_episodes(self, job, episode: dict) -> Episodes:
         """The trajectory of ``play_episode`` as one padded episode per run, (R, 1, …)."""
         obs, actions, rewards = episode["trajectory"]
-        T, lengths = job.env.max_steps, episode["outcome"][1].long()
+        T, lengths = job.env.max_steps, episode["lengths"].long()
         steps = torch.arange(T + 1, device=job.device).unsqueeze(1)
         pad = lambda x, fill: torch.nn.functional.pad(x, (0, 0, 0, T + 1 - x.shape[0]), value=fill)  # noqa: E731
         obs = torch.where(steps <= lengths, pad(obs, -1), -1)
@@ -160,33 +156,3 @@ class OnlineEpisodes(ActorEpisodes):
         super().finish(job, state)
         job.run.save_records("online", job.R, **state["online"], predictor_time_s=np.float64(state["predictor_time"]),
                              actor_time_s=np.float64(state["active_time"] - state["predictor_time"]))
-
-
-class OnlineAlgorithm(PhasedTrainer):
-    """``trainer=online`` (docs/beyond.md): [the preprocessor's fit, as Algorithm 2's first phase,
-    when the config has one →] ``OnlineEpisodes``. Arguments as in conf/trainer/online.yaml."""
-
-    seed_offsets = rng.EPISODIC
-    environment = EpisodicEnvironment
-    kind = "online"
-
-    @checked
-    def __init__(self, n_episodes: PositiveInt, actor_obs_scale: Positive, replay_episodes: PositiveInt,
-                 replay_sample: PositiveInt, replay_batch_size: PositiveInt | None, beta_error_ratio: Momentum, error_ema: UnitInterval,
-                 curiosity: NonNegative, curiosity_anneal: NonNegative, log_every: PositiveInt,
-                 td_sample_every: PositiveInt, final_window: PositiveInt, checkpoint_every: PositiveInt,
-                 checkpoint_minutes: NonNegative, divergence_limit: Positive):
-        self.params = dict(n_episodes=n_episodes, actor_obs_scale=actor_obs_scale, replay_episodes=replay_episodes,
-                           replay_sample=replay_sample, replay_batch_size=replay_batch_size, beta_error_ratio=beta_error_ratio, error_ema=error_ema,
-                           curiosity=curiosity, curiosity_anneal=curiosity_anneal, final_window=final_window)
-        self.last_step = n_episodes
-        super().__init__([
-            FitPreprocessor(),
-            OnlineEpisodes(n_episodes, actor_obs_scale, log_every, td_sample_every, final_window, checkpoint_every,
-                           checkpoint_minutes, replay_episodes=replay_episodes, replay_sample=replay_sample,
-                           replay_batch_size=replay_batch_size,
-                           beta_error_ratio=beta_error_ratio, error_ema=error_ema, curiosity=curiosity,
-                           curiosity_anneal=curiosity_anneal)], divergence_limit)
-
-    def start(self, job) -> None:
-        log_observations(job)

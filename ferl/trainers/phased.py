@@ -9,24 +9,45 @@ unfinished one the state its last checkpoint saved, so a resumed run computes ex
 uninterrupted one does.
 """
 import time
+from dataclasses import dataclass
+from typing import Literal
 
 import torch
 from torch.utils.tensorboard import SummaryWriter
 
 from ferl import rng
 from ferl.compiled import compile_seconds
-from ferl.config.params import ConfigError
-from ferl.interfaces import Environment, TrainerBase
+from ferl.config.params import ConfigError, NonNegative, Positive, PositiveInt, checked, plain
+from ferl.interfaces import ContinuingEnvironment, Environment, EpisodicEnvironment, TrainerBase
 from ferl.run.directory import RunDir, StopRequest
 from ferl.run.resume import identity_of
 from ferl.run.tensorboard import log_hparams
+from ferl.trainers.handoffs import PhaseOutputs
 from ferl.trainers.job import Job
+
+ENVIRONMENTS = {"episodic": EpisodicEnvironment, "continuing": ContinuingEnvironment, "any": Environment}
+
+
+@dataclass(frozen=True)
+class RunControl:
+    """The trainer's ``run`` node (conf/trainer/run/default.yaml): what every phase of a run shares
+    for logging, checkpoints and the divergence guard. ``log_every``: steps or episodes between
+    TensorBoard points (and the guard's checks); ``checkpoint_every``: steps or episodes between
+    a long phase's checkpoints, and ``checkpoint_minutes`` of wall time between them (0: by count
+    only); ``divergence_limit``: the |TD error| beyond which (or non-finite) a run is frozen and
+    reported diverged (``ferl.run.guard``)."""
+    log_every: PositiveInt
+    checkpoint_every: PositiveInt
+    checkpoint_minutes: NonNegative
+    divergence_limit: Positive
 
 
 class Phase:
-    """One step of a training procedure; a subclass names itself and implements ``run``."""
+    """One step of a training procedure, built from an entry of a trainer's ``phases`` (its
+    ``_target_`` and its own keys); it is named by its key there, and implements ``run``."""
 
-    name: str
+    name = ""
+    last_step = 0  # the step or episode of its last TensorBoard points (0: it logs none of its own)
 
     def applies(self, job: Job) -> bool:
         """Whether the job's components call for this phase (a preprocessor's fit needs one)."""
@@ -35,6 +56,9 @@ class Phase:
     def prepare(self, job: Job) -> None:
         """What the phase needs before any phase runs (drawn in this order at every start, so a
         resumed run draws it again the same way): e.g. a test set, or nothing."""
+
+    def start(self, job: Job) -> None:
+        """What a fresh run logs before its first phase (nothing here)."""
 
     def metric_names(self, job: Job) -> list[str]:
         """The flat summary.json metrics it writes into ``job.metrics``."""
@@ -56,24 +80,35 @@ class Phase:
 
 
 class PhasedTrainer(TrainerBase):
-    """Runs ``phases`` in order (``Trainer`` of ``ferl.interfaces``); ``divergence_limit`` is the
-    |TD error| beyond which a run is frozen and reported (``ferl.run.guard``)."""
+    """A training procedure as written in conf/trainer/*.yaml: ``phases`` (name → phase), run in
+    order on one ``Job``, and the ``run`` node they share (``RunControl``). ``kind``: what
+    analysis calls the procedure (``phased``: Algorithms 1–2 and chapter 3's; ``online``: §5.4);
+    ``environment``: the kind of task its phases step (checked when the environment is built and,
+    against the environment's class, by the config's validation); ``seed_offsets``: the
+    components' seed offsets, by the name ``ferl.rng`` gives them (``episodic``: Algorithms 1–2 and
+    the online trainer; ``continuing``: chapter 3). ``settings``: the trainer's own keys that its
+    phases read by interpolation (``${trainer.n_episodes}``), the names users override
+    (``trainer.n_episodes=…``); kept in ``records/run.json``."""
 
-    seed_offsets = rng.CONTINUING  # the components' seed offsets (ferl.rng)
-    environment: type = Environment  # the protocol its phases need of the environment (checked at setup)
-    kind = "phased"
-    params: dict = {}  # noqa: RUF012 - replaced per instance; the trainer's arguments, for records/run.json
-    last_step = 0      # the step of the final TensorBoard points (the HParams session)
     phase = "setup"    # what the trainer is doing: setup, resume, a phase's name, summary (train.py's error line)
 
-    def __init__(self, phases: list, divergence_limit: float):
-        self.all_phases, self.divergence_limit = phases, divergence_limit
+    @checked
+    def __init__(self, phases: dict[str, Phase], run: RunControl, kind: Literal["phased", "online"],
+                 environment: Literal[tuple(ENVIRONMENTS)], seed_offsets: Literal[tuple(rng.NAMED_OFFSETS)],
+                 **settings):
+        for name, phase in phases.items():
+            phase.name = name
+        self.all_phases, self.control, self.kind = list(phases.values()), run, kind
+        self.environment = ENVIRONMENTS[environment]
+        self.seed_offsets = rng.NAMED_OFFSETS[seed_offsets]
+        self.params = {k: plain(v) for k, v in settings.items()}  # for records/run.json
+        self.last_step = max(phase.last_step for phase in self.all_phases)  # of the HParams session
         self.job: Job | None = None
 
     def setup(self, cfg, device: torch.device) -> None:
         """Build the components and what each phase prepares; check the run's optimized metric."""
         self.started = time.perf_counter()  # wall_time_s counts the building too
-        self.job = Job(cfg, device, self.seed_offsets, self.divergence_limit, self.environment)
+        self.job = Job(cfg, device, self.seed_offsets, self.control, self.environment)
         self.job.started = self.started
         self.phases = [phase for phase in self.all_phases if phase.applies(self.job)]
         for phase in self.phases:
@@ -111,7 +146,8 @@ class PhasedTrainer(TrainerBase):
         self.write_manifest(run)
         with SummaryWriter(run.tb) as job.writer, StopRequest() as job.stop:
             if not job.progress["done"]:
-                self.start(job)
+                for phase in self.phases:
+                    phase.start(job)
             for phase in self.phases:
                 if phase.name in job.progress["done"]:
                     continue
@@ -124,15 +160,12 @@ class PhasedTrainer(TrainerBase):
                 job.progress["done"].append(phase.name)
                 if phase is self.phases[-1]:
                     job.stop = StopRequest()  # finished: a late signal no longer stops it
-                    job.progress["shared"] = {}  # the finished run keeps parameters, not the data
+                    job.progress["shared"] = PhaseOutputs()  # the finished run keeps parameters, not the data
                 job.checkpoint()
             self.phase = "summary"
             summary = self.summary(job, job.wall_time())  # over every process of the run
             log_hparams(job.writer, job.cfg, summary, self.last_step)
         return summary
-
-    def start(self, job: Job) -> None:
-        """What a fresh run logs before its first phase (nothing here)."""
 
     def write_manifest(self, run: RunDir) -> None:
         """``records/run.json``: what produced the run, for analysis to read (docs/records.md)."""

@@ -1,6 +1,6 @@
 """Algorithm 1's predictor phase (§4.3.1, Eqs. 4.1–4.8; §5.2 for Algorithm 2's several predictors).
 
-Every predictor trains on the collected episodes (``job.shared["episodes"]``) for N_epoch epochs,
+Every predictor trains on the collected episodes (``job.outputs.episodes``) for N_epoch epochs,
 each in its own shuffled order per epoch; those with one ``batch_key`` train as one
 ``training_batch``. The prediction error of Eq. (4.7) — per step t and episode length T, mean
 over the sequences, on the training and the test data — is measured every ``error_every``
@@ -10,6 +10,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from ferl.config.params import NonNegativeInt, PositiveInt
 from ferl.predictors.popart import observe_rewards
 from ferl.run.directory import CheckpointTimer
 from ferl.run.tensorboard import log_weights
@@ -20,23 +21,23 @@ from ferl.trainers.phased import Phase
 class TrainPredictors(Phase):
     """``n_epoch`` epochs of every predictor on lengths up to T_min + ``l_training`` − 1, errors
     every ``error_every`` epochs, a checkpoint every ``checkpoint_every_epochs`` (and by the
-    clock, ``checkpoint_minutes``). Records ``predictor.npz``."""
+    clock, the run node's ``checkpoint_minutes``). Records ``predictor.npz``."""
 
     name = "predictors"
 
     def applies(self, job) -> bool:
         return bool(job.predictors)
 
-    def __init__(self, l_training: int, n_epoch: int, error_every: int, checkpoint_every_epochs: int,
-                 checkpoint_minutes: float):
+    def __init__(self, l_training: PositiveInt, n_epoch: NonNegativeInt, error_every: PositiveInt,
+                 checkpoint_every_epochs: PositiveInt):
         self.l_training, self.n_epoch, self.error_every = l_training, n_epoch, error_every
-        self.checkpoint_every_epochs, self.checkpoint_minutes = checkpoint_every_epochs, checkpoint_minutes
+        self.checkpoint_every_epochs = checkpoint_every_epochs
 
     def run_bytes(self, job) -> int:
         """The peak of ``run`` (``ferl.run.footprint``'s hook): the collected episodes, each as
         float32 tensors y (T_max+1, Y + a reward), a (T_max, A) for every predictor's two splits, the
         training set and its batch, and two error arrays (T_max+1) per episode."""
-        n, T = job.resources.get("episodes_per_run", 0), job.env.max_steps
+        n, T = job.prepared.episodes_per_run, job.env.max_steps
         tensors = 4 * ((T + 1) * (job.n_obs + 1) + T * job.env.n_actions)
         return job.R * n * (episode_bytes(T) + (len(job.predictors) + 2) * tensors + 2 * 4 * (T + 1))
 
@@ -68,8 +69,8 @@ class TrainPredictors(Phase):
 
     def train_group(self, job, names: list, state: dict) -> dict:
         """The named predictors for N_epoch epochs, from the epoch a checkpoint left them at."""
-        data, R = job.shared["episodes"], job.R
-        train = data["train"]
+        data, R = job.outputs.episodes, job.R
+        train = data.train
         members = [job.predictors[name] for name in names]
         # the training set proper: lengths T_min … T_min + L_training − 1; balancing laid the
         # lengths out in the same blocks in every run, so run 0's positions hold for all
@@ -83,7 +84,8 @@ class TrainPredictors(Phase):
             members, y, a, [p.reward_targets(job.env.reward_values, fit.rewards) for p in members], lengths)
         if job.fast:  # a batch without a fast path stays eager (``TrainingBatchBase.fuse``)
             batch.fuse(job.device)
-        splits = {(name, s): episode_tensors(job, data[s], p) for name, p in zip(names, members) for s in ("train", "test")}
+        splits = {(name, s): episode_tensors(job, split, p) for name, p in zip(names, members)
+                  for s, split in (("train", data.train), ("test", data.test))}
         if partial.get("names") == names:
             errors, epochs, start = partial["errors"], partial["epochs"], partial["epoch"]
         else:
@@ -92,7 +94,7 @@ class TrainPredictors(Phase):
             epochs, start = [0], 0
             for name, p in zip(names, members):
                 log_weights(job.writer, f"predictor_{name}", p, 0)
-        clock = CheckpointTimer(self.checkpoint_minutes)
+        clock = CheckpointTimer(job.control.checkpoint_minutes)
         for epoch in (bar := tqdm(range(start + 1, self.n_epoch + 1), desc=f"predictor {'+'.join(names)}",
                                   unit="epoch", initial=start, total=self.n_epoch, mininterval=1.0)):
             orders = [torch.rand(R, y.shape[1], generator=job.generator, device=job.device).argsort(1) for _ in members]

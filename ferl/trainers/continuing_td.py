@@ -16,7 +16,7 @@ from tqdm import tqdm
 
 from ferl.actors.td import first_action
 from ferl.compiled import run_clock
-from ferl.config.params import ConfigError
+from ferl.config.params import ConfigError, NonNegativeInt, PositiveInt
 from ferl.interfaces import ActorViews
 from ferl.random_blocks import Blocks, steps_per_block
 from ferl.run.directory import CheckpointTimer
@@ -33,24 +33,24 @@ PREFETCH_MIN_RUNS = 30
 SWITCH_INTERVAL_S = 2e-4
 
 
-class OnlineTD(Phase):
-    """``steps`` online TD steps of every run, logged every ``log_every`` and checkpointed every
-    ``checkpoint_every`` steps. ``compile``: the chunk as one torch.compiled graph, by groups of
+class ContinuingTD(Phase):
+    """``steps`` online TD steps of every run on a continuing task, logged every ``log_every`` and
+    checkpointed every ``checkpoint_every`` steps (and every ``checkpoint_minutes``: the trainer's
+    run node, ``job.control``). ``compile``: the chunk as one torch.compiled graph, by groups of
     ``compile_group_runs`` runs on a CPU; ``prefetch``: chunks of random numbers drawn ahead on a
     second thread (from PREFETCH_MIN_RUNS runs on, and not when the actor draws inside a step).
     Records ``steps.npz`` (reward and TD error of every step) and ``weights.npz`` (the actor's
     state weights before and after); metric ``reward_per_step_last10pct``."""
 
-    name = "actor"
-
-    def __init__(self, steps: int, log_every: int, checkpoint_every: int, checkpoint_minutes: float,
-                 compile_group_runs: int, prefetch: int):
-        self.T, self.log_every, self.checkpoint_every = steps, log_every, checkpoint_every
-        self.checkpoint_minutes, self.compile_group_runs, self.prefetch_chunks = checkpoint_minutes, compile_group_runs, prefetch
-        self.chunk = chunk_length(steps, log_every, checkpoint_every)
+    def __init__(self, steps: PositiveInt, compile_group_runs: PositiveInt, prefetch: NonNegativeInt):
+        self.T, self.last_step = steps, steps
+        self.compile_group_runs, self.prefetch_chunks = compile_group_runs, prefetch
 
     def prepare(self, job) -> None:
-        actor, R = job.actor, job.R
+        actor, R, control = job.actor, job.R, job.control
+        self.log_every, self.checkpoint_every, self.checkpoint_minutes = (
+            control.log_every, control.checkpoint_every, control.checkpoint_minutes)
+        self.chunk = chunk_length(self.T, self.log_every, self.checkpoint_every)
         if actor.learns_from_episodes:
             raise ConfigError(f"actor={actor.describe()['kind']} learns from whole episodes, and the continuing task "
                               f"{job.env.task} has none: use an episodic environment or another actor")
@@ -101,7 +101,7 @@ class OnlineTD(Phase):
         s, a, F_sa, x_sa = state["s"], state["a"], state["F_sa"], state["x_sa"]
         rewards, td_errors = state["rewards"], state["td_errors"]
         clock = CheckpointTimer(self.checkpoint_minutes)
-        bar = tqdm(total=T, initial=state["step"], desc="actor", unit="step", mininterval=1.0, dynamic_ncols=True)
+        bar = tqdm(total=T, initial=state["step"], desc=self.name, unit="step", mininterval=1.0, dynamic_ncols=True)
         started = run_clock()
         # random inputs of the next chunks, in draw order; a checkpoint's were drawn before the
         # generator state it saved
@@ -118,9 +118,9 @@ class OnlineTD(Phase):
                 progress = [(t + k) / T for k in range(self.chunk)]
                 lrs = torch.tensor([actor.learning_rate(p) for p in progress], device=job.device)
                 betas = torch.tensor([actor.inverse_temperature(p) for p in progress], device=job.device)
-                s, a, F_sa, x_sa, r, delta = self.td_steps(
-                    actor, env, job.generator, s, a, F_sa, x_sa, job.guard.alive, lrs, betas, *inputs)
-                rewards[t:t + self.chunk], td_errors[t:t + self.chunk] = r, delta
+                out = self.td_steps(actor, env, job.generator, s, a, F_sa, x_sa, job.guard.alive, lrs, betas, *inputs)
+                s, a, F_sa, x_sa = out.s, out.a, out.F_sa, out.x_sa
+                rewards[t:t + self.chunk], td_errors[t:t + self.chunk] = out.rewards, out.deltas
                 done = t + self.chunk
                 if done % self.log_every == 0 or done == T:
                     job.guard.check(td_errors[state["checked"]:done], state["checked"])
