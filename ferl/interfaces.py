@@ -13,7 +13,8 @@ Constructors receive their YAML keys plus what the trainer supplies (``n_runs``,
 ``generator``, ``device``, ``data`` where the constructor names it); the types and ranges of the
 YAML keys are the constructor's annotations (``ferl.config.params``), checked before any work.
 """
-from typing import Hashable, Protocol, Sequence, runtime_checkable
+from collections.abc import Hashable, Sequence
+from typing import Protocol, runtime_checkable
 
 import torch
 from torch import Tensor

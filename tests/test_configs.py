@@ -4,8 +4,8 @@ constructors the config names (ferl/config/validate.py: types, ranges, cross-key
 trainer's setup (what involves two components)."""
 import pytest
 import torch
-from hydra.errors import HydraException
 from hydra.core.hydra_config import HydraConfig
+from hydra.errors import HydraException
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 

@@ -50,7 +50,7 @@ def test_every_form_is_its_sum_over_hidden_states(q, code):
         assert -F[r, b, a].item() == pytest.approx(brute_force_q(q, params, s[r, b], actor.codes[a], 3).item(), rel=1e-10)
     if code == "binary":  # only the chosen actions' F
         a = torch.tensor([[0, 3, 1], [2, 2, 0]])
-        F_a, x_a = actor.evaluate_actions(s, a)
+        F_a, _ = actor.evaluate_actions(s, a)
         torch.testing.assert_close(F_a, F.gather(-1, a.unsqueeze(-1)).squeeze(-1))
 
 

@@ -15,9 +15,9 @@ Read from what every T-maze job recorded (`records/run.json`, `summary.json`,
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 

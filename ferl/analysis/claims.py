@@ -10,8 +10,9 @@ and `sweep_claims`, gathered in `chapters`.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Callable, Sequence
+from typing import Any
 
 from ferl import stats
 from ferl.analysis.records import Manifest

@@ -12,8 +12,8 @@ and of digit classes (Figs. 5.15–5.16). Summary statistics over runs are
 from __future__ import annotations
 
 import warnings
+from collections.abc import Sequence
 from itertools import combinations
-from typing import Sequence
 
 import numpy as np
 from scipy.cluster.hierarchy import linkage

@@ -12,8 +12,9 @@ Every run gets the generic figures (`ferl.analysis.generic`). On top of them:
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from ferl.analysis import ch3, ch4, ch5, floor, tmaze
 from ferl.analysis.claims import Chapter, Claim, Numbering

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import csv
 import zipfile
+from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import Iterable, Sequence
 
 import numpy as np
 

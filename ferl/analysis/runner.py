@@ -16,8 +16,8 @@ import os
 import shutil
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
@@ -43,6 +43,7 @@ def publish_figures(figures: dict, out: Path, tb_dir: Path) -> None:
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.image import imsave
+
     # imported here: torch's start-up is paid only by a call that writes figures
     from torch.utils.tensorboard import SummaryWriter
 

@@ -9,7 +9,7 @@ learning curves, TD errors and prediction errors are generic figures (`ferl.anal
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 from matplotlib import colormaps

@@ -19,8 +19,14 @@ import torch
 from omegaconf import OmegaConf
 
 from ferl.config.params import ConfigError
-from ferl.run.failures import (Interrupted, disk_error, disk_line, hydra_os_error, interrupted_line,
-                                quiet_disk_errors_in_threads)
+from ferl.run.failures import (
+    Interrupted,
+    disk_error,
+    disk_line,
+    hydra_os_error,
+    interrupted_line,
+    quiet_disk_errors_in_threads,
+)
 from ferl.stats import flat_metrics, mean_sd
 
 # conf/hydra/launcher/{joblib,submitit_local,submitit_slurm,ray}.yaml set our defaults on top of the plugins' configs
@@ -168,7 +174,7 @@ def log_traceback(run_path: Path, message: str) -> Path | None:
     where it could not be written (a full disk): that failure is swallowed, never a second traceback."""
     files = [h for h in logging.getLogger().handlers if isinstance(h, logging.FileHandler)]
     path = Path(files[0].baseFilename) if files else Path(run_path) / "train.log"
-    record = logging.getLogger(__name__).makeRecord(__name__, logging.ERROR, __file__, 0, message, None,
+    record = logging.getLogger(__name__).makeRecord(__name__, logging.ERROR, __file__, 0, message, (),
                                                    sys.exc_info())
     text = (files[0].format(record) if files else f"{message}\n{traceback.format_exc()}").rstrip("\n") + "\n"
     try:

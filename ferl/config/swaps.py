@@ -131,7 +131,8 @@ def check_fit(values: dict, hydra) -> None:
     if not (isinstance(env, dict) and isinstance(trainer, dict) and "_target_" in env and "_target_" in trainer):
         return
     trainer_class, env_class = target(trainer["_target_"]), target(env["_target_"])
-    wants = {EpisodicEnvironment: True, ContinuingEnvironment: False}.get(getattr(trainer_class, "environment", None))
+    kinds: dict[object, bool] = {EpisodicEnvironment: True, ContinuingEnvironment: False}
+    wants = kinds.get(getattr(trainer_class, "environment", None))
     if wants is None or wants != continuing(env_class):
         return
     steps = "episodes" if wants else "a continuing task"

@@ -23,8 +23,7 @@ from typing import Annotated
 
 import torch
 
-from ferl.config.params import (Allowed, ArgumentError, NonNegative, NonNegativeInt, PositiveInt, UnitInterval,
-                                checked)
+from ferl.config.params import Allowed, ArgumentError, NonNegative, NonNegativeInt, PositiveInt, UnitInterval, checked
 from ferl.data import MnistSplit
 from ferl.envs.tmaze import TMaze, observation_names
 

@@ -53,8 +53,8 @@ class DBNPreprocessor(nn.Module):
         self.sizes, self.cache_dir = [int(n) for n in layers], cache_dir
         self.input_size, self.output_size = self.sizes[0], self.sizes[-1]
         self.rbms = nn.ModuleList(
-            RBMPreprocessor(n_runs, n_visible=n_in, n_hidden=n_out, seed=seed + l * LAYER_SEED_STRIDE, **rbm_args)
-            for l, (n_in, n_out) in enumerate(zip(self.sizes, self.sizes[1:])))
+            RBMPreprocessor(n_runs, n_visible=n_in, n_hidden=n_out, seed=seed + layer * LAYER_SEED_STRIDE, **rbm_args)
+            for layer, (n_in, n_out) in enumerate(zip(self.sizes, self.sizes[1:])))
 
     @classmethod
     def check_config(cls, args: dict) -> None:

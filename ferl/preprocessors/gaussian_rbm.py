@@ -91,7 +91,7 @@ class GaussianRBMPreprocessor(RBMPreprocessor):
         """ĥ = σ(Wᵀv_std + b_h) of raw observations v (B, V) shared or (R, B, V) → (R, B, H)."""
         return super().transform(self.standardise(v))
 
-    def visible_given(self, h: torch.Tensor, gens: list = None) -> torch.Tensor:
+    def visible_given(self, h: torch.Tensor, gens: list | None = None) -> torch.Tensor:
         """E[v | h] = W h + b_v (standardised units) for h (R, B, H); sampled, v ~ N(W h + b_v, I),
         from gens when visible="sampled"."""
         mean = self.visible_input(h)

@@ -34,7 +34,8 @@ training restricted Boltzmann machines", UTML TR 2010-003, cited by section):
 * the reconstruction error is the mean squared error of the one-step mean-field reconstruction
   σ(W σ(Wᵀv + b_h) + b_v) against v (the guide's §5 monitor, without sampling noise).
 """
-from typing import Literal, NamedTuple, Sequence, Union
+from collections.abc import Sequence
+from typing import Literal, NamedTuple
 
 import numpy as np
 import torch
@@ -48,7 +49,7 @@ from ferl.interfaces import FitStopped
 from ferl.preprocessors.cache import load_or_fit
 
 VISIBLE_MODES = ("mean_field", "binary")
-Generators = Union[torch.Generator, Sequence[torch.Generator]]
+Generators = torch.Generator | Sequence[torch.Generator]
 
 
 class Gradient(NamedTuple):
@@ -147,7 +148,7 @@ class RBMPreprocessor(nn.Module):
         """Total input W h + b_v of every visible unit: h (R, B, H) → (R, B, V)."""
         return torch.baddbmm(self.b_v.unsqueeze(1), h, self.W.mT)
 
-    def visible_given(self, h: torch.Tensor, gens: list = None) -> torch.Tensor:
+    def visible_given(self, h: torch.Tensor, gens: list | None = None) -> torch.Tensor:
         """p(v = 1 | h) = σ(W h + b_v) for h (R, B, H); sampled from gens when visible="binary"."""
         p = torch.sigmoid(self.visible_input(h))
         if self.visible == "binary" and gens is not None:
@@ -173,9 +174,10 @@ class RBMPreprocessor(nn.Module):
         Hidden states are sampled on the way; the last update keeps p(h = 1 | v) (guide §3.3).
         Returns the last visible states and hidden probabilities.
         """
-        for step in range(self.cd_k):
-            if step:
-                h = bernoulli(p, uniform(p.shape[1:], gens, p))
+        v = self.visible_given(h, gens)
+        p = rbm.hidden_expectation(v, self.W, self.b_h)
+        for _ in range(self.cd_k - 1):
+            h = bernoulli(p, uniform(p.shape[1:], gens, p))
             v = self.visible_given(h, gens)
             p = rbm.hidden_expectation(v, self.W, self.b_h)
         return v, p

@@ -145,9 +145,8 @@ class RunDir:
         """``records/<name>.npz``; its ``per_run`` names the arrays whose first axis is the run
         (``runs`` long), so that the analysis can tell a file of another run apart (docs/records.md)."""
         per_run = np.array(sorted(k for k, a in arrays.items() if np.ndim(a) and np.shape(a)[0] == runs), dtype=str)
-        with atomic_path(self.path / "records" / f"{name}.npz") as tmp:
-            with open(tmp, "wb") as f:
-                np.savez_compressed(f, **arrays, per_run=per_run)
+        with atomic_path(self.path / "records" / f"{name}.npz") as tmp, open(tmp, "wb") as f:
+            np.savez_compressed(f, **arrays, per_run=per_run)
 
     def save_json(self, name: str, content: dict) -> None:
         """``records/<name>.json``."""

@@ -190,7 +190,7 @@ class Storages:
 
 def cell_filled(cell) -> bool:
     try:
-        cell.cell_contents
+        _ = cell.cell_contents  # an empty cell raises
     except ValueError:
         return False
     return True

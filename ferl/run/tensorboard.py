@@ -19,6 +19,7 @@ from ferl.images import as_images
 from ferl.run.jsonio import strict_dumps
 from ferl.stats import flat_metrics, mean_sd
 
+
 # ---- hparams --------------------------------------------------------------------------------
 def flat_config(cfg) -> dict:
     """The resolved config as ``{"actor.n_hidden": 20, ...}``: nested keys joined by dots, lists

@@ -13,8 +13,8 @@ A user's component that lacks an attribute or method of its protocol (``ferl.int
 otherwise fail with an AttributeError somewhere in the first phase, after the run directory
 exists; ``check_conforms`` names everything it lacks at once, with the recipe that lists them.
 """
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 from ferl import interfaces
 from ferl.config.params import ConfigError, plain, signature, target

@@ -3,8 +3,8 @@ preprocessor's fit (Algorithm 2, §5.3.2) and the observations as TensorBoard im
 import numpy as np
 import torch
 
-from ferl.images import IMAGE_SIDE, as_images, matrix_image, tile
 from ferl.config.params import ConfigError
+from ferl.images import IMAGE_SIDE, as_images, matrix_image, tile
 from ferl.interfaces import FitStopped
 from ferl.run.tensorboard import log_weights
 from ferl.trainers.episodes import discovers_observations

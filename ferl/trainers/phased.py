@@ -51,7 +51,7 @@ class PhasedTrainer:
     seed_offsets = SeedOffsets()
     environment: type = Environment  # the protocol its phases need of the environment (checked at setup)
     kind = "phased"
-    params: dict = {}  # the trainer's arguments, for records/run.json
+    params: dict = {}  # noqa: RUF012 - replaced, never mutated: the trainer's arguments, for records/run.json
     last_step = 0      # the step of the final TensorBoard points (the HParams session)
     phase = "setup"    # what the trainer is doing: setup, resume, a phase's name, summary (train.py's error line)
 
