@@ -218,7 +218,7 @@ def test_bad_values_name_their_key(compose_cfg, override, key):
 
 
 def test_enum_errors_list_the_allowed_values(compose_cfg):
-    from ferl.actors.free_energy import TD_RULES
+    from ferl.actors.softmax import TD_RULES
 
     _, message = config_error(compose_cfg, ["actor.td_rule=td_lambda"])
     assert all(rule in message for rule in TD_RULES), message
