@@ -126,7 +126,7 @@ class Numbering:
     learning_curves: str = ""
     td_errors: str = ""
     prediction_errors: str = ""
-    predictor_panels: dict[str, str] = field(default_factory=dict)
+    predictor_panels: dict[str | None, str] = field(default_factory=dict)  # predictor role → its panels
     parameters: str = ""             # the table of parameters (L_training)
     layers: dict[str, LayerFigures] = field(default_factory=dict)
 

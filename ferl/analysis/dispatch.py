@@ -26,7 +26,7 @@ CHAPTERS: tuple[Chapter, ...] = (ch3.CHAPTER, ch4.CHAPTER, ch5.CHAPTER)
 
 # env.kind → its analysis: (run, figure numbers, out) → (the run as its chapter's claims read
 # it, the analysis' parts), or None where the run recorded nothing of the environment's own
-ENVIRONMENTS: dict[str, Callable[[Run, Numbering, Path], tuple[Any, RunAnalysis]]] = {
+ENVIRONMENTS: dict[str, Callable[[Run, Numbering, Path], tuple[Any, RunAnalysis] | None]] = {
     floor.ENV_KIND: lambda run, num, out: floor.analyze(run, out),
     tmaze.ENV_KIND: tmaze.analyze,
 }
