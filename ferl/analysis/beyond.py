@@ -23,6 +23,7 @@ import numpy as np
 
 from ferl import stats
 from ferl.analysis.io import fmt, load_npz, table_lines, write_csv
+from ferl.analysis.sweep import Job
 
 WINDOW = 200  # the final window of CONTRACT §2's tmaze metrics
 
@@ -72,7 +73,7 @@ class CurvePoint:
     correct: tuple[float, float]          # mean, s.e.m. of final_correct_goal_rate
     reached: tuple[float, float]          # of the share of episodes ending in a goal
     correct_if_reached: tuple[float, float]
-    job: object
+    job: Job
 
 
 def memory_curve(jobs: Sequence) -> list[CurvePoint]:
@@ -121,7 +122,7 @@ class Efficiency:
     solved: int
     n: int
     steps: list            # env_steps_to_solve per run, None where never
-    job: object
+    job: Job
 
     @property
     def reached(self) -> list[int]:

@@ -126,14 +126,14 @@ class Numbering:
     learning_curves: str = ""
     td_errors: str = ""
     prediction_errors: str = ""
-    predictor_panels: dict[str | None, str] = field(default_factory=dict)  # predictor role → its panels
+    predictor_panels: dict[str, str] = field(default_factory=dict)
     parameters: str = ""             # the table of parameters (L_training)
     layers: dict[str, LayerFigures] = field(default_factory=dict)
 
     def prediction_figure(self, role: str | None) -> str:
         if not self.prediction_errors:
             return ""
-        return self.prediction_errors + self.predictor_panels.get(role, "")
+        return self.prediction_errors + (self.predictor_panels.get(role, "") if role is not None else "")
 
     def layer(self, key: str) -> LayerFigures | None:
         return self.layers.get(key) or self.layers.get("memory" if key.startswith("memory")

@@ -57,7 +57,7 @@ class Preprocessing:
             raise ValueError(f"preprocessor.npz: {n_ids} observation ids are not "
                              f"{len(names)} reservoirs of one size")
         k = n_ids // len(names)
-        first = {}  # class → first observation showing it
+        first: dict[str, int] = {}  # class → first observation showing it
         for n, name in enumerate(names):
             first.setdefault(str(digit_classes.get(name, name)), n)
         ids = np.concatenate([n * k + np.arange(k) for n in first.values()])

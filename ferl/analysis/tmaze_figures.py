@@ -49,7 +49,7 @@ def junction_activations(acts: np.ndarray, condition: np.ndarray, episode: np.nd
     return fig
 
 
-def _marker_sizes(steps: np.ndarray, shortest: float, longest: float) -> np.ndarray:
+def _marker_sizes(steps: np.ndarray | float, shortest: float, longest: float) -> np.ndarray | float:
     return np.interp(steps, [shortest, longest], MARKER_SIZES)
 
 

@@ -83,6 +83,6 @@ def switch_interval(seconds: float):
 
 def done_future(value) -> Future:
     """A future that already holds ``value``."""
-    future = Future()
+    future: Future = Future()
     future.set_result(value)
     return future
