@@ -125,7 +125,7 @@ def prediction_errors(train: np.ndarray, test: np.ndarray, lengths: np.ndarray,
             im = ax.pcolormesh(np.arange(T + 2) - 0.5, y_edges, err[:, k, :T + 1],
                                cmap="viridis", vmin=0, vmax=vmax)
             ax.set_xticks(range(0, T + 1, 2 if T > 6 else 1))
-            ax.set_title(f"{split}, T = {T}" + ("" if trained_max >= T else "\n(not trained)"),
+            ax.set_title(f"{split}, T = {T}" + ("" if T <= trained_max else "\n(not trained)"),
                          fontsize="small")
             if row == 1:
                 ax.set_xlabel("step t")

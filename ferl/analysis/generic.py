@@ -124,7 +124,7 @@ def _prediction_table(p: PredictorErrors, out: Path) -> str:
         first, last = nanmean(err[:, 0], axis=0), nanmean(err[:, -1], axis=0)
         sem = stats.sem(err[:, -1])
         for k, T in enumerate(p.lengths):
-            rows += [(split, int(T), t, int(p.trained_max >= T), fmt(first[k, t]),
+            rows += [(split, int(T), t, int(T <= p.trained_max), fmt(first[k, t]),
                       fmt(last[k, t]), fmt(sem[k, t]))
                      for t in range(T + 1) if np.isfinite(last[k, t])]
     name = f"prediction_errors_{p.name}.csv"

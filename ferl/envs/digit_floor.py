@@ -82,7 +82,7 @@ def optimal_policy(rewards: np.ndarray, gamma: float = 0.9, tol: float = 1e-9):
         if np.abs(V_new - V).max() < tol:
             break
         V = V_new
-    mask = Q.max(1, keepdims=True) - 1e-6 <= Q
+    mask = Q >= Q.max(1, keepdims=True) - 1e-6
     action = np.where(mask.sum(1) == 1, mask.argmax(1), -1)
     action[GOAL] = -1
     greedy = mask.argmax(1)
