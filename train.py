@@ -18,8 +18,15 @@ try:  # Ctrl-C while torch loads: one line, not importlib's traceback (docs/reli
     from hydra.utils import instantiate
     from omegaconf import DictConfig
 
-    from ferl.config.hydra_glue import (one_line_errors, optimized_value, release_stderr, reported_by_phase,  # also:
-                                        resolve_device, summary_table)                        # the launcher resolver
+    # importing hydra_glue also registers the launcher resolver
+    from ferl.config.hydra_glue import (
+        one_line_errors,
+        optimized_value,
+        release_stderr,
+        reported_by_phase,
+        resolve_device,
+        summary_table,
+    )
     from ferl.config.params import ConfigError
     from ferl.config.validate import validate
     from ferl.data import DataError

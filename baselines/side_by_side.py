@@ -29,6 +29,7 @@ import subprocess
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor, as_completed
+from contextlib import ExitStack
 from pathlib import Path
 
 from ferl.run.progress import duration
@@ -90,8 +91,8 @@ def run_table(out: Path, trains: dict, ppos: dict, jobs: int, only: str = "", fi
             if any(part in n for part in only.split(",")) and n not in done]
     out.mkdir(parents=True, exist_ok=True)
     started, failed = time.monotonic(), []
-    with ThreadPoolExecutor(jobs) as pool:
-        logs = {n: open(out / f"{n.replace('/', '_')}.log", "w") for n, _ in todo}
+    with ExitStack() as logs_open, ThreadPoolExecutor(jobs) as pool:  # the jobs end before their logs close
+        logs = {n: logs_open.enter_context(open(out / f"{n.replace('/', '_')}.log", "w")) for n, _ in todo}
         futures = {pool.submit(subprocess.run, cmd, cwd=ROOT, stdout=logs[n], stderr=subprocess.STDOUT): n
                    for n, cmd in todo}
         for count, future in enumerate(as_completed(futures), 1):
@@ -103,8 +104,6 @@ def run_table(out: Path, trains: dict, ppos: dict, jobs: int, only: str = "", fi
             eta = f"about {duration(left)} left" if count < len(todo) else f"sweep took {duration(elapsed)}"
             print(f"ferl: {count}/{len(todo)} jobs done{n_failed} ({name}{' failed' if name in failed else ''}, "
                   f"{duration(elapsed)} in all); {eta}", flush=True)
-        for log in logs.values():
-            log.close()
     (out / "train_wall_time_s").write_text(f"{round(time.monotonic() - started)}\n")
     if failed:
         print(f"failed: {', '.join(failed)} (logs: {out}/<job>.log)")

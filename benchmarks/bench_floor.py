@@ -30,7 +30,6 @@ from benchmarks.numpy_reference import run_numpy_reference  # noqa: E402
 from benchmarks.report import save_results, speedup_table  # noqa: E402
 from ferl.data import MnistEmbedded  # noqa: E402
 
-
 MIN_AGENT_STEPS = 200_000
 MAX_STEPS = 20_000  # a multiple of the 16-step chunk
 GROUP_RUNS = OmegaConf.load(ROOT / "conf" / "trainer" / "digit_floor.yaml").compile_group_runs

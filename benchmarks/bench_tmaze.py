@@ -24,11 +24,11 @@ import os
 
 os.environ.setdefault("TQDM_DISABLE", "1")  # the trainer's progress bar; tqdm reads TQDM_* when imported
 
-import argparse  # noqa: E402
-import sys  # noqa: E402
-from pathlib import Path  # noqa: E402
+import argparse
+import sys
+from pathlib import Path
 
-import torch  # noqa: E402
+import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))

@@ -56,9 +56,9 @@ def machine_rate(seconds: float) -> dict:
     return {"matmul_gflops": flops / 1e9, "stream_gbs": 3 * 4 * (1 << 24) * n / (time.perf_counter() - start) / 1e9}
 
 
-def bptt_flops(T: np.ndarray, M: int, In: int, O: int) -> float:
+def bptt_flops(T: np.ndarray, M: int, In: int, n_out: int) -> float:
     """One pattern-mode SGD step per sequence of T actions (the module docstring), summed."""
-    return float(np.sum(T * (4 * M * In + 6 * M * M) + (T + 1) * 6 * M * O))
+    return float(np.sum(T * (4 * M * In + 6 * M * M) + (T + 1) * 6 * M * n_out))
 
 
 def outputs(p: dict, Y: int) -> int:
@@ -108,9 +108,9 @@ def predictor_flops(experiment: str, cfg, predictors: dict, Y: int, A: int) -> f
         every = np.concatenate([train.ravel(), data.test.lengths.cpu().numpy().ravel()])
     total = 0.0
     for p in predictors.values():
-        M, O = p["memory_size"], outputs(p, Y)
-        total += cfg.trainer.n_epoch * bptt_flops(trained, M, Y + A, O)
-        total += (cfg.trainer.n_epoch // cfg.trainer.error_every + 1) * bptt_flops(every, M, Y + A, O) / 3
+        M, n_out = p["memory_size"], outputs(p, Y)
+        total += cfg.trainer.n_epoch * bptt_flops(trained, M, Y + A, n_out)
+        total += (cfg.trainer.n_epoch // cfg.trainer.error_every + 1) * bptt_flops(every, M, Y + A, n_out) / 3
     return total
 
 

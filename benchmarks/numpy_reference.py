@@ -77,7 +77,7 @@ def reward(row_from: int, col_from: int, row_to: int, col_to: int) -> float:
 
 
 def n_noise_pixels(noise: float, n_pixels: int = 784) -> int:
-    return int(round(noise * n_pixels))
+    return round(noise * n_pixels)
 
 
 def add_noise(image: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:

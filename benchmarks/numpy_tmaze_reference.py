@@ -39,12 +39,13 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from benchmarks.numpy_reference import sample_action  # noqa: E402  (the floor reference's softmax draw)
+from benchmarks.numpy_reference import sample_action  # the floor reference's softmax draw
 
 N_ACTIONS = 4
 N, E, S, W = range(N_ACTIONS)
 N_OBS = 7  # start, corridor, junction, goal_left, goal_right, signal 0, signal 1
 REWARD_VALUES = (-5.0, -1.0, -0.1, 5.0)  # sorted: the order of the reward bits
+N_REWARD = len(REWARD_VALUES)
 JOINT = dict(c_y=1.0, c_a=1.0, beta_m=1.0, beta_y=1.0, beta_r=1.0, rho_y=1.0, rho_r=4.0,
              reward_output="bits", time_average=True)  # conf/predictor/joint.yaml
 
@@ -101,7 +102,7 @@ def softplus(x):
 
 
 def init_predictor(rng: np.random.Generator, n_obs=N_OBS, n_actions=N_ACTIONS, n_memory=20,
-                   n_reward=len(REWARD_VALUES), init_std=1.0) -> dict:
+                   n_reward=N_REWARD, init_std=1.0) -> dict:
     shapes = dict(W_my=(n_memory, n_obs), W_ma=(n_memory, n_actions), W_mm=(n_memory, n_memory),
                   b_m=(n_memory,), b_init=(n_memory,), W_ym=(n_obs, n_memory), b_y=(n_obs,),
                   W_rm=(n_reward, n_memory), b_r=(n_reward,))

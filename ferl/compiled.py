@@ -16,6 +16,7 @@ first run of a configuration pays, and that run says so in one line. Without a C
 import os
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
@@ -91,7 +92,7 @@ def compiled(fn, device: torch.device, what: str):
     compile rather than load from the cache prints one line saying so, with its time. Where fn
     cannot be compiled (an operation dynamo cannot trace, say, in a user's actor) it warns once
     and runs eagerly: compiling fails before the graph runs, so nothing has changed yet."""
-    options = {"cpp_wrapper": True} if device.type == "cpu" else {}
+    options: dict[str, str | int | bool | Callable] = {"cpp_wrapper": True} if device.type == "cpu" else {}
     graph = torch.compile(fn, fullgraph=True, dynamic=False, options=options)
     first = True
 

@@ -100,8 +100,8 @@ class MnistEmbedded:
                                 f"of class {label} (the embedded subset has {len(idx)} per class)")
             test_idx.append(idx[: self.test_per_class])
             train_idx.append(idx[self.test_per_class:])
-        train_idx, test_idx = np.sort(np.concatenate(train_idx)), np.sort(np.concatenate(test_idx))
-        return _to_split(x[train_idx], y[train_idx], x[test_idx], y[test_idx])
+        train, test = np.sort(np.concatenate(train_idx)), np.sort(np.concatenate(test_idx))
+        return _to_split(x[train], y[train], x[test], y[test])
 
 
 def read_bytes(path: Path) -> bytes:

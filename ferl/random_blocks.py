@@ -42,7 +42,8 @@ class Blocks:
 
     def __init__(self, draw, steps_per_block: int):
         self.draw, self.steps_per_block = draw, steps_per_block
-        self.buffers, self.cursor = None, steps_per_block
+        self.buffers: tuple[torch.Tensor, ...] | None = None
+        self.cursor = steps_per_block  # at a block's end: the first take draws
 
     def next(self):
         """One step's tensors."""
@@ -55,6 +56,7 @@ class Blocks:
         while steps:
             if self.cursor == self.steps_per_block:
                 self.buffers, self.cursor = self.draw(self.steps_per_block), 0
+            assert self.buffers is not None  # drawn above: the cursor starts at a block's end
             n = min(steps, self.steps_per_block - self.cursor)
             pieces.append(tuple(b[self.cursor:self.cursor + n] for b in self.buffers))
             self.cursor, steps = self.cursor + n, steps - n

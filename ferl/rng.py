@@ -15,6 +15,7 @@ Every offset is named here. Changing one changes every number a run produces: th
 """
 from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import Literal, get_args
 
 import torch
 
@@ -38,7 +39,8 @@ EPISODIC = SeedOffsets(actor=100_000)
 # (Equal to ``SeedOffsets.env``: a digit maze takes no ``seed``, so the two never meet.)
 IMAGE_NOISE = 300_000
 # what a trainer's config calls them (conf/trainer/*.yaml: seed_offsets)
-NAMED_OFFSETS = {"episodic": EPISODIC, "continuing": CONTINUING}
+OffsetsName = Literal["episodic", "continuing"]
+NAMED_OFFSETS = dict(zip(get_args(OffsetsName), (EPISODIC, CONTINUING)))
 
 SEED_BOUND = 2 ** 62  # child seeds are drawn from [0, SEED_BOUND)
 

@@ -18,6 +18,7 @@ import json
 import re
 from dataclasses import dataclass
 from pathlib import Path
+from typing import cast
 
 import pandas as pd
 from omegaconf import OmegaConf
@@ -69,7 +70,7 @@ def load_config(run_dir) -> dict:
             node = cfg[key]
             resolved[key] = OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node
         except Exception:  # noqa: BLE001 — an interpolation of something not saved with the run
-            resolved[key] = OmegaConf.to_container(cfg, resolve=False)[key]
+            resolved[key] = cast(dict, OmegaConf.to_container(cfg, resolve=False))[key]
     return _flatten(resolved)
 
 

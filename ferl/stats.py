@@ -27,6 +27,7 @@ there. ``FINAL_WINDOW`` (200 episodes: the moving average of Figs. 4.6–4.8 and
 the window of runs that recorded none.
 """
 import math
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -130,7 +131,7 @@ def sample_efficiency(episodes: dict, random_steps: np.ndarray, optimum: tuple[s
 
 
 def final_metrics(episodes: dict, optimum: tuple[str, float] | None, window: int, rates: list,
-                  averages: list = ()) -> dict:
+                  averages: Sequence[str] = ()) -> dict:
     """The episodic metrics of summary.json over the last ``window`` episodes, one value per run:
     discounted return, steps, the rate of every boolean outcome (``final_correct_goal_rate``), the
     mean of every float one (``final_return``) and its best window mean over all episodes

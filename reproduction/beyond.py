@@ -16,15 +16,16 @@ Read from what every T-maze job recorded (``records/run.json``, ``summary.json``
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
 from ferl import stats
 from ferl.analysis.io import fmt, load_npz, table_lines, write_csv
 from ferl.analysis.records import recorded_window
+from ferl.analysis.sweep import Job
 
 
 @dataclass(frozen=True)
@@ -73,7 +74,7 @@ class CurvePoint:
     correct: tuple[float, float]          # mean, s.e.m. of final_correct_goal_rate
     reached: tuple[float, float]          # of the share of episodes ending in a goal
     correct_if_reached: tuple[float, float]
-    job: object
+    job: Job
 
 
 def memory_curve(jobs: Sequence) -> list[CurvePoint]:
@@ -122,7 +123,7 @@ class Efficiency:
     solved: int
     n: int
     steps: list            # env_steps_to_solve per run, None where never
-    job: object
+    job: Job
 
     @property
     def reached(self) -> list[int]:

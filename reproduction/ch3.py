@@ -6,12 +6,23 @@ reward-free condition of §3.5.3 is the floor's ``reward_condition`` "none".
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
-from ferl.analysis.claims import (HELD, NOT_HELD, PARTLY, Chapter, Claim, Measured, Numbering,
-                                  all_or_some, at_least, at_most, mean_sd_text)
+from ferl.analysis.claims import (
+    HELD,
+    NOT_HELD,
+    PARTLY,
+    Chapter,
+    Claim,
+    Measured,
+    Numbering,
+    all_or_some,
+    at_least,
+    at_most,
+    mean_sd_text,
+)
 from ferl.analysis.records import Manifest
 from reproduction.floor import ENV_KIND, PERCEPTUAL_PAIRS, FloorRun
 from reproduction.scope import dissertation_components

@@ -8,16 +8,39 @@ variant: regular, matching, or digit matching (image observations).
 
 from __future__ import annotations
 
-from ferl.analysis.claims import (Chapter, Claim, LayerFigures, Measured, Numbering, at_least,
-                                  at_most, mean_sd_text, only)
+from ferl.analysis.claims import (
+    Chapter,
+    Claim,
+    LayerFigures,
+    Measured,
+    Numbering,
+    at_least,
+    at_most,
+    mean_sd_text,
+    only,
+)
 from ferl.analysis.records import JOINT, Manifest
 from reproduction.scope import dissertation_algorithm
 from reproduction.tmaze import ENV_KIND, TMazeRun
-from reproduction.tmaze_claims import (CORRECT_GOAL, SEPARATED, SOLVED_RUNS, STEPS_RATIO,
-                                        TD_DECREASE, Applies, correct_goal,
-                                        learns_and_generalises, optimal_steps, phase_means,
-                                        predictor_learns, separated_in_both, separates_more,
-                                        separation_claim, solved, td_decreases, variance_claim)
+from reproduction.tmaze_claims import (
+    CORRECT_GOAL,
+    SEPARATED,
+    SOLVED_RUNS,
+    STEPS_RATIO,
+    TD_DECREASE,
+    Applies,
+    correct_goal,
+    learns_and_generalises,
+    optimal_steps,
+    phase_means,
+    predictor_learns,
+    separated_in_both,
+    separates_more,
+    separation_claim,
+    solved,
+    td_decreases,
+    variance_claim,
+)
 
 ABOVE_CHANCE = (0.6, 0.55)   # final correct-goal rate, mean over runs (chance 0.5)
 

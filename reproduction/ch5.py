@@ -10,18 +10,44 @@ those roles. §5.3.1 is the matching maze with bit observations, §5.3.2 with no
 
 from __future__ import annotations
 
-from ferl.analysis.claims import (Chapter, Claim, LayerFigures, Measured, Numbering, at_least,
-                                  at_least_text, held_only_if, mean_sd_text, only,
-                                  threshold_claim)
+from ferl.analysis.claims import (
+    Chapter,
+    Claim,
+    LayerFigures,
+    Measured,
+    Numbering,
+    at_least,
+    at_least_text,
+    held_only_if,
+    mean_sd_text,
+    only,
+    threshold_claim,
+)
 from ferl.analysis.records import OBSERVATION, REWARD, Manifest
 from reproduction.scope import dissertation_algorithm
 from reproduction.tmaze import ENV_KIND, TMazeRun
-from reproduction.tmaze_claims import (CORRECT_GOAL, EARLY_EPOCHS, EARLY_SHARE, ERROR_DROP,
-                                        GENERALISATION, MOST_VARIANCE, SEPARATED, SOLVED_RUNS,
-                                        TD_DECREASE, Applies, correct_goal,
-                                        learns_and_generalises, phase_means, predictor_learns,
-                                        separated_in_both, separates_more, separation_claim,
-                                        solved, td_decreases, variance_claim)
+from reproduction.tmaze_claims import (
+    CORRECT_GOAL,
+    EARLY_EPOCHS,
+    EARLY_SHARE,
+    ERROR_DROP,
+    GENERALISATION,
+    MOST_VARIANCE,
+    SEPARATED,
+    SOLVED_RUNS,
+    TD_DECREASE,
+    Applies,
+    correct_goal,
+    learns_and_generalises,
+    phase_means,
+    predictor_learns,
+    separated_in_both,
+    separates_more,
+    separation_claim,
+    solved,
+    td_decreases,
+    variance_claim,
+)
 
 MOST_RUNS_SOLVED = (0.8, 0.5)     # share of runs ``solved``: "8 of 10" near-optimal (§5.3.1)
 HIGH_CORRECT_GOAL = (0.8, 0.6)    # final correct-goal rate, mean over runs: "high" (§5.3.2)

@@ -207,9 +207,9 @@ def write_tables(run: FloorRun, out: Path) -> list[str]:
 
     runs = [f"run_{r}" for r in range(run.n_runs)]
     table("greedy_accuracy.csv", ["phase", "test_noise", "mean", "sem", *runs],
-          [(p, fmt(x), fmt(mean), fmt(sem), *map(fmt, acc[:, l]))
-           for p, acc in run.accuracy.items() for l, x in enumerate(run.noise_levels)
-           for mean, sem, _ in [stats.mean_sem(acc[:, l])]])
+          [(p, fmt(x), fmt(mean), fmt(sem), *map(fmt, acc[:, level]))
+           for p, acc in run.accuracy.items() for level, x in enumerate(run.noise_levels)
+           for mean, sem, _ in [stats.mean_sem(acc[:, level])]])
 
     table("greedy_counts_probe_noise.csv",
           ["phase", "class", "action", "optimal", "mean", "sd", *runs],

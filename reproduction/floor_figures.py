@@ -8,7 +8,7 @@ Fig. 3.4 is a generic figure (``ferl.analysis.figures``).
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 from matplotlib.figure import Figure

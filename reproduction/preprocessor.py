@@ -14,10 +14,10 @@ on held-out images.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
@@ -57,7 +57,7 @@ class Preprocessing:
             raise ValueError(f"preprocessor.npz: {n_ids} observation ids are not "
                              f"{len(names)} reservoirs of one size")
         k = n_ids // len(names)
-        first = {}  # class → first observation showing it
+        first: dict[str, int] = {}  # class → first observation showing it
         for n, name in enumerate(names):
             first.setdefault(str(digit_classes.get(name, name)), n)
         ids = np.concatenate([n * k + np.arange(k) for n in first.values()])

@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import os
 import re
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 from ferl.analysis.claims import VERDICTS
 from ferl.analysis.io import table_lines

@@ -37,7 +37,7 @@ N_PCS = 3                     # separation is scored on PC1–3, the space of Fi
 MAX_SILHOUETTE_POINTS = 2000  # visits per run and phase; bounds the O(n²) distances
 PHASES = ("first", "last")
 LABELLINGS = {"condition": "conditions", "initial_signal": "initial signal"}
-MEMORY_LABELS = {OBSERVATION: "observation-predictor memory m^y",
+MEMORY_LABELS: dict[str | None, str] = {OBSERVATION: "observation-predictor memory m^y",
                  REWARD: "reward-predictor memory m^r"}
 
 
@@ -193,7 +193,7 @@ class TMazeRun:
 
     def nonfinite_visits(self, layer: str) -> np.ndarray:
         """Visits whose activations are not all finite (a diverged actor); PCA leaves them out."""
-        return ~np.isfinite(self.junction[layer].astype(np.float64)).all(axis=1)
+        return np.asarray(~np.isfinite(self.junction[layer].astype(np.float64)).all(axis=1))  # (visits,)
 
     def projection(self, layer: str, phase: str, r: int) -> Projection | None:
         """PCA fit on the finite visits of run r in one phase (None with fewer than 2)."""

@@ -6,12 +6,11 @@ None where the run lacks its data (a predictor role or a junction layer it did n
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
-from ferl.analysis.claims import (HELD, NOT_HELD, PARTLY, Claim, Measured, at_least,
-                                  held_only_if, mean_sd_text, only)
+from ferl.analysis.claims import HELD, NOT_HELD, PARTLY, Claim, Measured, at_least, held_only_if, mean_sd_text, only
 from reproduction.tmaze import TMazeRun
 
 Applies = Callable[[TMazeRun], bool]

@@ -9,7 +9,7 @@ learning curves, TD errors and prediction errors are generic figures (``ferl.ana
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 from matplotlib import colormaps
@@ -49,7 +49,7 @@ def junction_activations(acts: np.ndarray, condition: np.ndarray, episode: np.nd
     return fig
 
 
-def _marker_sizes(steps: np.ndarray, shortest: float, longest: float) -> np.ndarray:
+def _marker_sizes(steps: np.ndarray | float, shortest: float, longest: float) -> np.ndarray | float:
     return np.interp(steps, [shortest, longest], MARKER_SIZES)
 
 

@@ -15,9 +15,9 @@ agent's mean ± s.e.m. when it was run by at least two agents.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 from matplotlib.figure import Figure
@@ -27,7 +27,7 @@ from ferl.analysis import generic
 from ferl.analysis.figures import band
 from ferl.analysis.io import fmt, table_lines, write_csv
 from ferl.analysis.records import Run
-from ferl.analysis.sweep import metric_values
+from ferl.analysis.sweep import Job, metric_values
 from ferl.run.jsonio import strict_dumps
 
 DISSERTATION_AGENT = "dissertation agent"
@@ -82,7 +82,7 @@ def task_key(manifest) -> str:
 @dataclass
 class Entry:
     agent: str
-    job: object   # ferl.analysis.sweep.Job
+    job: Job
 
     @property
     def run(self) -> Run:

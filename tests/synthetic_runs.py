@@ -50,7 +50,7 @@ def _optimal_actions(classes: list[str]) -> np.ndarray:
 def _greedy_counts(rng, n_runs, noise_levels, optimal, n_images, trained: bool) -> np.ndarray:
     n_actions = len(ACTIONS)
     counts = np.empty((n_runs, len(noise_levels), len(optimal), n_actions), dtype=np.int64)
-    for l, noise in enumerate(noise_levels):
+    for level, noise in enumerate(noise_levels):
         # Trained agents stay accurate up to 37.5 % test noise, then decline (Fig. 3.6(c)).
         p_opt = max(0.25, 0.95 - 1.5 * max(0.0, noise - 0.375)) if trained else 0.25
         for c, a in enumerate(optimal):
@@ -58,7 +58,7 @@ def _greedy_counts(rng, n_runs, noise_levels, optimal, n_images, trained: bool) 
             if a >= 0:
                 p = np.full(n_actions, (1 - p_opt) / (n_actions - 1))
                 p[a] = p_opt
-            counts[:, l, c] = rng.multinomial(n_images, p, size=n_runs)
+            counts[:, level, c] = rng.multinomial(n_images, p, size=n_runs)
     return counts
 
 
@@ -156,8 +156,8 @@ def make_floor_run(run_dir: Path, *, n_runs: int = 2, steps: int = 500, n_images
         "seeds": list(range(seed, seed + n_runs)),
         "metrics": {
             "reward_per_step_last10pct": rewards[:, -steps // 10:].mean(axis=1).tolist(),
-            "greedy_accuracy": {f"{x:g}": accuracy[:, l].tolist()
-                                for l, x in enumerate(noise_levels)},
+            "greedy_accuracy": {f"{x:g}": accuracy[:, level].tolist()
+                                for level, x in enumerate(noise_levels)},
         },
         "optimal": {"reward_per_step": 8.0},
         "wall_time_s": 1.0, "agent_steps_per_s": 1000.0,

@@ -16,8 +16,7 @@ from ferl.analysis.claims import HELD, NOT_HELD, Chapter, Claim, Measured, Numbe
 from ferl.analysis.records import Manifest, predictor_role
 from ferl.analysis.report import RunAnalysis
 from reproduction import ch3, ch4, ch5
-from synthetic_runs import (assert_analysis_outputs, load_run, make_floor_run, make_tmaze_run,
-                            make_toy_run)
+from synthetic_runs import assert_analysis_outputs, load_run, make_floor_run, make_tmaze_run, make_toy_run
 from test_analyze_cli import analyze, event_files
 
 WINDOW = 200  # episodes: the moving average of Figs. 4.6–4.8
@@ -90,7 +89,7 @@ def test_continuing_runs_get_reward_and_td_curves_from_steps_npz(tmp_path):
     np.testing.assert_allclose(c.series["reward"], trailing_means(steps["rewards"], 100), rtol=1e-6)
     np.testing.assert_allclose(c.series["td_abs"], trailing_means(np.abs(steps["td_errors"]), 100),
                                rtol=1e-6)
-    mean, sem = c.mean_sem("reward")
+    _, sem = c.mean_sem("reward")
     k = 123
     assert sem[k] == pytest.approx(statistics.stdev(c.series["reward"][:, k]) / math.sqrt(3))
     assert c.optima["reward"] == 8.0

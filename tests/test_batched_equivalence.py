@@ -450,7 +450,7 @@ def test_numpy_fresh_pair_is_the_free_energy_after_the_update(a_next):
     for name, value in zip(ACTOR_KEYS, params):
         getattr(actor, name).copy_(torch.from_numpy(value)[None])
     s, s_next, a, delta, alpha = rng.random(n_state), rng.random(n_state), 2, -3.0, 0.01
-    F, x = ref.free_energy_all_actions(s, *params)
+    _, x = ref.free_energy_all_actions(s, *params)
     F_next, x_next = ref.free_energy_all_actions(s_next, *params)
     ref.sarsa_update(params, s, a, ref.sigmoid(x[a]), delta, alpha)
     F_after, x_after = ref.free_energy_all_actions(s_next, *params)

@@ -4,14 +4,14 @@ constructors the config names (ferl/config/validate.py: types, ranges, cross-key
 trainer's setup (what involves two components)."""
 import pytest
 import torch
-from hydra.errors import HydraException
 from hydra.core.hydra_config import HydraConfig
+from hydra.errors import HydraException
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from conftest import EXPERIMENTS, ROOT, run_train
 from ferl.config.hydra_glue import condense_hydra_error
-from ferl.config.params import ConfigError, check_node, target
+from ferl.config.params import ConfigError, check_node
 from ferl.config.swaps import settings_read
 from ferl.config.validate import validate
 from ferl.data import DataError
@@ -243,7 +243,7 @@ def test_bad_values_name_their_key(compose_cfg, override, key):
 
 
 def test_enum_errors_list_the_allowed_values(compose_cfg):
-    from ferl.actors.free_energy import TD_RULES
+    from ferl.actors.softmax import TD_RULES
 
     _, message = config_error(compose_cfg, ["actor.td_rule=td_lambda"])
     assert all(rule in message for rule in TD_RULES), message

@@ -101,7 +101,7 @@ def test_truncated_gzip_is_a_data_error(tmp_path):
     path = tmp_path / "x.gz"
     write_idx(path, np.zeros((3, 28, 28)), gz=True)
     path.write_bytes(path.read_bytes()[:20])
-    with pytest.raises(DataError, match="data.root"):
+    with pytest.raises(DataError, match=r"data.root"):
         read_idx(path)
 
 

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from ferl.data import MnistSplit, add_pixel_noise
-from ferl.envs.digit_floor import CW_CYCLE, DigitFloor, optimal_policy, patch_rewards
+from ferl.envs.digit_floor import DigitFloor, optimal_policy, patch_rewards
 
 N, E, S, W = range(4)
 

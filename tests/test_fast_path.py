@@ -14,12 +14,12 @@ import sys
 import numpy as np
 import pytest
 import torch
-from test_predictor import data, make, reference_loss
 
 from conftest import train_job
 from ferl import compiled as fast
 from ferl.predictors import training
 from ferl.predictors.training import PredictorBatch
+from test_predictor import data, make, reference_loss
 
 CPU = torch.device("cpu")
 

@@ -139,7 +139,7 @@ def test_each_damage_is_named_before_anything_is_unpickled(tmp_path, monkeypatch
 
 def test_a_plain_torch_save_file_is_the_old_format(tmp_path):
     torch.save({"progress": {}}, tmp_path / "last.pt")
-    with pytest.raises(CheckpointError, match="format from before format 1 .*plain torch.save"):
+    with pytest.raises(CheckpointError, match=r"format from before format 1 .*plain torch.save"):
         checkpoint.read(tmp_path / "last.pt")
 
 

@@ -60,7 +60,7 @@ def test_the_refusal_names_estimate_and_limit(monkeypatch):
 def test_memory_check_false_skips_the_estimate(monkeypatch):
     monkeypatch.setattr(footprint, "estimate", lambda *a: pytest.fail("estimated although memory_check=false"))
     check_memory(OmegaConf.create({"n_runs": 10**12, "device": "cpu", "memory_check": False}))
-    with pytest.raises(ConfigError, match="^memory_check="):
+    with pytest.raises(ConfigError, match=r"^memory_check="):
         validated_config(["memory_check=sometimes"])
 
 

@@ -126,9 +126,9 @@ def test_memory_is_chosen_by_name_and_checked_as_that_class():
     assert make("lstm").memory_size == M and make("lstm").initial_state().shape == (2, 2 * M)
     with pytest.raises(ConfigError, match=r"predictor.joint.memory='tcn' is not allowed: one of elman, esn, gru, lstm"):
         check_arguments(predictor, {"memory": "tcn"}, "predictor.joint.")
-    with pytest.raises(ConfigError, match="predictor.joint.spectral_radius is not allowed"):
+    with pytest.raises(ConfigError, match=r"predictor.joint.spectral_radius is not allowed"):
         check_arguments(predictor, {"memory": "gru", "spectral_radius": 0.9}, "predictor.joint.")
-    with pytest.raises(ConfigError, match="beta_m=2.0 is not allowed: 1 with memory=lstm"):
+    with pytest.raises(ConfigError, match=r"beta_m=2.0 is not allowed: 1 with memory=lstm"):
         check_arguments(predictor, {"memory": "lstm", "beta_m": 2.0}, "predictor.joint.")
 
 

@@ -36,7 +36,9 @@ def data(R, B, T, kind="bits", seed=1, lengths=None):
 
 def reference(p: ElmanPredictor, r: int, y, a):
     """Eqs. (4.1–4.5) for run r and one unpadded sequence y (T+1, Y), a (T, A), step by step."""
-    sig = lambda x, beta: 1 / (1 + torch.exp(-beta * x))
+    def sig(x, beta):
+        return 1 / (1 + torch.exp(-beta * x))
+
     m = sig(p.b_init[r], p.beta_m)
     ms, ys, rs = [], [], []
     for t in range(len(y)):
@@ -54,7 +56,7 @@ def reference(p: ElmanPredictor, r: int, y, a):
 @pytest.mark.parametrize("kind", KINDS)
 def test_forward_matches_per_step_loop(kind):
     p = make(R=3, **kind)
-    y, a, r, lengths = data(3, 4, 6, kind["reward_output"])
+    y, a, _, lengths = data(3, 4, 6, kind["reward_output"])
     with torch.no_grad():
         y_hat, r_hat, m = p.forward_sequences(y, a, lengths)
         for run in range(3):
@@ -72,7 +74,7 @@ def test_forward_matches_per_step_loop(kind):
 def test_online_step_matches_sequence_forward():
     """initial_state() + step() reproduce forward_sequences, as the actor phase uses them."""
     p = make(R=3)
-    y, a, r, _ = data(3, 1, 5)
+    y, a, _, _ = data(3, 1, 5)
     lengths = torch.full((3, 1), 5)
     y_hat, r_hat, m_seq = p.forward_sequences(y, a, lengths)
     m = p.initial_state()
@@ -90,7 +92,9 @@ def test_online_step_matches_sequence_forward():
 def reference_loss(p, run, y, a, r):
     """Σ_t E_t of Eq. (4.6) / Eq. (5.2) for one unpadded sequence, from the per-step loop."""
     _, ys, rs = reference(p, run, y, a)
-    ce = lambda x, xh: -(x * torch.log(xh) + (1 - x) * torch.log(1 - xh)).sum()
+    def ce(x, xh):
+        return -(x * torch.log(xh) + (1 - x) * torch.log(1 - xh)).sum()
+
     E = sum(p.rho_y * ce(y[t], ys[t]) for t in range(len(y))) if p.predict_obs else 0.0
     for t in range(1, len(y)):
         if p.reward_output == "bits":
@@ -145,7 +149,9 @@ def test_bptt_gradient_matches_finite_differences_and_ignores_padding(kind):
     pad = (t > lengths.unsqueeze(-1)).unsqueeze(-1)
     gen = torch.Generator().manual_seed(5)
     for fill in ("random", "nan"):
-        noise = lambda x: torch.randn(x.shape, generator=gen, dtype=x.dtype) * 9 if fill == "random" else torch.full_like(x, torch.nan)
+        def noise(x, fill=fill):
+            return torch.randn(x.shape, generator=gen, dtype=x.dtype) * 9 if fill == "random" else torch.full_like(x, torch.nan)
+
         y2 = torch.where(pad, noise(y), y)
         a2 = torch.where(pad[:, :, 1:], noise(a), a)
         r2 = torch.where(pad, noise(r), r) if r is not None else None
@@ -226,7 +232,7 @@ def test_predictor_batch_equals_training_each_alone():
     R, N = 2, 6
     obs = dict(reward_output="none", time_average=True, lr=0.1)
     rew = dict(reward_output="linear", predict_obs=False, time_average=True, lr=0.1)
-    y, a, r_bits, lengths = data(R, N, 7, seed=6)
+    y, a, _, lengths = data(R, N, 7, seed=6)
     r = torch.randn(R, N, 8, 1, generator=torch.Generator().manual_seed(7), dtype=torch.float64)
     batch = [make(R=R, seed=30, **obs), make(R=R, seed=40, **rew)]
     alone = [make(R=R, seed=30, **obs), make(R=R, seed=40, **rew)]
@@ -254,7 +260,9 @@ def test_runs_are_independent():
     y2, a2, r2, lengths2 = data(R, N, 7, seed=3)
     order = torch.stack([torch.randperm(N, generator=torch.Generator().manual_seed(k)) for k in range(R)])
     order2 = torch.stack([torch.randperm(N, generator=torch.Generator().manual_seed(9 + k)) for k in range(R)])
-    keep = lambda u, v: torch.cat([u[:1], v[1:]])
+    def keep(u, v):
+        return torch.cat([u[:1], v[1:]])
+
     runs = []
     for data_ in ((y, a, r, lengths, order), tuple(keep(u, v) for u, v in zip((y, a, r, lengths, order), (y2, a2, r2, lengths2, order2)))):
         p = make(R=R, seed=4, lr=0.1)

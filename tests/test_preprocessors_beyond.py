@@ -242,7 +242,7 @@ def test_both_meet_the_preprocessor_protocol():
 
 @pytest.mark.parametrize("layers", [[784], [], [784, 0, 20], [784, -3]])
 def test_layers_that_do_not_chain_name_the_key(layers):
-    with pytest.raises(ValueError, match="^layers="):
+    with pytest.raises(ValueError, match=r"^layers="):
         DBNPreprocessor(1, layers=layers)
     with pytest.raises(ConfigError, match=r"^preprocessor\.layers=.*is not allowed"):
         check_node({"_target_": "ferl.preprocessors.dbn.DBNPreprocessor", "layers": layers}, "preprocessor.")
@@ -303,5 +303,5 @@ def test_noise_is_one_table_per_config_shared_by_a_class():
 
 
 def test_noise_with_a_binarize_threshold_is_refused():
-    with pytest.raises(ValueError, match="^pixel_noise_std=0.3 is not allowed: .*binarize_threshold"):
+    with pytest.raises(ValueError, match=r"^pixel_noise_std=0.3 is not allowed: .*binarize_threshold"):
         DigitTMaze(1, torch.Generator(), grey_split(), CLASSES, matching=True, pixel_noise_std=0.3)

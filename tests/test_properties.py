@@ -12,10 +12,10 @@ from hypothesis import strategies as st
 from omegaconf import OmegaConf
 from omegaconf.errors import ValidationError
 
-from ferl.envs.digit_floor import DigitFloor
-from ferl.envs.tmaze import TMaze
 from ferl.config.params import ConfigError
 from ferl.config.validate import validate
+from ferl.envs.digit_floor import DigitFloor
+from ferl.envs.tmaze import TMaze
 from test_digit_floor import tiny_split
 
 SETTINGS = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])

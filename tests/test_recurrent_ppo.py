@@ -16,11 +16,11 @@ import torch
 
 pytest.importorskip("sb3_contrib")
 
-from conftest import ROOT, compose_config, train_job  # noqa: E402
-from ferl.analysis.records import Manifest  # noqa: E402
-from reproduction.variants import VIEW_KEYS  # noqa: E402
-from ferl.envs.gymnasium_vector import GymnasiumEnv  # noqa: E402
-from ferl.run.directory import RunDir  # noqa: E402
+from conftest import ROOT, compose_config, train_job
+from ferl.analysis.records import Manifest
+from ferl.envs.gymnasium_vector import GymnasiumEnv
+from ferl.run.directory import RunDir
+from reproduction.variants import VIEW_KEYS
 
 GAMMA, T_MIN, T_MAX, GOAL = 0.95, 3, 10, 5.0
 STEP, WALL = -0.1, -1.0

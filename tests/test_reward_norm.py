@@ -63,7 +63,7 @@ def test_head_outputs_in_the_environments_units_are_preserved():
 
 def test_off_by_default_and_only_for_a_scalar_reward():
     assert predictor(memory="elman", n_runs=1, n_obs=3, n_actions=2, n_reward=4).reward_stats is None
-    with pytest.raises(ValueError, match="reward_norm=.popart. is not allowed"):
+    with pytest.raises(ValueError, match=r"reward_norm=.popart. is not allowed"):
         predictor(memory="elman", n_runs=1, n_obs=3, n_actions=2, reward_output="bits", n_reward=4, reward_norm="popart")
 
 

@@ -17,7 +17,13 @@ import torch
 
 from conftest import run_train
 from ferl.config.params import ConfigError
-from ferl.interfaces import EpisodicEnvironment, EpisodicEnvironmentBase, TrainingBatch, missing_members, required_members
+from ferl.interfaces import (
+    EpisodicEnvironment,
+    EpisodicEnvironmentBase,
+    TrainingBatch,
+    missing_members,
+    required_members,
+)
 from ferl.trainers.facts import check_conforms, facts_for
 from five_arms import FiveArms, Forgetful
 

@@ -5,6 +5,7 @@ import importlib.util
 
 import numpy as np
 import pytest
+
 from conftest import ROOT, compose_config, train_job, validated_config
 
 SUITES = ["popgym_repeat_previous_easy", "popgym_count_recall_easy", "popgym_autoencode_easy",

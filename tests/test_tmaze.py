@@ -252,5 +252,5 @@ def test_digit_reservoir_images_come_from_their_class():
     for name, label in classes.items():
         n = env.observation_names.index(name)
         assert torch.equal(env.observation_table[n * 4:(n + 1) * 4], pools[label])
-    with pytest.raises(ValueError, match="env.reservoir_size"):
+    with pytest.raises(ValueError, match=r"env.reservoir_size"):
         DigitTMaze(1, torch.Generator(), data, classes, reservoir_size=10_000, matching=True)

@@ -50,7 +50,7 @@ def test_every_form_is_its_sum_over_hidden_states(q, code):
         assert -F[r, b, a].item() == pytest.approx(brute_force_q(q, params, s[r, b], actor.codes[a], 3).item(), rel=1e-10)
     if code == "binary":  # only the chosen actions' F
         a = torch.tensor([[0, 3, 1], [2, 2, 0]])
-        F_a, x_a = actor.evaluate_actions(s, a)
+        F_a, _ = actor.evaluate_actions(s, a)
         torch.testing.assert_close(F_a, F.gather(-1, a.unsqueeze(-1)).squeeze(-1))
 
 
@@ -167,3 +167,13 @@ def test_annealed_chain_rises_geometrically_to_beta():
                          q="scaled_free_energy")
     betas = torch.tensor(annealed.chain_betas(16.0), dtype=torch.float64)
     torch.testing.assert_close(betas, torch.tensor([1.0, 2.0, 4.0, 8.0, 16.0], dtype=torch.float64) / 2)
+
+
+def test_the_configs_value_forms_are_the_implemented_ones():
+    """``actor.q``'s allowed values (a Literal the type checker reads) name exactly the forms of
+    ``ferl.actors.values``: a form added to one and not the other fails here."""
+    from typing import get_args
+
+    from ferl.actors.values import FORMS
+
+    assert sorted(get_args(free_energy.ValueForm)) == sorted(FORMS)

@@ -11,7 +11,6 @@ from conftest import TINY, train_sweep
 from ferl.analysis.records import Manifest
 from reproduction.scope import dissertation_components
 
-
 MAZE = ["n_runs=2", "trainer.n_sample=300", "trainer.n_epoch=2", "trainer.n_episodes=60", "trainer.final_window=20",
         "trainer.log_every=20"]
 

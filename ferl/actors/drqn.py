@@ -20,13 +20,12 @@ episodes, drawn for every run at once from the actor's generator, never from the
 the lockstep episodes' pre-drawn streams stay as they are).
 """
 import math
-from typing import Literal
 
 import torch
 from torch.nn import functional as nnf
 
 from ferl import rng
-from ferl.actors.softmax import TD_RULES, SoftmaxActor
+from ferl.actors.softmax import SoftmaxActor, TDRule
 from ferl.config.params import Discount, NonNegative, NonNegativeInt, PositiveInt, checked
 from ferl.interfaces import EndedEpisode
 from ferl.predictors.gated import gru_cell
@@ -66,12 +65,20 @@ class DRQNActor(SoftmaxActor):
     episodes by BPTT on the Huber TD loss with a target network (module docstring)."""
 
     learns_from_episodes = True  # nothing per step; its memory h steps in place with every act
+    # GRU weights (R, ·), then Q's head (PARAMETERS); their Adam moments and target copies are
+    # buffers named with _m, _v, _target, read through ``params``
+    W_x: torch.Tensor  # (R, S + nA, 3H)
+    W_h: torch.Tensor  # (R, H, 3H)
+    W_q: torch.Tensor  # (R, H, nA)
+    h: torch.Tensor       # (R, 1, H) the memory
+    a_prev: torch.Tensor  # (R, 1, nA) the previous action, one-hot
+    replay: dict[str, torch.Tensor] | None
 
     @checked
     def __init__(self, n_runs: PositiveInt, n_state: PositiveInt, n_actions: PositiveInt, n_hidden: PositiveInt,
                  gamma: Discount, lr, beta, replay_episodes: PositiveInt = 1000, batch_episodes: PositiveInt = 16,
                  updates_per_episode: NonNegativeInt = 1, target_every: PositiveInt = 100,
-                 td_rule: Literal[TD_RULES] = "q", seed: NonNegativeInt = 0, init_std: NonNegative | None = None):
+                 td_rule: TDRule = "q", seed: NonNegativeInt = 0, init_std: NonNegative | None = None):
         super().__init__()
         self.td_rule, self.gamma, self.n_hidden, self.n_actions = td_rule, gamma, n_hidden, n_actions
         self.lr_schedule, self.beta_schedule, self.lr_divisor = lr, beta, 1.0
@@ -125,7 +132,7 @@ class DRQNActor(SoftmaxActor):
         h = gru_step(p, torch.cat([s, self.a_prev.expand(-1, s.shape[1], -1)], -1), self.h.expand(-1, s.shape[1], -1))
         return -q_values(p, h), h.unsqueeze(2).expand(-1, -1, self.n_actions, -1)
 
-    def act(self, s: torch.Tensor, beta: float, generator: torch.Generator, uniform: torch.Tensor = None):
+    def act(self, s: torch.Tensor, beta: float, generator: torch.Generator, uniform: torch.Tensor | None = None):
         """``SoftmaxActor.act`` at s (R, 1, S), then the memory steps: h ← GRU((s, a_{t−1}), h)
         and a_{t−1} ← the action drawn."""
         a, F_a, h, F_boot = super().act(s, beta, generator, uniform)
@@ -156,6 +163,7 @@ class DRQNActor(SoftmaxActor):
     def sample(self) -> dict:
         """``batch_episodes`` stored episodes per run, drawn uniformly with replacement, every
         run's in one draw."""
+        assert self.replay is not None  # end_episode has stored one
         index = draw_episodes(self.replay, self.episodes, self.batch_episodes, self.generator).to(self.W_q.device)
         return stored_episodes(self.replay, index)
 

@@ -26,17 +26,17 @@ from typing import Literal
 import torch
 
 from ferl import rbm, rng
-from ferl.actors.softmax import TD_RULES, SoftmaxActor, check_schedules, sample_categorical
+from ferl.actors.softmax import SoftmaxActor, TDRule, check_schedules, sample_categorical
 from ferl.actors.values import FORMS, value_form
 from ferl.bits import from_bits, to_bits
 from ferl.config.params import ArgumentError, Discount, NonNegative, NonNegativeInt, Positive, PositiveInt, checked
 
 # what α is divided by: the square root of the edges or of a hidden node's fan-in, nothing, or
 # ‖∂Q(s, a)/∂θ‖² (normalised LMS: α is then the share of δ that one update corrects)
-LR_NORMS = ("edges", "fan_in", "none", "gradient")
-ACTION_CODES = ("onehot", "binary")
-ACTION_SELECTIONS = ("clamp", "gibbs")
-VALUE_FORMS = tuple(FORMS)
+LRNorm = Literal["edges", "fan_in", "none", "gradient"]
+ActionCode = Literal["onehot", "binary"]
+ActionSelection = Literal["clamp", "gibbs"]
+ValueForm = Literal["free_energy", "scaled_free_energy", "expected_energy"]  # ferl.actors.values.FORMS' names
 # Up to this many actions every action's F is computed at every step (clamped softmax, Q(0),
 # expected SARSA); beyond it actions are factored bit codes drawn by Gibbs sampling.
 MAX_ENUMERATED_ACTIONS = 4096
@@ -59,13 +59,19 @@ class FERLActor(SoftmaxActor):
     online by θ ← θ + α δ (−∂F/∂θ) (Eqs. 3.5–3.10); batched over runs (module docstring)."""
 
     shared_buffers = ("codes",)
+    codes: torch.Tensor  # (nA, bits) the actions' codes, shared by the runs
+    W_sh: torch.Tensor   # (R, S, H)
+    W_ah: torch.Tensor   # (R, bits, H)
+    b_s: torch.Tensor    # (R, S)
+    b_a: torch.Tensor    # (R, bits)
+    b_h: torch.Tensor    # (R, H)
     @checked
     def __init__(self, n_runs: PositiveInt, n_state: PositiveInt, n_actions: PositiveInt, n_hidden: PositiveInt,
-                 td_rule: Literal[TD_RULES], gamma: Discount, lr, beta, lr_norm: Literal[LR_NORMS] = "edges",
+                 td_rule: TDRule, gamma: Discount, lr, beta, lr_norm: LRNorm = "edges",
                  init_std: NonNegative = 0.01, bias_init_std: NonNegative = 0.0,
-                 action_code: Literal[ACTION_CODES] = "onehot", action_selection: Literal[ACTION_SELECTIONS] = "clamp",
+                 action_code: ActionCode = "onehot", action_selection: ActionSelection = "clamp",
                  gibbs_sweeps: PositiveInt = 20, gibbs_anneal_from: Positive | None = None, td_fresh: bool = False,
-                 q: Literal[VALUE_FORMS] = "free_energy", q_scale: Positive | None = None, seed: NonNegativeInt = 0):
+                 q: ValueForm = "free_energy", q_scale: Positive | None = None, seed: NonNegativeInt = 0):
         super().__init__()
         self.td_rule, self.gamma, self.td_fresh = td_rule, gamma, td_fresh
         self.n_hidden, self.lr_norm = n_hidden, lr_norm
@@ -169,7 +175,7 @@ class FERLActor(SoftmaxActor):
         One-hot codes are the identity, so the product is skipped on the hot path."""
         return weights if self.onehot else self.codes @ weights
 
-    def act(self, s: torch.Tensor, beta: float, generator: torch.Generator, uniform: torch.Tensor = None):
+    def act(self, s: torch.Tensor, beta: float, generator: torch.Generator, uniform: torch.Tensor | None = None):
         """At states s (R, 1, S): an action a (R, 1) by the actor's selection, its F(s, a) (R, 1) and
         hidden input (R, 1, H), and the F that a TD error bootstraps from at s (§3.2): F(s, a)
         (SARSA), min_a F (Q(0)) or the policy's mean F (expected SARSA). Factored actions are
@@ -181,7 +187,7 @@ class FERLActor(SoftmaxActor):
         return super().act(s, beta, generator, uniform)
 
     def select(self, s: torch.Tensor, F: torch.Tensor, beta: float, generator: torch.Generator,
-               uniform: torch.Tensor = None) -> torch.Tensor:
+               uniform: torch.Tensor | None = None) -> torch.Tensor:
         """An action index per (run, state): clamped softmax (Eq. 3.11) or alternating Gibbs.
 
         ``uniform`` (R, B, 1) may carry pre-drawn U(0, 1) numbers for the clamped softmax.

@@ -20,10 +20,10 @@ from typing import Literal
 import torch
 
 from ferl import rng
-from ferl.actors.softmax import TD_RULES, SoftmaxActor
+from ferl.actors.softmax import SoftmaxActor, TDRule
 from ferl.config.params import Discount, NonNegative, NonNegativeInt, PositiveInt, checked
 
-LR_NORMS = ("fan_in", "none")  # α / √(state inputs of a hidden node), or α as given
+LRNorm = Literal["fan_in", "none"]  # α / √(state inputs of a hidden node), or α as given
 
 
 class MLPQActor(SoftmaxActor):
@@ -31,9 +31,14 @@ class MLPQActor(SoftmaxActor):
     + b_2[a] in place of the RBM of §4.2, with the FERL actor's TD rule and softmax (Eq. 3.11),
     updated by θ ← θ + α δ ∂Q/∂θ (Eq. 3.10 with this Q; module docstring)."""
 
+    W_1: torch.Tensor  # (R, S, H)
+    W_2: torch.Tensor  # (R, H, nA)
+    b_1: torch.Tensor  # (R, H)
+    b_2: torch.Tensor  # (R, nA)
+
     @checked
     def __init__(self, n_runs: PositiveInt, n_state: PositiveInt, n_actions: PositiveInt, n_hidden: PositiveInt,
-                 td_rule: Literal[TD_RULES], gamma: Discount, lr, beta, lr_norm: Literal[LR_NORMS] = "fan_in",
+                 td_rule: TDRule, gamma: Discount, lr, beta, lr_norm: LRNorm = "fan_in",
                  init_std: NonNegative = 0.1, td_fresh: bool = True, seed: NonNegativeInt = 0):
         super().__init__()
         self.td_rule, self.gamma, self.td_fresh, self.n_hidden = td_rule, gamma, td_fresh, n_hidden

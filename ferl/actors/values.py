@@ -82,7 +82,7 @@ class ExpectedEnergy(FreeEnergy):
         return p * (1 + x * (1 - p))
 
 
-FORMS = {form.name: form for form in (FreeEnergy, ScaledFreeEnergy, ExpectedEnergy)}
+FORMS: dict[str, type[FreeEnergy]] = {form.name: form for form in (FreeEnergy, ScaledFreeEnergy, ExpectedEnergy)}
 
 
 def value_form(name: str, z: float) -> FreeEnergy:

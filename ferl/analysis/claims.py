@@ -138,7 +138,7 @@ class Numbering:
     def prediction_figure(self, role: str | None) -> str:
         if not self.prediction_errors:
             return ""
-        return self.prediction_errors + self.predictor_panels.get(role, "")
+        return self.prediction_errors + (self.predictor_panels.get(role, "") if role is not None else "")
 
     def layer(self, key: str) -> LayerFigures | None:
         return self.layers.get(key) or self.layers.get("memory" if key.startswith("memory")

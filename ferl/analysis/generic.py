@@ -31,7 +31,7 @@ from ferl.analysis.report import RunAnalysis
 STEP_WINDOW = 100       # moving-average window of Fig. 3.4 (steps)
 MAX_CURVE_POINTS = 2000  # a continuing run's curves are drawn at most this often: more adds nothing
 FIGURE_RUN = 0          # the dissertation's per-run panels show its 1st run
-ERROR_UNITS = {  # predictor role → its recorded error measure (Eq. 4.8; Figs. 5.2/5.17 (a), (b))
+ERROR_UNITS: dict[str | None, str] = {  # predictor role → its recorded error measure (Eq. 4.8; Figs. 5.2/5.17 (a), (b))
     JOINT: "Eq. 4.8 weighted absolute error\nρ_y Σ|y − ŷ| + ρ_r Σ|r − r̂|",
     OBSERVATION: "absolute error Σ|y − ŷ|\n(processed observations)",
     REWARD: "squared error (r − r̂)²\n(scalar reward)",
@@ -81,7 +81,7 @@ def curves(run: Run) -> Curves | None:
         keys = [k for k in ("discounted_return", "steps", "terminal_reward") if k in episodes]
         keys += averages + rates + ["td_abs_mean"]
         window = min(run.final_window, episodes["td_abs_mean"].shape[1])  # 200: Figs. 4.6–4.8, 4.11–4.13
-        series = {}
+        series: dict[str, np.ndarray] = {}
         for key in keys:
             x, series[key] = _moving(episodes[key].astype(np.float64), window, None)
         optima = {"discounted_return": episodes.get("optimal_return"),

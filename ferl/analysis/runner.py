@@ -204,11 +204,13 @@ def _usage_error(dirs: list[Path], pages: Sequence[Path]) -> str | None:
     single = [str(d) for d in dirs if (d / "summary.json").is_file()]
     if pages and single:
         return f"--readme takes sweep directories only, not the run {', '.join(single)}"
-    if pages and REGISTRY.pages is None:
+    writer = REGISTRY.pages
+    if pages and writer is None:
         return "--readme: no plug-in that writes pages is registered"
     for page in pages:
-        if not (page.is_file() and REGISTRY.pages.blocks_in(page.read_text())):
-            markers = " or ".join(f"{b!r} … {e!r}" for b, e in REGISTRY.pages.BLOCKS)
+        assert writer is not None
+        if not (page.is_file() and writer.blocks_in(page.read_text())):
+            markers = " or ".join(f"{b!r} … {e!r}" for b, e in writer.BLOCKS)
             return f"--readme {page}: needs a file with the marker lines {markers}"
     return None
 

@@ -67,9 +67,7 @@ def one_line_errors():
     except SystemExit as e:
         captured, sys.stderr = sys.stderr, real
         if e.code and isinstance(captured, io.StringIO):
-            report = captured.getvalue()
-            line = hydra_os_error(report) or null_group_choice(report, sys.argv[1:]) or condense_hydra_error(report)
-            print("ferl: error: " + line, file=sys.stderr)
+            print("ferl: error: " + hydra_report_line(captured.getvalue(), sys.argv[1:]), file=sys.stderr)
         raise
     except KeyboardInterrupt:
         sys.stderr = real
@@ -174,7 +172,7 @@ def log_traceback(run_path: Path, message: str) -> Path | None:
     where it could not be written (a full disk): that failure is swallowed, never a second traceback."""
     files = [h for h in logging.getLogger().handlers if isinstance(h, logging.FileHandler)]
     path = Path(files[0].baseFilename) if files else Path(run_path) / "train.log"
-    record = logging.getLogger(__name__).makeRecord(__name__, logging.ERROR, __file__, 0, message, None,
+    record = logging.getLogger(__name__).makeRecord(__name__, logging.ERROR, __file__, 0, message, (),
                                                    sys.exc_info())
     text = (files[0].format(record) if files else f"{message}\n{traceback.format_exc()}").rstrip("\n") + "\n"
     try:
@@ -198,6 +196,12 @@ def shown(path: Path) -> str:
 def release_stderr() -> None:
     """Hand stderr back once Hydra has composed the config (progress bars and errors go there)."""
     sys.stderr = sys.__stderr__
+
+
+def hydra_report_line(report: str, arguments: list[str]) -> str:
+    """The one line of what Hydra printed on stderr before main() ran, given the command line's
+    ``arguments`` (tests/test_hydra_versions.py checks it for every Hydra release the pin allows)."""
+    return hydra_os_error(report) or null_group_choice(report, arguments) or condense_hydra_error(report)
 
 
 def null_group_choice(report: str, arguments: list[str]) -> str | None:

@@ -136,7 +136,9 @@ def settings_read(node: DictConfig, path: str) -> set[str]:
         if isinstance(value, list):
             return [t for v in value for t in texts(v)]
         return [value] if isinstance(value, str) else []
-    subtree = {k: v for k, v in OmegaConf.to_container(node, resolve=False).items() if isinstance(v, (dict, list))}
+    container = OmegaConf.to_container(node, resolve=False)
+    assert isinstance(container, dict)  # a component's node
+    subtree = {k: v for k, v in container.items() if isinstance(v, (dict, list))}
     refs = {ref for text in texts(subtree) for ref in SETTING.findall(text)}
     return {ref[len(path) + 1:] for ref in refs if ref.startswith(path + ".") and ref[len(path) + 1:] in node}
 
@@ -144,11 +146,13 @@ def settings_read(node: DictConfig, path: str) -> set[str]:
 def setting_named(error: ConfigError, cfg: DictConfig) -> ConfigError:
     """An error about a key whose value reads a setting (``trainer.phases.actor.n_episodes`` =
     ``${trainer.n_episodes}``) names the setting, the key the user sets."""
-    key = re.match(r"[\w.]*", str(error)).group(0)
+    match = re.match(r"[\w.]*", str(error))
+    key = match.group(0) if match else ""
     parent, _, name = key.rpartition(".")
     try:
         node = OmegaConf.select(cfg, parent) if parent else None
-        value = node._get_node(name)._value() if isinstance(node, DictConfig) and name in node else None
+        child = node._get_node(name) if isinstance(node, DictConfig) and name in node else None
+        value = child._value() if child is not None else None
     except Exception:  # noqa: BLE001 — the error stands as it is
         return error
     read = SETTING.fullmatch(value) if isinstance(value, str) else None
@@ -170,7 +174,7 @@ def check_settings(cfg: DictConfig, key: str) -> None:
         return
     for name in node:
         if name != "_target_" and name not in params and name not in read:
-            raise ConfigError(f"{key}.{name} is not allowed: no phase reads it; {key} takes "
+            raise ConfigError(f"{key}.{name!s} is not allowed: no phase reads it; {key} takes "
                               f"{', '.join(sorted(read))} (its settings) and {', '.join(params)}")
 
 
@@ -186,7 +190,7 @@ def check_fit(values: dict, hydra) -> None:
     if not (isinstance(env, dict) and isinstance(trainer, dict) and "_target_" in env and "_target_" in trainer):
         return
     env_class = target(env["_target_"])
-    wants = {"episodic": True, "continuing": False}.get(trainer.get("environment"))
+    wants = {"episodic": True, "continuing": False}.get(str(trainer.get("environment")))
     if wants is None or wants != continuing(env_class):
         return
     steps = "episodes" if wants else "a continuing task"

@@ -12,7 +12,7 @@ the components exist and before anything is trained.
 """
 import re
 from dataclasses import dataclass, fields
-from typing import Annotated, Literal
+from typing import Annotated, Literal, cast
 
 import torch
 from omegaconf import DictConfig, OmegaConf
@@ -40,7 +40,7 @@ from ferl.config.swaps import (
     typed_values,
 )
 
-DEVICES = ("auto", "cpu", "cuda")
+Device = Literal["auto", "cpu", "cuda"]
 
 
 @dataclass(frozen=True)
@@ -49,7 +49,7 @@ class RunSettings:
     name: str
     seed: NonNegativeInt
     n_runs: PositiveInt
-    device: Literal[DEVICES]
+    device: Device
     cpu_threads: PositiveInt
     resume: bool
     compile: bool
@@ -86,7 +86,7 @@ def blamed_on_swap(error: ConfigError, hydra) -> ConfigError:
     """A key the user did not type that fails after a group swap came with the swapped option (or an
     experiment value it cannot take): the error names the pair first."""
     swapped = swapped_groups(hydra) if hydra is not None else []
-    key = tuple(re.match(r"[\w.]*", str(error)).group(0).split("."))
+    key = tuple(re.split(r"[^\w.]", str(error), maxsplit=1)[0].split("."))  # the leading dotted key
     typed = typed_values(hydra) if hydra is not None else set()
     if not swapped or any(key[:i] in typed for i in range(1, len(key) + 1)):
         return error
@@ -99,9 +99,9 @@ def resolved(cfg: DictConfig) -> dict:
     (``???``) is a ConfigError naming it and what it takes."""
     job = {k: cfg[k] for k in cfg if k != "hydra"}
     try:
-        return OmegaConf.to_container(OmegaConf.create(job), resolve=True, throw_on_missing=True)
+        return cast(dict, OmegaConf.to_container(OmegaConf.create(job), resolve=True, throw_on_missing=True))
     except MissingMandatoryValue as e:
-        key = e.full_key
+        key = cast(str, e.full_key)  # the missing value's dotted path
         parent, _, name = key.rpartition(".")
         node = OmegaConf.select(cfg, parent) if parent else None
         hints = signature(target(node["_target_"]))[1] if isinstance(node, DictConfig) and "_target_" in node else {}

@@ -79,7 +79,7 @@ def violation(space: spaces.Space, observation, reward=0.0) -> tuple[str, str] |
     except Exception:  # noqa: BLE001 — a value the space cannot even compare is outside it
         inside = False
     if not inside:
-        return f"returned an observation outside its space {one_line(space, 120)}", one_line(SHOWN.repr(observation))
+        return f"returned an observation outside its space {one_line(str(space), 120)}", one_line(SHOWN.repr(observation))
     try:
         finite = math.isfinite(float(reward))
     except (TypeError, ValueError):

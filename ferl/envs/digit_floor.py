@@ -11,7 +11,7 @@ the goal the agent is moved to a uniformly random non-goal tile (P⁰ of §3.4).
 The dynamics are position tables over tiles (next tile, reward), so a step is a few gathers.
 """
 import copy
-from typing import Annotated, Literal
+from typing import Annotated, Literal, get_args
 
 import numpy as np
 import torch
@@ -25,7 +25,8 @@ from ferl.random_blocks import Blocks, steps_per_block
 MOVES = ((-1, 0), (0, 1), (1, 0), (0, -1))
 GOAL = 4  # the patch centre (Fig. 3.3)
 CW_CYCLE = (0, 1, 2, 5, 8, 7, 6, 3)
-REWARD_CONDITIONS = ("cw", "ccw", "none")
+RewardCondition = Literal["cw", "ccw", "none"]
+REWARD_CONDITIONS = get_args(RewardCondition)
 NOISE_CLASS = "N"
 
 
@@ -117,9 +118,9 @@ class DigitFloor(EnvironmentBase):
     @checked
     def __init__(self, n_runs: PositiveInt, data: MnistSplit, generator: torch.Generator,
                  arrangement: Annotated[list[list[str | int]], Allowed(is_arrangement, "(3 × 3 distinct classes 0–9)")] =
-                 (("0", "1", "2"), ("3", "4", "5"), ("6", "7", "8")),
+                 (("0", "1", "2"), ("3", "4", "5"), ("6", "7", "8")),  # type: ignore[assignment]  # immutable default
                  patches: PositiveInt = 4, noise: UnitInterval = 0.125,
-                 reward_condition: Literal[REWARD_CONDITIONS] = "cw", goal_reward: float = 10.0,
+                 reward_condition: RewardCondition = "cw", goal_reward: float = 10.0,
                  boundary_reward: float = 4.0, other_reward: float = -2.0,
                  noise_tile: Annotated[str | int, Allowed(lambda c: str(c) in DIGITS, "(a class 0–9)")] | None = None,
                  true_state: bool = False, device="cpu"):

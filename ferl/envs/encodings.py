@@ -19,13 +19,15 @@ observation space needs a declared encoding into {0, 1}^O:
 An encoding is a ``gymnasium.ObservationWrapper`` (``BinaryObservation``), so the same code serves
 ferl's vector of environments and any outside learner given the wrapped environment.
 """
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
+from typing import Literal, get_args
 
 import gymnasium
 import numpy as np
 from gymnasium import spaces
 
-ENCODINGS = ("auto", "onehot", "thresholds", "minigrid")
+Encoding = Literal["auto", "onehot", "thresholds", "minigrid"]
+ENCODINGS = get_args(Encoding)
 # MiniGrid's symbolic indices (minigrid.core.constants: OBJECT_TO_IDX, COLOR_TO_IDX, STATE_TO_IDX)
 MINIGRID_SIZES = (11, 6, 3)
 
@@ -56,8 +58,11 @@ def onehot_encoder(space) -> tuple[Encoder, int]:
     if isinstance(space, spaces.MultiBinary):
         return (lambda x: np.asarray(x, np.uint8).reshape(-1)), int(np.prod(space.shape))
     if isinstance(space, (spaces.Tuple, spaces.Dict)):
-        keys = list(space.spaces) if isinstance(space, spaces.Dict) else range(len(space.spaces))
-        parts = [onehot_encoder(space.spaces[k]) for k in keys]
+        named: Iterable[tuple[str | int, spaces.Space]] = (space.spaces.items() if isinstance(space, spaces.Dict)
+                                                           else enumerate(space.spaces))
+        subspaces = dict(named)
+        keys = list(subspaces)
+        parts = [onehot_encoder(subspaces[k]) for k in keys]
         return (lambda x: np.concatenate([enc(x[k]) for k, (enc, _) in zip(keys, parts)])), sum(n for _, n in parts)
     raise NoEncoding(f"{space} has no one-hot encoding (only Discrete, MultiDiscrete, MultiBinary and "
                      f"Tuple/Dict of them)")

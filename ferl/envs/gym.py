@@ -86,6 +86,24 @@ class Batch:
     def observations(self, obs: torch.Tensor) -> np.ndarray:
         return to_numpy(obs, self.observation_space.dtype)
 
+    def build(self, generator: torch.Generator):
+        """The batched environment, its randomness drawn from ``generator``."""
+        raise NotImplementedError
+
+    def reset(self, mask: torch.Tensor) -> torch.Tensor:
+        """Observations (R, …) after resetting the runs where ``mask`` (R,) is set."""
+        raise NotImplementedError
+
+    def step(self, actions: torch.Tensor):
+        """(obs, reward, terminated, truncated) of every run after ``actions`` (R,)."""
+        raise NotImplementedError
+
+    def info(self) -> dict:
+        raise NotImplementedError
+
+    def render(self, run: int) -> np.ndarray:
+        raise NotImplementedError
+
 
 class FloorBatch(Batch):
     """Digit floors (§3.4): L×L patches of 3×3 tiles, each tile its own MNIST image, observed with a
@@ -138,7 +156,7 @@ class MazeBatch(Batch):
     """T-mazes with 7-bit observations (Fig. 4.3): regular (§4.3.1) or matching (§4.3.2); rewards
     ±5 at the goals, −1 for a wall bump, −0.1 otherwise; cut off after ``max_steps`` actions."""
 
-    observation_space = spaces.MultiBinary(7)
+    observation_space: spaces.Space = spaces.MultiBinary(7)
 
     def __init__(self, n_runs: int, corridor_length: int = 3, max_steps: int = 10, matching: bool = False):
         self.maze = dict(corridor_length=corridor_length, max_steps=max_steps, matching=matching)
@@ -254,7 +272,8 @@ class BatchVectorEnv(VectorEnv):
     autoreset). ``max_episode_steps`` (None or −1: none) adds a cut-off, as ``TimeLimit`` does for
     a single view; ``gymnasium.make_vec`` passes the registered one."""
 
-    metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": ["rgb_array"], "render_fps": RENDER_FPS}  # noqa: RUF012
+    metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": ["rgb_array"],  # noqa: RUF012 - as above
+                "render_fps": RENDER_FPS}
     batch_type: type[Batch]
 
     def __init_subclass__(cls, batch_type: type[Batch], **kwargs):

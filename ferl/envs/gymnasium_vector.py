@@ -33,7 +33,7 @@ diverged run (``ferl.run.guard``) while the other runs go on — with the env id
 step; its environment is never stepped again, in this process or a resumed one. Without
 ``on_fault`` (the class used directly) the fault raises ``EnvironmentFault``.
 """
-from typing import Literal
+from typing import Literal, cast
 
 import gymnasium
 import numpy as np
@@ -43,7 +43,7 @@ from gymnasium import spaces
 from ferl import rng
 from ferl.config.params import ConfigError, Positive, PositiveInt, checked
 from ferl.envs.boundary import DETAIL, FAULT, Guarded
-from ferl.envs.encodings import ENCODINGS, BinaryObservation, NoEncoding
+from ferl.envs.encodings import BinaryObservation, Encoding, NoEncoding
 from ferl.interfaces import EpisodicEnvironmentBase
 
 
@@ -99,7 +99,7 @@ class GymnasiumEnv(EpisodicEnvironmentBase):
 
     @checked
     def __init__(self, n_runs: PositiveInt, generator: torch.Generator, seed: int, id: str, kwargs: dict | None = None,
-                 encoding: Literal[ENCODINGS] = "auto", thresholds: list | None = None,
+                 encoding: Encoding = "auto", thresholds: list | None = None,
                  max_steps: PositiveInt | None = None, vectorization: Literal["sync", "async"] = "sync",
                  max_observations: PositiveInt = 4096, success_threshold: float | None = None,
                  optimal_return: float | None = None, reward_scale: Positive = 1.0, device="cpu"):
@@ -111,7 +111,8 @@ class GymnasiumEnv(EpisodicEnvironmentBase):
             self.sizes = action_sizes(probe.action_space, id)
             self.action_space = probe.action_space
             try:
-                observation_size = BinaryObservation(probe, encoding, self.thresholds).observation_space.n
+                encoded = cast(spaces.MultiBinary, BinaryObservation(probe, encoding, self.thresholds).observation_space)
+                observation_size = cast(int, encoded.n)  # MultiBinary(size): an int
             except NoEncoding as e:
                 raise ConfigError(f"env.encoding: the observation space of {id!r}: {e}") from None
             limit = max_steps or default_max_steps(probe)
@@ -125,7 +126,7 @@ class GymnasiumEnv(EpisodicEnvironmentBase):
             ["(" + ",".join(map(str, np.unravel_index(i, self.sizes))) + ")" for i in range(self.n_actions)]
         self.success_threshold, self.optimal_return, self.vectorization = success_threshold, optimal_return, vectorization
         self.reward_scale = reward_scale
-        self.seeds = rng.run_seeds(seed, n_runs)
+        self.seeds: list[int | None] = list(rng.run_seeds(seed, n_runs))  # as vector.reset takes them
         vector = gymnasium.vector.AsyncVectorEnv if vectorization == "async" else gymnasium.vector.SyncVectorEnv
         self.vector = vector([self.env_fn() for _ in range(n_runs)], autoreset_mode=gymnasium.vector.AutoresetMode.NEXT_STEP)
         self.observation_table = torch.zeros(max_observations, self.observation_size, device=self.device)
@@ -188,14 +189,14 @@ class GymnasiumEnv(EpisodicEnvironmentBase):
 
     def advance(self, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """One step of every run that has not ended: (rewards, terminated, truncated), each (R,)."""
-        bits, reward, terminated, truncated, info = self.vector.step(self.env_actions(action))
+        bits, reward, terminated_np, truncated_np, info = self.vector.step(self.env_actions(action))
         active = ~self.done
         as_tensor = lambda x, dtype: torch.as_tensor(np.asarray(x), dtype=dtype, device=self.device)  # noqa: E731
         raw = torch.where(active, as_tensor(reward, torch.float32), 0.0)
         self.t = self.t + active.long()
         self.report_faults(info, active)  # before the learner sees the step (a failed run's reward is 0)
-        terminated = as_tensor(terminated, torch.bool) & active
-        truncated = (as_tensor(truncated, torch.bool) | (self.t >= self.max_steps)) & active & ~terminated
+        terminated = as_tensor(terminated_np, torch.bool) & active
+        truncated = (as_tensor(truncated_np, torch.bool) | (self.t >= self.max_steps)) & active & ~terminated
         self.obs_id = torch.where(active, self.identify(bits), self.obs_id)
         self.episode_return = self.episode_return + raw
         self.done = self.done | terminated | truncated

@@ -32,6 +32,8 @@ class EchoStatePredictor(RecurrentPredictor):
     W_res's nonzero entries; the other arguments are ``RecurrentPredictor``'s."""
 
     kind = "esn"
+    W_in: torch.Tensor   # (R, M, Y + A), fixed
+    W_res: torch.Tensor  # (R, M, M), fixed, spectral radius ρ
 
     @checked
     def __init__(self, spectral_radius: Positive = 0.95, leak_rate: Fraction = 0.5, density: Fraction = 0.2, **kwargs):

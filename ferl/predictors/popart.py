@@ -29,6 +29,10 @@ class RewardStatistics(nn.Module):
     """Per-run count, mean and sum of squared deviations of the rewards seen (Chan et al.'s
     parallel update of Welford's running variance), as buffers so that checkpoints carry them."""
 
+    count: torch.Tensor  # (R,) float64, as the other two
+    mean: torch.Tensor
+    m2: torch.Tensor
+
     def __init__(self, n_runs: int):
         super().__init__()
         self.register_buffer("count", torch.zeros(n_runs, dtype=torch.float64))

@@ -20,7 +20,7 @@ from torch import nn
 
 from ferl import rng
 from ferl.config.params import ArgumentError, NonNegative, NonNegativeInt, Positive, PositiveInt, checked
-from ferl.predictors.heads import REWARD_OUTPUTS, OutputHeads, clean, valid_steps
+from ferl.predictors.heads import OutputHeads, RewardOutput, clean, valid_steps
 from ferl.predictors.popart import RewardStatistics
 from ferl.predictors.training import PredictorBatch
 
@@ -50,9 +50,15 @@ class RecurrentPredictor(OutputHeads):
     uses_beta_m = False  # β_m is the gain of the Elman memory's sigmoid (Eq. 4.3); others keep it 1
     traceable_bptt = False  # True where ``bptt`` is tensor operations only: PredictorBatch.fuse compiles it
 
+    @staticmethod
+    def bptt(members: list, memory: list, y, a, rs: list, steps, reward_steps) -> list:
+        """The gradients of a batch of predictors of this class (``PredictorBatch``): the memory's
+        parameters of every member, then their heads'; the subclass's."""
+        raise NotImplementedError
+
     @checked
     def __init__(self, n_runs: PositiveInt, n_obs: PositiveInt, n_actions: PositiveInt, n_memory: PositiveInt = 20,
-                 n_reward: PositiveInt | None = None, reward_output: Literal[REWARD_OUTPUTS] = "bits", c_y: NonNegative = 1.0,
+                 n_reward: PositiveInt | None = None, reward_output: RewardOutput = "bits", c_y: NonNegative = 1.0,
                  c_a: NonNegative = 1.0, beta_m: Positive = 1.0, beta_y: Positive = 1.0, beta_r: Positive = 1.0,
                  rho_y: NonNegative = 1.0, rho_r: NonNegative = 1.0, lr: Positive = 0.05, init_std: NonNegative = 1.0,
                  predict_obs: bool = True, time_average: bool = False, batch_size: PositiveInt = 1,
@@ -175,6 +181,7 @@ def predictor(memory: str = "elman", **kwargs) -> RecurrentPredictor:
     return memory_class(memory)(**kwargs)
 
 
-# ``check_arguments`` checks the other keys against the chosen class's signature
-predictor.resolve = lambda values: (memory_class(values.get("memory", "elman")),
-                                    {k: v for k, v in values.items() if k != "memory"})
+# ``check_arguments`` checks the other keys against the chosen class's signature (a function's
+# attribute, which ferl.config.params reads)
+predictor.resolve = lambda values: (  # type: ignore[attr-defined]
+    memory_class(values.get("memory", "elman")), {k: v for k, v in values.items() if k != "memory"})

@@ -8,6 +8,8 @@ batched products (the predictor class's ``bptt``), only the output heads apart. 
 still takes its own order and its own plain SGD steps, so each one's training equals training it
 alone (tested).
 """
+from collections.abc import Callable
+
 import torch
 import torch.nn.functional as F
 
@@ -50,7 +52,7 @@ class PredictorBatch(TrainingBatchBase):
         valid = valid_steps(lengths, y.shape[2]).unsqueeze(-1)
         self.y, self.a, self.lengths = y, a, lengths
         self.rs = [torch.where(valid, r, 0.0) if r is not None else None for r in rs]
-        self.chunk = None  # sgd_steps compiled for chunks of CHUNK_STEPS steps (``fuse``)
+        self.chunk: Callable[..., None] | None = None  # sgd_steps compiled for chunks of CHUNK_STEPS steps (``fuse``)
 
     def fuse(self, device: torch.device) -> None:
         """Train in compiled chunks of CHUNK_STEPS SGD steps (``ferl.compiled``) where the class's
@@ -105,6 +107,7 @@ class PredictorBatch(TrainingBatchBase):
     def train_chunks(self, memory: list, params: list, y, a, rs: list, steps, reward_steps, T: int) -> None:
         """The epoch's steps in compiled chunks of CHUNK_STEPS, every sequence unrolled to T actions;
         the sequences padded with zero-weight ones to whole chunks."""
+        assert self.chunk is not None  # train_epoch calls this only once fused
         B = self.batch_size
         size = CHUNK_STEPS * B
         pad = -y.shape[1] % size

@@ -48,7 +48,7 @@ from ferl.images import IMAGE_SIDE, as_images, tile, weight_images
 from ferl.interfaces import FitStopped, PreprocessorBase
 from ferl.preprocessors.cache import load_or_fit
 
-VISIBLE_MODES = ("mean_field", "binary")
+VisibleMode = Literal["mean_field", "binary"]
 Generators = torch.Generator | Sequence[torch.Generator]
 
 
@@ -101,13 +101,18 @@ class RBMPreprocessor(PreprocessorBase, nn.Module):
     """
 
     stoppable_fit = True  # a stop request ends the fit between sweeps (``train``'s ``stop``)
+    W: torch.Tensor    # (R, V, H)
+    b_v: torch.Tensor  # (R, V)
+    b_h: torch.Tensor  # (R, H)
+    chains: torch.Tensor | None  # PCD's persistent chains
+    visible: str  # VisibleMode here, a subclass's own modes there
 
     @checked
     def __init__(self, n_runs: PositiveInt, n_visible: PositiveInt = 784, n_hidden: PositiveInt = 20,
                  cd_k: PositiveInt = 3, persistent: bool = False, lr: Positive = 0.1, momentum: Momentum = 0.9,
                  initial_momentum: Momentum = 0.5, initial_momentum_sweeps: NonNegativeInt = 5,
                  weight_decay: NonNegative = 2e-4, batch_size: PositiveInt = 100, sweeps: PositiveInt = 600,
-                 init_std: NonNegative = 0.01, visible: Literal[VISIBLE_MODES] = "mean_field", seed: NonNegativeInt = 0,
+                 init_std: NonNegative = 0.01, visible: VisibleMode = "mean_field", seed: NonNegativeInt = 0,
                  cache_dir: str | None = None):
         super().__init__()
         # Every constructor argument that the fit depends on: the cache key of load_or_fit.
@@ -229,7 +234,8 @@ class RBMPreprocessor(PreprocessorBase, nn.Module):
         return squared / (n * V)
 
     @torch.no_grad()
-    def train(self, images: torch.Tensor, generator: Generators = None, writer=None, progress: bool = True,
+    def train(self, images: torch.Tensor,  # type: ignore[override]  # the fit, not Module.train(mode): never put in eval mode
+              generator: Generators | None = None, writer=None, progress: bool = True,
               stop=None, resume: dict | None = None) -> np.ndarray:
         """Train for ``sweeps`` passes over images (N, V) shared by every run, or (R, N, V).
 

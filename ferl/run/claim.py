@@ -19,6 +19,7 @@ run meanwhile), then the leftovers of killed writes are removed and ``.hydra/`` 
 import copy
 from contextlib import contextmanager
 from pathlib import Path
+from typing import cast
 
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf, open_dict, read_write
@@ -83,7 +84,7 @@ def write_hydra_files(run_path: Path, cfg: DictConfig) -> None:
 def hydra_files(cfg: DictConfig) -> dict[str, str]:
     """The three files of ``.hydra/`` (hydra/core/utils.py: ``run_job``, ``_save_config``): the
     job's config, Hydra's (with its default ``output_subdir``, ``.hydra``), the task overrides."""
-    hydra_cfg = copy.deepcopy(HydraConfig.instance().cfg)
+    hydra_cfg = cast(DictConfig, copy.deepcopy(HydraConfig.instance().cfg))  # set: a Hydra job runs
     with read_write(hydra_cfg.hydra), open_dict(hydra_cfg.hydra):
         hydra_cfg.hydra.output_subdir = HYDRA_DIR
     return {"config.yaml": OmegaConf.to_yaml(cfg), "hydra.yaml": OmegaConf.to_yaml(hydra_cfg),

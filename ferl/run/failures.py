@@ -13,6 +13,7 @@ import re
 import signal
 from contextlib import contextmanager
 from pathlib import Path
+from typing import cast
 
 DISK = {errno.ENOSPC: ("no space left on device", "free space"),
         errno.EDQUOT: ("disk quota exceeded", "free space"),
@@ -48,14 +49,16 @@ def disk_error(e: BaseException) -> OSError | None:
     """The first OSError of a full disk, a read-only file system or the file-size limit behind
     ``e`` (itself, its cause or its context: the write that failed first, not the writer
     flushed on the way out that failed after it; the first that names its file), else None."""
-    seen, found = set(), []
-    while e is not None and id(e) not in seen:
-        if isinstance(e, OSError) and e.errno in DISK:
-            found.append(e)
-        seen.add(id(e))
-        e = e.__cause__ or e.__context__
+    seen: set[int] = set()
+    found: list[OSError] = []
+    link: BaseException | None = e
+    while link is not None and id(link) not in seen:
+        if isinstance(link, OSError) and link.errno in DISK:
+            found.append(link)
+        seen.add(id(link))
+        link = link.__cause__ or link.__context__
     named = [f for f in found if f.filename is not None]  # a library's own first try may name none
-    return (named or found or [None])[-1]
+    return (named or found)[-1] if found else None
 
 
 def written_file(e: OSError, shown=str) -> str:
@@ -90,8 +93,9 @@ FILE_LOCALS = ("filename", "file_name", "tmp", "path")
 def disk_line(e: OSError, run_path: Path, shown=str) -> str:
     """``no space left on device writing runs/x/checkpoints/last.pt (errno ENOSPC); the last good
     checkpoint is kept: free space, then resume=true hydra.run.dir=runs/x``."""
-    what, remedy = DISK[e.errno]
-    head = f"{what} writing {written_file(e, shown)} (errno {errno.errorcode[e.errno]})"
+    code = cast(int, e.errno)  # disk_error's: one of DISK
+    what, remedy = DISK[code]
+    head = f"{what} writing {written_file(e, shown)} (errno {errno.errorcode[code]})"
     if (Path(run_path) / "checkpoints" / "last.pt").is_file():
         return f"{head}; the last good checkpoint is kept: {remedy}, then resume=true hydra.run.dir={shown(run_path)}"
     return f"{head}; no checkpoint was written yet: {remedy}, then run the command again"

@@ -127,10 +127,10 @@ def probe(values: dict, n_runs: int, device: torch.device) -> tuple[int, int]:
 class Storages:
     """The memory behind every tensor and array reachable from the objects added, each once."""
 
-    def __init__(self):
+    def __init__(self) -> None:
         self.seen: dict[tuple[bool, int], int] = {}  # (on a CUDA device, start address) → bytes
         self.visited: set[int] = set()  # ids of the objects walked, kept alive by the roots
-        self.roots = []
+        self.roots: list = []
 
     @property
     def host(self) -> int:

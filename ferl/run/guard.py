@@ -20,9 +20,9 @@ class DivergenceGuard:
     def __init__(self, n_runs: int, limit: float, seeds: list[int], device):
         self.limit, self.seeds = float(limit), list(seeds)
         self.alive = torch.ones(n_runs, 1, dtype=torch.bool, device=device)
-        self.diverged_at = [None] * n_runs   # step (or episode) per run, None while healthy
-        self.reasons = [None] * n_runs
-        self.details = [None] * n_runs       # what else the report says of a run frozen by ``freeze``
+        self.diverged_at: list[int | None] = [None] * n_runs   # step (or episode) per run, None while healthy
+        self.reasons: list[str | None] = [None] * n_runs
+        self.details: list[dict | None] = [None] * n_runs       # what else the report says of a run frozen by ``freeze``
 
     def mask(self, delta: torch.Tensor) -> torch.Tensor:
         """TD errors (R, B) with those of frozen runs set to 0."""

@@ -25,7 +25,7 @@ _HELD: dict[str, "RunLock"] = {}  # run directory (absolute) → the lock this p
 class RunLock:
     """The lock of one run directory; ``acquire`` never waits, ``release`` is safe to repeat."""
 
-    def __init__(self, run_path):
+    def __init__(self, run_path: str | Path) -> None:
         self.file = Path(os.path.abspath(run_path)) / LOCK_FILE
         self.fd: int | None = None
         self.left_by: str | None = None  # the holder a stale lock file named, when it was taken over

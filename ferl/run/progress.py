@@ -16,6 +16,7 @@ import math
 import sys
 import time
 from pathlib import Path
+from typing import cast
 
 from hydra.core.global_hydra import GlobalHydra
 from hydra.core.override_parser.overrides_parser import OverridesParser
@@ -52,7 +53,7 @@ def planned_jobs(config: DictConfig) -> int | None:
     if OmegaConf.select(sweeper, "_target_") == BASIC_SWEEPER:
         params = OmegaConf.select(sweeper, "params") or {}
         arguments = [f"{k}={v}" for k, v in params.items()]
-        arguments += OmegaConf.to_container(config.hydra.overrides.task, resolve=False)
+        arguments += cast(list, OmegaConf.to_container(config.hydra.overrides.task, resolve=False))
         loader = GlobalHydra.instance().config_loader() if GlobalHydra.instance().is_initialized() else None
         try:
             return sweep_size(arguments, loader)

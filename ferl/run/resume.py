@@ -11,6 +11,7 @@ key is in ``ALLOWED``: keys that cannot change what the run computes.
 """
 from dataclasses import dataclass
 from pathlib import Path
+from typing import cast
 
 import torch
 from hydra.core.hydra_config import HydraConfig
@@ -57,7 +58,7 @@ class Resumed:
 def current_choices() -> dict:
     """The config-group choices of this launch (``experiment``, ``actor``, …), Hydra's own left out."""
     try:
-        choices = OmegaConf.to_container(HydraConfig.get().runtime.choices)
+        choices = cast(dict, OmegaConf.to_container(HydraConfig.get().runtime.choices))
     except ValueError:  # no Hydra job (a trainer driven in process)
         return {}
     return {k: v for k, v in choices.items() if not k.startswith("hydra")}
@@ -104,7 +105,8 @@ def apply_overrides(saved: RunIdentity, given: list[str]) -> tuple[dict, list]:
     A config-group override (``experiment=…``) differs when it chooses another option than the
     run did; its keys are the run's, so it is not applied."""
     config = OmegaConf.create(saved.config)
-    before, groups = {}, {}
+    before: dict[str, object] = {}
+    groups: dict[str, object] = {}
     for override in OverridesParser.create().parse_overrides(list(given)):
         key = override.key_or_group
         if key in saved.choices or "/" in key:  # a config group
@@ -121,7 +123,7 @@ def apply_overrides(saved: RunIdentity, given: list[str]) -> tuple[dict, list]:
     changes = [(key, saved.choices.get(key, ABSENT), new) for key, new in groups.items()
                if saved.choices.get(key, ABSENT) != new]
     changes += [(key, old, new) for key, old in before.items() if old != (new := value_at(config, key))]
-    return OmegaConf.to_container(config, resolve=True), changes
+    return cast(dict, OmegaConf.to_container(config, resolve=True)), changes
 
 
 def value_at(config: DictConfig, key: str):

@@ -291,7 +291,7 @@ class ActorEpisodes(Phase):
     def log_probes(self, job, probes: dict, records: dict) -> None:
         """Run 0's actor hidden activations at its last probe visits in the projector, labelled
         with the episode's labels and outcome (Figs. 4.14–4.19)."""
-        visits = np.flatnonzero(probes["run"] == 0)[-EMBEDDED_PROBES:] if "hidden" in probes else []
+        visits = np.flatnonzero(probes["run"] == 0)[-EMBEDDED_PROBES:] if "hidden" in probes else np.array([], int)
         if len(visits) == 0:
             return
         episode = probes["episode"][visits]
@@ -326,8 +326,8 @@ class Step(NamedTuple):
 
 def stacked(steps: list[Step]) -> Step:
     """The steps of an episode as one ``Step`` whose fields are stacked over the steps (steps, R, …)."""
-    return Step(*(tuple(torch.stack(m) for m in zip(*field)) if isinstance(field[0], tuple) else torch.stack(field)
-                  for field in zip(*steps)))
+    return Step._make(tuple(torch.stack(m) for m in zip(*field)) if isinstance(field[0], tuple) else torch.stack(field)
+                      for field in zip(*steps))
 
 
 def concat_records(parts: list) -> dict:

@@ -32,7 +32,7 @@ class TDChunk(NamedTuple):
     deltas: torch.Tensor   # (K, R)
 
 
-RUN_AXIS = TDChunk(s=0, a=0, F_sa=0, x_sa=0, rewards=1, deltas=1)  # where each field holds the runs
+RUN_AXIS = {"s": 0, "a": 0, "F_sa": 0, "x_sa": 0, "rewards": 1, "deltas": 1}  # where each TDChunk field holds the runs
 
 
 def td_steps(actor, env, generator, s, a, F_sa, x_sa, alive, lrs, betas, uniforms, *inputs):
@@ -65,7 +65,7 @@ def td_steps_by_groups(steps, groups: list[slice]):
     def by_groups(actor, env, generator, s, a, F_sa, x_sa, alive, lrs, betas, uniforms, *inputs):
         parts = [steps(actor.slice_runs(g), env.slice_runs(g), generator, s[g], a[g], F_sa[g], x_sa[g], alive[g],
                        lrs, betas, uniforms[:, g], *(x[:, g] for x in inputs)) for g in groups]
-        return TDChunk(*(torch.cat(outs, axis) for outs, axis in zip(zip(*parts), RUN_AXIS)))
+        return TDChunk(*(torch.cat(outs, RUN_AXIS[field]) for field, outs in zip(TDChunk._fields, zip(*parts))))
     return by_groups
 
 
@@ -97,6 +97,6 @@ def switch_interval(seconds: float):
 
 def done_future(value) -> Future:
     """A future that already holds ``value``."""
-    future = Future()
+    future: Future = Future()
     future.set_result(value)
     return future

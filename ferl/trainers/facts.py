@@ -15,6 +15,7 @@ exists; ``check_conforms`` names everything it lacks at once, with the recipe th
 """
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 from ferl import interfaces
 from ferl.config.params import ConfigError, plain, signature, target
@@ -26,8 +27,8 @@ class Fact:
     the environment does not say, the constructor's default stands) and the fact in words, for
     the line that refuses a config disagreeing with it."""
     argument: str
-    value: Callable[[object], int | None]
-    words: Callable[[object], str]
+    value: Callable[[Any], int | None]  # of the environment
+    words: Callable[[Any], str]
 
 
 def _reward_values(env) -> tuple:
@@ -46,7 +47,7 @@ FACTS = (
 
 # what each protocol is called in an error line, where its members are listed, and the base class
 # that gives its hooks' defaults
-NEEDS = {
+NEEDS: dict[type, tuple[str, str, type]] = {
     interfaces.EpisodicEnvironment: ("an episodic environment", 'docs/architecture.md, "Add an environment"',
                                      interfaces.EpisodicEnvironmentBase),
     interfaces.ContinuingEnvironment: ("a continuing environment", 'docs/architecture.md, "Add an environment"',

@@ -17,16 +17,19 @@ checkpoint saves (finished phases, the state of an unfinished one, what phases h
 and the summary's metrics.
 """
 import time
+from typing import Any
 
 import torch
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
+from torch.utils.tensorboard import SummaryWriter
 
 from ferl import rng
 from ferl.compiled import compile_seconds, fast_path
 from ferl.config.params import ConfigError, signature, target
 from ferl.interfaces import Actor, Environment, Predictor, Preprocessor
 from ferl.rng import SeedOffsets
+from ferl.run.directory import RunDir, StopRequest
 from ferl.run.failures import Interrupted, where
 from ferl.run.guard import DivergenceGuard
 from ferl.trainers.facts import check_conforms, facts_for
@@ -54,6 +57,12 @@ def build(node, prefix: str = "", **runtime):
 class Job:
     """The components of one batch of runs and the run it writes (see the module docstring)."""
 
+    # set by the trainer's fit, before any phase runs: the run directory, its TensorBoard writer
+    # and the stop request (a signal) that checkpoints heed
+    run: RunDir
+    writer: SummaryWriter
+    stop: StopRequest
+
     def __init__(self, cfg, device: torch.device, seeds: SeedOffsets, control, env_protocol: type = Environment):
         """``control``: the trainer's ``run`` node (``ferl.trainers.phased.RunControl``: logging,
         checkpoint intervals, divergence limit), which every phase reads; ``env_protocol``: what the
@@ -77,10 +86,9 @@ class Job:
                                     seed=cfg.seed + seeds.actor)
         self.guard = DivergenceGuard(self.R, control.divergence_limit, self.seeds, device)
         self.env.on_fault = self.guard.freeze  # an outside environment's failed run is frozen (ferl.envs.boundary)
-        self.run = self.writer = self.stop = None
         # what a checkpoint saves of the run's course: finished phases, an unfinished one's state,
         # data one phase hands the next, the summary's metrics so far, the acting phases' steps and time
-        self.progress = {"done": [], "partial": {}, "shared": PhaseOutputs(), "metrics": {}, "agent_steps": 0,
+        self.progress: dict[str, Any] = {"done": [], "partial": {}, "shared": PhaseOutputs(), "metrics": {}, "agent_steps": 0,
                          "actor_time": 0.0}
         self.prepared = Prepared()  # what phases prepare at every start (not saved: drawn again alike)
         self.unit = "step"   # what the guard reports a divergence in (a T-maze: "episode")
@@ -119,6 +127,7 @@ class Job:
         if node is None:
             return None
         part = self.make_part(node, "preprocessor", Preprocessor, seed=seed)
+        assert self.data is not None  # loaded whenever the config has a preprocessor
         pixels = self.data.train_images.shape[-1]
         if part.input_size != self.env.observation_size or pixels != self.env.observation_size:
             raise ConfigError(f"preprocessor takes {part.input_size} inputs and fits on images of {pixels} pixels, "
@@ -127,7 +136,7 @@ class Job:
 
     def make_env(self, n_runs: int):
         """A batch of ``n_runs`` environments of the config on the job's generator."""
-        extra = {"data": self.data} if takes(self.cfg.env, "data") else {}
+        extra: dict[str, Any] = {"data": self.data} if takes(self.cfg.env, "data") else {}
         if takes(self.cfg.env, "seed"):
             extra["seed"] = self.env_seed
         return build(self.cfg.env, n_runs=n_runs, generator=self.generator, device=self.device, **extra)

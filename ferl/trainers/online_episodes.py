@@ -56,7 +56,8 @@ class OnlineEpisodes(ActorEpisodes):
         super().__init__(n_episodes, actor_obs_scale, td_sample_every, final_window)
         self.K, self.n_replay, self.replay_batch = replay_episodes, replay_sample, replay_batch_size
         self.tau, self.ema, self.eta, self.anneal = beta_error_ratio, error_ema, curiosity, curiosity_anneal
-        self.eta_now, self.beta_now = 0.0, None
+        self.eta_now = 0.0
+        self.beta_now: torch.Tensor  # β_k per run (R, 1, 1): set by begin_episode
 
     def prepare(self, job) -> None:
         if not job.predictors:
@@ -64,7 +65,7 @@ class OnlineEpisodes(ActorEpisodes):
                               "predictors and actor together; a memoryless actor alone is the actor phase of "
                               "trainer=algorithm1")
         super().prepare(job)
-        groups = {}
+        groups: dict = {}
         for p in job.predictors.values():
             groups.setdefault(p.batch_key, []).append(p)
         self.groups = list(groups.values())
@@ -113,8 +114,8 @@ class OnlineEpisodes(ActorEpisodes):
         started = time.perf_counter()
         ep = self.as_episodes(job, episode)
         with torch.no_grad():
-            error = sum(torch.nanmean(p.prediction_errors(*episode_tensors(job, ep, p)).flatten(1), 1)
-                        for p in job.predictors.values())
+            error = sum((torch.nanmean(p.prediction_errors(*episode_tensors(job, ep, p)).flatten(1), 1)
+                         for p in job.predictors.values()), torch.zeros((), device=job.device))
         if state["error_first"] is None:
             state["error_first"] = state["error_ema"] = error
         else:

@@ -10,7 +10,7 @@ uninterrupted one does.
 """
 import time
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, get_args
 
 import torch
 from torch.utils.tensorboard import SummaryWriter
@@ -25,7 +25,8 @@ from ferl.run.tensorboard import log_hparams
 from ferl.trainers.handoffs import PhaseOutputs
 from ferl.trainers.job import Job
 
-ENVIRONMENTS = {"episodic": EpisodicEnvironment, "continuing": ContinuingEnvironment, "any": Environment}
+EnvironmentKind = Literal["episodic", "continuing", "any"]
+ENVIRONMENTS: dict[str, type] = dict(zip(get_args(EnvironmentKind), (EpisodicEnvironment, ContinuingEnvironment, Environment)))
 
 
 @dataclass(frozen=True)
@@ -90,11 +91,12 @@ class PhasedTrainer(TrainerBase):
     phases read by interpolation (``${trainer.n_episodes}``), the names users override
     (``trainer.n_episodes=…``); kept in ``records/run.json``."""
 
+    job: Job           # the components, built by setup
     phase = "setup"    # what the trainer is doing: setup, resume, a phase's name, summary (train.py's error line)
 
     @checked
     def __init__(self, phases: dict[str, Phase], run: RunControl, kind: Literal["phased", "online"],
-                 environment: Literal[tuple(ENVIRONMENTS)], seed_offsets: Literal[tuple(rng.NAMED_OFFSETS)],
+                 environment: EnvironmentKind, seed_offsets: rng.OffsetsName,
                  **settings):
         for name, phase in phases.items():
             phase.name = name
@@ -103,7 +105,6 @@ class PhasedTrainer(TrainerBase):
         self.seed_offsets = rng.NAMED_OFFSETS[seed_offsets]
         self.params = {k: plain(v) for k, v in settings.items()}  # for records/run.json
         self.last_step = max(phase.last_step for phase in self.all_phases)  # of the HParams session
-        self.job: Job | None = None
 
     def setup(self, cfg, device: torch.device) -> None:
         """Build the components and what each phase prepares; check the run's optimized metric."""

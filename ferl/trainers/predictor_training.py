@@ -44,7 +44,7 @@ class TrainPredictors(Phase):
     def run(self, job, state) -> None:
         """Every group of predictors not yet trained; a finished group is checkpointed."""
         state = state or {"records": {}, "done": [], "group": None}
-        groups = {}
+        groups: dict[tuple, list[str]] = {}  # batch_key → the names of the predictors that train as one batch
         for name, p in job.predictors.items():
             groups.setdefault(p.batch_key, []).append(name)
         for names in groups.values():
@@ -108,7 +108,7 @@ class TrainPredictors(Phase):
                 state["group"] = {"names": names, "epoch": epoch, "errors": errors, "epochs": epochs}
                 job.checkpoint(self.name, state)
         lengths_all = np.arange(job.env.optimal_steps, job.env.max_steps + 1)
-        records = {}
+        records: dict[str, np.ndarray] = {}
         for name, p in zip(names, members):
             log_weights(job.writer, f"predictor_{name}", p, self.n_epoch)
             records |= {f"{name}_lengths": lengths_all, f"{name}_epochs": np.asarray(epochs),
