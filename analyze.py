@@ -25,11 +25,22 @@ except KeyboardInterrupt:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog=runner.PROG, description=__doc__.split("\n\n")[0])
-    parser.add_argument("dirs", nargs="+", type=Path, metavar="RUN_OR_SWEEP_DIR",
-                        help="a run directory (holds summary.json) or a directory of runs")
-    parser.add_argument("--readme", type=Path, action="append", default=[], metavar="PAGE.md",
-                        help="paste a sweep's results into this page's generated blocks (the "
-                             "claims table, the scorecard), between their marker lines; repeatable")
+    parser.add_argument(
+        "dirs",
+        nargs="+",
+        type=Path,
+        metavar="RUN_OR_SWEEP_DIR",
+        help="a run directory (holds summary.json) or a directory of runs",
+    )
+    parser.add_argument(
+        "--readme",
+        type=Path,
+        action="append",
+        default=[],
+        metavar="PAGE.md",
+        help="paste a sweep's results into this page's generated blocks (the "
+        "claims table, the scorecard), between their marker lines; repeatable",
+    )
     args = parser.parse_args(argv)
     return runner.main(args.dirs, args.readme)
 

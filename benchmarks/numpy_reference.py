@@ -272,9 +272,7 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
 
     images = load_mnist_images(100)
-    out = run_numpy_reference(
-        images, args.steps, seed=args.seed, noise=args.noise, n_hidden=args.hidden
-    )
+    out = run_numpy_reference(images, args.steps, seed=args.seed, noise=args.noise, n_hidden=args.hidden)
     n_last = max(1, args.steps // 10)
     print(f"steps: {args.steps}  wall: {out['wall_time_s']:.2f} s  steps/s: {out['steps_per_s']:.0f}")
     print(f"mean reward/step over last 10%: {out['rewards'][-n_last:].mean():.3f}")

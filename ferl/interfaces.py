@@ -15,6 +15,7 @@ Constructors receive their YAML keys plus what the trainer supplies (``n_runs``,
 ``generator``, ``device``, ``data`` where the constructor names it); the types and ranges of the
 YAML keys are the constructor's annotations (``ferl.config.params``), checked before any work.
 """
+
 from collections.abc import Callable, Hashable, Sequence
 from typing import NamedTuple, Protocol, runtime_checkable
 
@@ -27,6 +28,7 @@ State = Tensor | tuple[Tensor, ...]  # a predictor's recurrent state: (R, ·), o
 
 class Checkpointed(Protocol):
     """What a checkpoint keeps of a component: its parameters, its episode in progress."""
+
     def state_dict(self) -> dict: ...
 
     def load_state_dict(self, state: dict) -> None: ...
@@ -80,6 +82,7 @@ class ContinuingEnvironment(Environment, Protocol):
 
 class EnvironmentBase:
     """The default of ``Environment``'s hook: nothing to report a fault to until the job sets it."""
+
     on_fault: Callable | None = None
 
 
@@ -102,10 +105,10 @@ class EpisodicEnvironment(Environment, Protocol):
     optimal_steps: int
     reward_values: tuple[float, ...]
     observation_names: Sequence[str]
-    observation_table: Tensor   # (ids, O): with a reservoir, several ids per name
-    obs_id: Tensor              # (R,) the id of every run's present observation
-    done: Tensor                # (R,) bool
-    t: Tensor                   # (R,) actions taken in the episode
+    observation_table: Tensor  # (ids, O): with a reservoir, several ids per name
+    obs_id: Tensor  # (R,) the id of every run's present observation
+    done: Tensor  # (R,) bool
+    t: Tensor  # (R,) actions taken in the episode
     # True when ``advance`` is tensor operations only (no branch on a tensor's value, no NumPy): an
     # episode can then be one compiled graph (``ActorEpisodes.episode``)
     traceable_steps: bool
@@ -130,6 +133,7 @@ class EpisodicEnvironment(Environment, Protocol):
 
 class EpisodicEnvironmentBase(EnvironmentBase):
     """The defaults of ``EpisodicEnvironment``'s hooks: eager episodes, a table known from the start."""
+
     traceable_steps: bool = False
     discovers_observations: bool = False
 
@@ -158,6 +162,7 @@ class Preprocessor(Checkpointed, Protocol):
 
 class PreprocessorBase:
     """The default of ``Preprocessor``'s hook: a fit that runs to its end."""
+
     stoppable_fit: bool = False
 
 
@@ -182,6 +187,7 @@ class TrainingBatch(Protocol):
 
 class TrainingBatchBase:
     """The default of ``TrainingBatch``'s hook: epochs stay eager."""
+
     def fuse(self, device: torch.device) -> None: ...
 
 
@@ -193,8 +199,8 @@ class Predictor(Checkpointed, Protocol):
     r (R, B, T+1, ·) reward targets (``reward_targets``), lengths (R, B) the actions of each.
     """
 
-    memory_size: int        # what ``memory`` hands the actor per run
-    batch_key: Hashable     # predictors with equal keys train as one ``training_batch``
+    memory_size: int  # what ``memory`` hands the actor per run
+    batch_key: Hashable  # predictors with equal keys train as one ``training_batch``
 
     def initial_state(self) -> State:
         """The state before the first observation, m_0 (Eq. 4.1)."""
@@ -214,8 +220,16 @@ class Predictor(Checkpointed, Protocol):
         """Targets (R, B, T+1, ·) of rewards r_1 … r_T (R, B, T), or None without a reward output."""
 
     @classmethod
-    def training_batch(cls, members: list, y: Tensor, a: Tensor, rs: list, lengths: Tensor,
-                       batch_size: int | None = None, summed: bool = False) -> TrainingBatch:
+    def training_batch(
+        cls,
+        members: list,
+        y: Tensor,
+        a: Tensor,
+        rs: list,
+        lengths: Tensor,
+        batch_size: int | None = None,
+        summed: bool = False,
+    ) -> TrainingBatch:
         """Members with one ``batch_key`` and their training sequences, ready to train; one SGD
         step per ``batch_size`` sequences (the members' own when None) on their mean loss, or
         their summed loss when ``summed``."""
@@ -248,6 +262,7 @@ class EndedEpisode(NamedTuple):
     lockstep episode recorded it, ``steps`` ≤ T_max long, the states at every action (steps, R, S)
     and after the last (R, 1, S), actions and raw rewards (steps, R), ``lengths`` (R,) the actions
     of each run and ``terminated`` (R,) whether it ended in a terminal state (not at T_max)."""
+
     states: Tensor
     last_state: Tensor
     actions: Tensor
@@ -260,8 +275,13 @@ class EndedEpisode(NamedTuple):
         """Per run, padded to T_max actions: states (R, T_max+1, S), actions and rewards
         (R, T_max), lengths and terminated (R,) (computed here, for the actor that needs it)."""
         pad, states = self.max_steps - len(self.actions), torch.cat([self.states.transpose(0, 1), self.last_state], 1)
-        return (nnf.pad(states, (0, 0, 0, pad)), nnf.pad(self.actions.T, (0, pad)), nnf.pad(self.rewards.T, (0, pad)),
-                self.lengths.clone(), self.terminated)
+        return (
+            nnf.pad(states, (0, 0, 0, pad)),
+            nnf.pad(self.actions.T, (0, pad)),
+            nnf.pad(self.rewards.T, (0, pad)),
+            self.lengths.clone(),
+            self.terminated,
+        )
 
 
 @runtime_checkable
@@ -292,8 +312,9 @@ class Actor(Checkpointed, Protocol):
     def evaluate(self, s: Tensor) -> tuple[Tensor, Tensor]:
         """F (R, B, nA) of every action and the per-action cache (R, B, nA, ·) (greedy tests)."""
 
-    def act(self, s: Tensor, beta: float, generator: torch.Generator,
-            uniform: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    def act(
+        self, s: Tensor, beta: float, generator: torch.Generator, uniform: Tensor | None = None
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """At states s (R, 1, S): an action (R, 1), its F (R, 1) and cache (R, 1, ·), and the F a TD
         error bootstraps from at s (by the actor's TD rule); ``uniform`` (R, 1, 1) pre-drawn U(0, 1)."""
 
@@ -374,6 +395,7 @@ class Trainer(Protocol):
 
 class TrainerBase:
     """The defaults of ``Trainer``'s hooks: nothing allocated beyond what ``setup`` built."""
+
     def starting_state(self) -> list:
         return []
 
@@ -389,7 +411,9 @@ def required_members(protocol: type) -> list[str]:
         if cls in (Protocol, object) or not getattr(cls, "_is_protocol", False):
             continue
         methods = [n for n, v in vars(cls).items() if callable(v) or isinstance(v, (property, classmethod))]
-        names += [n for n in (*getattr(cls, "__annotations__", {}), *methods) if not n.startswith("_") and n not in names]
+        names += [
+            n for n in (*getattr(cls, "__annotations__", {}), *methods) if not n.startswith("_") and n not in names
+        ]
     return names
 
 

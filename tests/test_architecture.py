@@ -3,6 +3,7 @@ the protocols of ferl/interfaces.py, imports follow the data flow — models nev
 trainers or analysis, analysis imports no model, and ferl never imports the dissertation's analysis
 (reproduction/), which plugs into ferl's — and a trainer is written in config: its phases, not a
 class of its own."""
+
 import ast
 import sys
 from pathlib import Path
@@ -28,8 +29,10 @@ MODELS = ("envs", "preprocessors", "predictors", "actors")
 
 def test_components_meet_their_protocols():
     gen = torch.Generator().manual_seed(0)
-    digits = {n: i for i, n in enumerate(("start_0", "start_1", "corridor", "junction_0", "junction_1",
-                                          "goal_left", "goal_right"))}
+    digits = {
+        n: i
+        for i, n in enumerate(("start_0", "start_1", "corridor", "junction_0", "junction_1", "goal_left", "goal_right"))
+    }
     assert isinstance(DigitFloor(2, tiny_split(), gen), interfaces.ContinuingEnvironment)
     assert isinstance(TMaze(2, gen), interfaces.EpisodicEnvironment)
     assert isinstance(DigitTMaze(2, gen, tiny_split(), digits, matching=True), interfaces.EpisodicEnvironment)
@@ -39,14 +42,18 @@ def test_components_meet_their_protocols():
     assert isinstance(actor, interfaces.Actor) and isinstance(actor, interfaces.ActorViews)
 
 
-@pytest.mark.parametrize("protocol, base", [
-    (interfaces.Environment, interfaces.EnvironmentBase),
-    (interfaces.EpisodicEnvironment, interfaces.EpisodicEnvironmentBase),
-    (interfaces.Preprocessor, interfaces.PreprocessorBase),
-    (interfaces.TrainingBatch, interfaces.TrainingBatchBase),
-    (interfaces.Predictor, interfaces.PredictorBase),
-    (interfaces.Actor, interfaces.ActorBase),
-    (interfaces.Trainer, interfaces.TrainerBase)])
+@pytest.mark.parametrize(
+    "protocol, base",
+    [
+        (interfaces.Environment, interfaces.EnvironmentBase),
+        (interfaces.EpisodicEnvironment, interfaces.EpisodicEnvironmentBase),
+        (interfaces.Preprocessor, interfaces.PreprocessorBase),
+        (interfaces.TrainingBatch, interfaces.TrainingBatchBase),
+        (interfaces.Predictor, interfaces.PredictorBase),
+        (interfaces.Actor, interfaces.ActorBase),
+        (interfaces.Trainer, interfaces.TrainerBase),
+    ],
+)
 def test_every_default_a_base_gives_is_a_member_its_protocol_declares(protocol, base):
     """A hook exists once as a declared member and once as a default: a base class that gave a
     member its protocol does not declare would bring back an undeclared, discovered hook."""
@@ -85,7 +92,7 @@ def imported_modules(name: str) -> set[str]:
             found.update(alias.name for alias in node.names)
         elif isinstance(node, ast.ImportFrom):
             parts = package.split(".")
-            base = ".".join(parts[:len(parts) - node.level + 1] if node.level else [])
+            base = ".".join(parts[: len(parts) - node.level + 1] if node.level else [])
             base = ".".join(p for p in (base, node.module or "") if p)
             found.add(base)
             found.update(f"{base}.{alias.name}" for alias in node.names)
@@ -179,6 +186,7 @@ def test_trainers_call_hooks_and_never_look_for_them():
     ferl/trainers would be a hook discovered rather than declared. The config checks' hooks of a
     ``_target_`` (``ferl.config.params.ConfigTarget``: any callable, no base class) are the exception."""
     from ferl.config.params import ConfigTarget
+
     allowed = set(interfaces.required_members(ConfigTarget))
     found = []
     for path in sorted((FERL / "trainers").glob("*.py")):

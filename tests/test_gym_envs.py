@@ -1,5 +1,6 @@
 """Gymnasium views of the batched environments (CONTRACT §5): API checks, seeding, episode ends,
 vector autoreset, and agreement with the batched classes that training steps."""
+
 import warnings
 
 import gymnasium

@@ -9,6 +9,7 @@ Hydra through ``hydra.main`` as train.py does (it imports neither ferl nor torch
 what Hydra printed; this process turns each report into its line. Without the package index and
 without cached wheels the test is skipped. About 2 s per release.
 """
+
 import json
 import os
 import subprocess
@@ -60,8 +61,10 @@ def cases(tmp: Path) -> dict[str, tuple[list[str], str]]:
         "null option": (["experiment=null", run], "experiment=null is not allowed: a group's option cannot be null"),
         "unknown key": (["no_such_key=1", run], "Could not override 'no_such_key'"),
         "bad syntax": (["n_runs=[1", run], "no viable alternative at input '[1'"),
-        "run dir under a file": ([f"hydra.run.dir={tmp / 'a_file' / 'run'}"],
-                                 "a file stands where a directory should be (errno ENOTDIR)"),
+        "run dir under a file": (
+            [f"hydra.run.dir={tmp / 'a_file' / 'run'}"],
+            "a file stands where a directory should be (errno ENOTDIR)",
+        ),
     }
 
 
@@ -70,8 +73,25 @@ def wheel(version: str) -> Path | None:
     found = sorted(WHEELS.glob(f"hydra_core-{version}-*.whl"))
     if not found:
         WHEELS.mkdir(parents=True, exist_ok=True)
-        subprocess.run([sys.executable, "-m", "pip", "download", f"hydra-core=={version}", "--no-deps", "-q",
-                        "--retries", "0", "--timeout", "15", "-d", str(WHEELS)], capture_output=True, timeout=120)
+        subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "pip",
+                "download",
+                f"hydra-core=={version}",
+                "--no-deps",
+                "-q",
+                "--retries",
+                "0",
+                "--timeout",
+                "15",
+                "-d",
+                str(WHEELS),
+            ],
+            capture_output=True,
+            timeout=120,
+        )
         found = sorted(WHEELS.glob(f"hydra_core-{version}-*.whl"))
     return found[0] if found else None
 
@@ -81,8 +101,14 @@ def reports(hydra_dir: Path | None, arguments: list[list[str]], cwd: Path) -> di
     env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
     if hydra_dir is not None:
         env["PYTHONPATH"] = str(hydra_dir)  # ahead of site-packages: this release, not the installed one
-    result = subprocess.run([sys.executable, "-c", CHILD.format(conf=str(ROOT / "conf")), json.dumps(arguments)],
-                            cwd=cwd, env=env, capture_output=True, text=True, timeout=120)
+    result = subprocess.run(
+        [sys.executable, "-c", CHILD.format(conf=str(ROOT / "conf")), json.dumps(arguments)],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert result.returncode == 0, result.stderr
     return json.loads(result.stdout.strip().splitlines()[-1])
 
@@ -106,6 +132,8 @@ def test_every_allowed_hydra_release_gives_the_same_lines(tmp_path):
         zipfile.ZipFile(path).extractall(unpacked)
         got = reports(unpacked, arguments, tmp_path)
         assert got["version"] == version
-        lines = {name: hydra_report_line(report, args)
-                 for (name, (args, _)), (_, report) in zip(named.items(), got["reports"])}
+        lines = {
+            name: hydra_report_line(report, args)
+            for (name, (args, _)), (_, report) in zip(named.items(), got["reports"])
+        }
         assert lines == expected, f"hydra-core {version}"

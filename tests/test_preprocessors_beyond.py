@@ -1,6 +1,7 @@
 """Preprocessors beyond §5.3.2 (§5.4 "Second" and "Fifth"): the Gaussian–binary RBM against
 enumeration and quadrature on tiny models, the DBN against its layers built and trained by hand,
 caching and training on synthetic data, bad settings, and the digit maze's pixel noise."""
+
 import itertools
 import math
 
@@ -155,6 +156,7 @@ def prototypes_split(n_pixels=20, n_train=400, n_test=100, flip=0.05, seed=0) ->
         labels = torch.randint(4, (n,), generator=g)
         flips = (torch.rand(n, n_pixels, generator=g) < flip).float()
         return (protos[labels] - flips).abs(), labels
+
     return MnistSplit(*draw(n_train), *draw(n_test))
 
 
@@ -272,8 +274,15 @@ def grey_split(per_class=3) -> MnistSplit:
 
 
 def noisy_maze(n_runs=1, generator=None, **kw) -> DigitTMaze:
-    return DigitTMaze(n_runs, generator or torch.Generator().manual_seed(0), grey_split(), CLASSES,
-                      binarize_threshold=None, matching=True, **kw)
+    return DigitTMaze(
+        n_runs,
+        generator or torch.Generator().manual_seed(0),
+        grey_split(),
+        CLASSES,
+        binarize_threshold=None,
+        matching=True,
+        **kw,
+    )
 
 
 def test_emitted_observations_are_the_image_plus_gaussian_noise():

@@ -1,5 +1,6 @@
 """A phase written outside ferl/ (tests/test_extension.py inserts it into Algorithm 1 by YAML alone:
 tests/toy/conf/trainer/toy_weight_norm.yaml)."""
+
 from typing import Literal
 
 from ferl.trainers.phased import Phase

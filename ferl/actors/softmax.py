@@ -6,6 +6,7 @@ the actor's schedules over training. Actors say only how they evaluate and updat
 All parameters carry the run dimension first and are buffers, so ``slice_runs`` can hand out views of
 a slice of the runs whose updates land in the whole batch.
 """
+
 import copy
 from collections.abc import Callable
 from typing import Literal, get_args
@@ -58,7 +59,7 @@ class SoftmaxActor(ActorBase, nn.Module):
     shared_buffers: tuple = ()  # buffers without a run dimension (``slice_runs`` keeps them whole)
     td_rule: str  # a TDRule
     gamma: float
-    lr_schedule: Callable[[float], float]    # α at a fraction of training done
+    lr_schedule: Callable[[float], float]  # α at a fraction of training done
     beta_schedule: Callable[[float], float]  # β likewise
     lr_divisor: float
 
@@ -74,8 +75,9 @@ class SoftmaxActor(ActorBase, nn.Module):
         """This actor restricted to a slice of its runs. The parameters are views, so updates
         of the slice land in this actor's."""
         part = copy.copy(self)
-        part._buffers = {name: b if name in self.shared_buffers or b is None else b[index]
-                         for name, b in self._buffers.items()}
+        part._buffers = {
+            name: b if name in self.shared_buffers or b is None else b[index] for name, b in self._buffers.items()
+        }
         return part
 
     def learning_rate(self, progress: float) -> float:
@@ -89,8 +91,14 @@ class SoftmaxActor(ActorBase, nn.Module):
         """Softmax action-selection probabilities, Eq. (3.11)."""
         return torch.softmax(-beta * F, dim=-1)
 
-    def select(self, s: torch.Tensor, F: torch.Tensor, beta: float, generator: torch.Generator,
-               uniform: torch.Tensor | None = None) -> torch.Tensor:
+    def select(
+        self,
+        s: torch.Tensor,
+        F: torch.Tensor,
+        beta: float,
+        generator: torch.Generator,
+        uniform: torch.Tensor | None = None,
+    ) -> torch.Tensor:
         """An action index per (run, state) by the clamped softmax (Eq. 3.11); ``uniform``
         (R, B, 1) may carry pre-drawn U(0, 1) numbers."""
         if uniform is None:

@@ -25,9 +25,18 @@ class TabularQActor(SoftmaxActor):
     Q: torch.Tensor  # (R, S, nA)
 
     @checked
-    def __init__(self, n_runs: PositiveInt, n_state: PositiveInt, n_actions: PositiveInt,
-                 td_rule: TDRule, gamma: Discount, lr, beta, init_value: float = 0.0,
-                 seed: NonNegativeInt = 0):
+    def __init__(
+        self,
+        n_runs: PositiveInt,
+        n_state: PositiveInt,
+        n_actions: PositiveInt,
+        td_rule: TDRule,
+        gamma: Discount,
+        lr,
+        beta,
+        init_value: float = 0.0,
+        seed: NonNegativeInt = 0,
+    ):
         super().__init__()
         self.td_rule, self.gamma = td_rule, gamma
         self.lr_schedule, self.beta_schedule, self.lr_divisor = lr, beta, 1.0

@@ -58,8 +58,14 @@ def publish_figures(figures: dict, out: Path, tb_dir: Path) -> None:
 
 
 def _claim_json(r: ClaimResult, **where) -> dict:
-    return {"claim": r.claim.text, "source": r.claim.source, "measured": r.measured.text,
-            "criterion": r.claim.criterion, "verdict": r.verdict, **where}
+    return {
+        "claim": r.claim.text,
+        "source": r.claim.source,
+        "measured": r.measured.text,
+        "criterion": r.claim.criterion,
+        "verdict": r.verdict,
+        **where,
+    }
 
 
 def _fresh(out: Path) -> Path:
@@ -75,8 +81,12 @@ def run_analysis(run: Run, out: Path) -> RunAnalysis:
     num = chapter.numbering(run.manifest) if chapter else Numbering()
     analysis = generic.analyze(run, num, out)
     if REGISTRY.reference:
-        analysis.header.append((REGISTRY.reference, chapter.model if chapter else
-                                "no chapter's model matches this run: generic figures, no claims"))
+        analysis.header.append(
+            (
+                REGISTRY.reference,
+                chapter.model if chapter else "no chapter's model matches this run: generic figures, no claims",
+            )
+        )
     environment = REGISTRY.environments.get(run.manifest.env_kind)
     parts = environment(run, num, out) if environment is not None else None
     if parts is None:
@@ -106,10 +116,19 @@ def analyze_run(run_dir: Path) -> RunOutcome:
     write_run_report(out / "report.md", analysis, REGISTRY.reference)
 
     verdicts = {v: sum(r.verdict == v for r in analysis.results) for v in VERDICTS}
-    print(f"{run_dir}: {len(analysis.figures)} figures, {len(analysis.results)} claims "
-          f"({', '.join(f'{n} {v}' for v, n in verdicts.items())}) -> {out / 'report.md'}")
-    return RunOutcome(run_dir, experiment, task, "analyzed", verdicts, analysis.results,
-                      [(name, caption) for name, (_, caption) in analysis.figures.items()])
+    print(
+        f"{run_dir}: {len(analysis.figures)} figures, {len(analysis.results)} claims "
+        f"({', '.join(f'{n} {v}' for v, n in verdicts.items())}) -> {out / 'report.md'}"
+    )
+    return RunOutcome(
+        run_dir,
+        experiment,
+        task,
+        "analyzed",
+        verdicts,
+        analysis.results,
+        [(name, caption) for name, (_, caption) in analysis.figures.items()],
+    )
 
 
 def _safe_analyze_run(run_dir: Path, plugins: Sequence[str] = ()) -> RunOutcome:
@@ -139,6 +158,7 @@ def analyze_runs(found: list[Path]) -> list[RunOutcome]:
     if workers < 2 or len(found) < POOL_MIN_RUNS:
         return [_safe_analyze_run(r) for r in found]
     from joblib import Parallel, delayed  # loky's workers return the claims' functions too (cloudpickle)
+
     return Parallel(n_jobs=workers)(delayed(_safe_analyze_run)(r, REGISTRY.modules) for r in found)
 
 
@@ -149,17 +169,24 @@ def analyze_sweep(sweep_dir: Path, pages: Sequence[Path] = ()) -> list[RunOutcom
     found = runs.find_runs(sweep_dir)
     skipped = report_unfinished(sweep_dir)
     outcomes = analyze_runs(found)
-    jobs = [sw.Job(o, summary) for o in outcomes
-            if (summary := _read_summary(o.run_dir)) is not None]
+    jobs = [sw.Job(o, summary) for o in outcomes if (summary := _read_summary(o.run_dir)) is not None]
     sweep = sw.Sweep(sweep_dir, jobs)
     out = _fresh(sweep_dir / "analysis")
     analysis = sw.analyze_sweep(sweep, out, REGISTRY.sweep_title)
     rows = sw.reproduction_rows(jobs, evaluate(REGISTRY.sweep_claims, sweep), REGISTRY.claim_order)
     findings = [line for section in REGISTRY.sweep_sections for line in section(sweep, out, analysis)]
     publish_figures(analysis.figures, out, out / "tb")
-    write_json(out / "claims.json",
-               [_claim_json(r.result, job=None if r.job is None else str(r.job.run_dir),
-                            variant=None if r.job is None else r.job.variant) for r in rows])
+    write_json(
+        out / "claims.json",
+        [
+            _claim_json(
+                r.result,
+                job=None if r.job is None else str(r.job.run_dir),
+                variant=None if r.job is None else r.job.variant,
+            )
+            for r in rows
+        ],
+    )
     analysis.data_files.append("claims.json")
 
     wall = {}
@@ -174,8 +201,10 @@ def analyze_sweep(sweep_dir: Path, pages: Sequence[Path] = ()) -> list[RunOutcom
     if pages and REGISTRY.pages is not None:
         REGISTRY.pages.update_pages(pages, rows, wall, out / "report.md")
         print(f"{', '.join(map(str, pages))}: reproduction results updated")
-    print(f"{sweep_dir}: sweep of {len(found)} runs{_skipped_note(sweep_dir, skipped)}, {len(rows)} claims "
-          f"({sw.verdict_counts(rows)}) -> {out / 'report.md'}")
+    print(
+        f"{sweep_dir}: sweep of {len(found)} runs{_skipped_note(sweep_dir, skipped)}, {len(rows)} claims "
+        f"({sw.verdict_counts(rows)}) -> {out / 'report.md'}"
+    )
     return outcomes
 
 
@@ -230,8 +259,11 @@ def main(dirs: list[Path], pages: Sequence[Path] = ()) -> int:
             outcomes = [_safe_analyze_run(d)]
         elif not any(d.rglob("summary.json")):
             skipped = report_unfinished(d)
-            print(f"{PROG}: error: {d}: no run (summary.json) found below it"
-                  + (f" ({len(skipped)} unfinished)" if skipped else ""), file=sys.stderr)
+            print(
+                f"{PROG}: error: {d}: no run (summary.json) found below it"
+                + (f" ({len(skipped)} unfinished)" if skipped else ""),
+                file=sys.stderr,
+            )
             status = 2
             continue
         else:

@@ -16,6 +16,7 @@ under ``large_action``'s exponential one). A key the user typed is never dropped
 as it would without a swap. What still does not fit is refused in one line naming the pair
 (``pair``): the environment a trainer steps (``fits``), or a key the swapped option brings along.
 """
+
 import re
 
 from hydra.core.hydra_config import HydraConfig
@@ -85,7 +86,7 @@ def prune(node: DictConfig, path: tuple, typed: set[tuple]) -> None:
     """One node: a component (``_target_``) keeps the keys its constructor takes; a map of components
     (``predictor``) keeps its entries that are components."""
     # typed, inside a typed node, or holding a typed key
-    user = lambda p: any(t[:len(p)] == p or p[:len(t)] == t for t in typed)  # noqa: E731
+    user = lambda p: any(t[: len(p)] == p or p[: len(t)] == t for t in typed)  # noqa: E731
     if "_target_" not in node:
         for key in list(node):
             child, where = node._get_node(key), (*path, key)  # unresolved: a ??? or ${…} is the check's to name
@@ -130,17 +131,19 @@ def settings_read(node: DictConfig, path: str) -> set[str]:
     """The keys of the component node at config path ``path`` that its sub-nodes read by
     interpolation, ``${<path>.<key>}``: a trainer's settings (``${trainer.n_episodes}``), which a
     constructor taking ``**settings`` takes, and the names users override (``trainer.n_episodes=…``)."""
+
     def texts(value):
         if isinstance(value, dict):
             return [t for v in value.values() for t in texts(v)]
         if isinstance(value, list):
             return [t for v in value for t in texts(v)]
         return [value] if isinstance(value, str) else []
+
     container = OmegaConf.to_container(node, resolve=False)
     assert isinstance(container, dict)  # a component's node
     subtree = {k: v for k, v in container.items() if isinstance(v, (dict, list))}
     refs = {ref for text in texts(subtree) for ref in SETTING.findall(text)}
-    return {ref[len(path) + 1:] for ref in refs if ref.startswith(path + ".") and ref[len(path) + 1:] in node}
+    return {ref[len(path) + 1 :] for ref in refs if ref.startswith(path + ".") and ref[len(path) + 1 :] in node}
 
 
 def setting_named(error: ConfigError, cfg: DictConfig) -> ConfigError:
@@ -156,7 +159,7 @@ def setting_named(error: ConfigError, cfg: DictConfig) -> ConfigError:
     except Exception:  # noqa: BLE001 — the error stands as it is
         return error
     read = SETTING.fullmatch(value) if isinstance(value, str) else None
-    return ConfigError(read.group(1) + str(error)[len(key):]) if read else error
+    return ConfigError(read.group(1) + str(error)[len(key) :]) if read else error
 
 
 def check_settings(cfg: DictConfig, key: str) -> None:
@@ -174,8 +177,10 @@ def check_settings(cfg: DictConfig, key: str) -> None:
         return
     for name in node:
         if name != "_target_" and name not in params and name not in read:
-            raise ConfigError(f"{key}.{name!s} is not allowed: no phase reads it; {key} takes "
-                              f"{', '.join(sorted(read))} (its settings) and {', '.join(params)}")
+            raise ConfigError(
+                f"{key}.{name!s} is not allowed: no phase reads it; {key} takes "
+                f"{', '.join(sorted(read))} (its settings) and {', '.join(params)}"
+            )
 
 
 def continuing(env_class) -> bool:
@@ -195,7 +200,9 @@ def check_fit(values: dict, hydra) -> None:
         return
     steps = "episodes" if wants else "a continuing task"
     is_ = "a continuing task" if continuing(env_class) else "episodic"
-    env_name = f"env={hydra.runtime.choices.get('env')} ({env_class.__name__})" if hydra is not None else env_class.__name__
+    env_name = (
+        f"env={hydra.runtime.choices.get('env')} ({env_class.__name__})" if hydra is not None else env_class.__name__
+    )
     reason = f"its phases train on {steps}, and {env_name} is {is_}"
     if hydra is None:
         raise ConfigError(f"trainer does not fit env: {reason}")

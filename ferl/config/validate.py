@@ -10,6 +10,7 @@ built components (a preprocessor's input size against the environment's observat
 ``optimized_metric`` against what the trainer writes) is checked by the trainer's ``setup``, once
 the components exist and before anything is trained.
 """
+
 import re
 from dataclasses import dataclass, fields
 from typing import Annotated, Literal, cast
@@ -46,6 +47,7 @@ Device = Literal["auto", "cpu", "cuda"]
 @dataclass(frozen=True)
 class RunSettings:
     """The root keys of conf/config.yaml (what each means is commented there)."""
+
     name: str
     seed: NonNegativeInt
     n_runs: PositiveInt
@@ -67,8 +69,9 @@ def validate(cfg: DictConfig) -> None:
     hydra = hydra_node(cfg)
     values = resolved(cfg)
     if values.get("name") is None and hydra is not None and hydra.runtime.choices.get("experiment") is None:
-        raise ConfigError("~experiment is not allowed: a run is named by its experiment; "
-                          "experiment=none runs without one")
+        raise ConfigError(
+            "~experiment is not allowed: a run is named by its experiment; experiment=none runs without one"
+        )
     check_arguments(RunSettings, {k: values[k] for k in ROOT_KEYS if k in values})
     try:
         for key, node in values.items():

@@ -24,6 +24,7 @@ Vector autoreset: ``AutoresetMode.NEXT_STEP``, gymnasium's default. The step aft
 episode ends ignores that run's action and returns its first observation of a new episode,
 reward 0, terminated and truncated False.
 """
+
 import math
 from functools import cache
 
@@ -43,8 +44,15 @@ from ferl.images import IMAGE_SIDE
 
 FLOOR_EPISODE_STEPS = 1000  # the registered floor's cut-off: the dissertation has none (continuing task)
 # the observation → digit class map of conf/env/digit_tmaze.yaml (Fig. 4.20)
-DIGIT_CLASSES = {"start_0": 0, "start_1": 1, "corridor": 2, "junction_0": 3, "junction_1": 4,
-                 "goal_left": 5, "goal_right": 6}
+DIGIT_CLASSES = {
+    "start_0": 0,
+    "start_1": 1,
+    "corridor": 2,
+    "junction_0": 3,
+    "junction_1": 4,
+    "goal_left": 5,
+    "goal_right": 6,
+}
 RENDER_FPS = 4
 WALL, FREE, AGENT, FRAME = (64, 64, 64), (255, 255, 255), (0, 0, 255), (255, 0, 0)
 REWARDED_GOAL, OTHER_GOAL = (0, 170, 0), (200, 0, 0)
@@ -112,8 +120,15 @@ class FloorBatch(Batch):
 
     observation_space = spaces.Box(0.0, 1.0, (IMAGE_PIXELS,), np.float32)
 
-    def __init__(self, n_runs: int, noise: float = 0.125, reward_condition: str = "cw",
-                 noise_tile: int | str | None = None, patches: int = 4, data: MnistSplit | None = None):
+    def __init__(
+        self,
+        n_runs: int,
+        noise: float = 0.125,
+        reward_condition: str = "cw",
+        noise_tile: int | str | None = None,
+        patches: int = 4,
+        data: MnistSplit | None = None,
+    ):
         self.floor = dict(noise=noise, reward_condition=reward_condition, noise_tile=noise_tile, patches=patches)
         self.data = embedded_mnist() if data is None else data
         super().__init__(n_runs)
@@ -136,8 +151,12 @@ class FloorBatch(Batch):
         the optimal action there (−1 where not unique, Fig. 3.9)."""
         tile = to_numpy(self.env.tile)
         position = to_numpy(self.env.tile_position[self.env.tile])
-        return {"tile": tile, "position": position, "label": np.array(self.env.layout)[position],
-                "optimal_action": self.env.optimal_action[position]}
+        return {
+            "tile": tile,
+            "position": position,
+            "label": np.array(self.env.layout)[position],
+            "optimal_action": self.env.optimal_action[position],
+        }
 
     def render(self, run: int) -> np.ndarray:
         """The run's floor, every tile its noise-free image, the agent's tile framed in red."""
@@ -146,7 +165,7 @@ class FloorBatch(Batch):
         gray = to_numpy(tiles.permute(0, 2, 1, 3).reshape(side * IMAGE_SIDE, side * IMAGE_SIDE) * 255, np.uint8)
         frame = np.repeat(gray[..., None], 3, axis=2)
         row, col = divmod(int(self.env.tile[run]), side)
-        cell = frame[row * IMAGE_SIDE: (row + 1) * IMAGE_SIDE, col * IMAGE_SIDE: (col + 1) * IMAGE_SIDE]
+        cell = frame[row * IMAGE_SIDE : (row + 1) * IMAGE_SIDE, col * IMAGE_SIDE : (col + 1) * IMAGE_SIDE]
         for edge in (cell[:2], cell[-2:], cell[:, :2], cell[:, -2:]):
             edge[:] = FRAME
         return frame
@@ -181,8 +200,13 @@ class MazeBatch(Batch):
         taken, condition (s0, or 2·s0 + s1 when matching), rewarded side (0 left, 1 right), and
         whether the agent stands in the rewarded goal."""
         env = self.env
-        return {"position": to_numpy(env.position), "steps": to_numpy(env.t), "condition": to_numpy(env.condition),
-                "rewarded_side": to_numpy(env.rewarded_side), "correct": to_numpy(env.correct)}
+        return {
+            "position": to_numpy(env.position),
+            "steps": to_numpy(env.t),
+            "condition": to_numpy(env.condition),
+            "rewarded_side": to_numpy(env.rewarded_side),
+            "correct": to_numpy(env.correct),
+        }
 
     def render(self, run: int) -> np.ndarray:
         """The maze, corridor up the middle, goals green (rewarded) / red, the agent blue; with
@@ -192,7 +216,7 @@ class MazeBatch(Batch):
 
         def cell(position: int) -> np.ndarray:
             row, col = (T - 1 - position, 1) if position < T else (0, 0 if position == T else 2)
-            return frame[row * IMAGE_SIDE: (row + 1) * IMAGE_SIDE, col * IMAGE_SIDE: (col + 1) * IMAGE_SIDE]
+            return frame[row * IMAGE_SIDE : (row + 1) * IMAGE_SIDE, col * IMAGE_SIDE : (col + 1) * IMAGE_SIDE]
 
         for position in range(T):
             cell(position)[:] = FREE
@@ -215,13 +239,24 @@ class DigitMazeBatch(MazeBatch):
 
     observation_space = spaces.Box(0.0, 1.0, (IMAGE_PIXELS,), np.float32)
 
-    def __init__(self, n_runs: int, corridor_length: int = 3, max_steps: int = 10, reservoir_size: int = 1,
-                 binarize_threshold: float | None = 0.5, image_index: int = 0,
-                 digit_classes: dict | None = None, data: MnistSplit | None = None):
-        self.digits = dict(data=embedded_mnist() if data is None else data,
-                           digit_classes=DIGIT_CLASSES if digit_classes is None else digit_classes,
-                           image_index=image_index, reservoir_size=reservoir_size,
-                           binarize_threshold=binarize_threshold)
+    def __init__(
+        self,
+        n_runs: int,
+        corridor_length: int = 3,
+        max_steps: int = 10,
+        reservoir_size: int = 1,
+        binarize_threshold: float | None = 0.5,
+        image_index: int = 0,
+        digit_classes: dict | None = None,
+        data: MnistSplit | None = None,
+    ):
+        self.digits = dict(
+            data=embedded_mnist() if data is None else data,
+            digit_classes=DIGIT_CLASSES if digit_classes is None else digit_classes,
+            image_index=image_index,
+            reservoir_size=reservoir_size,
+            binarize_threshold=binarize_threshold,
+        )
         super().__init__(n_runs, corridor_length, max_steps, matching=True)
 
     def build(self, generator: torch.Generator) -> TMaze:
@@ -257,8 +292,13 @@ class BatchView(gymnasium.Env):
         if not self.action_space.contains(action):
             raise ValueError(f"action must be one of 0…3 ({', '.join(ACTIONS)}), got {action!r}")
         obs, reward, terminated, truncated = self.batch.step(torch.tensor([int(action)]))
-        return (self.batch.observations(obs)[0], float(reward[0]), bool(terminated[0]), bool(truncated[0]),
-                self._info())
+        return (
+            self.batch.observations(obs)[0],
+            float(reward[0]),
+            bool(terminated[0]),
+            bool(truncated[0]),
+            self._info(),
+        )
 
     def _info(self) -> dict:
         return {key: value[0].item() for key, value in self.batch.info().items()}
@@ -272,16 +312,18 @@ class BatchVectorEnv(VectorEnv):
     autoreset). ``max_episode_steps`` (None or −1: none) adds a cut-off, as ``TimeLimit`` does for
     a single view; ``gymnasium.make_vec`` passes the registered one."""
 
-    metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": ["rgb_array"],  # noqa: RUF012 - as above
-                "render_fps": RENDER_FPS}
+    metadata = {  # noqa: RUF012 - as above
+        "autoreset_mode": AutoresetMode.NEXT_STEP,
+        "render_modes": ["rgb_array"],
+        "render_fps": RENDER_FPS,
+    }
     batch_type: type[Batch]
 
     def __init_subclass__(cls, batch_type: type[Batch], **kwargs):
         super().__init_subclass__(**kwargs)
         cls.batch_type = batch_type
 
-    def __init__(self, num_envs: int, max_episode_steps: int | None = None, render_mode: str | None = None,
-                 **kwargs):
+    def __init__(self, num_envs: int, max_episode_steps: int | None = None, render_mode: str | None = None, **kwargs):
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         self.num_envs, self.render_mode = num_envs, render_mode
@@ -365,5 +407,10 @@ def register_envs() -> None:
     """Register ``ENV_SPECS`` with gymnasium; ids already registered are left alone."""
     for env_id, (name, kwargs, max_episode_steps) in ENV_SPECS.items():
         if env_id not in gymnasium.registry:
-            gymnasium.register(env_id, entry_point=f"{__name__}:{name}Env", kwargs=kwargs,
-                               vector_entry_point=f"{__name__}:{name}VectorEnv", max_episode_steps=max_episode_steps)
+            gymnasium.register(
+                env_id,
+                entry_point=f"{__name__}:{name}Env",
+                kwargs=kwargs,
+                vector_entry_point=f"{__name__}:{name}VectorEnv",
+                max_episode_steps=max_episode_steps,
+            )

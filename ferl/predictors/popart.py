@@ -19,6 +19,7 @@ rescaled so that its prediction in the environment's units, σ ẑ + μ, is unch
 
 Off (``reward_norm=none``, the default) the head learns the raw reward, as the dissertation's.
 """
+
 import torch
 from torch import nn
 

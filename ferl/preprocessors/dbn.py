@@ -25,6 +25,7 @@ sees the recognition pass only.
   ĥ_{l−1}, which is itself a function of every setting and the images below (a DBN whose first
   layer is an RBM fitted before loads it).
 """
+
 from typing import cast
 
 import numpy as np
@@ -36,7 +37,7 @@ from ferl.interfaces import PreprocessorBase
 from ferl.preprocessors.cache import load_or_fit
 from ferl.preprocessors.rbm import RBMPreprocessor, fit_records, log_training
 
-LAYER_SEED_STRIDE = 2 ** 32  # layer l's runs: seed + l · this + r (no overlap below 2³² runs)
+LAYER_SEED_STRIDE = 2**32  # layer l's runs: seed + l · this + r (no overlap below 2³² runs)
 
 
 class DBNPreprocessor(PreprocessorBase, nn.Module):
@@ -50,15 +51,21 @@ class DBNPreprocessor(PreprocessorBase, nn.Module):
     kwargs_to = (RBMPreprocessor, ("n_visible", "n_hidden"))  # what the config check sees (params.signature)
 
     @checked
-    def __init__(self, n_runs: PositiveInt, layers: list[int] = (784, 100, 20),  # type: ignore[assignment]  # immutable default
-                 seed: NonNegativeInt = 0,
-                 cache_dir: str | None = None, **rbm_args):
+    def __init__(
+        self,
+        n_runs: PositiveInt,
+        layers: list[int] = (784, 100, 20),  # type: ignore[assignment]  # immutable default
+        seed: NonNegativeInt = 0,
+        cache_dir: str | None = None,
+        **rbm_args,
+    ):
         super().__init__()
         self.sizes, self.cache_dir = [int(n) for n in layers], cache_dir
         self.input_size, self.output_size = self.sizes[0], self.sizes[-1]
         self.rbms = nn.ModuleList(
             RBMPreprocessor(n_runs, n_visible=n_in, n_hidden=n_out, seed=seed + layer * LAYER_SEED_STRIDE, **rbm_args)
-            for layer, (n_in, n_out) in enumerate(zip(self.sizes, self.sizes[1:])))
+            for layer, (n_in, n_out) in enumerate(zip(self.sizes, self.sizes[1:]))
+        )
 
     @property
     def stack(self) -> list[RBMPreprocessor]:
@@ -70,13 +77,22 @@ class DBNPreprocessor(PreprocessorBase, nn.Module):
         """The sizes chain: an input and at least one hidden layer, every one of them positive."""
         sizes = list(args["layers"])
         if len(sizes) < 2 or any(n < 1 for n in sizes):
-            raise ArgumentError("layers", "a list of ≥ 2 positive sizes [input, hidden …] that chain "
-                                          "(input = the observation size, e.g. [784, 100, 20])")
+            raise ArgumentError(
+                "layers",
+                "a list of ≥ 2 positive sizes [input, hidden …] that chain "
+                "(input = the observation size, e.g. [784, 100, 20])",
+            )
 
     def describe(self) -> dict:
         first = self.stack[0]
-        return {"kind": "dbn", "layers": self.sizes, "n_visible": self.input_size, "n_hidden": self.output_size,
-                "cd_k": first.cd_k, "sweeps": first.sweeps}
+        return {
+            "kind": "dbn",
+            "layers": self.sizes,
+            "n_visible": self.input_size,
+            "n_hidden": self.output_size,
+            "cd_k": first.cd_k,
+            "sweeps": first.sweeps,
+        }
 
     # ---- the model -----------------------------------------------------------------------------
     @torch.no_grad()
@@ -127,6 +143,7 @@ class DBNPreprocessor(PreprocessorBase, nn.Module):
         histories, cached = self.train_layers(data.train_images)
         history = np.concatenate(histories, axis=1)
         log_training(writer, history, self.stack[0].W)
-        records = fit_records(writer, data, history, before, self.reconstruction_error(test), all(cached),
-                              self.reconstruct)
+        records = fit_records(
+            writer, data, history, before, self.reconstruction_error(test), all(cached), self.reconstruct
+        )
         return {**records, "layer_sweeps": np.array([h.shape[1] for h in histories])}

@@ -7,6 +7,7 @@ on. It is printed before anything else is tried (the run's own log may be on the
 docs/reliability.md). A signal that stopped a run (``ferl.run.directory.StopRequest``) after its
 checkpoint is written ends it with ``Interrupted`` and a line that says where it stopped.
 """
+
 import errno
 import os
 import re
@@ -15,10 +16,12 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import cast
 
-DISK = {errno.ENOSPC: ("no space left on device", "free space"),
-        errno.EDQUOT: ("disk quota exceeded", "free space"),
-        errno.EROFS: ("read-only file system", "make it writable"),
-        errno.EFBIG: ("file larger than the file-size limit (ulimit -f)", "raise the limit")}
+DISK = {
+    errno.ENOSPC: ("no space left on device", "free space"),
+    errno.EDQUOT: ("disk quota exceeded", "free space"),
+    errno.EROFS: ("read-only file system", "make it writable"),
+    errno.EFBIG: ("file larger than the file-size limit (ulimit -f)", "raise the limit"),
+}
 NOT_A_DIRECTORY = (errno.ENOTDIR, errno.EEXIST)  # a file stands where a directory should be
 TEMPORARY = re.compile(r"^\.(?P<name>.+)\.[^.]+\.tmp$")  # atomic writes' ``.<name>.<random>.tmp``
 UNITS = ("step", "episode", "epoch")  # what a phase's checkpoint state counts its progress in
@@ -119,8 +122,10 @@ def hydra_os_error(report: str) -> str | None:
         what, remedy = DISK[no]
         return f"{what} writing {path} (errno {name}); nothing of the run was written: {remedy}, then run it again"
     if no in NOT_A_DIRECTORY:
-        return (f"cannot create the run directory {path}: a file stands where a directory should be "
-                f"(errno {name}); choose another hydra.run.dir / hydra.sweep.dir")
+        return (
+            f"cannot create the run directory {path}: a file stands where a directory should be "
+            f"(errno {name}); choose another hydra.run.dir / hydra.sweep.dir"
+        )
     return f"cannot create the run directory {path}: {match['why']} (errno {name}); choose another hydra.run.dir"
 
 
@@ -145,14 +150,17 @@ def _count(state: dict):
 def interrupted_line(signum: int, at: str, run_path: Path, shown=str) -> str:
     """``interrupted by SIGINT at phase 'actor', episode 200: checkpoint written to runs/x/checkpoints;
     resume=true hydra.run.dir=runs/x continues``."""
-    return (f"interrupted by {signal.Signals(signum).name} at {at}: checkpoint written to "
-            f"{shown(Path(run_path) / 'checkpoints')}; resume=true hydra.run.dir={shown(run_path)} continues")
+    return (
+        f"interrupted by {signal.Signals(signum).name} at {at}: checkpoint written to "
+        f"{shown(Path(run_path) / 'checkpoints')}; resume=true hydra.run.dir={shown(run_path)} continues"
+    )
 
 
 def quiet_disk_errors_in_threads() -> None:
     """A disk error in a writer thread (TensorBoard's) prints no traceback: the thread hands it
     to the run's thread, whose line reports it. Other thread errors are printed as before."""
     import threading
+
     previous = threading.excepthook
 
     def hook(args):

@@ -7,6 +7,7 @@ group of runs after another (``td_steps_by_groups``). With prefetching the rando
 next chunks are drawn on a second thread while a chunk runs: the same draws from the same
 generator in the same order, so the results do not change.
 """
+
 import math
 import sys
 from concurrent.futures import Future
@@ -24,12 +25,13 @@ MAX_CHUNK = 16  # steps per call of td_steps (a divisor of the logging and check
 class TDChunk(NamedTuple):
     """What a chunk of K TD steps hands back (a NamedTuple, so it traces under torch.compile): the
     state, action, its free energy and cache after the chunk, and every step's rewards and TD errors."""
-    s: torch.Tensor        # (R, 1, S)
-    a: torch.Tensor        # (R, 1)
-    F_sa: torch.Tensor     # (R, 1)
-    x_sa: torch.Tensor     # (R, 1, ·)
+
+    s: torch.Tensor  # (R, 1, S)
+    a: torch.Tensor  # (R, 1)
+    F_sa: torch.Tensor  # (R, 1)
+    x_sa: torch.Tensor  # (R, 1, ·)
     rewards: torch.Tensor  # (K, R)
-    deltas: torch.Tensor   # (K, R)
+    deltas: torch.Tensor  # (K, R)
 
 
 RUN_AXIS = {"s": 0, "a": 0, "F_sa": 0, "x_sa": 0, "rewards": 1, "deltas": 1}  # where each TDChunk field holds the runs
@@ -48,8 +50,9 @@ def td_steps(actor, env, generator, s, a, F_sa, x_sa, alive, lrs, betas, uniform
     for k in range(lrs.shape[0]):
         obs, r = env.step_with(a.squeeze(1), *(x[k] for x in inputs))
         s_next = obs.unsqueeze(1)
-        a, F_sa, x_sa, delta = td_step(actor, s, a, F_sa, x_sa, r, s_next, lrs[k], betas[k], generator,
-                                       uniforms[k], alive)
+        a, F_sa, x_sa, delta = td_step(
+            actor, s, a, F_sa, x_sa, r, s_next, lrs[k], betas[k], generator, uniforms[k], alive
+        )
         rewards.append(r)
         deltas.append(delta.squeeze(1))
         s = s_next
@@ -62,10 +65,27 @@ def td_steps_by_groups(steps, groups: list[slice]):
     step streaming all runs' weights from L3. Each group gets views of its runs (actor.slice_runs,
     env.slice_runs, slices of the per-run arguments), so its updates land in the whole batch; runs are
     independent, so the grouping does not change what a run computes."""
+
     def by_groups(actor, env, generator, s, a, F_sa, x_sa, alive, lrs, betas, uniforms, *inputs):
-        parts = [steps(actor.slice_runs(g), env.slice_runs(g), generator, s[g], a[g], F_sa[g], x_sa[g], alive[g],
-                       lrs, betas, uniforms[:, g], *(x[:, g] for x in inputs)) for g in groups]
+        parts = [
+            steps(
+                actor.slice_runs(g),
+                env.slice_runs(g),
+                generator,
+                s[g],
+                a[g],
+                F_sa[g],
+                x_sa[g],
+                alive[g],
+                lrs,
+                betas,
+                uniforms[:, g],
+                *(x[:, g] for x in inputs),
+            )
+            for g in groups
+        ]
         return TDChunk(*(torch.cat(outs, RUN_AXIS[field]) for field, outs in zip(TDChunk._fields, zip(*parts))))
+
     return by_groups
 
 

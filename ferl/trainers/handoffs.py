@@ -7,6 +7,7 @@ emptied once the last phase has finished (a finished run keeps parameters, not d
 a resumed run draws it again alike). A new phase that hands something on adds a field here,
 named for what it is, with its shape.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -24,6 +25,7 @@ class SplitEpisodes:
     """Algorithm 1's data (§4.3.1, ``CollectEpisodes``): random-policy episodes balanced over the
     lengths T_min … T_max, split into training and test episodes, ``n_train`` and ``n_test`` of
     each length per run."""
+
     train: Episodes
     test: Episodes
     n_train: int
@@ -33,14 +35,16 @@ class SplitEpisodes:
 @dataclass
 class PhaseOutputs:
     """What the phases of a run hand on (saved with its progress until the run has finished)."""
-    observations: torch.Tensor | None = None    # (R, ids, Y) the processed observation table (FitPreprocessor)
-    episodes: SplitEpisodes | None = None        # the predictors' data (CollectEpisodes)
-    random_steps: np.ndarray | None = None       # (R,) environment steps the random collection cost each run
-    floor_test_before: dict | None = None        # the "before" test's responses (GreedyTests), for the records
+
+    observations: torch.Tensor | None = None  # (R, ids, Y) the processed observation table (FitPreprocessor)
+    episodes: SplitEpisodes | None = None  # the predictors' data (CollectEpisodes)
+    random_steps: np.ndarray | None = None  # (R,) environment steps the random collection cost each run
+    floor_test_before: dict | None = None  # the "before" test's responses (GreedyTests), for the records
 
 
 @dataclass
 class Prepared:
     """What phases prepare at every start (drawn again alike when a run resumes, never saved)."""
+
     floor_test_images: torch.Tensor | None = None  # (C, n, P) clean held-out test images per floor class
-    episodes_per_run: int = 0                      # random episodes the collection will keep per run
+    episodes_per_run: int = 0  # random episodes the collection will keep per run

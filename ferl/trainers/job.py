@@ -16,6 +16,7 @@ checkpoint saves (finished phases, the state of an unfinished one, what phases h
 ``ferl.trainers.handoffs``)
 and the summary's metrics.
 """
+
 import time
 from typing import Any
 
@@ -77,21 +78,38 @@ class Job:
         self.env = self.make_env(self.R)
         check_conforms(self.env, env_protocol, "env")
         self.preprocessor = self.make_preprocessor(cfg.seed + seeds.preprocessor)
-        self.n_obs = n_obs = self.preprocessor.output_size if self.preprocessor is not None else self.env.observation_size
-        self.predictors = {name: self.make_part(p, f"predictor.{name}", Predictor, n_obs=n_obs,
-                                                n_actions=self.env.n_actions, seed=cfg.seed + seeds.predictors * i)
-                           for i, (name, p) in enumerate((cfg.get("predictor") or {}).items())}
+        self.n_obs = n_obs = (
+            self.preprocessor.output_size if self.preprocessor is not None else self.env.observation_size
+        )
+        self.predictors = {
+            name: self.make_part(
+                p,
+                f"predictor.{name}",
+                Predictor,
+                n_obs=n_obs,
+                n_actions=self.env.n_actions,
+                seed=cfg.seed + seeds.predictors * i,
+            )
+            for i, (name, p) in enumerate((cfg.get("predictor") or {}).items())
+        }
         n_state = n_obs + sum(p.memory_size for p in self.predictors.values())
-        self.actor = self.make_part(cfg.actor, "actor", Actor, n_state=n_state, n_actions=self.env.n_actions,
-                                    seed=cfg.seed + seeds.actor)
+        self.actor = self.make_part(
+            cfg.actor, "actor", Actor, n_state=n_state, n_actions=self.env.n_actions, seed=cfg.seed + seeds.actor
+        )
         self.guard = DivergenceGuard(self.R, control.divergence_limit, self.seeds, device)
         self.env.on_fault = self.guard.freeze  # an outside environment's failed run is frozen (ferl.envs.boundary)
         # what a checkpoint saves of the run's course: finished phases, an unfinished one's state,
         # data one phase hands the next, the summary's metrics so far, the acting phases' steps and time
-        self.progress: dict[str, Any] = {"done": [], "partial": {}, "shared": PhaseOutputs(), "metrics": {}, "agent_steps": 0,
-                         "actor_time": 0.0}
+        self.progress: dict[str, Any] = {
+            "done": [],
+            "partial": {},
+            "shared": PhaseOutputs(),
+            "metrics": {},
+            "agent_steps": 0,
+            "actor_time": 0.0,
+        }
         self.prepared = Prepared()  # what phases prepare at every start (not saved: drawn again alike)
-        self.unit = "step"   # what the guard reports a divergence in (a T-maze: "episode")
+        self.unit = "step"  # what the guard reports a divergence in (a T-maze: "episode")
         self.fast = fast_path(cfg.compile, device)  # compile the phases' chunks of steps (ferl.compiled)
         self.compile_started = compile_seconds()  # a process may train several jobs (Hydra's joblib workers)
         self.started = time.perf_counter()  # this process's share of wall_time_s (the trainer may start it earlier)
@@ -130,8 +148,10 @@ class Job:
         assert self.data is not None  # loaded whenever the config has a preprocessor
         pixels = self.data.train_images.shape[-1]
         if part.input_size != self.env.observation_size or pixels != self.env.observation_size:
-            raise ConfigError(f"preprocessor takes {part.input_size} inputs and fits on images of {pixels} pixels, "
-                              f"but the environment's observations have {self.env.observation_size} values")
+            raise ConfigError(
+                f"preprocessor takes {part.input_size} inputs and fits on images of {pixels} pixels, "
+                f"but the environment's observations have {self.env.observation_size} values"
+            )
         return part
 
     def make_env(self, n_runs: int):
@@ -143,16 +163,26 @@ class Job:
 
     def components(self) -> dict:
         """Every component (each has state, ``Checkpointed``), by the name its checkpoint entry has."""
-        parts = {"env": self.env, "preprocessor": self.preprocessor, "actor": self.actor,
-                 **{f"predictor_{name}": p for name, p in self.predictors.items()}}
+        parts = {
+            "env": self.env,
+            "preprocessor": self.preprocessor,
+            "actor": self.actor,
+            **{f"predictor_{name}": p for name, p in self.predictors.items()},
+        }
         return {name: part for name, part in parts.items() if part is not None}
 
     def describe(self) -> dict:
         """What produced the run (``records/run.json``): each component's own description."""
+
         def entry(part):
             return {"class": f"{type(part).__module__}.{type(part).__qualname__}", **part.describe()}
-        return {"env": entry(self.env), "preprocessor": entry(self.preprocessor) if self.preprocessor else None,
-                "predictors": {name: entry(p) for name, p in self.predictors.items()}, "actor": entry(self.actor)}
+
+        return {
+            "env": entry(self.env),
+            "preprocessor": entry(self.preprocessor) if self.preprocessor else None,
+            "predictors": {name: entry(p) for name, p in self.predictors.items()},
+            "actor": entry(self.actor),
+        }
 
     # ---- checkpoints ----------------------------------------------------------------------------
     def checkpoint(self, phase: str | None = None, state=None) -> None:
@@ -162,9 +192,15 @@ class Job:
         if phase is not None:
             self.progress["partial"][phase] = state
         self.progress["wall_time_s"] = self.wall_time()
-        self.run.save_checkpoint({
-            "progress": self.progress, "generator": self.generator.get_state(), "guard": self.guard.state_dict(),
-            **{name: part.state_dict() for name, part in self.components().items()}}, self.writer)
+        self.run.save_checkpoint(
+            {
+                "progress": self.progress,
+                "generator": self.generator.get_state(),
+                "guard": self.guard.state_dict(),
+                **{name: part.state_dict() for name, part in self.components().items()},
+            },
+            self.writer,
+        )
         if self.stop.requested:  # train.py prints where, and exits 128 + the signal
             raise Interrupted(self.stop.signal, where(phase, state, self.progress["done"]))
 

@@ -30,6 +30,7 @@ prediction error of the observation-predicting predictors at the step's new obse
 η_k = η · max(0, 1 − k / (``curiosity_anneal`` · N)) (η = ``curiosity``; 0 = off). Returns and
 every metric are measured on the raw reward.
 """
+
 import time
 
 import numpy as np
@@ -49,10 +50,20 @@ class OnlineEpisodes(ActorEpisodes):
     β following their held-out error and the curiosity bonus (module docstring). Records
     ``online.npz``: per run and episode the held-out error, β and η, and the phase's time split."""
 
-    def __init__(self, n_episodes: PositiveInt, actor_obs_scale: Positive, td_sample_every: PositiveInt,
-                 final_window: PositiveInt, replay_episodes: PositiveInt, replay_sample: PositiveInt,
-                 replay_batch_size: PositiveInt | None, beta_error_ratio: Momentum, error_ema: UnitInterval,
-                 curiosity: NonNegative, curiosity_anneal: NonNegative):
+    def __init__(
+        self,
+        n_episodes: PositiveInt,
+        actor_obs_scale: Positive,
+        td_sample_every: PositiveInt,
+        final_window: PositiveInt,
+        replay_episodes: PositiveInt,
+        replay_sample: PositiveInt,
+        replay_batch_size: PositiveInt | None,
+        beta_error_ratio: Momentum,
+        error_ema: UnitInterval,
+        curiosity: NonNegative,
+        curiosity_anneal: NonNegative,
+    ):
         super().__init__(n_episodes, actor_obs_scale, td_sample_every, final_window)
         self.K, self.n_replay, self.replay_batch = replay_episodes, replay_sample, replay_batch_size
         self.tau, self.ema, self.eta, self.anneal = beta_error_ratio, error_ema, curiosity, curiosity_anneal
@@ -61,9 +72,11 @@ class OnlineEpisodes(ActorEpisodes):
 
     def prepare(self, job) -> None:
         if not job.predictors:
-            raise ConfigError(f"predictor=none is not allowed with {chosen('trainer', 'OnlineEpisodes')}: it trains "
-                              "predictors and actor together; a memoryless actor alone is the actor phase of "
-                              "trainer=algorithm1")
+            raise ConfigError(
+                f"predictor=none is not allowed with {chosen('trainer', 'OnlineEpisodes')}: it trains "
+                "predictors and actor together; a memoryless actor alone is the actor phase of "
+                "trainer=algorithm1"
+            )
         super().prepare(job)
         groups: dict = {}
         for p in job.predictors.values():
@@ -73,11 +86,19 @@ class OnlineEpisodes(ActorEpisodes):
     def fresh_state(self, job) -> dict:
         R, K, T = job.R, self.K, job.env.max_steps
         zeros = lambda *shape, **kw: torch.zeros(R, K, *shape, device=job.device, **kw)  # noqa: E731
-        return {**super().fresh_state(job),
-                "replay": {"obs": zeros(T + 1, dtype=torch.long) - 1, "actions": zeros(T, dtype=torch.long),
-                           "rewards": zeros(T), "lengths": zeros(dtype=torch.long)},
-                "error_first": None, "error_ema": None, "predictor_time": 0.0,
-                "online": {k: np.zeros((R, self.N), np.float32) for k in ("prediction_error", "beta", "curiosity")}}
+        return {
+            **super().fresh_state(job),
+            "replay": {
+                "obs": zeros(T + 1, dtype=torch.long) - 1,
+                "actions": zeros(T, dtype=torch.long),
+                "rewards": zeros(T),
+                "lengths": zeros(dtype=torch.long),
+            },
+            "error_first": None,
+            "error_ema": None,
+            "predictor_time": 0.0,
+            "online": {k: np.zeros((R, self.N), np.float32) for k in ("prediction_error", "beta", "curiosity")},
+        }
 
     def fuses(self, job) -> bool:
         """Eager: β and the curiosity η change from episode to episode, and the replay's BPTT,
@@ -114,8 +135,13 @@ class OnlineEpisodes(ActorEpisodes):
         started = time.perf_counter()
         ep = self.as_episodes(job, episode)
         with torch.no_grad():
-            error = sum((torch.nanmean(p.prediction_errors(*episode_tensors(job, ep, p)).flatten(1), 1)
-                         for p in job.predictors.values()), torch.zeros((), device=job.device))
+            error = sum(
+                (
+                    torch.nanmean(p.prediction_errors(*episode_tensors(job, ep, p)).flatten(1), 1)
+                    for p in job.predictors.values()
+                ),
+                torch.zeros((), device=job.device),
+            )
         if state["error_first"] is None:
             state["error_first"] = state["error_ema"] = error
         else:
@@ -124,10 +150,20 @@ class OnlineEpisodes(ActorEpisodes):
         online["prediction_error"][:, k] = error.cpu().numpy()
         online["beta"][:, k] = self.beta_now.flatten().cpu().numpy()  # the β episode k acted with
         online["curiosity"][:, k] = self.eta_now
-        observe_rewards(job.predictors.values(), ep.rewards, ep.lengths)  # once per new episode, after its held-out error
+        observe_rewards(
+            job.predictors.values(), ep.rewards, ep.lengths
+        )  # once per new episode, after its held-out error
         replay = state["replay"]
-        store_episode(replay, k, {"obs": ep.obs[:, 0], "actions": ep.actions[:, 0], "rewards": ep.rewards[:, 0],
-                                  "lengths": ep.lengths[:, 0]})
+        store_episode(
+            replay,
+            k,
+            {
+                "obs": ep.obs[:, 0],
+                "actions": ep.actions[:, 0],
+                "rewards": ep.rewards[:, 0],
+                "lengths": ep.lengths[:, 0],
+            },
+        )
         pick = draw_episodes(replay, k + 1, self.n_replay, job.generator, job.device)
         sample = Episodes(**stored_episodes(replay, pick))
         order = torch.arange(self.n_replay, device=job.device).expand(job.R, -1)
@@ -155,5 +191,10 @@ class OnlineEpisodes(ActorEpisodes):
 
     def finish(self, job, state: dict) -> None:
         super().finish(job, state)
-        job.run.save_records("online", job.R, **state["online"], predictor_time_s=np.float64(state["predictor_time"]),
-                             actor_time_s=np.float64(state["active_time"] - state["predictor_time"]))
+        job.run.save_records(
+            "online",
+            job.R,
+            **state["online"],
+            predictor_time_s=np.float64(state["predictor_time"]),
+            actor_time_s=np.float64(state["active_time"] - state["predictor_time"]),
+        )

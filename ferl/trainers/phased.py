@@ -8,6 +8,7 @@ every phase the job is checkpointed; ``resume`` skips the finished phases and ha
 unfinished one the state its last checkpoint saved, so a resumed run computes exactly what an
 uninterrupted one does.
 """
+
 import time
 from dataclasses import dataclass
 from typing import Literal, get_args
@@ -26,7 +27,9 @@ from ferl.trainers.handoffs import PhaseOutputs
 from ferl.trainers.job import Job
 
 EnvironmentKind = Literal["episodic", "continuing", "any"]
-ENVIRONMENTS: dict[str, type] = dict(zip(get_args(EnvironmentKind), (EpisodicEnvironment, ContinuingEnvironment, Environment)))
+ENVIRONMENTS: dict[str, type] = dict(
+    zip(get_args(EnvironmentKind), (EpisodicEnvironment, ContinuingEnvironment, Environment))
+)
 
 
 @dataclass(frozen=True)
@@ -37,6 +40,7 @@ class RunControl:
     a long phase's checkpoints, and ``checkpoint_minutes`` of wall time between them (0: by count
     only); ``divergence_limit``: the |TD error| beyond which (or non-finite) a run is frozen and
     reported diverged (``ferl.run.guard``)."""
+
     log_every: PositiveInt
     checkpoint_every: PositiveInt
     checkpoint_minutes: NonNegative
@@ -91,13 +95,19 @@ class PhasedTrainer(TrainerBase):
     phases read by interpolation (``${trainer.n_episodes}``), the names users override
     (``trainer.n_episodes=…``); kept in ``records/run.json``."""
 
-    job: Job           # the components, built by setup
-    phase = "setup"    # what the trainer is doing: setup, resume, a phase's name, summary (train.py's error line)
+    job: Job  # the components, built by setup
+    phase = "setup"  # what the trainer is doing: setup, resume, a phase's name, summary (train.py's error line)
 
     @checked
-    def __init__(self, phases: dict[str, Phase], run: RunControl, kind: Literal["phased", "online"],
-                 environment: EnvironmentKind, seed_offsets: rng.OffsetsName,
-                 **settings):
+    def __init__(
+        self,
+        phases: dict[str, Phase],
+        run: RunControl,
+        kind: Literal["phased", "online"],
+        environment: EnvironmentKind,
+        seed_offsets: rng.OffsetsName,
+        **settings,
+    ):
         for name, phase in phases.items():
             phase.name = name
         self.all_phases, self.control, self.kind = list(phases.values()), run, kind
@@ -116,8 +126,10 @@ class PhasedTrainer(TrainerBase):
             phase.prepare(self.job)
         metric = cfg.get("optimized_metric")
         if metric is not None and metric not in self.metric_names():
-            raise ConfigError(f"optimized_metric={metric!r} is not allowed: expected null or a summary.json metric "
-                              f"of this run: {', '.join(self.metric_names())}")
+            raise ConfigError(
+                f"optimized_metric={metric!r} is not allowed: expected null or a summary.json metric "
+                f"of this run: {', '.join(self.metric_names())}"
+            )
 
     def metric_names(self) -> list[str]:
         return [name for phase in self.phases for name in phase.metric_names(self.job)]
@@ -131,8 +143,12 @@ class PhasedTrainer(TrainerBase):
         return max((int(phase.run_bytes(self.job)) for phase in self.phases), default=0)
 
     def describe(self) -> dict:
-        return {"class": f"{type(self).__module__}.{type(self).__qualname__}", "kind": self.kind,
-                "phases": [p.name for p in self.phases], **self.params}
+        return {
+            "class": f"{type(self).__module__}.{type(self).__qualname__}",
+            "kind": self.kind,
+            "phases": [p.name for p in self.phases],
+            **self.params,
+        }
 
     def fit(self, run: RunDir, resume: bool) -> dict:
         """Every phase not yet done; returns the summary.json dict (docs/records.md)."""
@@ -170,13 +186,19 @@ class PhasedTrainer(TrainerBase):
 
     def write_manifest(self, run: RunDir) -> None:
         """``records/run.json``: what produced the run, for analysis to read (docs/records.md)."""
-        manifest = {"task": self.job.env.task, "experiment": self.job.cfg.name,
-                    "trainer": self.describe(), **self.job.describe()}
+        manifest = {
+            "task": self.job.env.task,
+            "experiment": self.job.cfg.name,
+            "trainer": self.describe(),
+            **self.job.describe(),
+        }
         run.save_json("run", manifest)
 
     def summary(self, job: Job, wall_time: float) -> dict:
         return {
-            "experiment": job.cfg.name, "task": job.env.task, "seeds": job.seeds,
+            "experiment": job.cfg.name,
+            "task": job.env.task,
+            "seeds": job.seeds,
             "metrics": job.guard.void_failed_envs(job.metrics),
             "optimal": job.env.optimal(job.actor.gamma),
             "wall_time_s": wall_time,
