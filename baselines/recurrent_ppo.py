@@ -75,8 +75,7 @@ from ferl.envs.encodings import ENCODINGS, BinaryObservation
 from ferl.envs.gymnasium_vector import GymnasiumEnv, make
 from ferl.envs.tmaze import TMaze
 from ferl.run.directory import RunDir, check_run_dir
-from ferl.stats import FINAL_WINDOW, final_metrics, sample_efficiency
-from ferl.trainers.actor_episodes import solved_against
+from ferl.stats import FINAL_WINDOW, final_metrics, sample_efficiency, solved_against
 
 PROG = "recurrent_ppo.py"
 GAMMA = 0.95  # the T-mazes' discount (§4.3.1): returns comparable with ferl's runs and optimum

@@ -9,7 +9,7 @@ kept in ``records/run.json``, from which analysis decides which figures and clai
 A protocol declares every member that ferl calls, its hooks too, each with a default on the small
 base class beside it (``EnvironmentBase`` … ``ActorBase``, as acme's ``core.py``): a component
 that subclasses the base names only the hooks it changes, and ferl calls every member directly. A
-component is checked against its protocol when it is built (``missing_members``).
+component is checked against its protocol when it is built (``ferl.trainers.facts.missing_members``).
 
 Constructors receive their YAML keys plus what the trainer supplies (``n_runs``, sizes, ``seed``,
 ``generator``, ``device``, ``data`` where the constructor names it); the types and ranges of the
@@ -36,12 +36,9 @@ class Checkpointed(Protocol):
 
 @runtime_checkable
 class Environment(Checkpointed, Protocol):
-    """R environments stepped together with one action per run (R,) of ``n_actions`` discrete actions.
-
-    ``describe()`` holds at least ``task`` (the summary's task: which metrics a run reports),
-    ``kind``, ``episodic``, ``observation`` ("bits", "image" or "vector"), ``observation_size``
-    and ``n_actions``.
-    """
+    """R environments stepped together with one action per run (R,) of ``n_actions`` discrete actions;
+    ``describe()`` holds at least ``task`` (the summary's task: which metrics a run reports), ``kind``,
+    ``episodic``, ``observation`` ("bits", "image" or "vector"), ``observation_size`` and ``n_actions``."""
 
     n_runs: int
     n_actions: int
@@ -98,8 +95,7 @@ class EpisodicEnvironment(Environment, Protocol):
     boolean ones become ``final_<name>_rate`` metrics and count towards ``solved``), ``labels``
     (what the episode's probes are labelled with, e.g. the maze's condition) and ``probe`` (the
     runs whose present state is one whose activations the records keep, e.g. the T-junction).
-    Two hooks (defaults on ``EpisodicEnvironmentBase``) say how its episodes may be run.
-    """
+    Two hooks (defaults on ``EpisodicEnvironmentBase``) say how its episodes may be run."""
 
     max_steps: int
     optimal_steps: int
@@ -401,22 +397,3 @@ class TrainerBase:
 
     def run_bytes(self) -> int:
         return 0
-
-
-def required_members(protocol: type) -> list[str]:
-    """The attributes and methods ``protocol`` declares, in the order written, its bases' first:
-    what a component must have, its hooks too (a base class gives their defaults)."""
-    names = []
-    for cls in reversed(protocol.__mro__):
-        if cls in (Protocol, object) or not getattr(cls, "_is_protocol", False):
-            continue
-        methods = [n for n, v in vars(cls).items() if callable(v) or isinstance(v, (property, classmethod))]
-        names += [
-            n for n in (*getattr(cls, "__annotations__", {}), *methods) if not n.startswith("_") and n not in names
-        ]
-    return names
-
-
-def missing_members(part, protocol: type) -> list[str]:
-    """What ``part`` lacks of ``protocol`` (``required_members``), in declaration order; [] if it conforms."""
-    return [name for name in required_members(protocol) if not hasattr(part, name)]

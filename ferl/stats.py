@@ -167,3 +167,13 @@ def final_metrics(
         key, best = optimum
         metrics["solved"] = meets_solved(final(key), rate, best).astype(int).tolist()
     return metrics
+
+
+def solved_against(optimal: dict) -> tuple[str, float] | None:
+    """(record, optimum) that ``solved`` compares a run's final return with: the discounted return
+    where the environment states its optimum (the T-mazes), else the undiscounted ``return`` where
+    it states that (a Gymnasium id with ``optimal_return``), else None: no ``solved`` metric."""
+    for key in ("discounted_return", "return"):
+        if optimal.get(key) is not None:
+            return key, float(optimal[key])
+    return None

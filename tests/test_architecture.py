@@ -20,6 +20,7 @@ from ferl.envs.tmaze import TMaze
 from ferl.predictors.elman import ElmanPredictor
 from ferl.preprocessors.rbm import RBMPreprocessor
 from ferl.schedules import Constant
+from ferl.trainers.facts import required_members
 from test_digit_floor import tiny_split
 
 FERL = ROOT / "ferl"
@@ -58,7 +59,7 @@ def test_every_default_a_base_gives_is_a_member_its_protocol_declares(protocol, 
     """A hook exists once as a declared member and once as a default: a base class that gave a
     member its protocol does not declare would bring back an undeclared, discovered hook."""
     given = {name for cls in base.__mro__[:-1] for name in vars(cls) if not name.startswith("_")}
-    assert given and given <= set(interfaces.required_members(protocol))
+    assert given and given <= set(required_members(protocol))
 
 
 def imports(path: Path, package: str = "ferl") -> set[str]:
@@ -187,7 +188,7 @@ def test_trainers_call_hooks_and_never_look_for_them():
     ``_target_`` (``ferl.config.params.ConfigTarget``: any callable, no base class) are the exception."""
     from ferl.config.params import ConfigTarget
 
-    allowed = set(interfaces.required_members(ConfigTarget))
+    allowed = set(required_members(ConfigTarget))
     found = []
     for path in sorted((FERL / "trainers").glob("*.py")):
         for node in ast.walk(ast.parse(path.read_text())):

@@ -16,15 +16,14 @@ from conftest import ROOT
 from ferl.envs.digit_floor import DigitFloor
 from ferl.envs.digit_tmaze import DigitTMaze
 from ferl.envs.gym import (
-    DIGIT_CLASSES,
     ENV_SPECS,
     FLOOR_EPISODE_STEPS,
     DigitFloorEnv,
     DigitFloorVectorEnv,
     TMazeVectorEnv,
-    embedded_mnist,
     register_envs,
 )
+from ferl.envs.gym_batches import DIGIT_CLASSES, embedded_mnist
 from ferl.envs.tmaze import TMaze
 
 IDS = list(ENV_SPECS)

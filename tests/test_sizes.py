@@ -18,14 +18,8 @@ import torch
 
 from conftest import run_train
 from ferl.config.params import ConfigError
-from ferl.interfaces import (
-    EpisodicEnvironment,
-    EpisodicEnvironmentBase,
-    TrainingBatch,
-    missing_members,
-    required_members,
-)
-from ferl.trainers.facts import check_conforms, facts_for
+from ferl.interfaces import EpisodicEnvironment, EpisodicEnvironmentBase, TrainingBatch
+from ferl.trainers.facts import check_conforms, facts_for, missing_members, required_members
 from five_arms import FiveArms, Forgetful
 
 TESTS = Path(__file__).resolve().parent

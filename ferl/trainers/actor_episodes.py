@@ -23,18 +23,15 @@ from tqdm import tqdm
 from ferl.actors.td import first_action, td_step
 from ferl.compiled import compiled, run_clock
 from ferl.config.params import Positive, PositiveInt
-from ferl.images import IMAGE_SIDE, matrix_image, tile, weight_images
 from ferl.interfaces import ActorViews, EndedEpisode
 from ferl.predictors.heads import scaled
 from ferl.random_blocks import Blocks, steps_per_block
 from ferl.run.directory import CheckpointTimer
-from ferl.run.tensorboard import log_embedding, log_weights
-from ferl.stats import final_metrics, sample_efficiency
+from ferl.stats import final_metrics, sample_efficiency, solved_against
+from ferl.trainers.actor_logs import concat_records, log_actor, log_episodes, log_probes
 from ferl.trainers.episodes import discount_factors, discounted_return, observation_table
 from ferl.trainers.observations import log_observations
 from ferl.trainers.phased import Phase
-
-EMBEDDED_PROBES = 2000  # run 0's last probe visits in the projector (docs/records.md)
 
 
 class ActorEpisodes(Phase):
@@ -116,7 +113,7 @@ class ActorEpisodes(Phase):
     def run(self, job, state) -> None:
         """Episodes from where a checkpoint left them."""
         if state is None:
-            self.log_actor(job, 0)
+            log_actor(job, 0)
             state = self.fresh_state(job)
         else:
             self.uniforms.load_state_dict(state.pop("uniforms"), job.device)
@@ -150,7 +147,9 @@ class ActorEpisodes(Phase):
                 checked = k + 1 - (k % self.log_every + 1)  # first episode not yet checked
                 job.guard.check(torch.as_tensor(records["td_abs_mean"][:, checked : k + 1].T), checked, "episode")
             if (k + 1) % self.log_every == 0:
-                self.log_episodes(job.writer, records, k + 1, lr, float(torch.as_tensor(beta).mean()))
+                log_episodes(
+                    job.writer, self.final_window, self.rates, records, k + 1, lr, float(torch.as_tensor(beta).mean())
+                )
                 recent, ma = slice(max(0, k + 1 - self.final_window), k + 1), f"ma{self.final_window}"
                 postfix = {f"{n}_{ma}": f"{records[n][:, recent].mean():.2f}" for n in self.rates}
                 bar.set_postfix(
@@ -349,7 +348,7 @@ class ActorEpisodes(Phase):
     def finish(self, job, state: dict) -> None:
         """Records, metrics, the final TensorBoard points; the phase's steps for the speed."""
         records = state["records"]
-        self.log_actor(job, self.N)
+        log_actor(job, self.N)
         probes = {key: v.numpy() for key, v in concat_records(state["probes"]).items()} if state["probes"] else {}
         if probes:
             probes["steps_to_goal"] = records["steps"][probes["run"], probes["episode"]]
@@ -367,54 +366,13 @@ class ActorEpisodes(Phase):
             final_window=np.int64(self.final_window),
         )
         job.run.save_records("probe", job.R, **probes)
-        self.log_probes(job, probes, records)
+        log_probes(job, probes, records, self.rates, self.N)
         job.metrics.update(final_metrics(records, self.optimum, self.final_window, self.rates, self.averages))
         random_steps = job.outputs.random_steps  # None: no random collection before
         if random_steps is None:
             random_steps = np.zeros(job.R, np.int64)
         job.metrics.update(sample_efficiency(records, random_steps, self.optimum, self.final_window, self.rates))
         job.count_agent_steps(state["agent_steps"], state["active_time"])
-
-    def log_actor(self, job, step: int) -> None:
-        """Run 0's weights: histograms, the state weights as a (state nodes × hidden) image and,
-        where the observation is an unprocessed image, its rows as 28 × 28 tiles (the last two
-        where the actor shows them, ``ActorViews``)."""
-        log_weights(job.writer, "actor", job.actor, step)
-        if not isinstance(job.actor, ActorViews):
-            return
-        W = job.actor.state_weights()
-        job.writer.add_image("actor/W_sh_matrix", matrix_image(W[0]), step)
-        if job.preprocessor is None and job.env.observation_size == IMAGE_SIDE**2:
-            job.writer.add_image("actor/W_sh_images", tile(weight_images(W[:, : IMAGE_SIDE**2])[:, 0]), step)
-
-    def log_probes(self, job, probes: dict, records: dict) -> None:
-        """Run 0's actor hidden activations at its last probe visits in the projector, labelled
-        with the episode's labels and outcome (Figs. 4.14–4.19)."""
-        visits = np.flatnonzero(probes["run"] == 0)[-EMBEDDED_PROBES:] if "hidden" in probes else np.array([], int)
-        if len(visits) == 0:
-            return
-        episode = probes["episode"][visits]
-        log_embedding(
-            job.writer,
-            "actor/hidden_at_probe",
-            probes["hidden"][visits],
-            {
-                **{key: probes[key][visits] for key in job.env.labels()},
-                "episode": episode,
-                "steps_to_goal": probes["steps_to_goal"][visits],
-                **{key: records[key][0, episode].astype(int) for key in self.rates},
-            },
-            self.N,
-        )
-
-    def log_episodes(self, writer, records, done: int, lr: float, beta: float) -> None:
-        """Moving averages over the last ``final_window`` episodes (200: Figs. 4.6–4.8, 4.11–4.13),
-        mean over runs, tagged ``actor/<name>_ma<final_window>``."""
-        window = slice(max(0, done - self.final_window), done)
-        for name in ("discounted_return", "steps", "terminal_reward", "td_abs_mean", *self.rates):
-            writer.add_scalar(f"actor/{name}_ma{self.final_window}", float(records[name][:, window].mean()), done)
-        writer.add_scalar("schedule/learning_rate", lr, done)
-        writer.add_scalar("schedule/beta", beta, done)
 
 
 class Step(NamedTuple):
@@ -438,18 +396,3 @@ def stacked(steps: list[Step]) -> Step:
         tuple(torch.stack(m) for m in zip(*field)) if isinstance(field[0], tuple) else torch.stack(field)
         for field in zip(*steps)
     )
-
-
-def concat_records(parts: list) -> dict:
-    """Probe records gathered episode by episode (a list of dicts of tensors) → one dict."""
-    return {key: torch.cat([p[key] for p in parts]) for key in parts[0]}
-
-
-def solved_against(optimal: dict) -> tuple[str, float] | None:
-    """(record, optimum) that ``solved`` compares a run's final return with: the discounted return
-    where the environment states its optimum (the T-mazes), else the undiscounted ``return`` where
-    it states that (a Gymnasium id with ``optimal_return``), else None: no ``solved`` metric."""
-    for key in ("discounted_return", "return"):
-        if optimal.get(key) is not None:
-            return key, float(optimal[key])
-    return None

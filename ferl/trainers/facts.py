@@ -16,7 +16,7 @@ exists; ``check_conforms`` names everything it lacks at once, with the recipe th
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 from ferl import interfaces
 from ferl.config.params import ConfigError, plain, signature, target
@@ -115,7 +115,7 @@ def facts_for(node, key: str, env) -> dict:
 def check_conforms(part, protocol: type, key: str) -> None:
     """ConfigError naming everything ``part`` (config key ``key``) lacks of ``protocol``, and where
     the members are listed; nothing when it conforms."""
-    missing = interfaces.missing_members(part, protocol)
+    missing = missing_members(part, protocol)
     if missing:
         what, where, base = NEEDS[protocol]
         hooks = [name for name in missing if name in dir(base)]
@@ -123,3 +123,22 @@ def check_conforms(part, protocol: type, key: str) -> None:
         raise ConfigError(
             f"{key}: {class_name(part)} lacks {', '.join(missing)} ({what} needs them: {where}{defaults})"
         )
+
+
+def required_members(protocol: type) -> list[str]:
+    """The attributes and methods ``protocol`` declares, in the order written, its bases' first:
+    what a component must have, its hooks too (a base class gives their defaults)."""
+    names = []
+    for cls in reversed(protocol.__mro__):
+        if cls in (Protocol, object) or not getattr(cls, "_is_protocol", False):
+            continue
+        methods = [n for n, v in vars(cls).items() if callable(v) or isinstance(v, (property, classmethod))]
+        names += [
+            n for n in (*getattr(cls, "__annotations__", {}), *methods) if not n.startswith("_") and n not in names
+        ]
+    return names
+
+
+def missing_members(part, protocol: type) -> list[str]:
+    """What ``part`` lacks of ``protocol`` (``required_members``), in declaration order; [] if it conforms."""
+    return [name for name in required_members(protocol) if not hasattr(part, name)]
