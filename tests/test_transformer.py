@@ -4,6 +4,7 @@ and NumPy's sinusoids; causal masking (a change at step t + k moves no memory be
 moves nothing); the online step with its key/value cache = the unroll; training through autograd
 lowers the loss and recalls a bit, runs and members train apart, and online training through
 train.py lowers the prediction error; the context checked against the environment's T_max."""
+
 import json
 
 import numpy as np
@@ -24,8 +25,21 @@ Y, A, NR = 4, 3, 2
 
 
 def make(R=3, M=6, layers=2, heads=2, context=9, seed=0, **kw):
-    return predictor(memory="transformer", n_runs=R, n_obs=Y, n_actions=A, n_memory=M, n_reward=NR, layers=layers,
-                     heads=heads, context=context, seed=seed, c_y=0.7, c_a=1.3, **kw).double()
+    return predictor(
+        memory="transformer",
+        n_runs=R,
+        n_obs=Y,
+        n_actions=A,
+        n_memory=M,
+        n_reward=NR,
+        layers=layers,
+        heads=heads,
+        context=context,
+        seed=seed,
+        c_y=0.7,
+        c_a=1.3,
+        **kw,
+    ).double()
 
 
 def data(R, B, T, seed=1):
@@ -52,8 +66,10 @@ def reference(p, run: int, y: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
     for layer in range(p.layers):
         h = F.layer_norm(x, (M,), P["ln1_g"][layer], P["ln1_b"][layer])
         q, k, v = (h @ P["W_qkv"][layer].T + P["b_qkv"][layer]).split(M, 1)
-        heads = [F.scaled_dot_product_attention(*(z[:, j * M // H:(j + 1) * M // H] for z in (q, k, v)), is_causal=True)
-                 for j in range(H)]
+        heads = [
+            F.scaled_dot_product_attention(*(z[:, j * M // H : (j + 1) * M // H] for z in (q, k, v)), is_causal=True)
+            for j in range(H)
+        ]
         x = x + torch.cat(heads, 1) @ P["W_o"][layer].T + P["b_o"][layer]
         h = F.layer_norm(x, (M,), P["ln2_g"][layer], P["ln2_b"][layer])
         x = x + F.gelu(h @ P["W_1"][layer].T + P["b_1"][layer]) @ P["W_2"][layer].T + P["b_2"][layer]
@@ -103,13 +119,13 @@ def test_padded_sequences_give_the_unpadded_memories():
     g = torch.Generator().manual_seed(9)
     lengths = [2, 5, 8]
     for b, T in enumerate(lengths):
-        y[:, b, T + 1:] = torch.randn(y[:, b, T + 1:].shape, generator=g, dtype=y.dtype) * 5
+        y[:, b, T + 1 :] = torch.randn(y[:, b, T + 1 :].shape, generator=g, dtype=y.dtype) * 5
         a[:, b, T:] = torch.randn(a[:, b, T:].shape, generator=g, dtype=a.dtype) * 5
     with torch.no_grad():
         m = p.unroll(y, a)
         for b, T in enumerate(lengths):
-            alone = p.unroll(y[:, b:b + 1, : T + 1], a[:, b:b + 1, :T])
-            torch.testing.assert_close(m[:, b:b + 1, : T + 1], alone, rtol=1e-12, atol=1e-12)
+            alone = p.unroll(y[:, b : b + 1, : T + 1], a[:, b : b + 1, :T])
+            torch.testing.assert_close(m[:, b : b + 1, : T + 1], alone, rtol=1e-12, atol=1e-12)
 
 
 @pytest.mark.parametrize("layers, heads, T", [(1, 1, 9), (2, 3, 9), (2, 2, 4)])
@@ -142,8 +158,19 @@ def test_training_lowers_the_loss_and_recalls_a_bit():
     from test_memories import delayed_bit
 
     R, delay = 2, 6
-    p = predictor(memory="transformer", n_runs=R, n_obs=Y, n_actions=A, n_memory=12, n_reward=NR, lr=0.02, seed=4,
-                  rho_y=0.0, time_average=False, context=delay)
+    p = predictor(
+        memory="transformer",
+        n_runs=R,
+        n_obs=Y,
+        n_actions=A,
+        n_memory=12,
+        n_reward=NR,
+        lr=0.02,
+        seed=4,
+        rho_y=0.0,
+        time_average=False,
+        context=delay,
+    )
     y, a, r, lengths, _ = delayed_bit(R, 48, delay, seed=0)
     test = delayed_bit(R, 200, delay, seed=2)
     with torch.no_grad():
@@ -163,7 +190,9 @@ def test_training_lowers_the_loss_and_recalls_a_bit():
 def test_context_heads_and_layers_are_checked():
     with pytest.raises(ConfigError, match=r"^predictor\.joint\.heads=4 is not allowed: a divisor of n_memory=6"):
         check_arguments(predictor, {"memory": "transformer", "n_memory": 6, "heads": 4}, "predictor.joint.")
-    with pytest.raises(ConfigError, match=r"^predictor\.joint\.context=9 is not allowed: ≥ 10, the environment's T_max"):
+    with pytest.raises(
+        ConfigError, match=r"^predictor\.joint\.context=9 is not allowed: ≥ 10, the environment's T_max"
+    ):
         check_arguments(predictor, {"memory": "transformer", "context": 9, "max_steps": 10}, "predictor.joint.")
     with pytest.raises(ConfigError, match=r"^predictor\.joint\.layers=5 is not allowed"):
         check_arguments(predictor, {"memory": "transformer", "layers": 5}, "predictor.joint.")
@@ -178,10 +207,17 @@ def test_context_heads_and_layers_are_checked():
 def test_a_context_shorter_than_the_mazes_t_max_is_one_line_before_any_file(tmp_path):
     """The regular maze of corridor 3 lasts at most T_max = 10 steps (table4_1_regular): context 9 is refused."""
     run_dir = tmp_path / "out" / "run"
-    result = run_train("experiment=table4_1_regular", "trainer=online", "predictor.joint.memory=transformer",
-                       "+predictor.joint.context=9", f"hydra.run.dir={run_dir}")
-    assert only_error_line(result) == ("ferl: error: predictor.joint.context=9 is not allowed: ≥ 10, the environment's "
-                                       "T_max (env.max_steps): the memory attends to the whole episode")
+    result = run_train(
+        "experiment=table4_1_regular",
+        "trainer=online",
+        "predictor.joint.memory=transformer",
+        "+predictor.joint.context=9",
+        f"hydra.run.dir={run_dir}",
+    )
+    assert only_error_line(result) == (
+        "ferl: error: predictor.joint.context=9 is not allowed: ≥ 10, the environment's "
+        "T_max (env.max_steps): the memory attends to the whole episode"
+    )
     assert not (tmp_path / "out").exists()
 
 
@@ -191,9 +227,17 @@ def test_online_training_through_train_py_lowers_the_prediction_error(tmp_path):
     error over its last 50 episodes is below a quarter of its first 20's (the memory learns while
     the agent acts; whether the agent then solves the maze is measured in docs/beyond.md)."""
     run_dir = tmp_path / "run"
-    result = run_train("experiment=table4_1_regular", "trainer=online", "predictor.joint.memory=transformer",
-                       "predictor.joint.lr=0.02", "n_runs=2", "trainer.n_episodes=300", "trainer.log_every=100",
-                       "trainer.final_window=100", f"hydra.run.dir={run_dir}")
+    result = run_train(
+        "experiment=table4_1_regular",
+        "trainer=online",
+        "predictor.joint.memory=transformer",
+        "predictor.joint.lr=0.02",
+        "n_runs=2",
+        "trainer.n_episodes=300",
+        "trainer.log_every=100",
+        "trainer.final_window=100",
+        f"hydra.run.dir={run_dir}",
+    )
     assert result.returncode == 0, result.stderr[-3000:]
     joint = json.loads((run_dir / "records" / "run.json").read_text())["predictors"]["joint"]
     assert (joint["kind"], joint["context"], joint["layers"], joint["heads"]) == ("transformer", 10, 1, 1)
@@ -210,17 +254,20 @@ def test_runs_and_members_train_apart():
     r = torch.randint(0, 2, (2, 5, 7, NR), generator=torch.Generator().manual_seed(3)).double()
     lengths = torch.tensor([[6, 2, 4, 5, 1], [3, 6, 6, 2, 4]])
     members = [make(R=2, M=4, layers=1, heads=2, seed=s, lr=0.1, batch_size=2) for s in (0, 7)]
-    orders = [torch.stack([torch.randperm(5, generator=torch.Generator().manual_seed(10 * k + run)) for run in range(2)])
-              for k in range(2)]
+    orders = [
+        torch.stack([torch.randperm(5, generator=torch.Generator().manual_seed(10 * k + run)) for run in range(2)])
+        for k in range(2)
+    ]
     alone = []
     for k, member in enumerate(members):
         for run in range(2):
             single = make(R=1, M=4, layers=1, heads=2, lr=0.1, batch_size=2)
             with torch.no_grad():
                 for q, source in zip(single.parameters(), member.parameters()):
-                    q.copy_(source[run:run + 1])
-            PredictorBatch([single], y[run:run + 1], a[run:run + 1], [r[run:run + 1]], lengths[run:run + 1]) \
-                .train_epoch([orders[k][run:run + 1]])
+                    q.copy_(source[run : run + 1])
+            PredictorBatch(
+                [single], y[run : run + 1], a[run : run + 1], [r[run : run + 1]], lengths[run : run + 1]
+            ).train_epoch([orders[k][run : run + 1]])
             alone.append([q[0] for q in single.parameters()])
     before = [[q.detach().clone() for q in member.parameters()] for member in members]
     PredictorBatch(members, y, a, [r, r], lengths).train_epoch(orders)
@@ -238,6 +285,9 @@ def test_the_job_hands_t_max_to_the_transformer_alone():
     node = {"_target_": "ferl.predictors.recurrent.predictor", "memory": "transformer"}
     assert facts_for(node, "predictor.joint", env) == {"n_reward": 3, "max_steps": env.max_steps}
     assert "max_steps" not in facts_for({**node, "memory": "gru"}, "predictor.joint", env)
-    with pytest.raises(ConfigError, match=rf"^predictor\.joint\.max_steps=99 disagrees with the environment: .* "
-                                          rf"has episodes of at most {env.max_steps} steps; leave it out"):
+    with pytest.raises(
+        ConfigError,
+        match=rf"^predictor\.joint\.max_steps=99 disagrees with the environment: .* "
+        rf"has episodes of at most {env.max_steps} steps; leave it out",
+    ):
         facts_for({**node, "max_steps": 99}, "predictor.joint", env)

@@ -13,6 +13,7 @@ fixed image per observation (the digit matching T-maze, §4.3.3), or a reservoir
 observation from which every visit draws one afresh (§5.3.2): observation n, image k has id
 n·K + k. The dynamics are (position, action) tables, so a step is a few gathers.
 """
+
 from typing import Annotated
 
 import numpy as np
@@ -59,8 +60,12 @@ def maze_tables(corridor_length: int, goal: float, wall: float, step: float):
     nxt = np.tile(np.arange(corridor_length + 2)[:, None], (1, 4))
     reward = np.full((corridor_length + 2, 4, 2), float(wall))
     for p in range(corridor_length):
-        moves = {N: p + 1 if p < junction else None, S: p - 1 if p > 0 else None,
-                 E: right if p == junction else None, W: left if p == junction else None}
+        moves = {
+            N: p + 1 if p < junction else None,
+            S: p - 1 if p > 0 else None,
+            E: right if p == junction else None,
+            W: left if p == junction else None,
+        }
         for a, q in moves.items():
             if q is None:
                 continue
@@ -69,8 +74,7 @@ def maze_tables(corridor_length: int, goal: float, wall: float, step: float):
     return nxt, reward
 
 
-def optimal_return(corridor_length: int, max_steps: int, gamma: float, goal: float, wall: float,
-                   step: float) -> float:
+def optimal_return(corridor_length: int, max_steps: int, gamma: float, goal: float, wall: float, step: float) -> float:
     """Optimal discounted return from the start with the state fully observed (the upper bound
     R_0 of Figs. 4.6, 4.11), by finite-horizon value iteration over the T_max actions."""
     nxt, reward = maze_tables(corridor_length, goal, wall, step)
@@ -91,11 +95,20 @@ class TMaze(EpisodicEnvironmentBase):
     n_actions = len(ACTIONS)
 
     @checked
-    def __init__(self, n_runs: PositiveInt, generator: torch.Generator,
-                 corridor_length: Annotated[int, at_least(2, "start, corridor cells, junction")] = 3,
-                 max_steps: PositiveInt = 10, matching: bool = False, goal_reward: float = 5.0,
-                 wall_reward: float = -1.0, step_reward: float = -0.1, true_state: bool = False, images=None,
-                 device="cpu"):
+    def __init__(
+        self,
+        n_runs: PositiveInt,
+        generator: torch.Generator,
+        corridor_length: Annotated[int, at_least(2, "start, corridor cells, junction")] = 3,
+        max_steps: PositiveInt = 10,
+        matching: bool = False,
+        goal_reward: float = 5.0,
+        wall_reward: float = -1.0,
+        step_reward: float = -0.1,
+        true_state: bool = False,
+        images=None,
+        device="cpu",
+    ):
         self.n_runs, self.generator, self.device = n_runs, generator, torch.device(device)
         self.corridor_length, self.max_steps, self.matching = corridor_length, max_steps, matching
         self.optimal_steps = corridor_length
@@ -141,14 +154,25 @@ class TMaze(EpisodicEnvironmentBase):
             raise ArgumentError("max_steps", f"T_max ≥ corridor_length={args['corridor_length']} (T_min)")
 
     def describe(self) -> dict:
-        return {"kind": "tmaze", "task": self.task, "episodic": True,
-                "observation": self.observation_kind,
-                "observation_size": self.observation_size, "n_actions": self.n_actions, "action_names": list(self.action_names),
-                "true_state": self.true_state, "matching": self.matching, "corridor_length": self.corridor_length,
-                "max_steps": self.max_steps,
-                "goal_reward": self.rewards[0], "reward_values": list(self.reward_values),
-                "observation_names": list(self.observation_names), "reservoir_size": self.reservoir_size,
-                "labels": list(self.labels()), "outcomes": list(self.outcomes())}
+        return {
+            "kind": "tmaze",
+            "task": self.task,
+            "episodic": True,
+            "observation": self.observation_kind,
+            "observation_size": self.observation_size,
+            "n_actions": self.n_actions,
+            "action_names": list(self.action_names),
+            "true_state": self.true_state,
+            "matching": self.matching,
+            "corridor_length": self.corridor_length,
+            "max_steps": self.max_steps,
+            "goal_reward": self.rewards[0],
+            "reward_values": list(self.reward_values),
+            "observation_names": list(self.observation_names),
+            "reservoir_size": self.reservoir_size,
+            "labels": list(self.labels()),
+            "outcomes": list(self.outcomes()),
+        }
 
     def _observation_ids(self) -> np.ndarray:
         """Observation id of every (position, s0, s1), shape (P, 2, 2)."""
@@ -205,8 +229,11 @@ class TMaze(EpisodicEnvironmentBase):
 
     def labels(self) -> dict:
         """What a junction visit is labelled with: the condition and both signals (−1: none)."""
-        return {"condition": self.condition, "initial_signal": self.initial_signal,
-                "junction_signal": self.junction_signal}
+        return {
+            "condition": self.condition,
+            "initial_signal": self.initial_signal,
+            "junction_signal": self.junction_signal,
+        }
 
     def outcomes(self) -> dict:
         """Facts of an ended episode: whether it ended in the rewarded goal, and its condition."""
@@ -230,8 +257,9 @@ class TMaze(EpisodicEnvironmentBase):
             # the images of every step of the episode, drawn now: how many random numbers an
             # episode takes then does not depend on how long any run's episode lasts, so runs
             # of a batch never shift each other's random streams (a diverged run included)
-            self.reservoir_draws = torch.randint(self.reservoir_size, (self.max_steps + 1, self.n_runs),
-                                                 generator=self.generator, device=self.device)
+            self.reservoir_draws = torch.randint(
+                self.reservoir_size, (self.max_steps + 1, self.n_runs), generator=self.generator, device=self.device
+            )
         self.set_signals(*signals)
         return self.observe()
 

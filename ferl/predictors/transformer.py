@@ -40,6 +40,7 @@ of fixed shape, (R, N^m + 1 + 2 · layers · (context + 1) · N^m)), so each ste
 cache instead of recomputing the episode and gives the same m_t as ``unroll``. An episode never
 outgrows the cache: the environment ends it after T_max ≤ context steps.
 """
+
 import math
 from collections import namedtuple
 from typing import Annotated
@@ -99,7 +100,9 @@ def attend(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, allowed: torch.Ten
 def block(W: Weights, layer: int, x: torch.Tensor, heads: int, self_attention) -> torch.Tensor:
     """One pre-LN block on x (R, …, d): ``self_attention(q, k, v)`` attends the queries to the keys
     the caller allows (all earlier tokens of a sequence, or the online step's cache)."""
-    q, k, v = affine(layer_norm(x, W.ln1_g[:, layer], W.ln1_b[:, layer]), W.W_qkv[:, layer], W.b_qkv[:, layer]).chunk(3, -1)
+    q, k, v = affine(layer_norm(x, W.ln1_g[:, layer], W.ln1_b[:, layer]), W.W_qkv[:, layer], W.b_qkv[:, layer]).chunk(
+        3, -1
+    )
     x = x + affine(self_attention(q, k, v), W.W_o[:, layer], W.b_o[:, layer])
     hidden = F.gelu(affine(layer_norm(x, W.ln2_g[:, layer], W.ln2_b[:, layer]), W.W_1[:, layer], W.b_1[:, layer]))
     return x + affine(hidden, W.W_2[:, layer], W.b_2[:, layer])
@@ -113,11 +116,20 @@ class TransformerPredictor(RecurrentPredictor):
     kind = "transformer"
 
     @checked
-    def __init__(self, context: PositiveInt | None = None, layers: Layers = 1, heads: PositiveInt = 1,
-                 max_steps: PositiveInt | None = None, **kwargs):
-        if context is None and max_steps is None:
-            raise ValueError("context is needed where no environment gives T_max (max_steps)")
-        self.context, self.layers, self.heads = context or max_steps, layers, heads
+    def __init__(
+        self,
+        context: PositiveInt | None = None,
+        layers: Layers = 1,
+        heads: PositiveInt = 1,
+        max_steps: PositiveInt | None = None,
+        **kwargs,
+    ):
+        if context is None:
+            if max_steps is None:
+                raise ValueError("context is needed where no environment gives T_max (max_steps)")
+            context = max_steps
+        self.context: int = context
+        self.layers, self.heads = layers, heads
         super().__init__(**kwargs)
 
     @classmethod
@@ -126,8 +138,11 @@ class TransformerPredictor(RecurrentPredictor):
         if args["n_memory"] % args["heads"]:
             raise ArgumentError("heads", f"a divisor of n_memory={args['n_memory']} (d_model = n_memory)")
         if args["context"] is not None and args["max_steps"] is not None and args["context"] < args["max_steps"]:
-            raise ArgumentError("context", f"≥ {args['max_steps']}, the environment's T_max (env.max_steps): "
-                                "the memory attends to the whole episode")
+            raise ArgumentError(
+                "context",
+                f"≥ {args['max_steps']}, the environment's T_max (env.max_steps): "
+                "the memory attends to the whole episode",
+            )
 
     def init_memory(self, gaussian, generators: list, n_obs: int, n_actions: int, n_memory: int) -> None:
         R, L, M, D = len(generators), self.layers, n_memory, n_obs + n_actions
@@ -139,13 +154,13 @@ class TransformerPredictor(RecurrentPredictor):
         def ones(*shape):
             return nn.Parameter(torch.ones(R, *shape))
 
-        self.W_in, self.b_in = gaussian(M, D, std=D ** -0.5), zeros(M)
+        self.W_in, self.b_in = gaussian(M, D, std=D**-0.5), zeros(M)
         self.ln1_g, self.ln1_b = ones(L, M), zeros(L, M)
-        self.W_qkv, self.b_qkv = gaussian(L, 3 * M, M, std=M ** -0.5), zeros(L, 3 * M)
-        self.W_o, self.b_o = gaussian(L, M, M, std=M ** -0.5 * residual), zeros(L, M)
+        self.W_qkv, self.b_qkv = gaussian(L, 3 * M, M, std=M**-0.5), zeros(L, 3 * M)
+        self.W_o, self.b_o = gaussian(L, M, M, std=M**-0.5 * residual), zeros(L, M)
         self.ln2_g, self.ln2_b = ones(L, M), zeros(L, M)
-        self.W_1, self.b_1 = gaussian(L, H, M, std=M ** -0.5), zeros(L, H)
-        self.W_2, self.b_2 = gaussian(L, M, H, std=H ** -0.5 * residual), zeros(L, M)
+        self.W_1, self.b_1 = gaussian(L, H, M, std=M**-0.5), zeros(L, H)
+        self.W_2, self.b_2 = gaussian(L, M, H, std=H**-0.5 * residual), zeros(L, M)
         self.lnf_g, self.lnf_b = ones(M), zeros(M)
 
     def memory_parameters(self) -> list:
@@ -191,7 +206,7 @@ class TransformerPredictor(RecurrentPredictor):
         token is token n: its keys and values are written at n and it attends to tokens 0 … n."""
         W, M, R = Weights(*self.memory_parameters()), self.memory_size, state.shape[0]
         n = state[:, M].long()  # (R,)
-        cache = state[:, M + 1:].view(R, self.layers, 2, self.context + 1, M)
+        cache = state[:, M + 1 :].view(R, self.layers, 2, self.context + 1, M)
         slot = torch.arange(self.context + 1, device=state.device) == n.unsqueeze(1)  # (R, context + 1)
         seen = (torch.arange(self.context + 1, device=state.device) <= n.unsqueeze(1)).view(R, 1, 1, -1)
         x = (x + positions(n, M).to(x.dtype)).unsqueeze(1)  # (R, 1, M)
