@@ -157,29 +157,31 @@ def delayed_bit(R: int, N: int, delay: int, seed: int):
     return y, a, r, torch.full((R, N), delay), bit
 
 
+def recall_predictor(memory: str, R: int, **kw):
+    """A predictor of the reward bit alone (ρ_y = 0), trained on the plain sum Σ_t E_t, seed 4."""
+    return predictor(
+        memory=memory, n_runs=R, n_obs=Y, n_actions=A, n_reward=NR, seed=4, rho_y=0.0, time_average=False, **kw
+    )
+
+
+def trained_on_delayed_bits(p, R: int, n: int, delay: int, epochs: int):
+    """Train ``p`` (R runs) for ``epochs`` pattern-mode epochs on n ``delayed_bit`` sequences, each
+    run in its own random order; returns 200 fresh sequences (y, a, r, lengths, bit) to test it on."""
+    y, a, r, lengths, _ = delayed_bit(R, n, delay, seed=0)
+    batch = PredictorBatch([p], y, a, [r], lengths)
+    g = torch.Generator().manual_seed(1)
+    for _ in range(epochs):
+        batch.train_epoch([torch.rand(R, n, generator=g).argsort(1)])
+    return delayed_bit(R, 200, delay, seed=2)
+
+
 @pytest.mark.parametrize("memory", ["lstm", "gru"])
 def test_gated_memory_keeps_a_bit_over_twelve_steps(memory):
     """After 30 pattern-mode epochs on 64 sequences (float32, 2 runs), the memory recalls at the
     cue the bit shown 12 steps earlier, on fresh sequences (chance: 0.5)."""
     delay, R = 12, 2
-    p = predictor(
-        memory=memory,
-        n_runs=R,
-        n_obs=Y,
-        n_actions=A,
-        n_memory=8,
-        n_reward=NR,
-        lr=0.3,
-        seed=4,
-        rho_y=0.0,
-        time_average=False,
-    )
-    y, a, r, lengths, _ = delayed_bit(R, 64, delay, seed=0)
-    batch = PredictorBatch([p], y, a, [r], lengths)
-    g = torch.Generator().manual_seed(1)
-    for _ in range(30):
-        batch.train_epoch([torch.rand(R, 64, generator=g).argsort(1)])
-    y, a, r, lengths, bit = delayed_bit(R, 200, delay, seed=2)
+    p = recall_predictor(memory, R, n_memory=8, lr=0.3)
+    y, a, _, lengths, bit = trained_on_delayed_bits(p, R, 64, delay, epochs=30)
     with torch.no_grad():
         _, r_hat, _ = p.forward_sequences(y, a, lengths)
     accuracy = ((r_hat[:, :, -1, 0] > 0.5).long() == bit).double().mean(1)

@@ -155,35 +155,18 @@ def test_training_lowers_the_loss_and_recalls_a_bit():
     """Plain SGD through autograd (``PredictorBatch``), 2 runs, 8 epochs of 48 sequences whose first
     observation is a random bit and whose last reward bit repeats it 6 steps later: the held-out
     loss falls below a tenth of its first value and the bit is recalled (chance 0.5)."""
-    from test_memories import delayed_bit
+    from test_memories import delayed_bit, recall_predictor, trained_on_delayed_bits
 
     R, delay = 2, 6
-    p = predictor(
-        memory="transformer",
-        n_runs=R,
-        n_obs=Y,
-        n_actions=A,
-        n_memory=12,
-        n_reward=NR,
-        lr=0.02,
-        seed=4,
-        rho_y=0.0,
-        time_average=False,
-        context=delay,
-    )
-    y, a, r, lengths, _ = delayed_bit(R, 48, delay, seed=0)
-    test = delayed_bit(R, 200, delay, seed=2)
+    p = recall_predictor("transformer", R, n_memory=12, lr=0.02, context=delay)
     with torch.no_grad():
-        first = p.loss(*test[:4]).mean(1)
-    batch = PredictorBatch([p], y, a, [r], lengths)
-    g = torch.Generator().manual_seed(1)
-    for _ in range(8):
-        batch.train_epoch([torch.rand(R, 48, generator=g).argsort(1)])
+        first = p.loss(*delayed_bit(R, 200, delay, seed=2)[:4]).mean(1)
+    y, a, r, lengths, bit = trained_on_delayed_bits(p, R, 48, delay, epochs=8)
     with torch.no_grad():
-        last = p.loss(*test[:4]).mean(1)
-        _, r_hat, _ = p.forward_sequences(*test[0:2], test[3])
+        last = p.loss(y, a, r, lengths).mean(1)
+        _, r_hat, _ = p.forward_sequences(y, a, lengths)
     assert (last < 0.1 * first).all(), (first, last)
-    accuracy = ((r_hat[:, :, -1, 0] > 0.5).long() == test[4]).double().mean(1)
+    accuracy = ((r_hat[:, :, -1, 0] > 0.5).long() == bit).double().mean(1)
     assert (accuracy > 0.95).all(), accuracy
 
 
