@@ -19,7 +19,7 @@ from ferl.trainers.job import Job, SeedOffsets
 
 def test_contract_experiments_exist():
     assert {"ch3_floor", "ch3_coding_cw", "ch3_coding_ccw", "ch3_coding_noreward", "table4_1_regular",
-            "table4_1_matching", "table4_2_digit", "table5_1_bit", "table5_1_pixel"} <= set(EXPERIMENTS)
+            "table4_1_matching", "table4_2_digit", "table5_1_bit", "table5_1_pixel", "passive_tmaze"} <= set(EXPERIMENTS)
 
 
 @pytest.mark.parametrize("name", EXPERIMENTS)
