@@ -167,7 +167,7 @@ class TMaze(EpisodicEnvironmentBase):
                 "observation": self.observation_kind,
                 "observation_size": self.observation_size, "n_actions": self.n_actions, "action_names": list(self.action_names),
                 "true_state": self.true_state, "matching": self.matching, "corridor_length": self.configured_length,
-                "passive": self.passive,
+                **({"passive": True} if self.passive else {}),  # the other mazes' records stay as they were
                 "max_steps": self.max_steps,
                 "goal_reward": self.rewards[0], "reward_values": list(self.reward_values),
                 "observation_names": list(self.observation_names), "reservoir_size": self.reservoir_size,
