@@ -25,13 +25,30 @@ except KeyboardInterrupt:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog=runner.PROG, description=__doc__.split("\n\n")[0])
-    parser.add_argument("dirs", nargs="+", type=Path, metavar="RUN_OR_SWEEP_DIR",
-                        help="a run directory (holds summary.json) or a directory of runs")
-    parser.add_argument("--readme", type=Path, action="append", default=[], metavar="PAGE.md",
-                        help="paste a sweep's results into this page's generated blocks (the "
-                             "claims table, the scorecard), between their marker lines; repeatable")
+    parser.add_argument(
+        "dirs",
+        nargs="+",
+        type=Path,
+        metavar="RUN_OR_SWEEP_DIR",
+        help="a run directory (holds summary.json) or a directory of runs",
+    )
+    parser.add_argument(
+        "--readme",
+        type=Path,
+        action="append",
+        default=[],
+        metavar="PAGE.md",
+        help="paste a sweep's results into this page's generated blocks (the "
+        "claims table, the scorecard), between their marker lines; repeatable",
+    )
+    parser.add_argument(
+        "--force",
+        action="store_true",
+        help="analyse every run again, also those whose records and code are unchanged since "
+        "their last analysis (which are otherwise kept)",
+    )
     args = parser.parse_args(argv)
-    return runner.main(args.dirs, args.readme)
+    return runner.main(args.dirs, args.readme, args.force)
 
 
 if __name__ == "__main__":

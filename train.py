@@ -7,6 +7,7 @@
 The trainer is the config's ``trainer`` node (``_target_``); it builds the components of the other
 groups and trains them (ferl/trainers/, docs/architecture.md).
 """
+
 import sys
 
 try:  # Ctrl-C while torch loads: one line, not importlib's traceback (docs/reliability.md)
@@ -18,8 +19,15 @@ try:  # Ctrl-C while torch loads: one line, not importlib's traceback (docs/reli
     from hydra.utils import instantiate
     from omegaconf import DictConfig
 
-    from ferl.config.hydra_glue import (one_line_errors, optimized_value, release_stderr, reported_by_phase,  # also:
-                                        resolve_device, summary_table)                        # the launcher resolver
+    # importing hydra_glue also registers the launcher resolver
+    from ferl.config.hydra_glue import (
+        one_line_errors,
+        optimized_value,
+        release_stderr,
+        reported_by_phase,
+        resolve_device,
+        summary_table,
+    )
     from ferl.config.params import ConfigError
     from ferl.config.validate import validate
     from ferl.data import DataError
@@ -48,8 +56,10 @@ def main(cfg: DictConfig) -> float | None:
     run_path = Path(hydra_cfg.runtime.output_dir)
     trainer = resumed = None
     # any other exception: one line naming the phase, the traceback in the run's train.log
-    with reported_by_phase(run_path, lambda: getattr(trainer, "phase", None) or "setup"), \
-            owned_run_dir(run_path) as claim:  # one process per run directory, for the whole run
+    with (
+        reported_by_phase(run_path, lambda: getattr(trainer, "phase", None) or "setup"),
+        owned_run_dir(run_path) as claim,
+    ):  # one process per run directory, for the whole run
         try:
             validate(cfg)
             claim(cfg)  # check, lock, check again, then .hydra/ (ferl/run/claim.py): before anything is written
@@ -65,18 +75,21 @@ def main(cfg: DictConfig) -> float | None:
             trainer.setup(cfg, device)
         except (ConfigError, DataError) as e:  # DataError: an input file that shows itself once data load
             fail(str(e), run_path)
-        run = RunDir(run_path, resumed.identity if resumed else identity_of(cfg, device),
-                     resumed.checkpoint if resumed else None)
+        run = RunDir(
+            run_path, resumed.identity if resumed else identity_of(cfg, device), resumed.checkpoint if resumed else None
+        )
         summary = trainer.fit(run, cfg.resume)
         run.write_summary(summary)
     value = optimized_value(summary, cfg.optimized_metric)
-    print(f"ferl: {cfg.name} done in {summary['wall_time_s']:.1f} s "
-          f"({summary['agent_steps_per_s']:.0f} agent-steps/s)\n"
-          f"  summary:     {run_path / 'summary.json'}\n"
-          f"  TensorBoard: tensorboard --logdir {run.tb}\n"
-          f"  analysis:    python analyze.py {run_path}\n"
-          f"{summary_table(summary)}"
-          + (f"\n  {cfg.optimized_metric} (optimized_metric, mean over runs): {value:.4f}" if value is not None else ""))
+    print(
+        f"ferl: {cfg.name} done in {summary['wall_time_s']:.1f} s "
+        f"({summary['agent_steps_per_s']:.0f} agent-steps/s)\n"
+        f"  summary:     {run_path / 'summary.json'}\n"
+        f"  TensorBoard: tensorboard --logdir {run.tb}\n"
+        f"  analysis:    python analyze.py {run_path}\n"
+        f"{summary_table(summary)}"
+        + (f"\n  {cfg.optimized_metric} (optimized_metric, mean over runs): {value:.4f}" if value is not None else "")
+    )
     return value
 
 

@@ -50,15 +50,16 @@ ferl's kind (``td_abs_mean`` is NaN, ``td_sampled`` absent). ``env_steps_total``
 ``env_steps_to_solve`` count on the vector environment's clock (every environment's steps,
 unfinished episodes included), because the parallel environments' episodes end interleaved.
 """
+
 import argparse
 import json
 import re
 import sys
 import time
 from collections import defaultdict
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import gymnasium
 import numpy as np
@@ -74,11 +75,10 @@ from ferl.envs.encodings import ENCODINGS, BinaryObservation
 from ferl.envs.gymnasium_vector import GymnasiumEnv, make
 from ferl.envs.tmaze import TMaze
 from ferl.run.directory import RunDir, check_run_dir
-from ferl.stats import FINAL_WINDOW, final_metrics, sample_efficiency
-from ferl.trainers.actor_episodes import solved_against
+from ferl.stats import FINAL_WINDOW, final_metrics, sample_efficiency, solved_against
 
 PROG = "recurrent_ppo.py"
-GAMMA = 0.95          # the T-mazes' discount (§4.3.1): returns comparable with ferl's runs and optimum
+GAMMA = 0.95  # the T-mazes' discount (§4.3.1): returns comparable with ferl's runs and optimum
 LSTM_SIZE = 64
 # sb3-contrib's RecurrentPPO defaults (n_steps 128, n_epochs 10, gae_lambda 0.95, clip_range 0.2,
 # ent_coef 0, vf_coef 0.5, max_grad_norm 0.5), with the RL Zoo's tuned ppo_lstm settings for its
@@ -88,17 +88,35 @@ LSTM_SIZE = 64
 # rollout's sequences and starts them from the stored (detached) LSTM state, so an episode cut by a
 # rollout's end loses the gradient to its start signal; 128 steps hold whole episodes of the
 # corridor-20 maze (T_max 44). The discount is ``--gamma``.
-PPO_KWARGS = dict(n_steps=128, batch_size=256, n_epochs=10, gae_lambda=0.95, clip_range=0.2, ent_coef=0.0,
-                  vf_coef=0.5, max_grad_norm=0.5)
+PPO_KWARGS = dict(
+    n_steps=128,
+    batch_size=256,
+    n_epochs=10,
+    gae_lambda=0.95,
+    clip_range=0.2,
+    ent_coef=0.0,
+    vf_coef=0.5,
+    max_grad_norm=0.5,
+)
 LEARNING_RATE = 1e-3  # linearly to 0 over the run (RL Zoo "lin_1e-3")
-POLICY_KWARGS = dict(lstm_hidden_size=LSTM_SIZE, enable_critic_lstm=True, net_arch=dict(pi=[64], vf=[64]),
-                     activation_fn=torch.nn.ReLU, ortho_init=False)
+POLICY_KWARGS = dict(
+    lstm_hidden_size=LSTM_SIZE,
+    enable_critic_lstm=True,
+    net_arch=dict(pi=[64], vf=[64]),
+    activation_fn=torch.nn.ReLU,
+    ortho_init=False,
+)
 # episodes.npz's records (docs/records.md) besides td_abs_mean, with their types
 COMMON_RECORDS = {"discounted_return": np.float32, "steps": np.int64, "terminal_reward": np.float32}
 TMAZE_RECORDS = {**COMMON_RECORDS, "correct_goal": bool, "condition": np.int64}
 # the Gymnasium-only settings, by the name of ferl's env.* config key they mirror
-GYMNASIUM_OPTIONS = {"encoding": "auto", "thresholds": None, "max_steps": None, "optimal_return": None,
-                     "success_threshold": None}
+GYMNASIUM_OPTIONS = {
+    "encoding": "auto",
+    "thresholds": None,
+    "max_steps": None,
+    "optimal_return": None,
+    "success_threshold": None,
+}
 
 
 @dataclass
@@ -108,6 +126,7 @@ class Task:
     what ``make_vec_env`` makes; the episodes.npz records; which records give rates (booleans:
     ``final_<name>_rate``) and averages (``final_<name>``); and the facts of a finished episode
     taken from its last step's info and its undiscounted return."""
+
     env: object
     make: str | Callable
     env_kwargs: dict | None
@@ -139,14 +158,20 @@ class EpisodeRecorder(BaseCallback):
     def _on_step(self) -> bool:
         rewards, dones, infos = self.locals["rewards"], self.locals["dones"], self.locals["infos"]
         self.sums += rewards
-        self.returns += self.gamma ** self.lengths * rewards
+        self.returns += self.gamma**self.lengths * rewards
         self.lengths += 1
         for i in np.flatnonzero(dones):
             info = infos[i]
             if info["episode"]["l"] != self.lengths[i]:  # sb3's Monitor counts the episode's steps itself
                 raise RuntimeError(f"episode bookkeeping out of step: {self.lengths[i]} ≠ {info['episode']['l']}")
-            episode = {"return": self.sums[i], "discounted_return": self.returns[i], "steps": self.lengths[i],
-                       "terminal_reward": rewards[i], **self.facts(info, self.sums[i]), "env_steps": self.num_timesteps}
+            episode = {
+                "return": self.sums[i],
+                "discounted_return": self.returns[i],
+                "steps": self.lengths[i],
+                "terminal_reward": rewards[i],
+                **self.facts(info, self.sums[i]),
+                "env_steps": self.num_timesteps,
+            }
             for key, value in episode.items():
                 self.episodes[key].append(value)
             self.sums[i], self.returns[i], self.lengths[i] = 0.0, 0.0, 0
@@ -155,10 +180,13 @@ class EpisodeRecorder(BaseCallback):
 
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0])
-    parser.add_argument("--env-id", required=True,
-                        help="a ferl T-maze id (ferl/MatchingTMaze-v0), or any Gymnasium id with discrete actions, "
-                             "as Id or module:Id (popgym:popgym-RepeatPreviousEasy-v0)")
-    parser.add_argument("--env-kwargs", default="{}", type=json.loads, help='JSON, e.g. \'{"corridor_length": 20}\'')
+    parser.add_argument(
+        "--env-id",
+        required=True,
+        help="a ferl T-maze id (ferl/MatchingTMaze-v0), or any Gymnasium id with discrete actions, "
+        "as Id or module:Id (popgym:popgym-RepeatPreviousEasy-v0)",
+    )
+    parser.add_argument("--env-kwargs", default="{}", type=json.loads, help="JSON, e.g. '{\"corridor_length\": 20}'")
     parser.add_argument("--runs", type=int, default=10, help="independent runs (seeds seed … seed + runs − 1)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--steps", type=int, required=True, help="environment steps per run")
@@ -166,11 +194,16 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--n-envs", type=int, default=8, help="parallel environments per run")
     parser.add_argument("--experiment", default="recurrent_ppo", help="the experiment name in summary.json")
     parser.add_argument("--gamma", type=float, default=GAMMA, help="PPO's discount and the records' (POPGym: 0.99)")
-    parser.add_argument("--final-window", type=int, default=FINAL_WINDOW,
-                        help="episodes behind the final_* metrics (ferl's trainer.final_window)")
+    parser.add_argument(
+        "--final-window",
+        type=int,
+        default=FINAL_WINDOW,
+        help="episodes behind the final_* metrics (ferl's trainer.final_window)",
+    )
     gym = parser.add_argument_group("Gymnasium ids (as ferl's env=gymnasium)")
-    gym.add_argument("--encoding", default="auto", choices=ENCODINGS,
-                     help="observations → bits (ferl/envs/encodings.py)")
+    gym.add_argument(
+        "--encoding", default="auto", choices=ENCODINGS, help="observations → bits (ferl/envs/encodings.py)"
+    )
     gym.add_argument("--thresholds", type=json.loads, help="--encoding thresholds: a JSON list, e.g. '[0, 0.5]'")
     gym.add_argument("--max-steps", type=int, help="the episode limit T_max (default: the id's own)")
     gym.add_argument("--optimal-return", type=float, help="the stated optimum of the undiscounted return (solved)")
@@ -218,27 +251,50 @@ def tmaze_task(args) -> Task:
         fail(f"--env-id {args.env_id} --env-kwargs {json.dumps(args.env_kwargs)}: {exc}")
     maze = getattr(getattr(view.unwrapped, "batch", None), "env", None)
     if not isinstance(maze, TMaze):
-        fail(f"--env-id {args.env_id} is not a ferl T-maze (ferl/TMaze-v0, ferl/MatchingTMaze-v0, "
-             "ferl/DigitMatchingTMaze-v0)")
-    return Task(maze, args.env_id, args.env_kwargs, TMAZE_RECORDS, rates=["correct_goal"],
-                facts=lambda info, ret: {"correct_goal": info["correct"], "condition": info["condition"]})
+        fail(
+            f"--env-id {args.env_id} is not a ferl T-maze (ferl/TMaze-v0, ferl/MatchingTMaze-v0, "
+            "ferl/DigitMatchingTMaze-v0)"
+        )
+    return Task(
+        maze,
+        args.env_id,
+        args.env_kwargs,
+        TMAZE_RECORDS,
+        rates=["correct_goal"],
+        facts=lambda info, ret: {"correct_goal": info["correct"], "condition": info["condition"]},
+    )
 
 
 def gymnasium_task(args) -> Task:
     """Any other id, checked and described by ferl's own ``GymnasiumEnv`` (one run, closed at
     once); ``fail`` with its one line if ferl could not train on it either."""
     try:
-        env = GymnasiumEnv(1, torch.Generator(), args.seed, id=args.env_id, kwargs=args.env_kwargs,
-                           encoding=args.encoding, thresholds=args.thresholds, max_steps=args.max_steps,
-                           success_threshold=args.success_threshold, optimal_return=args.optimal_return)
+        env = GymnasiumEnv(
+            1,
+            torch.Generator(),
+            args.seed,
+            id=args.env_id,
+            kwargs=args.env_kwargs,
+            encoding=args.encoding,
+            thresholds=args.thresholds,
+            max_steps=args.max_steps,
+            success_threshold=args.success_threshold,
+            optimal_return=args.optimal_return,
+        )
     except (ValueError, TypeError) as exc:  # ConfigError is a ValueError
         fail(as_options(str(exc)))
     env.close()
     threshold = args.success_threshold
     records = {**COMMON_RECORDS, "return": np.float32, **({"success": bool} if threshold is not None else {})}
-    return Task(env, gymnasium_maker(args, env.max_steps), None, records,
-                rates=["success"] if threshold is not None else [], averages=["return"],
-                facts=lambda info, ret: {"success": ret > threshold} if threshold is not None else {})
+    return Task(
+        env,
+        gymnasium_maker(args, env.max_steps),
+        None,
+        records,
+        rates=["success"] if threshold is not None else [],
+        averages=["return"],
+        facts=lambda info, ret: {"success": ret > threshold} if threshold is not None else {},
+    )
 
 
 def gymnasium_maker(args, max_steps: int) -> Callable[[], gymnasium.Env]:
@@ -253,6 +309,7 @@ def gymnasium_maker(args, max_steps: int) -> Callable[[], gymnasium.Env]:
         if registered is None or registered > max_steps:
             env = gymnasium.wrappers.TimeLimit(env, max_episode_steps=max_steps)
         return BinaryObservation(env, encoding, thresholds or ())
+
     return make_one
 
 
@@ -260,9 +317,16 @@ def train_run(args, task: Task, seed: int, checkpoint: Path) -> tuple[dict, int,
     """One run: its episodes (EpisodeRecorder), the environment steps it took and its training time."""
     env = make_vec_env(task.make, n_envs=args.n_envs, seed=seed * args.n_envs, env_kwargs=task.env_kwargs)
     batch_size = min(PPO_KWARGS["batch_size"], PPO_KWARGS["n_steps"] * args.n_envs)
-    model = RecurrentPPO("MlpLstmPolicy", env, **{**PPO_KWARGS, "batch_size": batch_size}, gamma=args.gamma,
-                         learning_rate=learning_rate, policy_kwargs=POLICY_KWARGS,
-                         seed=seed, device="cpu")
+    model = RecurrentPPO(
+        "MlpLstmPolicy",
+        env,
+        **{**PPO_KWARGS, "batch_size": batch_size},
+        gamma=args.gamma,
+        learning_rate=learning_rate,
+        policy_kwargs=POLICY_KWARGS,
+        seed=seed,
+        device="cpu",
+    )
     recorder = EpisodeRecorder(args.n_envs, args.gamma, task.facts)
     started = time.perf_counter()
     model.learn(args.steps, callback=recorder)
@@ -290,14 +354,14 @@ def episode_records(task: Task, runs: list[dict]) -> tuple[dict, np.ndarray]:
     return cut, env_steps
 
 
-def metrics(task: Task, records: dict, env_steps: np.ndarray, steps_total: list[int], optimal: dict,
-            window: int) -> dict:
+def metrics(
+    task: Task, records: dict, env_steps: np.ndarray, steps_total: list[int], optimal: dict, window: int
+) -> dict:
     """CONTRACT §2's episodic metrics by ferl's own functions, over the last ``window`` episodes;
     the step counts on the vector environment's clock (module doc): all steps taken and, given an
     optimum, those when the first solved window closed."""
     optimum = solved_against(optimal)
-    result = {**final_metrics(records, optimum, window, task.rates, task.averages),
-              "env_steps_total": steps_total}
+    result = {**final_metrics(records, optimum, window, task.rates, task.averages), "env_steps_total": steps_total}
     if optimum is not None:
         solved = sample_efficiency(records, np.zeros(len(env_steps), np.int64), optimum, window, task.rates)
         closing = solved["episodes_to_solve"]
@@ -309,26 +373,49 @@ def metrics(task: Task, records: dict, env_steps: np.ndarray, steps_total: list[
 def manifest(args, task: Task, n_episodes: int) -> dict:
     """records/run.json (docs/records.md): an external trainer, the environment as ferl describes
     it, no preprocessor or predictors, the LSTM actor-critic as the actor."""
+
     def plain(value):
         return value.__name__ if isinstance(value, type) else value
+
     env = task.env
-    return {"task": env.task, "experiment": args.experiment,
-            "trainer": {"class": "baselines/recurrent_ppo.py", "kind": "external", "phases": ["actor"],
-                        "n_episodes": n_episodes, "steps": args.steps, "n_envs": args.n_envs, "env_id": args.env_id,
-                        "final_window": args.final_window, "library": f"sb3-contrib {SB3_CONTRIB_VERSION}"},
-            "env": {"class": f"{type(env).__module__}.{type(env).__qualname__}", **env.describe()},
-            "preprocessor": None, "predictors": {},
-            "actor": {"class": "sb3_contrib.RecurrentPPO", "kind": "recurrent_ppo", "policy": "MlpLstmPolicy",
-                      "n_hidden": LSTM_SIZE, "learning_rate": f"linear {LEARNING_RATE:g} → 0", **PPO_KWARGS,
-                      "gamma": args.gamma, **{key: plain(value) for key, value in POLICY_KWARGS.items()}}}
+    return {
+        "task": env.task,
+        "experiment": args.experiment,
+        "trainer": {
+            "class": "baselines/recurrent_ppo.py",
+            "kind": "external",
+            "phases": ["actor"],
+            "n_episodes": n_episodes,
+            "steps": args.steps,
+            "n_envs": args.n_envs,
+            "env_id": args.env_id,
+            "final_window": args.final_window,
+            "library": f"sb3-contrib {SB3_CONTRIB_VERSION}",
+        },
+        "env": {"class": f"{type(env).__module__}.{type(env).__qualname__}", **env.describe()},
+        "preprocessor": None,
+        "predictors": {},
+        "actor": {
+            "class": "sb3_contrib.RecurrentPPO",
+            "kind": "recurrent_ppo",
+            "policy": "MlpLstmPolicy",
+            "n_hidden": LSTM_SIZE,
+            "learning_rate": f"linear {LEARNING_RATE:g} → 0",
+            **PPO_KWARGS,
+            "gamma": args.gamma,
+            **{key: plain(value) for key, value in POLICY_KWARGS.items()},
+        },
+    }
 
 
 def overrides(args) -> list[str]:
     """This script's settings as Hydra overrides, without spaces (a sweep report splits on them);
     the Gymnasium options and --gamma only where they differ from their defaults, named as ferl's
     config names them."""
+
     def value(x):
-        return json.dumps(x, separators=(',', ':'))
+        return json.dumps(x, separators=(",", ":"))
+
     kwargs = [f"env.{key}={value(v)}" for key, v in args.env_kwargs.items()]
     options = [(key, getattr(args, key)) for key, default in GYMNASIUM_OPTIONS.items() if getattr(args, key) != default]
     options = [f"env.{key}={v if isinstance(v, str) else value(v)}" for key, v in options]  # an encoding: a bare word
@@ -340,9 +427,15 @@ def write_run(args, task: Task, run: RunDir, runs: list[dict], steps_total: list
     """episodes.npz, run.json and the overrides of the finished runs; their metrics."""
     records, env_steps = episode_records(task, runs)
     optimal = task.env.optimal(args.gamma)
-    run.save_records("episodes", len(runs), **records, gamma=np.float64(args.gamma),
-                     optimal_return=np.float64(optimal.get("discounted_return", np.nan)),
-                     optimal_steps=np.float64(task.env.optimal_steps), final_window=np.int64(args.final_window))
+    run.save_records(
+        "episodes",
+        len(runs),
+        **records,
+        gamma=np.float64(args.gamma),
+        optimal_return=np.float64(optimal.get("discounted_return", np.nan)),
+        optimal_steps=np.float64(task.env.optimal_steps),
+        final_window=np.int64(args.final_window),
+    )
     run.save_json("run", manifest(args, task, records["steps"].shape[1]))
     (run.path / ".hydra").mkdir(exist_ok=True)
     OmegaConf.save(OmegaConf.create(overrides(args)), run.path / ".hydra" / "overrides.yaml")
@@ -363,21 +456,32 @@ def main(argv=None) -> None:
         runs.append(episodes)
         steps_total.append(steps)
         train_time += seconds
-        print(f"{PROG}: run {r + 1}/{args.runs} (seed {seed}): {steps} steps in {seconds:.1f} s "
-              f"({steps / seconds:.0f} steps/s), {len(episodes['steps'])} episodes, "
-              f"{progress(task, episodes, args.final_window)}", flush=True)
+        print(
+            f"{PROG}: run {r + 1}/{args.runs} (seed {seed}): {steps} steps in {seconds:.1f} s "
+            f"({steps / seconds:.0f} steps/s), {len(episodes['steps'])} episodes, "
+            f"{progress(task, episodes, args.final_window)}",
+            flush=True,
+        )
     if min(len(episodes["steps"]) for episodes in runs) == 0:
         fail(f"a run finished no episode in {args.steps} steps: pass a larger --steps")
 
     written = write_run(args, task, run, runs, steps_total)
-    summary = {"experiment": args.experiment, "task": task.env.task, "seeds": seeds, **written,
-               "wall_time_s": time.perf_counter() - started, "agent_steps_per_s": sum(steps_total) / train_time}
+    summary = {
+        "experiment": args.experiment,
+        "task": task.env.task,
+        "seeds": seeds,
+        **written,
+        "wall_time_s": time.perf_counter() - started,
+        "agent_steps_per_s": sum(steps_total) / train_time,
+    }
     run.write_summary(summary)
     solved = summary["metrics"].get("solved")
-    print(f"{PROG}: {args.runs} runs done in {summary['wall_time_s']:.1f} s "
-          f"({summary['agent_steps_per_s']:.0f} steps/s), "
-          + (f"solved {sum(solved)}/{args.runs}" if solved is not None else "no optimum stated (no solved)")
-          + f"\n  summary: {run.path / 'summary.json'}")
+    print(
+        f"{PROG}: {args.runs} runs done in {summary['wall_time_s']:.1f} s "
+        f"({summary['agent_steps_per_s']:.0f} steps/s), "
+        + (f"solved {sum(solved)}/{args.runs}" if solved is not None else "no optimum stated (no solved)")
+        + f"\n  summary: {run.path / 'summary.json'}"
+    )
 
 
 if __name__ == "__main__":

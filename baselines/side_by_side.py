@@ -23,12 +23,14 @@ where it stopped when given the same folder.
 
     python baselines/side_by_side.py outputs/baselines/NAME [--jobs 2] [--only SUBSTRING,…]
 """
+
 import argparse
 import importlib.util
 import subprocess
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor, as_completed
+from contextlib import ExitStack
 from pathlib import Path
 
 from ferl.run.progress import duration
@@ -50,12 +52,20 @@ def train_jobs() -> dict[str, list[str]]:
     jobs = {"pixel/ferl": PIXEL, "pixel/mlp_q": [*PIXEL, "actor=mlp_q"]}
     for name, task in (("corridor20", CORRIDOR_20), ("pixel", PIXEL), ("matching", MATCHING)):
         predicted = [*task, *ONLINE] if task is CORRIDOR_20 else task
-        jobs |= {f"{name}/ferl": predicted, f"{name}/mlp_q": [*predicted, "actor=mlp_q"],
-                 f"{name}/memoryless": [*task, "predictor=none"], f"{name}/drqn": [*task, "actor=drqn", "predictor=none"],
-                 f"{name}/oracle": [*task, "actor=oracle", "predictor=none", *(["~preprocessor"] if task is PIXEL else [])]}
-    jobs |= {"bit/ferl": BIT, "bit/mlp_q": [*BIT, "actor=mlp_q"],
-             "floor/ferl": FLOOR, "floor/mlp_q": [*FLOOR, "actor=mlp_q", *FLOOR_SCHEDULES],
-             "floor/oracle": [*FLOOR, "actor=oracle", *FLOOR_SCHEDULES]}
+        jobs |= {
+            f"{name}/ferl": predicted,
+            f"{name}/mlp_q": [*predicted, "actor=mlp_q"],
+            f"{name}/memoryless": [*task, "predictor=none"],
+            f"{name}/drqn": [*task, "actor=drqn", "predictor=none"],
+            f"{name}/oracle": [*task, "actor=oracle", "predictor=none", *(["~preprocessor"] if task is PIXEL else [])],
+        }
+    jobs |= {
+        "bit/ferl": BIT,
+        "bit/mlp_q": [*BIT, "actor=mlp_q"],
+        "floor/ferl": FLOOR,
+        "floor/mlp_q": [*FLOOR, "actor=mlp_q", *FLOOR_SCHEDULES],
+        "floor/oracle": [*FLOOR, "actor=oracle", *FLOOR_SCHEDULES],
+    }
     return jobs
 
 
@@ -65,9 +75,18 @@ def ppo_jobs() -> dict[str, list[str]]:
         print("sb3-contrib is not installed (pip install -e '.[baselines]'): no RecurrentPPO reference")
         return {}
     common = ["--runs", "10", "--steps", str(PPO_STEPS)]
-    return {"ppo/corridor20": ["--env-id", "ferl/TMaze-v0", "--env-kwargs", '{"corridor_length": 20, "max_steps": 44}',
-                               *common, "--experiment", "table4_1_regular"],
-            "ppo/matching": ["--env-id", "ferl/MatchingTMaze-v0", *common, "--experiment", "table4_1_matching"]}
+    return {
+        "ppo/corridor20": [
+            "--env-id",
+            "ferl/TMaze-v0",
+            "--env-kwargs",
+            '{"corridor_length": 20, "max_steps": 44}',
+            *common,
+            "--experiment",
+            "table4_1_regular",
+        ],
+        "ppo/matching": ["--env-id", "ferl/MatchingTMaze-v0", *common, "--experiment", "table4_1_matching"],
+    }
 
 
 def command(name: str, args: list[str], out: Path, ppo: bool) -> list[str]:
@@ -86,14 +105,18 @@ def run_table(out: Path, trains: dict, ppos: dict, jobs: int, only: str = "", fi
     done = [n for n in order if (out / n.replace("/", "_") / "summary.json").exists()]
     if done:
         print(f"already done, not run again: {', '.join(done)}")
-    todo = [(n, command(n, trains.get(n) or ppos[n], out, n in ppos)) for n in order
-            if any(part in n for part in only.split(",")) and n not in done]
+    todo = [
+        (n, command(n, trains.get(n) or ppos[n], out, n in ppos))
+        for n in order
+        if any(part in n for part in only.split(",")) and n not in done
+    ]
     out.mkdir(parents=True, exist_ok=True)
     started, failed = time.monotonic(), []
-    with ThreadPoolExecutor(jobs) as pool:
-        logs = {n: open(out / f"{n.replace('/', '_')}.log", "w") for n, _ in todo}
-        futures = {pool.submit(subprocess.run, cmd, cwd=ROOT, stdout=logs[n], stderr=subprocess.STDOUT): n
-                   for n, cmd in todo}
+    with ExitStack() as logs_open, ThreadPoolExecutor(jobs) as pool:  # the jobs end before their logs close
+        logs = {n: logs_open.enter_context(open(out / f"{n.replace('/', '_')}.log", "w")) for n, _ in todo}
+        futures = {
+            pool.submit(subprocess.run, cmd, cwd=ROOT, stdout=logs[n], stderr=subprocess.STDOUT): n for n, cmd in todo
+        }
         for count, future in enumerate(as_completed(futures), 1):
             name, elapsed = futures[future], time.monotonic() - started
             if future.result().returncode != 0:
@@ -101,10 +124,11 @@ def run_table(out: Path, trains: dict, ppos: dict, jobs: int, only: str = "", fi
             left = elapsed / count * (len(todo) - count)  # the jobs so far, `jobs` at a time
             n_failed = f", {len(failed)} failed" if failed else ""
             eta = f"about {duration(left)} left" if count < len(todo) else f"sweep took {duration(elapsed)}"
-            print(f"ferl: {count}/{len(todo)} jobs done{n_failed} ({name}{' failed' if name in failed else ''}, "
-                  f"{duration(elapsed)} in all); {eta}", flush=True)
-        for log in logs.values():
-            log.close()
+            print(
+                f"ferl: {count}/{len(todo)} jobs done{n_failed} ({name}{' failed' if name in failed else ''}, "
+                f"{duration(elapsed)} in all); {eta}",
+                flush=True,
+            )
     (out / "train_wall_time_s").write_text(f"{round(time.monotonic() - started)}\n")
     if failed:
         print(f"failed: {', '.join(failed)} (logs: {out}/<job>.log)")
@@ -116,8 +140,11 @@ def arguments(doc: str) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     parser.add_argument("out", type=Path)
     parser.add_argument("--jobs", type=int, default=2)
-    parser.add_argument("--only", default="", help="run only the jobs whose name contains one of these "
-                                                   "(comma-separated), e.g. pixel/,floor/oracle")
+    parser.add_argument(
+        "--only",
+        default="",
+        help="run only the jobs whose name contains one of these (comma-separated), e.g. pixel/,floor/oracle",
+    )
     return parser.parse_args()
 
 

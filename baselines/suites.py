@@ -15,6 +15,7 @@ third-party environment does not expose its state.
 
     python baselines/suites.py outputs/suites/NAME [--jobs 2] [--only SUBSTRING,…]
 """
+
 import importlib.util
 import sys
 
@@ -22,9 +23,13 @@ from side_by_side import arguments, run_table
 
 # experiment → (episodes per run, environment steps per episode for PPO's budget: the fixed
 # episode length, or MiniGrid's mean over the ferl agents' episodes at this budget, rounded)
-EPISODES = {"popgym_repeat_previous_easy": (1000, 51), "popgym_count_recall_easy": (1000, 51),
-            "popgym_autoencode_easy": (500, 103), "popgym_minesweeper_easy": (1000, 8),
-            "minigrid_memory_s7": (200, 200)}
+EPISODES = {
+    "popgym_repeat_previous_easy": (1000, 51),
+    "popgym_count_recall_easy": (1000, 51),
+    "popgym_autoencode_easy": (500, 103),
+    "popgym_minesweeper_easy": (1000, 8),
+    "minigrid_memory_s7": (200, 200),
+}
 # RecurrentPPO's runs (one after another in one process, ~390 steps/s on POPGym, ~100 on MiniGrid):
 # 10 runs of MiniGrid's 40 000 steps alone would take ~65 min, beyond make suites' 90
 PPO_RUNS = {"minigrid_memory_s7": 3}
@@ -37,9 +42,12 @@ def train_jobs() -> dict[str, list[str]]:
     jobs = {}
     for experiment, (episodes, _) in sorted(EPISODES.items(), key=lambda kv: -kv[1][0] * kv[1][1]):
         task, run = experiment.split("_", 1)[1], [f"experiment={experiment}", f"trainer.n_episodes={episodes}"]
-        jobs |= {f"{task}/ferl": run, f"{task}/mlp_q": [*run, "actor=mlp_q"],
-                 f"{task}/memoryless": [*run, *ALONE, "predictor=none"],
-                 f"{task}/drqn": [*run, *ALONE, "actor=drqn", "predictor=none"]}
+        jobs |= {
+            f"{task}/ferl": run,
+            f"{task}/mlp_q": [*run, "actor=mlp_q"],
+            f"{task}/memoryless": [*run, *ALONE, "predictor=none"],
+            f"{task}/drqn": [*run, *ALONE, "actor=drqn", "predictor=none"],
+        }
     return jobs
 
 
@@ -56,10 +64,19 @@ def ppo_jobs() -> dict[str, list[str]]:
         for experiment, (episodes, steps) in EPISODES.items():
             env = compose("config", overrides=[f"experiment={experiment}"]).env
             jobs[f"ppo/{experiment.split('_', 1)[1]}"] = [
-                "--env-id", env.id, "--runs", str(PPO_RUNS.get(experiment, 10)), "--steps", str(episodes * steps), "--gamma", str(PPO_GAMMA),
-                "--experiment", experiment,
+                "--env-id",
+                env.id,
+                "--runs",
+                str(PPO_RUNS.get(experiment, 10)),
+                "--steps",
+                str(episodes * steps),
+                "--gamma",
+                str(PPO_GAMMA),
+                "--experiment",
+                experiment,
                 *(["--optimal-return", str(env.optimal_return)] if env.optimal_return is not None else []),
-                *(["--success-threshold", str(env.success_threshold)] if env.success_threshold is not None else [])]
+                *(["--success-threshold", str(env.success_threshold)] if env.success_threshold is not None else []),
+            ]
     return jobs
 
 

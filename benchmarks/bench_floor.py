@@ -13,6 +13,7 @@ whose time (the first run's extra seconds) is reported beside it: warm once indu
 cache holds the graphs, cold with TORCHINDUCTOR_CACHE_DIR=$(mktemp -d). Prints a table and writes
 benchmarks/results.json.
 """
+
 import argparse
 import os
 import sys
@@ -30,20 +31,26 @@ from benchmarks.numpy_reference import run_numpy_reference  # noqa: E402
 from benchmarks.report import save_results, speedup_table  # noqa: E402
 from ferl.data import MnistEmbedded  # noqa: E402
 
-
 MIN_AGENT_STEPS = 200_000
 MAX_STEPS = 20_000  # a multiple of the 16-step chunk
 GROUP_RUNS = OmegaConf.load(ROOT / "conf" / "trainer" / "digit_floor.yaml").compile_group_runs
 
 
 def torch_actor_phase(runs: int, steps: int, device: str, compiled: bool) -> dict:
-    """Agent-steps/s of the online TD phase (ferl/trainers/online.py; the actor phase only, as in
+    """Agent-steps/s of the online TD phase (ferl/trainers/continuing_td.py; the TD phase only, as in
     summary.json), timed on a second pass over the same job; and the seconds the first pass took
     beyond the second."""
-    overrides = [f"n_runs={runs}", f"trainer.steps={steps}", "trainer.test_per_class=1", f"trainer.log_every={steps}",
-                 f"trainer.checkpoint_every={steps}", "experiment=ch3_floor", f"compile={str(compiled).lower()}"]
+    overrides = [
+        f"n_runs={runs}",
+        f"trainer.steps={steps}",
+        "trainer.test_per_class=1",
+        f"trainer.log_every={steps}",
+        f"trainer.checkpoint_every={steps}",
+        "experiment=ch3_floor",
+        f"compile={str(compiled).lower()}",
+    ]
     with bench_job(overrides, device) as (trainer, job):
-        online = phase(trainer, "actor")
+        online = phase(trainer, "continuing_td")
         state = online.fresh_state(job)
         seconds = []
         for _ in range(2):
@@ -53,8 +60,13 @@ def torch_actor_phase(runs: int, steps: int, device: str, compiled: bool) -> dic
             if device == "cuda":
                 torch.cuda.synchronize()
             seconds.append(time.perf_counter() - start)
-    return {"runs": runs, "steps": steps, "compile": compiled, "agent_steps_per_s": runs * steps / seconds[1],
-            "first_pass_extra_s": seconds[0] - seconds[1]}
+    return {
+        "runs": runs,
+        "steps": steps,
+        "compile": compiled,
+        "agent_steps_per_s": runs * steps / seconds[1],
+        "first_pass_extra_s": seconds[0] - seconds[1],
+    }
 
 
 def steps_for(runs: int, steps: int) -> int:
@@ -81,14 +93,31 @@ def main():
     reference = numpy_reference(max(args.steps, MAX_STEPS))
     modes = {"both": [False, True], "false": [False], "true": [True]}[args.compile]
     rows = [torch_actor_phase(r, steps_for(r, args.steps), args.device, c) for r in args.runs for c in modes]
-    print(f"digit floor actor phase, ≥ {args.steps} steps and ≥ {MIN_AGENT_STEPS} agent-steps, device={args.device}, torch threads={args.threads}, "
-          f"compile=true by groups of {GROUP_RUNS} runs on a CPU, load average {os.getloadavg()[0]:.2f}")
+    print(
+        f"digit floor actor phase, ≥ {args.steps} steps and ≥ {MIN_AGENT_STEPS} agent-steps, device={args.device}, torch threads={args.threads}, "
+        f"compile=true by groups of {GROUP_RUNS} runs on a CPU, load average {os.getloadavg()[0]:.2f}"
+    )
     print(f"NumPy per-step reference (1 run): {reference:10.0f} agent-steps/s")
-    speedup_table(rows, "agent_steps_per_s", reference,
-                  [("runs", "runs", "d"), ("steps", "steps", "d"), ("compile", "compile", "d"),
-                   ("1st-pass +s", "first_pass_extra_s", ".1f")])
-    save_results(args.out, "floor_actor", args.device, steps=args.steps,
-                 numpy_reference_steps_per_s=reference, compile_group_runs=GROUP_RUNS, torch=rows)
+    speedup_table(
+        rows,
+        "agent_steps_per_s",
+        reference,
+        [
+            ("runs", "runs", "d"),
+            ("steps", "steps", "d"),
+            ("compile", "compile", "d"),
+            ("1st-pass +s", "first_pass_extra_s", ".1f"),
+        ],
+    )
+    save_results(
+        args.out,
+        "floor_actor",
+        args.device,
+        steps=args.steps,
+        numpy_reference_steps_per_s=reference,
+        compile_group_runs=GROUP_RUNS,
+        torch=rows,
+    )
 
 
 if __name__ == "__main__":

@@ -15,6 +15,7 @@ one run on the same number of run 0's sequences of a 1-run batch, in the same in
 a table and merges it into benchmarks/results.json under "predictor_bptt" ("predictor_bptt_eager"
 with ``--eager``; other entries are kept).
 """
+
 import argparse
 import os
 import sys
@@ -42,7 +43,7 @@ def training_data(runs: int, device: str):
     with bench_job([f"experiment={EXPERIMENT}", f"n_runs={runs}"], device) as (trainer, job):
         phase(trainer, "collect").run(job, None)
     training = phase(trainer, "predictors")
-    train = job.shared["episodes"]["train"]
+    train = job.outputs.episodes.train
     trainable = train.lengths[0] <= job.env.optimal_steps + training.l_training - 1
     fit = train.select(torch.nonzero(trainable).squeeze(1).expand(runs, -1))
     predictor = job.predictors["joint"]
@@ -68,8 +69,13 @@ def torch_bptt(runs: int, epochs: int, sequences: int, device: str, fused: bool)
     if device.startswith("cuda"):
         torch.cuda.synchronize()
     wall = time.perf_counter() - start
-    return {"runs": runs, "sequences_per_run": n, "epochs": epochs, "wall_time_s": wall,
-            "sequences_per_s": runs * n * epochs / wall}
+    return {
+        "runs": runs,
+        "sequences_per_run": n,
+        "epochs": epochs,
+        "wall_time_s": wall,
+        "sequences_per_s": runs * n * epochs / wall,
+    }
 
 
 def numpy_bptt(epochs: int, sequences: int, device: str) -> dict:
@@ -82,14 +88,21 @@ def numpy_bptt(epochs: int, sequences: int, device: str) -> dict:
         T = int(lengths[0, i])
         seqs.append(tuple(x[0, i, :k].double().cpu().numpy() for x, k in ((y, T + 1), (a, T), (r, T + 1))))
     out = run_numpy_bptt_reference(seqs, epochs=epochs, seed=0, hp=JOINT)
-    return {"sequences": len(seqs), "epochs": epochs, "mean_length": float(np.mean([len(s[1]) for s in seqs])),
-            "wall_time_s": out["wall_time_s"], "sequences_per_s": out["sequences_per_s"]}
+    return {
+        "sequences": len(seqs),
+        "epochs": epochs,
+        "mean_length": float(np.mean([len(s[1]) for s in seqs])),
+        "wall_time_s": out["wall_time_s"],
+        "sequences_per_s": out["sequences_per_s"],
+    }
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--epochs", type=int, default=2)
-    parser.add_argument("--sequences", type=int, default=0, help="sequences per run and epoch (0: the whole training set)")
+    parser.add_argument(
+        "--sequences", type=int, default=0, help="sequences per run and epoch (0: the whole training set)"
+    )
     parser.add_argument("--runs", type=int, nargs="+", default=[1, 10, 100])
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--eager", action="store_true", help="the eager path (default: compiled chunks, the fast path)")
@@ -101,14 +114,24 @@ def main():
     reference = numpy_bptt(args.epochs, args.sequences, args.device)
     rows = [torch_bptt(r, args.epochs, args.sequences, args.device, not args.eager) for r in args.runs]
     ref_rate = reference["sequences_per_s"]
-    print(f"pattern-mode BPTT of the joint predictor ({EXPERIMENT} training set, lengths 3–7), "
-          f"{'eager' if args.eager else 'compiled chunks of steps'}, device={args.device}, "
-          f"torch threads={args.threads}, load average {load:.2f} on {os.cpu_count()} CPUs")
-    print(f"NumPy per-sequence reference (1 run, {reference['epochs']} × {reference['sequences']} sequences, "
-          f"mean length {reference['mean_length']:.1f}): {ref_rate:10.0f} sequences/s")
+    print(
+        f"pattern-mode BPTT of the joint predictor ({EXPERIMENT} training set, lengths 3–7), "
+        f"{'eager' if args.eager else 'compiled chunks of steps'}, device={args.device}, "
+        f"torch threads={args.threads}, load average {load:.2f} on {os.cpu_count()} CPUs"
+    )
+    print(
+        f"NumPy per-sequence reference (1 run, {reference['epochs']} × {reference['sequences']} sequences, "
+        f"mean length {reference['mean_length']:.1f}): {ref_rate:10.0f} sequences/s"
+    )
     speedup_table(rows, "sequences_per_s", ref_rate, [("runs", "runs", "d"), ("seq/run", "sequences_per_run", "d")])
-    save_results(args.out, "predictor_bptt" + "_eager" * args.eager, args.device, experiment=EXPERIMENT,
-                 numpy_reference=reference, torch=rows)
+    save_results(
+        args.out,
+        "predictor_bptt" + "_eager" * args.eager,
+        args.device,
+        experiment=EXPERIMENT,
+        numpy_reference=reference,
+        torch=rows,
+    )
 
 
 if __name__ == "__main__":

@@ -6,6 +6,7 @@ Trains on the embedded subset's training images (1 000; the dissertation's 60 00
 60× as much per sweep) with the default config and prints the time, the time per sweep and the
 final reconstruction error of every run.
 """
+
 import argparse
 import sys
 import time
@@ -37,8 +38,10 @@ def main():
     if args.device.startswith("cuda"):
         torch.cuda.synchronize()
     seconds = time.perf_counter() - start
-    print(f"{args.sweeps} sweeps × {args.images} images × {args.runs} runs on {args.device} "
-          f"({args.threads} thread(s)): {seconds:.1f} s, {seconds / args.sweeps * 1000:.1f} ms/sweep")
+    print(
+        f"{args.sweeps} sweeps × {args.images} images × {args.runs} runs on {args.device} "
+        f"({args.threads} thread(s)): {seconds:.1f} s, {seconds / args.sweeps * 1000:.1f} ms/sweep"
+    )
     print("final reconstruction error per run:", " ".join(f"{e:.4f}" for e in errors[:, -1]))
 
 

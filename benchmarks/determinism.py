@@ -32,6 +32,7 @@ What it shows (docs/reliability.md, "Determinism across machines"):
    kernel on every AMD CPU with AVX2 (checked under gdb: MKL's feature word with every AVX-512 bit
    set still selects mkl_blas_def_sgemm_kernel_0_zen). Prints the summary's metrics.
 """
+
 import argparse
 import collections
 import ctypes
@@ -51,11 +52,16 @@ from ferl.cpu_kernels import PINS
 ROOT = Path(__file__).resolve().parents[1]
 AVX2, SCALAR = {"ATEN_CPU_CAPABILITY": "avx2"}, {"ATEN_CPU_CAPABILITY": "default"}
 MODE = "FERL_DETERMINISM_MODE"  # how the child fits: float64, deterministic (or the default)
-SETTINGS = {"avx2": AVX2, "ferl": {}, "avx512": {"ATEN_CPU_CAPABILITY": "avx512", "MKL_ENABLE_INSTRUCTIONS": "AVX512"},
-            "scalar": SCALAR,
-            "mkl_compatible": {**AVX2, "MKL_CBWR": "COMPATIBLE"},
-            "deterministic": {**AVX2, MODE: "deterministic"},
-            "float64_fit": {**AVX2, MODE: "float64"}, "float64_fit_scalar": {**SCALAR, MODE: "float64"}}
+SETTINGS = {
+    "avx2": AVX2,
+    "ferl": {},
+    "avx512": {"ATEN_CPU_CAPABILITY": "avx512", "MKL_ENABLE_INSTRUCTIONS": "AVX512"},
+    "scalar": SCALAR,
+    "mkl_compatible": {**AVX2, "MKL_CBWR": "COMPATIBLE"},
+    "deterministic": {**AVX2, MODE: "deterministic"},
+    "float64_fit": {**AVX2, MODE: "float64"},
+    "float64_fit_scalar": {**SCALAR, MODE: "float64"},
+}
 REFERENCE = {"float64_fit_scalar": "float64_fit"}  # what a setting is compared with (else avx2)
 
 LIBM = ctypes.CDLL("libm.so.6")
@@ -72,8 +78,9 @@ def sigmoid_scalar(a: np.ndarray) -> np.ndarray:
 def softplus_scalar(a: np.ndarray, beta=1.0, threshold=20.0) -> np.ndarray:
     """ATen's scalar softplus: a·β > threshold ? a : log1p(exp(a·β)) / β, with glibc's functions."""
     beta, threshold = F32(beta), F32(threshold)
-    return np.array([x if x * beta > threshold else F32(F32(LIBM.log1pf(LIBM.expf(float(x * beta)))) / beta)
-                     for x in a], dtype=F32)
+    return np.array(
+        [x if x * beta > threshold else F32(F32(LIBM.log1pf(LIBM.expf(float(x * beta)))) / beta) for x in a], dtype=F32
+    )
 
 
 def memory_order(t: torch.Tensor):
@@ -111,20 +118,26 @@ class AVX512Tails(torch.utils._python_dispatch.TorchDispatchMode):
 def tails() -> None:
     """Finding 1 on this machine: which elements of a sigmoid / softplus are glibc's."""
     cap = torch.backends.cpu.get_cpu_capability()
-    print(f"1. sigmoid / softplus of n float32 numbers (capability {cap}): the last n mod 16 (AVX2) or "
-          f"n mod 32 (AVX512) computed with glibc's formula, the rest with Sleef's")
+    print(
+        f"1. sigmoid / softplus of n float32 numbers (capability {cap}): the last n mod 16 (AVX2) or "
+        f"n mod 32 (AVX512) computed with glibc's formula, the rest with Sleef's"
+    )
     g = torch.Generator().manual_seed(0)
     for n in (20, 35, 200, 7000):
         x = (torch.rand(n, generator=g) - 0.5) * 16
-        for name, op, scalar in (("sigmoid", torch.sigmoid, sigmoid_scalar),
-                                 ("softplus", torch.nn.functional.softplus, softplus_scalar)):
+        for name, op, scalar in (
+            ("sigmoid", torch.sigmoid, sigmoid_scalar),
+            ("softplus", torch.nn.functional.softplus, softplus_scalar),
+        ):
             got, glibc = op(x).numpy(), scalar(x.numpy())
             width = {"AVX2": 16, "AVX512": 32}.get(cap, 1)  # 2 × the vector's float32 lanes
             vec = width * (n // width)
             lo = 32 * (n // 32)
-            print(f"   {name:8s} n={n:5d}: tail == glibc: {np.array_equal(got[vec:], glibc[vec:])}; "
-                  f"Sleef part differs from glibc in {int((got[:vec] != glibc[:vec]).sum())}/{vec}; "
-                  f"elements an AVX-512 CPU computes otherwise: {int((got[lo:vec] != glibc[lo:vec]).sum())}")
+            print(
+                f"   {name:8s} n={n:5d}: tail == glibc: {np.array_equal(got[vec:], glibc[vec:])}; "
+                f"Sleef part differs from glibc in {int((got[:vec] != glibc[:vec]).sum())}/{vec}; "
+                f"elements an AVX-512 CPU computes otherwise: {int((got[lo:vec] != glibc[lo:vec]).sum())}"
+            )
 
 
 def child(out: Path, sweeps: int, runs: int) -> None:
@@ -132,29 +145,42 @@ def child(out: Path, sweeps: int, runs: int) -> None:
     sys.path.insert(0, str(ROOT))
     from ferl.data import MnistEmbedded
     from ferl.preprocessors.rbm import RBMPreprocessor
+
     torch.set_num_threads(1)
     mode = os.environ.get(MODE)
     torch.use_deterministic_algorithms(mode == "deterministic")
     g = torch.Generator().manual_seed(3)
     v, w = torch.rand(runs, 100, 784, generator=g), (torch.rand(runs, 784, 20, generator=g) - 0.5) * 0.1
     h = torch.rand(runs, 100, 20, generator=g)
-    tensors = {"bmm v·W (R,100,784)(R,784,20)": torch.bmm(v, w), "bmm vᵀ·h (R,784,100)(R,100,20)": torch.bmm(v.mT, h),
-               "baddbmm h·Wᵀ (R,100,20)(R,20,784)": torch.baddbmm(v[:, :1], h, w.mT),
-               "sigmoid (R,100,784)": torch.sigmoid(v * 20 - 10), "sum over 784": v.sum(-1)}
+    tensors = {
+        "bmm v·W (R,100,784)(R,784,20)": torch.bmm(v, w),
+        "bmm vᵀ·h (R,784,100)(R,100,20)": torch.bmm(v.mT, h),
+        "baddbmm h·Wᵀ (R,100,20)(R,20,784)": torch.baddbmm(v[:, :1], h, w.mT),
+        "sigmoid (R,100,784)": torch.sigmoid(v * 20 - 10),
+        "sum over 784": v.sum(-1),
+    }
     images = MnistEmbedded().load().train_images
     model = RBMPreprocessor(runs, sweeps=sweeps, seed=3)
     if mode == "float64":
         model, images = model.double(), images.double()
-        model.W.copy_(torch.stack([torch.randn(784, 20, generator=torch.Generator().manual_seed(3 + r),
-                                               dtype=torch.float64) for r in range(runs)]) * 0.01)
+        model.W.copy_(
+            torch.stack(
+                [
+                    torch.randn(784, 20, generator=torch.Generator().manual_seed(3 + r), dtype=torch.float64)
+                    for r in range(runs)
+                ]
+            )
+            * 0.01
+        )
     tensors["RBM W before the fit"] = model.W.float().clone()
     start = time.perf_counter()
     model.train(images, progress=False)
     seconds = time.perf_counter() - start
     tensors[f"RBM W after {sweeps} sweeps"] = model.W.float()
     np.savez(out, **{k: t.detach().numpy() for k, t in tensors.items()})
-    out.with_suffix(".json").write_text(json.dumps({"capability": torch.backends.cpu.get_cpu_capability(),
-                                                    "fit_s": seconds}))
+    out.with_suffix(".json").write_text(
+        json.dumps({"capability": torch.backends.cpu.get_cpu_capability(), "fit_s": seconds})
+    )
 
 
 def settings(sweeps: int, runs: int) -> None:
@@ -163,18 +189,28 @@ def settings(sweeps: int, runs: int) -> None:
         results = {}
         for name, env in SETTINGS.items():
             out = Path(tmp) / f"{name}.npz"
-            subprocess.run([sys.executable, __file__, "--child", str(out), "--sweeps", str(sweeps), "--runs", str(runs)],
-                           check=True, env={**{k: v for k, v in os.environ.items()
-                                               if k not in (*PINS, "MKL_CBWR", MODE)},
-                                            "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", **env})
+            subprocess.run(
+                [sys.executable, __file__, "--child", str(out), "--sweeps", str(sweeps), "--runs", str(runs)],
+                check=True,
+                env={
+                    **{k: v for k, v in os.environ.items() if k not in (*PINS, "MKL_CBWR", MODE)},
+                    "OMP_NUM_THREADS": "1",
+                    "MKL_NUM_THREADS": "1",
+                    **env,
+                },
+            )
             results[name] = (dict(np.load(out)), json.loads(out.with_suffix(".json").read_text()))
-    print(f"\n2. settings: differing elements / all, largest difference; RBM: {runs} runs, CD-3 on 1 000 "
-          f"images, {sweeps} sweeps")
+    print(
+        f"\n2. settings: differing elements / all, largest difference; RBM: {runs} runs, CD-3 on 1 000 "
+        f"images, {sweeps} sweeps"
+    )
     for name, (tensors, info) in results.items():
         ref = results[REFERENCE.get(name, "avx2")][0]
         env = " ".join(f"{k}={v}" for k, v in SETTINGS[name].items())
-        print(f"   {name} against {REFERENCE.get(name, 'avx2')} ({env or 'nothing set'}; capability "
-              f"{info['capability']}; fit {info['fit_s']:.2f} s)")
+        print(
+            f"   {name} against {REFERENCE.get(name, 'avx2')} ({env or 'nothing set'}; capability "
+            f"{info['capability']}; fit {info['fit_s']:.2f} s)"
+        )
         for key, t in tensors.items():
             differ = int((t != ref[key]).sum())
             print(f"      {key:36s} {differ:7d} / {t.size:<7d} {float(np.abs(t - ref[key]).max()):.3g}")
@@ -184,6 +220,7 @@ def emulate(overrides: list) -> None:
     """Finding 3: one eager run (compile=false), in process, with AVX-512's sigmoid and softplus."""
     sys.path.insert(0, str(ROOT / "tests"))
     from conftest import compose_config, train_job
+
     mode = AVX512Tails()
     with tempfile.TemporaryDirectory() as tmp:
         cfg = compose_config(overrides)
@@ -199,8 +236,12 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sweeps", type=int, default=30)
     parser.add_argument("--runs", type=int, default=10)
-    parser.add_argument("--emulate-avx512", nargs=argparse.REMAINDER, metavar="OVERRIDE",
-                        help="train.py overrides of one eager run to emulate (its RBM is fitted, not loaded)")
+    parser.add_argument(
+        "--emulate-avx512",
+        nargs=argparse.REMAINDER,
+        metavar="OVERRIDE",
+        help="train.py overrides of one eager run to emulate (its RBM is fitted, not loaded)",
+    )
     parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:

@@ -1,5 +1,6 @@
 """A trainer set up from the real configs, with a run directory that writes no checkpoints: what the
 benchmarks time, phase by phase, without the disk."""
+
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path

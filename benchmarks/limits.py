@@ -22,6 +22,7 @@ by re-running its collect phase (a second or so):
 Prints a table (achieved GFLOP/s and fraction of the matmul rate per phase) and merges it into
 benchmarks/results.json under "limits".
 """
+
 import argparse
 import json
 import os
@@ -47,7 +48,7 @@ def machine_rate(seconds: float) -> dict:
     while time.perf_counter() - start < seconds:
         torch.mm(a, b)
         n += 1
-    flops = 2 * 1024 ** 3 * n / (time.perf_counter() - start)
+    flops = 2 * 1024**3 * n / (time.perf_counter() - start)
     x, y, z = (torch.empty(1 << 24) for _ in range(3))
     n, start = 0, time.perf_counter()
     while time.perf_counter() - start < seconds:
@@ -56,9 +57,9 @@ def machine_rate(seconds: float) -> dict:
     return {"matmul_gflops": flops / 1e9, "stream_gbs": 3 * 4 * (1 << 24) * n / (time.perf_counter() - start) / 1e9}
 
 
-def bptt_flops(T: np.ndarray, M: int, In: int, O: int) -> float:
+def bptt_flops(T: np.ndarray, M: int, In: int, n_out: int) -> float:
     """One pattern-mode SGD step per sequence of T actions (the module docstring), summed."""
-    return float(np.sum(T * (4 * M * In + 6 * M * M) + (T + 1) * 6 * M * O))
+    return float(np.sum(T * (4 * M * In + 6 * M * M) + (T + 1) * 6 * M * n_out))
 
 
 def outputs(p: dict, Y: int) -> int:
@@ -94,23 +95,27 @@ def run_flops(run: Path) -> dict:
 def predictor_flops(experiment: str, cfg, predictors: dict, Y: int, A: int) -> float:
     """Every predictor's BPTT over n_epoch epochs of its training sequences (counted by running the
     collect phase of the run's config), and the Eq. 4.7 error passes (forward only, a third)."""
-    overrides = [f"experiment={experiment}", f"n_runs={cfg.n_runs}", f"seed={cfg.seed}",
-                 *(f"trainer.{k}={cfg.trainer[k]}" for k in ("n_sample", "l_training", "n_epoch", "error_every"))]
+    overrides = [
+        f"experiment={experiment}",
+        f"n_runs={cfg.n_runs}",
+        f"seed={cfg.seed}",
+        *(f"trainer.{k}={cfg.trainer[k]}" for k in ("n_sample", "l_training", "n_epoch", "error_every")),
+    ]
     with bench_job(overrides, "cpu") as (trainer, job):
         collect = [p for p in trainer.phases if p.name == "collect"]
         if not collect:  # online training: its replay steps are not counted here
             return float("nan")
         collect[0].run(job, None)
-        data = job.shared["episodes"]
+        data = job.outputs.episodes
         T_max_train = job.env.optimal_steps + phase(trainer, "predictors").l_training - 1
-        train = data["train"].lengths.cpu().numpy()
+        train = data.train.lengths.cpu().numpy()
         trained = train[train <= T_max_train]
-        every = np.concatenate([train.ravel(), data["test"].lengths.cpu().numpy().ravel()])
+        every = np.concatenate([train.ravel(), data.test.lengths.cpu().numpy().ravel()])
     total = 0.0
     for p in predictors.values():
-        M, O = p["memory_size"], outputs(p, Y)
-        total += cfg.trainer.n_epoch * bptt_flops(trained, M, Y + A, O)
-        total += (cfg.trainer.n_epoch // cfg.trainer.error_every + 1) * bptt_flops(every, M, Y + A, O) / 3
+        M, n_out = p["memory_size"], outputs(p, Y)
+        total += cfg.trainer.n_epoch * bptt_flops(trained, M, Y + A, n_out)
+        total += (cfg.trainer.n_epoch // cfg.trainer.error_every + 1) * bptt_flops(every, M, Y + A, n_out) / 3
     return total
 
 
@@ -122,8 +127,10 @@ def main():
     args = parser.parse_args()
     torch.set_num_threads(1)
     rate = machine_rate(args.seconds)
-    print(f"machine, one thread: {rate['matmul_gflops']:.1f} GFLOP/s (fp32 1024² matmul), "
-          f"{rate['stream_gbs']:.1f} GB/s (streamed add); load average {os.getloadavg()[0]:.2f}")
+    print(
+        f"machine, one thread: {rate['matmul_gflops']:.1f} GFLOP/s (fp32 1024² matmul), "
+        f"{rate['stream_gbs']:.1f} GB/s (streamed add); load average {os.getloadavg()[0]:.2f}"
+    )
     print(f"{'experiment':22s} {'phase':12s} {'GFLOP':>9s} {'seconds':>8s} {'GFLOP/s':>8s} {'of matmul':>9s}")
     rows = []
     for run in sorted(p.parent for p in args.sweep.glob("*/summary.json")):
@@ -132,11 +139,21 @@ def main():
         for name, flops in counted["flops"].items():
             seconds = summary.get("phase_time_s", {}).get(name, float("nan"))
             achieved = flops / seconds / 1e9
-            rows.append({"experiment": counted["experiment"], "phase": name, "gflop": flops / 1e9, "seconds": seconds,
-                         "gflops": achieved, "fraction": achieved / rate["matmul_gflops"],
-                         "actor_bytes_per_step": counted["actor_bytes_per_step"]})
-            print(f"{counted['experiment']:22s} {name:12s} {flops / 1e9:9.2f} {seconds:8.1f} {achieved:8.3f} "
-                  f"{achieved / rate['matmul_gflops']:9.2%}")
+            rows.append(
+                {
+                    "experiment": counted["experiment"],
+                    "phase": name,
+                    "gflop": flops / 1e9,
+                    "seconds": seconds,
+                    "gflops": achieved,
+                    "fraction": achieved / rate["matmul_gflops"],
+                    "actor_bytes_per_step": counted["actor_bytes_per_step"],
+                }
+            )
+            print(
+                f"{counted['experiment']:22s} {name:12s} {flops / 1e9:9.2f} {seconds:8.1f} {achieved:8.3f} "
+                f"{achieved / rate['matmul_gflops']:9.2%}"
+            )
     save_results(args.out, "limits", "cpu", sweep=str(args.sweep), machine_rate=rate, rows=rows)
 
 

@@ -77,7 +77,7 @@ def reward(row_from: int, col_from: int, row_to: int, col_to: int) -> float:
 
 
 def n_noise_pixels(noise: float, n_pixels: int = 784) -> int:
-    return int(round(noise * n_pixels))
+    return round(noise * n_pixels)
 
 
 def add_noise(image: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
@@ -272,9 +272,7 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
 
     images = load_mnist_images(100)
-    out = run_numpy_reference(
-        images, args.steps, seed=args.seed, noise=args.noise, n_hidden=args.hidden
-    )
+    out = run_numpy_reference(images, args.steps, seed=args.seed, noise=args.noise, n_hidden=args.hidden)
     n_last = max(1, args.steps // 10)
     print(f"steps: {args.steps}  wall: {out['wall_time_s']:.2f} s  steps/s: {out['steps_per_s']:.0f}")
     print(f"mean reward/step over last 10%: {out['rewards'][-n_last:].mean():.3f}")

@@ -39,22 +39,23 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from benchmarks.numpy_reference import sample_action  # noqa: E402  (the floor reference's softmax draw)
+from benchmarks.numpy_reference import sample_action  # the floor reference's softmax draw
 
 N_ACTIONS = 4
 N, E, S, W = range(N_ACTIONS)
 N_OBS = 7  # start, corridor, junction, goal_left, goal_right, signal 0, signal 1
 REWARD_VALUES = (-5.0, -1.0, -0.1, 5.0)  # sorted: the order of the reward bits
-JOINT = dict(c_y=1.0, c_a=1.0, beta_m=1.0, beta_y=1.0, beta_r=1.0, rho_y=1.0, rho_r=4.0,
-             reward_output="bits", time_average=True)  # conf/predictor/joint.yaml
+N_REWARD = len(REWARD_VALUES)
+JOINT = dict(
+    c_y=1.0, c_a=1.0, beta_m=1.0, beta_y=1.0, beta_r=1.0, rho_y=1.0, rho_r=4.0, reward_output="bits", time_average=True
+)  # conf/predictor/joint.yaml
 
 # ----------------------------------------------------------------------------
 # Environment
 # ----------------------------------------------------------------------------
 
 
-def env_step(position: int, action: int, right_rewarded: bool, corridor_length: int,
-             goal=5.0, wall=-1.0, step=-0.1):
+def env_step(position: int, action: int, right_rewarded: bool, corridor_length: int, goal=5.0, wall=-1.0, step=-0.1):
     """(new position, reward, terminated) of one action.  Positions 0 … T_min − 1 run up the
     corridor, T_min / T_min + 1 are the left / right goal."""
     junction = corridor_length - 1
@@ -100,11 +101,20 @@ def softplus(x):
     return np.logaddexp(0.0, x)
 
 
-def init_predictor(rng: np.random.Generator, n_obs=N_OBS, n_actions=N_ACTIONS, n_memory=20,
-                   n_reward=len(REWARD_VALUES), init_std=1.0) -> dict:
-    shapes = dict(W_my=(n_memory, n_obs), W_ma=(n_memory, n_actions), W_mm=(n_memory, n_memory),
-                  b_m=(n_memory,), b_init=(n_memory,), W_ym=(n_obs, n_memory), b_y=(n_obs,),
-                  W_rm=(n_reward, n_memory), b_r=(n_reward,))
+def init_predictor(
+    rng: np.random.Generator, n_obs=N_OBS, n_actions=N_ACTIONS, n_memory=20, n_reward=N_REWARD, init_std=1.0
+) -> dict:
+    shapes = dict(
+        W_my=(n_memory, n_obs),
+        W_ma=(n_memory, n_actions),
+        W_mm=(n_memory, n_memory),
+        b_m=(n_memory,),
+        b_init=(n_memory,),
+        W_ym=(n_obs, n_memory),
+        b_y=(n_obs,),
+        W_rm=(n_reward, n_memory),
+        b_r=(n_reward,),
+    )
     return {k: rng.normal(0.0, init_std, size=s) for k, s in shapes.items()}
 
 
@@ -136,11 +146,11 @@ def bptt(P: dict, y, a, r, hp=JOINT):
     if hp["reward_output"] == "bits":
         z_r = br * z_r
         loss += hp["rho_r"] * (softplus(z_r) - r[1:] * z_r).sum()
-        g_r = scale * hp["rho_r"] * br * (sigmoid(z_r) - r[1:])     # (T, n_r)
+        g_r = scale * hp["rho_r"] * br * (sigmoid(z_r) - r[1:])  # (T, n_r)
     else:
         loss += 0.5 * hp["rho_r"] * ((r[1:] - z_r) ** 2).sum()
         g_r = scale * hp["rho_r"] * (z_r - r[1:])
-    g_y = scale * hp["rho_y"] * by * (sigmoid(z_y) - y)             # (T+1, Y)
+    g_y = scale * hp["rho_y"] * by * (sigmoid(z_y) - y)  # (T+1, Y)
     # output layers
     G = {"W_ym": g_y.T @ m, "b_y": g_y.sum(0), "W_rm": g_r.T @ m[1:], "b_r": g_r.sum(0)}
     dm = g_y @ P["W_ym"]
@@ -167,8 +177,7 @@ def bptt_epoch(P: dict, sequences, order, lr: float, hp=JOINT) -> None:
             P[k] -= lr * g
 
 
-def random_sequences(n: int, rng: np.random.Generator, corridor_length=3, max_steps=10, matching=True,
-                     lengths=None):
+def random_sequences(n: int, rng: np.random.Generator, corridor_length=3, max_steps=10, matching=True, lengths=None):
     """Random-policy episodes as predictor sequences (y, a one-hot, r reward bits); with
     ``lengths`` only episodes whose number of actions is in it are kept."""
     out = []
@@ -238,9 +247,23 @@ def fresh_pair(s, a: int, h_hat, delta: float, alpha: float, s_next, a_next: int
 # ----------------------------------------------------------------------------
 
 
-def run_numpy_tmaze_reference(episodes: int, seed=0, corridor_length=3, max_steps=10, matching=True,
-                              n_hidden=20, n_memory=20, gamma=0.95, lr=0.05, beta_start=0.0,
-                              beta_end=10.0, init_std=1.0, predictor=None, hp=JOINT, td_fresh=True) -> dict:
+def run_numpy_tmaze_reference(
+    episodes: int,
+    seed=0,
+    corridor_length=3,
+    max_steps=10,
+    matching=True,
+    n_hidden=20,
+    n_memory=20,
+    gamma=0.95,
+    lr=0.05,
+    beta_start=0.0,
+    beta_end=10.0,
+    init_std=1.0,
+    predictor=None,
+    hp=JOINT,
+    td_fresh=True,
+) -> dict:
     """The actor phase of Algorithm 1 for one run: the state is (y_t, m_t) of a frozen joint
     predictor (random unless ``predictor`` parameters are given); ``td_fresh`` as the actor's
     key of that name (conf/actor/ferl_tmaze.yaml)."""
@@ -278,7 +301,7 @@ def run_numpy_tmaze_reference(episodes: int, seed=0, corridor_length=3, max_step
             delta = td_error(r, F_sa, float(F_next[a_next]), gamma, terminated)
             h_sa = sigmoid(x_sa)
             sarsa_update(params, s, a, h_sa, delta, alpha)
-            ret += gamma ** t * r
+            ret += gamma**t * r
             agent_steps += 1
             F_sa, x_sa = float(F_next[a_next]), x_next[a_next]
             if td_fresh:
@@ -289,9 +312,15 @@ def run_numpy_tmaze_reference(episodes: int, seed=0, corridor_length=3, max_step
                 break
         returns[k], lengths[k], correct[k] = ret, t + 1, ok
     wall = time.perf_counter() - t0
-    return {"discounted_return": returns, "steps": lengths, "correct_goal": correct, "params": params,
-            "agent_steps": agent_steps, "wall_time_s": wall,
-            "steps_per_s": agent_steps / wall if wall > 0 else float("inf")}
+    return {
+        "discounted_return": returns,
+        "steps": lengths,
+        "correct_goal": correct,
+        "params": params,
+        "agent_steps": agent_steps,
+        "wall_time_s": wall,
+        "steps_per_s": agent_steps / wall if wall > 0 else float("inf"),
+    }
 
 
 def run_numpy_bptt_reference(sequences, epochs=1, seed=0, lr=0.05, n_memory=20, hp=JOINT) -> dict:
@@ -314,9 +343,11 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     out = run_numpy_tmaze_reference(args.episodes, seed=args.seed)
     last = slice(-max(1, args.episodes // 10), None)
-    print(f"actor phase: {args.episodes} episodes, {out['agent_steps']} steps, {out['wall_time_s']:.2f} s, "
-          f"{out['steps_per_s']:.0f} steps/s; last 10 %: return {out['discounted_return'][last].mean():.3f}, "
-          f"correct {out['correct_goal'][last].mean():.2f}")
+    print(
+        f"actor phase: {args.episodes} episodes, {out['agent_steps']} steps, {out['wall_time_s']:.2f} s, "
+        f"{out['steps_per_s']:.0f} steps/s; last 10 %: return {out['discounted_return'][last].mean():.3f}, "
+        f"correct {out['correct_goal'][last].mean():.2f}"
+    )
     seqs = random_sequences(args.sequences, np.random.default_rng(args.seed), lengths=range(3, 8))
     bp = run_numpy_bptt_reference(seqs, seed=args.seed)
     print(f"BPTT: {args.sequences} sequences, {bp['wall_time_s']:.2f} s, {bp['sequences_per_s']:.0f} sequences/s")

@@ -1,6 +1,7 @@
 """Binary codes of integers: how a factored action (Sallans & Hinton 2004) is both an index, as
 every environment takes actions, and the states of K binary action nodes, as the actor sees it.
 Index i ↔ the K bits of i, most significant first."""
+
 import torch
 
 

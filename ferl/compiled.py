@@ -13,9 +13,11 @@ Compiling takes tens of seconds; inductor keeps what it built in ``cache_dir()``
 first run of a configuration pays, and that run says so in one line. Without a C++ compiler (CPU) or Triton
 (CUDA) a run warns once and runs eagerly.
 """
+
 import os
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
@@ -55,6 +57,7 @@ def vector_isa() -> str:
     """The CPU vector instructions inductor generates code for here, e.g. ``avx2`` or
     ``avx512_avx512_vnni_amx_tile`` (it follows ``ATEN_CPU_CAPABILITY``); ``none`` without."""
     from torch._inductor.cpu_vec_isa import pick_vec_isa
+
     isa = pick_vec_isa()
     return "_".join(str(isa).split()) if isa else "none"
 
@@ -63,9 +66,11 @@ def compiler_missing(device: torch.device) -> str | None:
     """Why graphs cannot be compiled for ``device`` here, or None."""
     if device.type == "cuda":
         from torch.utils._triton import has_triton
+
         return None if has_triton() else "Triton is not installed"
     try:
         from torch._inductor.cpp_builder import get_cpp_compiler
+
         get_cpp_compiler()
     except Exception as e:  # noqa: BLE001 — whatever inductor's search raises, the reason is its message
         return f"no C++ compiler ({str(e).splitlines()[0] if str(e) else type(e).__name__})"
@@ -91,7 +96,7 @@ def compiled(fn, device: torch.device, what: str):
     compile rather than load from the cache prints one line saying so, with its time. Where fn
     cannot be compiled (an operation dynamo cannot trace, say, in a user's actor) it warns once
     and runs eagerly: compiling fails before the graph runs, so nothing has changed yet."""
-    options = {"cpp_wrapper": True} if device.type == "cpu" else {}
+    options: dict[str, str | int | bool | Callable] = {"cpp_wrapper": True} if device.type == "cpu" else {}
     graph = torch.compile(fn, fullgraph=True, dynamic=False, options=options)
     first = True
 
@@ -102,6 +107,7 @@ def compiled(fn, device: torch.device, what: str):
         first = False
         from torch._dynamo.exc import TorchDynamoException
         from torch._dynamo.utils import counters
+
         misses = counters["inductor"]["fxgraph_cache_miss"]
         started = time.perf_counter()
         try:
@@ -113,7 +119,11 @@ def compiled(fn, device: torch.device, what: str):
         seconds = time.perf_counter() - started
         _first_calls[0] += seconds
         if counters["inductor"]["fxgraph_cache_miss"] > misses:
-            print(f"ferl: compiled {what} in {seconds:.0f} s (the first run of this configuration on this "
-                  f"machine; later runs load it from {cache_dir()})", file=sys.stderr)
+            print(
+                f"ferl: compiled {what} in {seconds:.0f} s (the first run of this configuration on this "
+                f"machine; later runs load it from {cache_dir()})",
+                file=sys.stderr,
+            )
         return out
+
     return call

@@ -18,6 +18,7 @@ ferl asks both libraries for their AVX2 kernels before either picks one (PyTorch
 first call). A variable the user has set is kept: ``ATEN_CPU_CAPABILITY=avx512`` brings the AVX-512
 kernels back.
 """
+
 import os
 import platform
 from pathlib import Path

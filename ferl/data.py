@@ -9,6 +9,7 @@ Intensities are scaled linearly to [0, 1], the mean-field reading of §3.4.
 * ``MnistFull``: ``MnistIDX`` whose four files must be exactly the published MNIST ones (§5.3.2
   trains the chapter-5 RBM on "all 60000 training data"): their sha256 is checked as they load.
 """
+
 import functools
 import gzip
 import hashlib
@@ -47,6 +48,7 @@ class DataError(ValueError):
 @dataclass
 class MnistSplit:
     """MNIST's training and test images with their labels, as the environments draw them (§3.4)."""
+
     train_images: torch.Tensor  # (N, 784) float32 in [0, 1]
     train_labels: torch.Tensor  # (N,) int64
     test_images: torch.Tensor
@@ -96,12 +98,14 @@ class MnistEmbedded:
         for label in range(10):
             idx = rng.permutation(np.flatnonzero(y == label))
             if len(idx) <= self.test_per_class:
-                raise DataError(f"data.test_per_class={self.test_per_class} leaves no training image "
-                                f"of class {label} (the embedded subset has {len(idx)} per class)")
+                raise DataError(
+                    f"data.test_per_class={self.test_per_class} leaves no training image "
+                    f"of class {label} (the embedded subset has {len(idx)} per class)"
+                )
             test_idx.append(idx[: self.test_per_class])
-            train_idx.append(idx[self.test_per_class:])
-        train_idx, test_idx = np.sort(np.concatenate(train_idx)), np.sort(np.concatenate(test_idx))
-        return _to_split(x[train_idx], y[train_idx], x[test_idx], y[test_idx])
+            train_idx.append(idx[self.test_per_class :])
+        train, test = np.sort(np.concatenate(train_idx)), np.sort(np.concatenate(test_idx))
+        return _to_split(x[train], y[train], x[test], y[test])
 
 
 def read_bytes(path: Path) -> bytes:
@@ -122,10 +126,12 @@ def parse_idx(raw: bytes, path: Path) -> np.ndarray:
     ndim = raw[3]
     if ndim not in IDX_MAGIC or magic != IDX_MAGIC[ndim]:
         raise DataError(f"data.root: {path} has magic number {magic}, expected 2051 (images) or 2049 (labels)")
-    shape = tuple(int.from_bytes(raw[4 + 4 * i: 8 + 4 * i], "big") for i in range(ndim))
-    body = raw[4 + 4 * ndim:]
+    shape = tuple(int.from_bytes(raw[4 + 4 * i : 8 + 4 * i], "big") for i in range(ndim))
+    body = raw[4 + 4 * ndim :]
     if len(body) != int(np.prod(shape)):
-        raise DataError(f"data.root: {path} holds {len(body)} bytes of data, its header announces {int(np.prod(shape))}")
+        raise DataError(
+            f"data.root: {path} holds {len(body)} bytes of data, its header announces {int(np.prod(shape))}"
+        )
     return np.frombuffer(body, dtype=np.uint8).reshape(shape)
 
 
@@ -185,23 +191,31 @@ class MnistFull(MnistIDX):
     published ones, byte for byte (``MNIST_SHA256`` of the uncompressed files), so that a run on it
     trains on LeCun, Cortes and Burges's 60 000 training and 10 000 test images and no other set."""
 
-    def __init__(self, root: Annotated[str, Allowed(bool, "(data=mnist_full: a folder holding the four standard "
-                                                        "MNIST IDX files, data.root=DIR)")]):
+    def __init__(
+        self,
+        root: Annotated[
+            str, Allowed(bool, "(data=mnist_full: a folder holding the four standard MNIST IDX files, data.root=DIR)")
+        ],
+    ):
         super().__init__(root)
 
     def check(self) -> None:
         try:
             super().check()
         except DataError as e:
-            raise DataError(f"{e}; python -m ferl.mnist_download {self.root} fetches them "
-                            f"(make setup does, into $FERL_MNIST_DIR or ~/.cache/ferl/mnist)") from None
+            raise DataError(
+                f"{e}; python -m ferl.mnist_download {self.root} fetches them "
+                f"(make setup does, into $FERL_MNIST_DIR or ~/.cache/ferl/mnist)"
+            ) from None
 
     def read(self, key: str) -> np.ndarray:
         path = self.file(IDX_FILES[key])
         raw = read_bytes(path)
         if hashlib.sha256(raw).hexdigest() != MNIST_SHA256[key]:
-            raise DataError(f"data.root: {path} is not the standard MNIST file (its sha256 differs from the "
-                            f"published {MNIST_SHA256[key][:16]}…); data=mnist_idx reads any IDX files")
+            raise DataError(
+                f"data.root: {path} is not the standard MNIST file (its sha256 differs from the "
+                f"published {MNIST_SHA256[key][:16]}…); data=mnist_idx reads any IDX files"
+            )
         return parse_idx(raw, path)
 
 

@@ -2,6 +2,7 @@
 
 Nothing here changes a tensor it is given or draws a random number.
 """
+
 import math
 
 import numpy as np
@@ -30,8 +31,11 @@ def weight_images(W: torch.Tensor) -> torch.Tensor:
 def tile(images, n_cols: int | None = None, pad: int = 1) -> torch.Tensor:
     """Images (N, h, w) — or (rows, cols, h, w), one row each — in [0, 1] as one grey image
     (1, H, W) with ``pad`` white pixels between them."""
-    x = torch.as_tensor(np.asarray(images, dtype=np.float32)) if not torch.is_tensor(images) \
+    x = (
+        torch.as_tensor(np.asarray(images, dtype=np.float32))
+        if not torch.is_tensor(images)
         else images.detach().float().cpu()
+    )
     if x.dim() == 3:
         n_cols = n_cols or math.ceil(math.sqrt(x.shape[0]))
         n_rows = math.ceil(x.shape[0] / n_cols)
@@ -40,13 +44,19 @@ def tile(images, n_cols: int | None = None, pad: int = 1) -> torch.Tensor:
     canvas = torch.ones(n_rows * (h + pad) + pad, n_cols * (w + pad) + pad)
     for r in range(n_rows):
         for c in range(n_cols):
-            canvas[pad + r * (h + pad):pad + r * (h + pad) + h, pad + c * (w + pad):pad + c * (w + pad) + w] = x[r, c]
+            canvas[pad + r * (h + pad) : pad + r * (h + pad) + h, pad + c * (w + pad) : pad + c * (w + pad) + w] = x[
+                r, c
+            ]
     return canvas.unsqueeze(0)
 
 
 def as_images(flat) -> torch.Tensor:
     """(…, 784) pixel vectors → (…, 28, 28) float32."""
-    x = torch.as_tensor(np.asarray(flat, dtype=np.float32)) if not torch.is_tensor(flat) else flat.detach().float().cpu()
+    x = (
+        torch.as_tensor(np.asarray(flat, dtype=np.float32))
+        if not torch.is_tensor(flat)
+        else flat.detach().float().cpu()
+    )
     return x.reshape(*x.shape[:-1], IMAGE_SIDE, IMAGE_SIDE)
 
 

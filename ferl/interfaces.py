@@ -9,12 +9,13 @@ kept in ``records/run.json``, from which analysis decides which figures and clai
 A protocol declares every member that ferl calls, its hooks too, each with a default on the small
 base class beside it (``EnvironmentBase`` … ``ActorBase``, as acme's ``core.py``): a component
 that subclasses the base names only the hooks it changes, and ferl calls every member directly. A
-component is checked against its protocol when it is built (``missing_members``).
+component is checked against its protocol when it is built (``ferl.conformance.missing_members``).
 
 Constructors receive their YAML keys plus what the trainer supplies (``n_runs``, sizes, ``seed``,
 ``generator``, ``device``, ``data`` where the constructor names it); the types and ranges of the
 YAML keys are the constructor's annotations (``ferl.config.params``), checked before any work.
 """
+
 from collections.abc import Callable, Hashable, Sequence
 from typing import NamedTuple, Protocol, runtime_checkable
 
@@ -27,6 +28,7 @@ State = Tensor | tuple[Tensor, ...]  # a predictor's recurrent state: (R, ·), o
 
 class Checkpointed(Protocol):
     """What a checkpoint keeps of a component: its parameters, its episode in progress."""
+
     def state_dict(self) -> dict: ...
 
     def load_state_dict(self, state: dict) -> None: ...
@@ -34,12 +36,9 @@ class Checkpointed(Protocol):
 
 @runtime_checkable
 class Environment(Checkpointed, Protocol):
-    """R environments stepped together with one action per run (R,) of ``n_actions`` discrete actions.
-
-    ``describe()`` holds at least ``task`` (the summary's task: which metrics a run reports),
-    ``kind``, ``episodic``, ``observation`` ("bits", "image" or "vector"), ``observation_size``
-    and ``n_actions``.
-    """
+    """R environments stepped together with one action per run (R,) of ``n_actions`` discrete actions;
+    ``describe()`` holds at least ``task`` (the summary's task: which metrics a run reports), ``kind``,
+    ``episodic``, ``observation`` ("bits", "image" or "vector"), ``observation_size`` and ``n_actions``."""
 
     n_runs: int
     n_actions: int
@@ -80,6 +79,7 @@ class ContinuingEnvironment(Environment, Protocol):
 
 class EnvironmentBase:
     """The default of ``Environment``'s hook: nothing to report a fault to until the job sets it."""
+
     on_fault: Callable | None = None
 
 
@@ -95,17 +95,16 @@ class EpisodicEnvironment(Environment, Protocol):
     boolean ones become ``final_<name>_rate`` metrics and count towards ``solved``), ``labels``
     (what the episode's probes are labelled with, e.g. the maze's condition) and ``probe`` (the
     runs whose present state is one whose activations the records keep, e.g. the T-junction).
-    Two hooks (defaults on ``EpisodicEnvironmentBase``) say how its episodes may be run.
-    """
+    Two hooks (defaults on ``EpisodicEnvironmentBase``) say how its episodes may be run."""
 
     max_steps: int
     optimal_steps: int
     reward_values: tuple[float, ...]
     observation_names: Sequence[str]
-    observation_table: Tensor   # (ids, O): with a reservoir, several ids per name
-    obs_id: Tensor              # (R,) the id of every run's present observation
-    done: Tensor                # (R,) bool
-    t: Tensor                   # (R,) actions taken in the episode
+    observation_table: Tensor  # (ids, O): with a reservoir, several ids per name
+    obs_id: Tensor  # (R,) the id of every run's present observation
+    done: Tensor  # (R,) bool
+    t: Tensor  # (R,) actions taken in the episode
     # True when ``advance`` is tensor operations only (no branch on a tensor's value, no NumPy): an
     # episode can then be one compiled graph (``ActorEpisodes.episode``)
     traceable_steps: bool
@@ -130,6 +129,7 @@ class EpisodicEnvironment(Environment, Protocol):
 
 class EpisodicEnvironmentBase(EnvironmentBase):
     """The defaults of ``EpisodicEnvironment``'s hooks: eager episodes, a table known from the start."""
+
     traceable_steps: bool = False
     discovers_observations: bool = False
 
@@ -158,6 +158,7 @@ class Preprocessor(Checkpointed, Protocol):
 
 class PreprocessorBase:
     """The default of ``Preprocessor``'s hook: a fit that runs to its end."""
+
     stoppable_fit: bool = False
 
 
@@ -182,6 +183,7 @@ class TrainingBatch(Protocol):
 
 class TrainingBatchBase:
     """The default of ``TrainingBatch``'s hook: epochs stay eager."""
+
     def fuse(self, device: torch.device) -> None: ...
 
 
@@ -193,8 +195,8 @@ class Predictor(Checkpointed, Protocol):
     r (R, B, T+1, ·) reward targets (``reward_targets``), lengths (R, B) the actions of each.
     """
 
-    memory_size: int        # what ``memory`` hands the actor per run
-    batch_key: Hashable     # predictors with equal keys train as one ``training_batch``
+    memory_size: int  # what ``memory`` hands the actor per run
+    batch_key: Hashable  # predictors with equal keys train as one ``training_batch``
 
     def initial_state(self) -> State:
         """The state before the first observation, m_0 (Eq. 4.1)."""
@@ -214,8 +216,16 @@ class Predictor(Checkpointed, Protocol):
         """Targets (R, B, T+1, ·) of rewards r_1 … r_T (R, B, T), or None without a reward output."""
 
     @classmethod
-    def training_batch(cls, members: list, y: Tensor, a: Tensor, rs: list, lengths: Tensor,
-                       batch_size: int | None = None, summed: bool = False) -> TrainingBatch:
+    def training_batch(
+        cls,
+        members: list,
+        y: Tensor,
+        a: Tensor,
+        rs: list,
+        lengths: Tensor,
+        batch_size: int | None = None,
+        summed: bool = False,
+    ) -> TrainingBatch:
         """Members with one ``batch_key`` and their training sequences, ready to train; one SGD
         step per ``batch_size`` sequences (the members' own when None) on their mean loss, or
         their summed loss when ``summed``."""
@@ -248,6 +258,7 @@ class EndedEpisode(NamedTuple):
     lockstep episode recorded it, ``steps`` ≤ T_max long, the states at every action (steps, R, S)
     and after the last (R, 1, S), actions and raw rewards (steps, R), ``lengths`` (R,) the actions
     of each run and ``terminated`` (R,) whether it ended in a terminal state (not at T_max)."""
+
     states: Tensor
     last_state: Tensor
     actions: Tensor
@@ -260,8 +271,13 @@ class EndedEpisode(NamedTuple):
         """Per run, padded to T_max actions: states (R, T_max+1, S), actions and rewards
         (R, T_max), lengths and terminated (R,) (computed here, for the actor that needs it)."""
         pad, states = self.max_steps - len(self.actions), torch.cat([self.states.transpose(0, 1), self.last_state], 1)
-        return (nnf.pad(states, (0, 0, 0, pad)), nnf.pad(self.actions.T, (0, pad)), nnf.pad(self.rewards.T, (0, pad)),
-                self.lengths.clone(), self.terminated)
+        return (
+            nnf.pad(states, (0, 0, 0, pad)),
+            nnf.pad(self.actions.T, (0, pad)),
+            nnf.pad(self.rewards.T, (0, pad)),
+            self.lengths.clone(),
+            self.terminated,
+        )
 
 
 @runtime_checkable
@@ -292,8 +308,9 @@ class Actor(Checkpointed, Protocol):
     def evaluate(self, s: Tensor) -> tuple[Tensor, Tensor]:
         """F (R, B, nA) of every action and the per-action cache (R, B, nA, ·) (greedy tests)."""
 
-    def act(self, s: Tensor, beta: float, generator: torch.Generator,
-            uniform: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    def act(
+        self, s: Tensor, beta: float, generator: torch.Generator, uniform: Tensor | None = None
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """At states s (R, 1, S): an action (R, 1), its F (R, 1) and cache (R, 1, ·), and the F a TD
         error bootstraps from at s (by the actor's TD rule); ``uniform`` (R, 1, 1) pre-drawn U(0, 1)."""
 
@@ -374,25 +391,9 @@ class Trainer(Protocol):
 
 class TrainerBase:
     """The defaults of ``Trainer``'s hooks: nothing allocated beyond what ``setup`` built."""
+
     def starting_state(self) -> list:
         return []
 
     def run_bytes(self) -> int:
         return 0
-
-
-def required_members(protocol: type) -> list[str]:
-    """The attributes and methods ``protocol`` declares, in the order written, its bases' first:
-    what a component must have, its hooks too (a base class gives their defaults)."""
-    names = []
-    for cls in reversed(protocol.__mro__):
-        if cls in (Protocol, object) or not getattr(cls, "_is_protocol", False):
-            continue
-        methods = [n for n, v in vars(cls).items() if callable(v) or isinstance(v, (property, classmethod))]
-        names += [n for n in (*getattr(cls, "__annotations__", {}), *methods) if not n.startswith("_") and n not in names]
-    return names
-
-
-def missing_members(part, protocol: type) -> list[str]:
-    """What ``part`` lacks of ``protocol`` (``required_members``), in declaration order; [] if it conforms."""
-    return [name for name in required_members(protocol) if not hasattr(part, name)]

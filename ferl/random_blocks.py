@@ -5,6 +5,7 @@ each costs more than the arithmetic of the step. Here they are drawn ``block`` s
 time from the run batch's generator and handed out step by step; the stream is a pure
 function of the generator state, so results stay reproducible and resumable.
 """
+
 import torch
 
 
@@ -25,7 +26,8 @@ def random_subsets(rows: int, n: int, k: int, generator: torch.Generator) -> tor
     t = torch.minimum(u.mul_(torch.arange(n - k + 1, n + 1, dtype=u.dtype, device=device)).long(), bounds)
     draws = torch.arange(k, dtype=torch.int16, device=device)  # k ≤ n pixels < 2^15
     first = torch.full((rows, n), k, dtype=torch.int16, device=device).scatter_reduce_(
-        1, t, draws.expand(rows, k), "amin")  # the first draw of every value
+        1, t, draws.expand(rows, k), "amin"
+    )  # the first draw of every value
     repeated = first.gather(1, t) < draws
     linked = (t >= n - k) & (t < bounds)  # t is the j of the earlier draw t − (n − k)
     earlier = (t - (n - k)).clamp_(min=0)
@@ -42,7 +44,8 @@ class Blocks:
 
     def __init__(self, draw, steps_per_block: int):
         self.draw, self.steps_per_block = draw, steps_per_block
-        self.buffers, self.cursor = None, steps_per_block
+        self.buffers: tuple[torch.Tensor, ...] | None = None
+        self.cursor = steps_per_block  # at a block's end: the first take draws
 
     def next(self):
         """One step's tensors."""
@@ -55,8 +58,9 @@ class Blocks:
         while steps:
             if self.cursor == self.steps_per_block:
                 self.buffers, self.cursor = self.draw(self.steps_per_block), 0
+            assert self.buffers is not None  # drawn above: the cursor starts at a block's end
             n = min(steps, self.steps_per_block - self.cursor)
-            pieces.append(tuple(b[self.cursor:self.cursor + n] for b in self.buffers))
+            pieces.append(tuple(b[self.cursor : self.cursor + n] for b in self.buffers))
             self.cursor, steps = self.cursor + n, steps - n
         return pieces[0] if len(pieces) == 1 else tuple(torch.cat(parts) for parts in zip(*pieces))
 

@@ -11,6 +11,7 @@ hidden units are independent (Eq. 2.19), so
 The closed form follows from Eq. (2.22): −ĥx + ĥ ln ĥ + (1−ĥ) ln(1−ĥ) = −softplus(x) for ĥ = σ(x).
 All tensors carry the run dimension first: v (R, B, V), W (R, V, H), b_v (R, V), b_h (R, H).
 """
+
 import torch
 import torch.nn.functional as F
 

@@ -7,6 +7,7 @@ episodes it has stored; episode c (0-based) goes to slot c mod K, over the oldes
 uniform with replacement over the episodes stored so far, every run's at once from one generator,
 each run indexing its own episodes (runs are a batch dimension: none reads another's).
 """
+
 import torch
 
 
@@ -23,8 +24,9 @@ def store_episode(replay: dict[str, torch.Tensor], count: int, episode: dict[str
         replay[key][:, slot] = value
 
 
-def draw_episodes(replay: dict[str, torch.Tensor], stored: int, n: int, generator: torch.Generator,
-                  device: torch.device | None = None) -> torch.Tensor:
+def draw_episodes(
+    replay: dict[str, torch.Tensor], stored: int, n: int, generator: torch.Generator, device: torch.device | None = None
+) -> torch.Tensor:
     """(R, n) slots drawn uniformly from the min(stored, K) that hold episodes, on ``device``
     (the generator's)."""
     runs, capacity = next(iter(replay.values())).shape[:2]

@@ -13,8 +13,10 @@ seeded with ``seed`` (``generator``), which checkpoints save and resumes restore
 Every offset is named here. Changing one changes every number a run produces: the golden numbers
 (tests/golden/reduced_scale.json) hold them.
 """
+
 from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import Literal, get_args
 
 import torch
 
@@ -22,10 +24,11 @@ import torch
 @dataclass(frozen=True)
 class SeedOffsets:
     """What is added to the run's seed for each component's initial weights."""
+
     actor: int = 0
-    predictors: int = 10_000   # predictor i: + i × this
+    predictors: int = 10_000  # predictor i: + i × this
     preprocessor: int = 200_000
-    env: int = 300_000         # an environment that draws its own task per run (``seed`` in its constructor)
+    env: int = 300_000  # an environment that draws its own task per run (``seed`` in its constructor)
 
 
 # Online TD on a continuing task (the digit floor, ch. 3): the actor on seed + r, as the
@@ -37,8 +40,11 @@ EPISODIC = SeedOffsets(actor=100_000)
 # maze built for a job (the training one, the single-run views of ferl.envs.gym) draws the same.
 # (Equal to ``SeedOffsets.env``: a digit maze takes no ``seed``, so the two never meet.)
 IMAGE_NOISE = 300_000
+# what a trainer's config calls them (conf/trainer/*.yaml: seed_offsets)
+OffsetsName = Literal["episodic", "continuing"]
+NAMED_OFFSETS = dict(zip(get_args(OffsetsName), (EPISODIC, CONTINUING)))
 
-SEED_BOUND = 2 ** 62  # child seeds are drawn from [0, SEED_BOUND)
+SEED_BOUND = 2**62  # child seeds are drawn from [0, SEED_BOUND)
 
 
 def run_seeds(seed: int, n_runs: int) -> list[int]:

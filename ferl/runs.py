@@ -13,11 +13,13 @@ flattened with dots as in TensorBoard's HParams tab (``actor.n_hidden``), per-le
 ``ferl.stats.flat_metrics`` names them (``greedy_accuracy/0.125``). ``python -m ferl.runs DIR``
 prints each run's metrics (mean ± s.d. over its runs, ``ferl.stats``) and the scalar tags.
 """
+
 import argparse
 import json
 import re
 from dataclasses import dataclass
 from pathlib import Path
+from typing import cast
 
 import pandas as pd
 from omegaconf import OmegaConf
@@ -69,7 +71,7 @@ def load_config(run_dir) -> dict:
             node = cfg[key]
             resolved[key] = OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node
         except Exception:  # noqa: BLE001 — an interpolation of something not saved with the run
-            resolved[key] = OmegaConf.to_container(cfg, resolve=False)[key]
+            resolved[key] = cast(dict, OmegaConf.to_container(cfg, resolve=False))[key]
     return _flatten(resolved)
 
 
@@ -115,9 +117,17 @@ def metrics(path) -> pd.DataFrame:
         summary = load_summary(run_dir)
         per_seed = stats.flat_metrics(summary["metrics"])
         for i, seed in enumerate(summary["seeds"]):
-            rows.append({**_names(run_dir, root), "experiment": summary["experiment"], "task": summary["task"],
-                         "seed": seed, **{name: _number(values[i]) for name, values in per_seed.items()},
-                         "wall_time_s": summary["wall_time_s"], "agent_steps_per_s": summary["agent_steps_per_s"]})
+            rows.append(
+                {
+                    **_names(run_dir, root),
+                    "experiment": summary["experiment"],
+                    "task": summary["task"],
+                    "seed": seed,
+                    **{name: _number(values[i]) for name, values in per_seed.items()},
+                    "wall_time_s": summary["wall_time_s"],
+                    "agent_steps_per_s": summary["agent_steps_per_s"],
+                }
+            )
     return pd.DataFrame(rows)
 
 
@@ -145,9 +155,17 @@ def scalars(path, tags=None) -> pd.DataFrame:
             if wanted is not None and not (wanted.search(tag) if isinstance(wanted, re.Pattern) else tag in wanted):
                 continue
             points = events.Scalars(tag)
-            frames.append(pd.DataFrame({**_names(run_dir, root), "tag": tag,
-                                        "step": [p.step for p in points], "value": [p.value for p in points],
-                                        "wall_time": [p.wall_time for p in points]}))
+            frames.append(
+                pd.DataFrame(
+                    {
+                        **_names(run_dir, root),
+                        "tag": tag,
+                        "step": [p.step for p in points],
+                        "value": [p.value for p in points],
+                        "wall_time": [p.wall_time for p in points],
+                    }
+                )
+            )
     if not frames:
         return pd.DataFrame(columns=SCALAR_COLUMNS)
     out = pd.concat(frames, ignore_index=True)
@@ -160,13 +178,16 @@ def scalars(path, tags=None) -> pd.DataFrame:
 class Runs:
     """A run or sweep read back as DataFrames: configs, metrics (a row per run × seed), TensorBoard
     scalars (docs/usage.md, "TensorBoard and reading runs back")."""
+
     configs: pd.DataFrame
     metrics: pd.DataFrame
     scalars: pd.DataFrame
 
     def table(self) -> pd.DataFrame:
         """Metrics joined with each run's config: one row per run × seed."""
-        config = self.configs.drop(columns=[c for c in ("experiment", "task") if c in self.configs and c in self.metrics])
+        config = self.configs.drop(
+            columns=[c for c in ("experiment", "task") if c in self.configs and c in self.metrics]
+        )
         return self.metrics.merge(config, on=["run", "run_dir"], how="left", suffixes=("", "_config"))
 
 
@@ -194,8 +215,9 @@ def summary_table(metrics_frame: pd.DataFrame) -> pd.DataFrame:
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description="Print the runs at DIR: metrics (mean ± s.d. over "
-                                                 "seeds) and scalar tags.")
+    parser = argparse.ArgumentParser(
+        description="Print the runs at DIR: metrics (mean ± s.d. over seeds) and scalar tags."
+    )
     parser.add_argument("path", help="a run directory or any folder of runs")
     args = parser.parse_args(argv)
     try:
@@ -203,7 +225,9 @@ def main(argv=None) -> None:
     except FileNotFoundError as e:
         raise SystemExit(f"ferl.runs: error: {e}") from None
     print(summary_table(r.metrics).to_string())
-    tags = r.scalars.groupby("tag")["step"].agg(["count", "max"]).rename(columns={"count": "points", "max": "last_step"})
+    tags = (
+        r.scalars.groupby("tag")["step"].agg(["count", "max"]).rename(columns={"count": "points", "max": "last_step"})
+    )
     print(f"\nscalar tags ({len(tags)}):\n{tags.to_string()}")
 
 

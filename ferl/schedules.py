@@ -3,12 +3,14 @@
 * learning rate α: exponential decay 0.1 → 0.01 over an epoch (§3.5)
 * inverse temperature β: linear 0 → 2 (§3.5) or 0 → 10 (Table 4.1)
 """
+
 from dataclasses import dataclass
 
 
 @dataclass(frozen=True)
 class Constant:
     """The same value at every p: α or β held fixed."""
+
     value: float
 
     def __call__(self, progress: float) -> float:
@@ -18,6 +20,7 @@ class Constant:
 @dataclass(frozen=True)
 class Linear:
     """start + (end − start)·p: β rising linearly 0 → 2 (§3.5) or 0 → 10 (Table 4.1)."""
+
     start: float
     end: float
 

@@ -26,7 +26,9 @@ meets it) and ``window_means``. W is the run's ``trainer.final_window``, recorde
 there. ``FINAL_WINDOW`` (200 episodes: the moving average of Figs. 4.6–4.8 and 4.11–4.13) is only
 the window of runs that recorded none.
 """
+
 import math
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -46,8 +48,7 @@ def flat_metrics(metrics: dict) -> dict[str, list]:
 
 def run_values(values) -> np.ndarray:
     """The runs' values as float64, without the runs that have none (null or NaN)."""
-    x = np.asarray([np.nan if v is None else v for v in np.ravel(np.asarray(values, dtype=object))],
-                   dtype=np.float64)
+    x = np.asarray([np.nan if v is None else v for v in np.ravel(np.asarray(values, dtype=object))], dtype=np.float64)
     return x[np.isfinite(x)]
 
 
@@ -92,7 +93,7 @@ def greedy_accuracy(greedy_counts: np.ndarray, optimal_action) -> np.ndarray:
     return correct / counts[:, :, scored, :].sum(axis=(-1, -2))
 
 
-FINAL_WINDOW = 200   # episodes; the window of a run that recorded none (module doc)
+FINAL_WINDOW = 200  # episodes; the window of a run that recorded none (module doc)
 SOLVED_SHARE = 0.95  # solved: return ≥ 0.95 × optimum and every outcome rate ≥ 0.95 (docs/records.md)
 
 
@@ -111,8 +112,9 @@ def meets_solved(returns: np.ndarray, rates: dict, optimal_return: float) -> np.
     return solved
 
 
-def sample_efficiency(episodes: dict, random_steps: np.ndarray, optimum: tuple[str, float] | None, window: int,
-                      rates: list) -> dict:
+def sample_efficiency(
+    episodes: dict, random_steps: np.ndarray, optimum: tuple[str, float] | None, window: int, rates: list
+) -> dict:
     """Environment steps per run (random collection included: ``random_steps`` (R,)): all of them,
     and, where there is an ``optimum`` (record, optimal value), those until the first window of
     ``window`` episodes that meets the ``solved`` criterion (its last episode included; None if
@@ -122,15 +124,20 @@ def sample_efficiency(episodes: dict, random_steps: np.ndarray, optimum: tuple[s
     if optimum is None:
         return {"env_steps_total": used[:, -1].tolist()}
     key, best = optimum
-    solved = meets_solved(window_means(episodes[key], window), {n: window_means(episodes[n], window) for n in rates}, best)
+    solved = meets_solved(
+        window_means(episodes[key], window), {n: window_means(episodes[n], window) for n in rates}, best
+    )
     first = [int(np.argmax(row)) + window - 1 if row.any() else None for row in solved]
-    return {"env_steps_total": used[:, -1].tolist(),
-            "env_steps_to_solve": [int(used[r, k]) if k is not None else None for r, k in enumerate(first)],
-            "episodes_to_solve": [k + 1 if k is not None else None for k in first]}
+    return {
+        "env_steps_total": used[:, -1].tolist(),
+        "env_steps_to_solve": [int(used[r, k]) if k is not None else None for r, k in enumerate(first)],
+        "episodes_to_solve": [k + 1 if k is not None else None for k in first],
+    }
 
 
-def final_metrics(episodes: dict, optimum: tuple[str, float] | None, window: int, rates: list,
-                  averages: list = ()) -> dict:
+def final_metrics(
+    episodes: dict, optimum: tuple[str, float] | None, window: int, rates: list, averages: Sequence[str] = ()
+) -> dict:
     """The episodic metrics of summary.json over the last ``window`` episodes, one value per run:
     discounted return, steps, the rate of every boolean outcome (``final_correct_goal_rate``), the
     mean of every float one (``final_return``) and its best window mean over all episodes
@@ -144,15 +151,29 @@ def final_metrics(episodes: dict, optimum: tuple[str, float] | None, window: int
         return episodes[name][:, last].mean(1, dtype=np.float64)
 
     rate = {name: final(name) for name in rates}
-    metrics = {"final_discounted_return": final("discounted_return").tolist(),
-               "final_steps_to_goal": final("steps").tolist(),
-               **{f"final_{name}_rate": values.tolist() for name, values in rate.items()},
-               **{f"final_{name}": final(name).tolist() for name in averages},
-               # the best window mean over the training: POPGym's "mean maximum episodic return" (MMER,
-               # Morad et al. 2023) with a window of episodes as its batch
-               **{f"best_{name}": window_means(episodes[name], min(window, episodes[name].shape[1])).max(1).tolist()
-                  for name in averages}}
+    metrics = {
+        "final_discounted_return": final("discounted_return").tolist(),
+        "final_steps_to_goal": final("steps").tolist(),
+        **{f"final_{name}_rate": values.tolist() for name, values in rate.items()},
+        **{f"final_{name}": final(name).tolist() for name in averages},
+        # the best window mean over the training: POPGym's "mean maximum episodic return" (MMER,
+        # Morad et al. 2023) with a window of episodes as its batch
+        **{
+            f"best_{name}": window_means(episodes[name], min(window, episodes[name].shape[1])).max(1).tolist()
+            for name in averages
+        },
+    }
     if optimum is not None:
         key, best = optimum
         metrics["solved"] = meets_solved(final(key), rate, best).astype(int).tolist()
     return metrics
+
+
+def solved_against(optimal: dict) -> tuple[str, float] | None:
+    """(record, optimum) that ``solved`` compares a run's final return with: the discounted return
+    where the environment states its optimum (the T-mazes), else the undiscounted ``return`` where
+    it states that (a Gymnasium id with ``optimal_return``), else None: no ``solved`` metric."""
+    for key in ("discounted_return", "return"):
+        if optimal.get(key) is not None:
+            return key, float(optimal[key])
+    return None

@@ -33,8 +33,10 @@ def register(registry: dispatch.Registry) -> None:
     decided on what it recorded: ``env.kind`` and each chapter's ``applies``)."""
     registry.reference = "dissertation"
     registry.sweep_title = "Reproduction report"
-    registry.environments |= {floor.ENV_KIND: lambda run, num, out: floor.analyze(run, out),
-                              tmaze.ENV_KIND: tmaze.analyze}
+    registry.environments |= {
+        floor.ENV_KIND: lambda run, num, out: floor.analyze(run, out),
+        tmaze.ENV_KIND: tmaze.analyze,
+    }
     registry.chapters += CHAPTERS
     registry.sweep_claims += SWEEP_CLAIMS
     registry.claim_order += CLAIM_ORDER

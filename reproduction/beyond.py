@@ -16,20 +16,22 @@ Read from what every T-maze job recorded (``records/run.json``, ``summary.json``
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
 from ferl import stats
 from ferl.analysis.io import fmt, load_npz, table_lines, write_csv
 from ferl.analysis.records import recorded_window
+from ferl.analysis.sweep import Job
 
 
 @dataclass(frozen=True)
 class Procedure:
     """How a T-maze job trained: the trainer's kind, its curiosity η, the predictors' memories."""
+
     trainer: str
     curiosity: float
     memory: str
@@ -37,8 +39,11 @@ class Procedure:
     @property
     def label(self) -> str:
         name = "Algorithm 1/2 (phased)" if self.trainer == "phased" else self.trainer
-        return name + (f" + curiosity η={self.curiosity:g}" if self.curiosity else "") + \
-            (f", {self.memory}" if self.memory != "elman" else "")
+        return (
+            name
+            + (f" + curiosity η={self.curiosity:g}" if self.curiosity else "")
+            + (f", {self.memory}" if self.memory != "elman" else "")
+        )
 
 
 def procedure(job) -> Procedure:
@@ -48,8 +53,13 @@ def procedure(job) -> Procedure:
 
 
 def tmaze_jobs(jobs: Sequence) -> list:
-    return [j for j in jobs if j.manifest is not None and j.manifest.env_kind == "tmaze"
-            and "env_steps_to_solve" in j.summary.get("metrics", {})]
+    return [
+        j
+        for j in jobs
+        if j.manifest is not None
+        and j.manifest.env_kind == "tmaze"
+        and "env_steps_to_solve" in j.summary.get("metrics", {})
+    ]
 
 
 def goal_shares(job) -> tuple[np.ndarray, np.ndarray]:
@@ -70,10 +80,10 @@ class CurvePoint:
     corridor: int
     solved: int
     n: int
-    correct: tuple[float, float]          # mean, s.e.m. of final_correct_goal_rate
-    reached: tuple[float, float]          # of the share of episodes ending in a goal
+    correct: tuple[float, float]  # mean, s.e.m. of final_correct_goal_rate
+    reached: tuple[float, float]  # of the share of episodes ending in a goal
     correct_if_reached: tuple[float, float]
-    job: object
+    job: Job
 
 
 def memory_curve(jobs: Sequence) -> list[CurvePoint]:
@@ -84,14 +94,24 @@ def memory_curve(jobs: Sequence) -> list[CurvePoint]:
             continue
         metrics = job.summary["metrics"]
         reached, given = goal_shares(job)
-        points.append(CurvePoint(p.memory, int(job.manifest.env["corridor_length"]), int(np.sum(metrics["solved"])),
-                                 len(metrics["solved"]), stats.mean_sem(metrics["final_correct_goal_rate"])[:2],
-                                 stats.mean_sem(reached)[:2], stats.mean_sem(given[~np.isnan(given)])[:2], job))
+        points.append(
+            CurvePoint(
+                p.memory,
+                int(job.manifest.env["corridor_length"]),
+                int(np.sum(metrics["solved"])),
+                len(metrics["solved"]),
+                stats.mean_sem(metrics["final_correct_goal_rate"])[:2],
+                stats.mean_sem(reached)[:2],
+                stats.mean_sem(given[~np.isnan(given)])[:2],
+                job,
+            )
+        )
     return sorted(points, key=lambda c: (c.memory, c.corridor))
 
 
 def curve_figure(points: Sequence[CurvePoint]):
     import matplotlib.pyplot as plt
+
     fig, axes = plt.subplots(1, 4, figsize=(17, 3.8))
     for memory in sorted({c.memory for c in points}):
         mine = [c for c in points if c.memory == memory]
@@ -100,8 +120,12 @@ def curve_figure(points: Sequence[CurvePoint]):
         for ax, field in ((axes[1], "correct"), (axes[2], "reached"), (axes[3], "correct_if_reached")):
             mean, sem = np.array([getattr(c, field) for c in mine]).T
             ax.errorbar(x, mean, yerr=np.nan_to_num(sem), marker="o", capsize=3, label=memory)
-    titles = ("solved runs (share)", "correct-goal rate, final window",
-              "share of the final window's episodes that reached a goal", "correct share of those")
+    titles = (
+        "solved runs (share)",
+        "correct-goal rate, final window",
+        "share of the final window's episodes that reached a goal",
+        "correct share of those",
+    )
     corridors = sorted({c.corridor for c in points})
     for ax, title in zip(axes, titles):
         ax.set_xscale("log")
@@ -121,8 +145,8 @@ class Efficiency:
     procedure: Procedure
     solved: int
     n: int
-    steps: list            # env_steps_to_solve per run, None where never
-    job: object
+    steps: list  # env_steps_to_solve per run, None where never
+    job: Job
 
     @property
     def reached(self) -> list[int]:
@@ -137,8 +161,16 @@ def efficiency(jobs: Sequence) -> list[Efficiency]:
     out = []
     for job in tmaze_jobs(jobs):
         m = job.summary["metrics"]
-        out.append(Efficiency(job.experiment, procedure(job), int(np.sum(m["solved"])), len(m["solved"]),
-                              list(m["env_steps_to_solve"]), job))
+        out.append(
+            Efficiency(
+                job.experiment,
+                procedure(job),
+                int(np.sum(m["solved"])),
+                len(m["solved"]),
+                list(m["env_steps_to_solve"]),
+                job,
+            )
+        )
     return sorted(out, key=lambda e: (e.experiment, e.procedure.trainer != "phased", e.procedure.curiosity))
 
 
@@ -149,35 +181,86 @@ def report(jobs: Sequence, out: Path, figures: dict, data_files: list) -> list[s
     beyond = [e for e in rows if e.procedure != Procedure("phased", 0.0, "elman")]
     if not points and not beyond:
         return []
-    lines = ["", "## Beyond the dissertation (findings of ours, §5.4)", "",
-             "Not claims of the dissertation: what its proposals for improvement (§5.4) measured on "
-             "this code. Environment steps include Algorithm 1/2's random collection."]
+    lines = [
+        "",
+        "## Beyond the dissertation (findings of ours, §5.4)",
+        "",
+        "Not claims of the dissertation: what its proposals for improvement (§5.4) measured on "
+        "this code. Environment steps include Algorithm 1/2's random collection.",
+    ]
     if points:
-        figures["memory_length_curve"] = (curve_figure(points), "Memory-length curve: regular T-maze, online "
-                                          "trainer, one line per memory model (mean ± s.e.m. over runs)")
-        write_csv(out / "memory_length_curve.csv",
-                  ["memory", "corridor_length", "solved", "n_runs", "correct_goal_rate", "sem",
-                   "goal_reached_share", "sem", "correct_if_reached", "sem"],
-                  [(c.memory, c.corridor, c.solved, c.n, *map(fmt, (*c.correct, *c.reached, *c.correct_if_reached)))
-                   for c in points])
+        figures["memory_length_curve"] = (
+            curve_figure(points),
+            "Memory-length curve: regular T-maze, online trainer, one line per memory model (mean ± s.e.m. over runs)",
+        )
+        write_csv(
+            out / "memory_length_curve.csv",
+            [
+                "memory",
+                "corridor_length",
+                "solved",
+                "n_runs",
+                "correct_goal_rate",
+                "sem",
+                "goal_reached_share",
+                "sem",
+                "correct_if_reached",
+                "sem",
+            ],
+            [
+                (c.memory, c.corridor, c.solved, c.n, *map(fmt, (*c.correct, *c.reached, *c.correct_if_reached)))
+                for c in points
+            ],
+        )
         data_files.append("memory_length_curve.csv")
         lines += ["", "### Memory-length curve (regular T-maze, online trainer)", ""]
-        lines += table_lines(["memory", "T_min", "solved", "correct-goal rate", "episodes ending in a goal",
-                              "correct among those"],
-                             [(c.memory, c.corridor, f"{c.solved}/{c.n}", pm(c.correct), pm(c.reached),
-                               pm(c.correct_if_reached)) for c in points])
+        lines += table_lines(
+            ["memory", "T_min", "solved", "correct-goal rate", "episodes ending in a goal", "correct among those"],
+            [
+                (c.memory, c.corridor, f"{c.solved}/{c.n}", pm(c.correct), pm(c.reached), pm(c.correct_if_reached))
+                for c in points
+            ],
+        )
         lines += ["", *limits(points)]
     if rows:
-        write_csv(out / "sample_efficiency.csv", ["experiment", "procedure", "run", "solved", "env_steps_to_solve"],
-                  [(e.experiment, e.procedure.label, r, int(s is not None), "" if s is None else s)
-                   for e in rows for r, s in enumerate(e.steps)])
+        write_csv(
+            out / "sample_efficiency.csv",
+            ["experiment", "procedure", "run", "solved", "env_steps_to_solve"],
+            [
+                (e.experiment, e.procedure.label, r, int(s is not None), "" if s is None else s)
+                for e in rows
+                for r, s in enumerate(e.steps)
+            ],
+        )
         data_files.append("sample_efficiency.csv")
         lines += ["", "### Sample efficiency: environment steps until solved", ""]
-        lines += table_lines(["experiment", "procedure", "overrides", "solved", "median steps to solve",
-                              "mean ± s.e.m.", "never solved", "vs phased (median)", "per run"],
-                             [(e.experiment, e.procedure.label, e.job.variant, f"{e.solved}/{e.n}", fmt(e.median),
-                               pm(stats.mean_sem(e.reached)[:2]), len(e.steps) - len(e.reached), versus(e, rows),
-                               " ".join("–" if s is None else str(s) for s in e.steps)) for e in rows])
+        lines += table_lines(
+            [
+                "experiment",
+                "procedure",
+                "overrides",
+                "solved",
+                "median steps to solve",
+                "mean ± s.e.m.",
+                "never solved",
+                "vs phased (median)",
+                "per run",
+            ],
+            [
+                (
+                    e.experiment,
+                    e.procedure.label,
+                    e.job.variant,
+                    f"{e.solved}/{e.n}",
+                    fmt(e.median),
+                    pm(stats.mean_sem(e.reached)[:2]),
+                    len(e.steps) - len(e.reached),
+                    versus(e, rows),
+                    " ".join("–" if s is None else str(s) for s in e.steps),
+                )
+                for e in rows
+            ],
+        )
     return lines
 
 
@@ -188,8 +271,16 @@ def pm(pair) -> str:
 
 def versus(e: Efficiency, rows: Sequence[Efficiency]) -> str:
     """This procedure's median steps to solve over the phased algorithm's, same experiment."""
-    base = next((b for b in rows if b.experiment == e.experiment and b.procedure.trainer == "phased"
-                 and b.procedure.memory == e.procedure.memory), None)
+    base = next(
+        (
+            b
+            for b in rows
+            if b.experiment == e.experiment
+            and b.procedure.trainer == "phased"
+            and b.procedure.memory == e.procedure.memory
+        ),
+        None,
+    )
     if base is None or base is e or not base.reached or not e.reached:
         return ""
     return f"{e.median / base.median:.0%}"
@@ -202,11 +293,16 @@ def limits(points: Sequence[CurvePoint]) -> list[str]:
         mine = [c for c in points if c.memory == memory]
         ok = [c.corridor for c in mine if c.solved >= 0.8 * c.n]
         bad = next((c for c in mine if c.solved < 0.8 * c.n), None)
-        text = f"- **{memory}**: solved (≥ 80 % of runs) up to T_min = {max(ok)}" if ok else \
-            f"- **{memory}**: solved (≥ 80 % of runs) at no corridor length"
+        text = (
+            f"- **{memory}**: solved (≥ 80 % of runs) up to T_min = {max(ok)}"
+            if ok
+            else f"- **{memory}**: solved (≥ 80 % of runs) at no corridor length"
+        )
         if bad is not None:
-            text += (f"; at T_min = {bad.corridor}: {bad.solved}/{bad.n} solved, "
-                     f"{pm(bad.reached)} of the last episodes reached a goal, {pm(bad.correct_if_reached)} "
-                     f"of those the rewarded one")
+            text += (
+                f"; at T_min = {bad.corridor}: {bad.solved}/{bad.n} solved, "
+                f"{pm(bad.reached)} of the last episodes reached a goal, {pm(bad.correct_if_reached)} "
+                f"of those the rewarded one"
+            )
         lines.append(text)
     return lines

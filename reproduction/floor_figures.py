@@ -8,7 +8,7 @@ Fig. 3.4 is a generic figure (``ferl.analysis.figures``).
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 from matplotlib.figure import Figure
@@ -29,8 +29,9 @@ def _mosaic(tiles: np.ndarray, ncols: int, pad_x: int = 2, pad_y: int = 2) -> np
     out = np.full((nrows * (SIDE + pad_y), ncols * (SIDE + pad_x)), np.nan)
     for k, tile in enumerate(tiles):
         r, c = divmod(k, ncols)
-        out[r * (SIDE + pad_y) + pad_y:(r + 1) * (SIDE + pad_y),
-            c * (SIDE + pad_x):c * (SIDE + pad_x) + SIDE] = tile
+        out[r * (SIDE + pad_y) + pad_y : (r + 1) * (SIDE + pad_y), c * (SIDE + pad_x) : c * (SIDE + pad_x) + SIDE] = (
+            tile
+        )
     return out
 
 
@@ -58,9 +59,14 @@ def weight_images(w_before: np.ndarray, w_after: np.ndarray, ncols: int = 10) ->
     return fig
 
 
-def greedy_count_grid(counts: np.ndarray, classes: Sequence[str], arrangement: np.ndarray,
-                      optimal_action: Sequence[int], action_names: Sequence[str],
-                      title: str) -> Figure:
+def greedy_count_grid(
+    counts: np.ndarray,
+    classes: Sequence[str],
+    arrangement: np.ndarray,
+    optimal_action: Sequence[int],
+    action_names: Sequence[str],
+    title: str,
+) -> Figure:
     """Fig. 3.6 (a)/(b): greedy-action counts per class, laid out as the 3×3 patch.
 
     ``counts`` is (R, C, nA); bars are the mean over runs with ±1 s.d. error bars,
@@ -77,8 +83,9 @@ def greedy_count_grid(counts: np.ndarray, classes: Sequence[str], arrangement: n
             ax.set_axis_off()
             continue
         c = index[name]
-        colors = [GOAL_COLOR if optimal_action[c] < 0 else
-                  OPTIMAL_COLOR if a == optimal_action[c] else OTHER_COLOR for a in x]
+        colors = [
+            GOAL_COLOR if optimal_action[c] < 0 else OPTIMAL_COLOR if a == optimal_action[c] else OTHER_COLOR for a in x
+        ]
         mean, sd, _ = zip(*(stats.mean_sd(counts[:, c, a]) for a in x))
         ax.bar(x, mean, yerr=sd, color=colors, capsize=2)
         ax.plot(x[None, :] + jitter[:, None], counts[:, c], "k.", ms=2)
@@ -88,27 +95,38 @@ def greedy_count_grid(counts: np.ndarray, classes: Sequence[str], arrangement: n
         ax.set_ylabel("count (test images)")
     for ax in axes[-1]:
         ax.set_xlabel("greedy action")
-    fig.legend(handles=[Patch(color=OPTIMAL_COLOR, label="optimal action"),
-                        Patch(color=OTHER_COLOR, label="other actions"),
-                        Patch(color=GOAL_COLOR, label="goal tile (no optimal action)")],
-               loc="outside lower center", ncols=3,
-               title=f"bars: mean over {n_runs} runs ± 1 s.d.; dots: single runs")
+    fig.legend(
+        handles=[
+            Patch(color=OPTIMAL_COLOR, label="optimal action"),
+            Patch(color=OTHER_COLOR, label="other actions"),
+            Patch(color=GOAL_COLOR, label="goal tile (no optimal action)"),
+        ],
+        loc="outside lower center",
+        ncols=3,
+        title=f"bars: mean over {n_runs} runs ± 1 s.d.; dots: single runs",
+    )
     fig.suptitle(title)
     return fig
 
 
-def accuracy_vs_noise(noise_levels: np.ndarray, acc_before: np.ndarray, acc_after: np.ndarray,
-                      train_noise: float, chance: float) -> Figure:
+def accuracy_vs_noise(
+    noise_levels: np.ndarray, acc_before: np.ndarray, acc_after: np.ndarray, train_noise: float, chance: float
+) -> Figure:
     """Fig. 3.6 (c)/(d) as a curve: greedy accuracy vs test noise, mean ± s.e.m. over runs."""
     fig = Figure(figsize=(6.5, 4), layout="constrained")
     ax = fig.add_subplot()
     for phase, acc in (("before", acc_before), ("after", acc_after)):
-        ax.errorbar(100 * noise_levels, acc.mean(axis=0), yerr=stats.sem(acc), marker="o",
-                    capsize=3,
-                    color=PHASE_COLOR[phase], label=f"{phase} training")
+        ax.errorbar(
+            100 * noise_levels,
+            acc.mean(axis=0),
+            yerr=stats.sem(acc),
+            marker="o",
+            capsize=3,
+            color=PHASE_COLOR[phase],
+            label=f"{phase} training",
+        )
     ax.axhline(chance, color="k", ls=":", label=f"chance (1/{round(1 / chance)})")
-    ax.axvline(100 * train_noise, color="tab:green", ls="--",
-               label=f"training noise ({100 * train_noise:g} %)")
+    ax.axvline(100 * train_noise, color="tab:green", ls="--", label=f"training noise ({100 * train_noise:g} %)")
     ax.set_xlabel("test noise level (% of pixels replaced by white noise)")
     ax.set_ylabel("fraction of test images with optimal greedy action")
     ax.set_ylim(-0.02, 1.02)
@@ -117,8 +135,7 @@ def accuracy_vs_noise(noise_levels: np.ndarray, acc_before: np.ndarray, acc_afte
     return fig
 
 
-def noise_grid_heatmap(train: np.ndarray, test: np.ndarray, accuracy: np.ndarray,
-                       experiment: str) -> Figure:
+def noise_grid_heatmap(train: np.ndarray, test: np.ndarray, accuracy: np.ndarray, experiment: str) -> Figure:
     """Fig. 3.6 over every pair of noise levels: greedy accuracy after training (mean over
     runs) by training noise (rows) and test noise (columns); the diagonal is test = training."""
     fig = Figure(figsize=(2.0 + 0.75 * len(test), 1.8 + 0.5 * len(train)), layout="constrained")
@@ -126,8 +143,7 @@ def noise_grid_heatmap(train: np.ndarray, test: np.ndarray, accuracy: np.ndarray
     im = ax.imshow(accuracy, vmin=0, vmax=1, cmap="viridis", aspect="auto")
     for (t, k), value in np.ndenumerate(accuracy):
         if np.isfinite(value):
-            ax.text(k, t, f"{value:.2f}", ha="center", va="center", fontsize="small",
-                    color="k" if value > 0.6 else "w")
+            ax.text(k, t, f"{value:.2f}", ha="center", va="center", fontsize="small", color="k" if value > 0.6 else "w")
     ax.set_xticks(range(len(test)), [f"{100 * x:g}" for x in test])
     ax.set_yticks(range(len(train)), [f"{100 * x:g}" for x in train])
     ax.set_xlabel("test noise (% of pixels replaced by white noise)")
@@ -137,40 +153,52 @@ def noise_grid_heatmap(train: np.ndarray, test: np.ndarray, accuracy: np.ndarray
     return fig
 
 
-def _sorted_probe_panel(ax, images: np.ndarray, prob: np.ndarray, n_show: int,
-                        ncols: int, title: str) -> None:
+def _sorted_probe_panel(ax, images: np.ndarray, prob: np.ndarray, n_show: int, ncols: int, title: str) -> None:
     """n_show images spanning the whole sorted range of P(optimal), probability on top."""
     order = np.argsort(prob, kind="stable")
     spread = np.linspace(0, len(order) - 1, min(n_show, len(order))).round().astype(int)
     picks = order[np.unique(spread)]
     pad_y = 9  # room for the printed probability
-    ax.imshow(_mosaic(images[picks].reshape(-1, SIDE, SIDE), ncols, pad_y=pad_y),
-              cmap="gray_r", vmin=0, vmax=1)
+    ax.imshow(_mosaic(images[picks].reshape(-1, SIDE, SIDE), ncols, pad_y=pad_y), cmap="gray_r", vmin=0, vmax=1)
     for k, i in enumerate(picks):
         r, c = divmod(k, ncols)
-        ax.text(c * (SIDE + 2) + SIDE / 2, r * (SIDE + pad_y) + pad_y - 1, f"{prob[i]:.2f}",
-                ha="center", va="bottom", fontsize=6)
+        ax.text(
+            c * (SIDE + 2) + SIDE / 2,
+            r * (SIDE + pad_y) + pad_y - 1,
+            f"{prob[i]:.2f}",
+            ha="center",
+            va="bottom",
+            fontsize=6,
+        )
     _no_ticks(ax)
     ax.set_title(title)
 
 
-def outlier_images(images: np.ndarray, prob_before: np.ndarray, prob_after: np.ndarray,
-                   class_name: str, action_name: str, n_show: int = 40,
-                   ncols: int = 10) -> Figure:
+def outlier_images(
+    images: np.ndarray,
+    prob_before: np.ndarray,
+    prob_after: np.ndarray,
+    class_name: str,
+    action_name: str,
+    n_show: int = 40,
+    ncols: int = 10,
+) -> Figure:
     """Fig. 3.7: test images sorted by P(optimal action | z), before and after training."""
     nrows = -(-min(n_show, len(images)) // ncols)
     fig = Figure(figsize=(ncols * 0.7 + 0.5, 2 * nrows * 0.85 + 1.2), layout="constrained")
     axes = fig.subplots(2, 1)
     for ax, prob, phase in zip(axes, (prob_before, prob_after), ("(a) before", "(b) after")):
-        _sorted_probe_panel(ax, images, prob, n_show, ncols,
-                            f"{phase} training: P(a = '{action_name}' | z), ascending row-major")
-    fig.suptitle(f'Fig. 3.7: outlier detection, test images of "{class_name}" (run 0)\n'
-                 f"{min(n_show, len(images))} of {len(images)} spanning the sorted order")
+        _sorted_probe_panel(
+            ax, images, prob, n_show, ncols, f"{phase} training: P(a = '{action_name}' | z), ascending row-major"
+        )
+    fig.suptitle(
+        f'Fig. 3.7: outlier detection, test images of "{class_name}" (run 0)\n'
+        f"{min(n_show, len(images))} of {len(images)} spanning the sorted order"
+    )
     return fig
 
 
-def median_activation(med_before: np.ndarray, med_after: np.ndarray,
-                      classes: Sequence[str]) -> Figure:
+def median_activation(med_before: np.ndarray, med_after: np.ndarray, classes: Sequence[str]) -> Figure:
     """Fig. 3.10: median hidden activation (footnote 6) per class, before and after."""
     fig = Figure(figsize=(10, 0.3 * len(classes) + 2), layout="constrained")
     axes = fig.subplots(1, 2, sharey=True)
@@ -187,8 +215,7 @@ def median_activation(med_before: np.ndarray, med_after: np.ndarray,
 
 
 def _dendrogram(ax, linkage_matrix: np.ndarray, labels: Sequence[str]) -> None:
-    dendrogram(linkage_matrix, labels=[f'"{c}"' for c in labels], ax=ax,
-               color_threshold=0, above_threshold_color="k")
+    dendrogram(linkage_matrix, labels=[f'"{c}"' for c in labels], ax=ax, color_threshold=0, above_threshold_color="k")
 
 
 def mfr_dendrogram(linkage_matrix: np.ndarray, labels: Sequence[str], title: str) -> Figure:
@@ -202,8 +229,9 @@ def mfr_dendrogram(linkage_matrix: np.ndarray, labels: Sequence[str], title: str
     return fig
 
 
-def mfr_dendrogram_grid(linkages: Sequence[np.ndarray | None], labels: Sequence[str],
-                        title: str, ncols: int = 5) -> Figure:
+def mfr_dendrogram_grid(
+    linkages: Sequence[np.ndarray | None], labels: Sequence[str], title: str, ncols: int = 5
+) -> Figure:
     """Figs. 3.11/3.13 for every run: one small dendrogram per run (None: a diverged run)."""
     ncols = min(ncols, len(linkages))
     nrows = -(-len(linkages) // ncols)
@@ -214,8 +242,15 @@ def mfr_dendrogram_grid(linkages: Sequence[np.ndarray | None], labels: Sequence[
             ax.set_axis_off()
             continue
         if linkages[r] is None:
-            ax.text(0.5, 0.5, "diverged\n(non-finite activations)", ha="center", va="center",
-                    transform=ax.transAxes, fontsize="small")
+            ax.text(
+                0.5,
+                0.5,
+                "diverged\n(non-finite activations)",
+                ha="center",
+                va="center",
+                transform=ax.transAxes,
+                fontsize="small",
+            )
             _no_ticks(ax)
         else:
             _dendrogram(ax, linkages[r], labels)

@@ -21,10 +21,10 @@ from reproduction.floor_figures import noise_grid_heatmap
 @dataclass(frozen=True)
 class NoiseGrid:
     experiment: str
-    train: np.ndarray   # (T,) training noise levels, ascending
-    test: np.ndarray    # (L,) test noise levels, ascending
-    mean: np.ndarray    # (T, L) greedy accuracy after training, mean over runs
-    sem: np.ndarray     # (T, L) s.e.m. over runs
+    train: np.ndarray  # (T,) training noise levels, ascending
+    test: np.ndarray  # (L,) test noise levels, ascending
+    mean: np.ndarray  # (T, L) greedy accuracy after training, mean over runs
+    sem: np.ndarray  # (T, L) s.e.m. over runs
 
 
 def noise_grids(sweep: Sweep) -> list[NoiseGrid]:
@@ -33,8 +33,7 @@ def noise_grids(sweep: Sweep) -> list[NoiseGrid]:
     grids = []
     for experiment in dict.fromkeys(j.experiment for j in sweep.jobs):
         for by_level in sweep.varying(experiment, "env", "noise"):
-            by_level = {float(k): j for k, j in by_level.items()
-                        if "greedy_accuracy" in j.summary.get("metrics", {})}
+            by_level = {float(k): j for k, j in by_level.items() if "greedy_accuracy" in j.summary.get("metrics", {})}
             if len(by_level) >= 2:
                 grids.append(_noise_grid(experiment, by_level))
     return grids
@@ -57,11 +56,19 @@ def report(sweep: Sweep, out: Path, analysis: RunAnalysis) -> list[str]:
     figures are listed with the sweep's others)."""
     for g in noise_grids(sweep):
         name = f"fig3_6_noise_grid_{g.experiment}"
-        write_csv(out / f"{name}.csv", ["train_noise", "test_noise", "accuracy_mean", "accuracy_sem"],
-                  [(fmt(tr), fmt(te), fmt(g.mean[t, k]), fmt(g.sem[t, k]))
-                   for t, tr in enumerate(g.train) for k, te in enumerate(g.test)])
+        write_csv(
+            out / f"{name}.csv",
+            ["train_noise", "test_noise", "accuracy_mean", "accuracy_sem"],
+            [
+                (fmt(tr), fmt(te), fmt(g.mean[t, k]), fmt(g.sem[t, k]))
+                for t, tr in enumerate(g.train)
+                for k, te in enumerate(g.test)
+            ],
+        )
         analysis.data_files.append(f"{name}.csv")
-        analysis.figures[name] = (noise_grid_heatmap(g.train, g.test, g.mean, g.experiment),
-                                  f"Fig. 3.6 (all panels' noise pairs): greedy accuracy after "
-                                  f"training, `{g.experiment}`, training × test noise")
+        analysis.figures[name] = (
+            noise_grid_heatmap(g.train, g.test, g.mean, g.experiment),
+            f"Fig. 3.6 (all panels' noise pairs): greedy accuracy after "
+            f"training, `{g.experiment}`, training × test noise",
+        )
     return []

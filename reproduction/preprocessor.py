@@ -14,10 +14,10 @@ on held-out images.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
@@ -28,10 +28,10 @@ from ferl.run.jsonio import strict_dumps
 from reproduction import tmaze_figures as figs
 
 RAW_FIGURE, PROCESSED_FIGURE = "Fig. 5.15", "Fig. 5.16"
-FIRST_PCS = 20                # Fig. 5.15(c): the first 20 of the 784 PCs
-VARIANCE_SHARE = 0.9          # the PCs needed for 90 % of the variance: the tail of Fig. 5.15(b)
+FIRST_PCS = 20  # Fig. 5.15(c): the first 20 of the 784 PCs
+VARIANCE_SHARE = 0.9  # the PCs needed for 90 % of the variance: the tail of Fig. 5.15(b)
 MAX_SILHOUETTE_POINTS = 2000  # images per silhouette; bounds the O(n²) distances
-FIGURE_RUN = 0                # Fig. 5.16 shows one trained RBM
+FIGURE_RUN = 0  # Fig. 5.16 shows one trained RBM
 
 
 def pcs_for_share(ratio: np.ndarray, share: float = VARIANCE_SHARE) -> int:
@@ -42,22 +42,20 @@ def pcs_for_share(ratio: np.ndarray, share: float = VARIANCE_SHARE) -> int:
 @dataclass
 class Preprocessing:
     records: dict[str, np.ndarray]
-    ids: np.ndarray          # observation ids of the distinct images, class by class
-    labels: np.ndarray       # class index of each
+    ids: np.ndarray  # observation ids of the distinct images, class by class
+    labels: np.ndarray  # class index of each
     class_names: list[str]
 
     @classmethod
-    def from_records(cls, records: dict[str, np.ndarray], names: Sequence[str],
-                     digit_classes: dict) -> Preprocessing:
+    def from_records(cls, records: dict[str, np.ndarray], names: Sequence[str], digit_classes: dict) -> Preprocessing:
         """``names``: the observations in table order (id n·K + k is image k of names[n]);
         ``digit_classes``: name → digit class (env.digit_classes); a name without one is a
         class of its own."""
         n_ids = len(records["raw_observations"])
         if n_ids % len(names):
-            raise ValueError(f"preprocessor.npz: {n_ids} observation ids are not "
-                             f"{len(names)} reservoirs of one size")
+            raise ValueError(f"preprocessor.npz: {n_ids} observation ids are not {len(names)} reservoirs of one size")
         k = n_ids // len(names)
-        first = {}  # class → first observation showing it
+        first: dict[str, int] = {}  # class → first observation showing it
         for n, name in enumerate(names):
             first.setdefault(str(digit_classes.get(name, name)), n)
         ids = np.concatenate([n * k + np.arange(k) for n in first.values()])
@@ -74,8 +72,7 @@ class Preprocessing:
     @property
     def shape(self) -> tuple[int, int]:
         """(raw, processed) units: 784 pixels → N^y hidden units (Table 5.1)."""
-        return (self.records["raw_observations"].shape[1],
-                self.records["processed_observations"].shape[2])
+        return (self.records["raw_observations"].shape[1], self.records["processed_observations"].shape[2])
 
     @cached_property
     def raw(self) -> tuple[np.ndarray, np.ndarray]:
@@ -92,8 +89,9 @@ class Preprocessing:
         """Silhouette of the digit classes on PC1–3: of the raw images, and (R,) of the
         processed ones (Fig. 5.16(a) "the distribution of each digit class is well preserved")."""
         raw = subsampled_silhouette(self.raw[0], self.labels, MAX_SILHOUETTE_POINTS)
-        return raw, np.array([subsampled_silhouette(scores, self.labels, MAX_SILHOUETTE_POINTS)
-                              for scores, _ in self.processed])
+        return raw, np.array(
+            [subsampled_silhouette(scores, self.labels, MAX_SILHOUETTE_POINTS) for scores, _ in self.processed]
+        )
 
     @property
     def processed_ratios(self) -> np.ndarray:
@@ -116,44 +114,61 @@ class Preprocessing:
 def describe(pre: Preprocessing) -> str:
     """The report header's line on the preprocessor."""
     n_raw, n_hidden = pre.shape
-    return (f"{n_raw} → {n_hidden} units, {pre.reconstruction.shape[1]} training sweeps (all layers) "
-            f"({'loaded from the cache' if pre.cached else 'trained in this run'}); PCA of "
-            f"{len(pre.ids)} distinct images, {len(pre.class_names)} digit classes "
-            f"({', '.join(pre.class_names)}) × {pre.reservoir_size}, raw and processed by each "
-            f"run's preprocessor; class separation = silhouette on PC1–3")
+    return (
+        f"{n_raw} → {n_hidden} units, {pre.reconstruction.shape[1]} training sweeps (all layers) "
+        f"({'loaded from the cache' if pre.cached else 'trained in this run'}); PCA of "
+        f"{len(pre.ids)} distinct images, {len(pre.class_names)} digit classes "
+        f"({', '.join(pre.class_names)}) × {pre.reservoir_size}, raw and processed by each "
+        f"run's preprocessor; class separation = silhouette on PC1–3"
+    )
 
 
 def write_tables(pre: Preprocessing, out: Path) -> list[str]:
     """Write the numbers behind Figs. 5.15–5.16 and the training curve; return the file names."""
     ratios = pre.processed_ratios
-    write_csv(out / "preprocessor_explained_variance.csv", ["data", "pc", "mean", "sem"],
-              [("raw", k + 1, fmt(x), "") for k, x in enumerate(pre.raw[1])]
-              + [("processed", k + 1, fmt(m), fmt(s))
-                 for k, (m, s) in enumerate(zip(ratios.mean(axis=0), stats.sem(ratios)))])
+    write_csv(
+        out / "preprocessor_explained_variance.csv",
+        ["data", "pc", "mean", "sem"],
+        [("raw", k + 1, fmt(x), "") for k, x in enumerate(pre.raw[1])]
+        + [
+            ("processed", k + 1, fmt(m), fmt(s)) for k, (m, s) in enumerate(zip(ratios.mean(axis=0), stats.sem(ratios)))
+        ],
+    )
     errors = pre.reconstruction
-    write_csv(out / "preprocessor_reconstruction_error.csv",
-              ["sweep", "mean", "sem", *(f"run_{r}" for r in range(pre.n_runs))],
-              [(k + 1, fmt(m), fmt(s), *map(fmt, errors[:, k]))
-               for k, (m, s) in enumerate(zip(errors.mean(axis=0), stats.sem(errors)))])
+    write_csv(
+        out / "preprocessor_reconstruction_error.csv",
+        ["sweep", "mean", "sem", *(f"run_{r}" for r in range(pre.n_runs))],
+        [
+            (k + 1, fmt(m), fmt(s), *map(fmt, errors[:, k]))
+            for k, (m, s) in enumerate(zip(errors.mean(axis=0), stats.sem(errors)))
+        ],
+    )
     raw, processed = pre.silhouettes
     numbers = {
-        "classes": pre.class_names, "images_per_class": pre.reservoir_size,
+        "classes": pre.class_names,
+        "images_per_class": pre.reservoir_size,
         "units": {"raw": pre.shape[0], "processed": pre.shape[1]},
-        "class_silhouette_pc1_3": {"raw": raw, "processed_mean": float(processed.mean()),
-                                   "processed_runs": processed.tolist()},
+        "class_silhouette_pc1_3": {
+            "raw": raw,
+            "processed_mean": float(processed.mean()),
+            "processed_runs": processed.tolist(),
+        },
         f"pcs_for_{VARIANCE_SHARE * 100:g}pct_variance": {
             "raw": pcs_for_share(pre.raw[1]),
-            "processed_runs": [pcs_for_share(r) for r in ratios]},
+            "processed_runs": [pcs_for_share(r) for r in ratios],
+        },
         "held_out_reconstruction_error": {
             when: {"mean": float(pre.held_out(when).mean()), "runs": pre.held_out(when).tolist()}
-            for when in ("before", "after")},
-        "training_reconstruction_error": {"first_sweep_mean": float(errors[:, 0].mean()),
-                                          "last_sweep_mean": float(errors[:, -1].mean())},
+            for when in ("before", "after")
+        },
+        "training_reconstruction_error": {
+            "first_sweep_mean": float(errors[:, 0].mean()),
+            "last_sweep_mean": float(errors[:, -1].mean()),
+        },
         "cached": pre.cached,
     }
     (out / "preprocessor.json").write_text(strict_dumps(numbers, indent=2) + "\n")
-    return ["preprocessor_explained_variance.csv", "preprocessor_reconstruction_error.csv",
-            "preprocessor.json"]
+    return ["preprocessor_explained_variance.csv", "preprocessor_reconstruction_error.csv", "preprocessor.json"]
 
 
 def make_figures(pre: Preprocessing) -> dict[str, tuple]:
@@ -166,25 +181,39 @@ def make_figures(pre: Preprocessing) -> dict[str, tuple]:
     errors = pre.reconstruction
     return {
         "preprocessor_raw_pca": (
-            figs.class_pca(scores, pre.labels, pre.class_names,
-                           f"projection on PC1–3; class silhouette {raw_sil:.2f}",
-                           [(f"all {n_raw} PCs", ratio), (f"first {FIRST_PCS} PCs",
-                                                          ratio[:FIRST_PCS])],
-                           f"{RAW_FIGURE}: PCA of all distinct raw observations, {images}"),
+            figs.class_pca(
+                scores,
+                pre.labels,
+                pre.class_names,
+                f"projection on PC1–3; class silhouette {raw_sil:.2f}",
+                [(f"all {n_raw} PCs", ratio), (f"first {FIRST_PCS} PCs", ratio[:FIRST_PCS])],
+                f"{RAW_FIGURE}: PCA of all distinct raw observations, {images}",
+            ),
             f"{RAW_FIGURE}: the distinct {n_raw}-pixel observations on PC1–3 by digit class, "
-            f"and the explained-variance ratio of all {n_raw} and of the first {FIRST_PCS} PCs"),
+            f"and the explained-variance ratio of all {n_raw} and of the first {FIRST_PCS} PCs",
+        ),
         "preprocessor_processed_pca": (
-            figs.class_pca(scores_r, pre.labels, pre.class_names,
-                           f"projection on PC1–3; class silhouette {processed_sil[FIGURE_RUN]:.2f}",
-                           [(f"all {n_hidden} PCs", ratio_r)],
-                           f"{PROCESSED_FIGURE}: PCA of the processed observations "
-                           f"({n_raw} → {n_hidden}, RBM of run {FIGURE_RUN}), {images}"),
+            figs.class_pca(
+                scores_r,
+                pre.labels,
+                pre.class_names,
+                f"projection on PC1–3; class silhouette {processed_sil[FIGURE_RUN]:.2f}",
+                [(f"all {n_hidden} PCs", ratio_r)],
+                f"{PROCESSED_FIGURE}: PCA of the processed observations "
+                f"({n_raw} → {n_hidden}, RBM of run {FIGURE_RUN}), {images}",
+            ),
             f"{PROCESSED_FIGURE}: the same images processed by the RBM of run {FIGURE_RUN} on "
-            f"PC1–3 by digit class, and the explained-variance ratio of all {n_hidden} PCs"),
+            f"PC1–3 by digit class, and the explained-variance ratio of all {n_hidden} PCs",
+        ),
         "preprocessor_reconstruction_error": (
-            figs.reconstruction_error(errors.mean(axis=0), stats.sem(errors), pre.n_runs,
-                                      (pre.held_out("before").mean(), pre.held_out("after").mean()),
-                                      f"RBM preprocessor training (§5.3.2), {n_raw} → {n_hidden}"),
+            figs.reconstruction_error(
+                errors.mean(axis=0),
+                stats.sem(errors),
+                pre.n_runs,
+                (pre.held_out("before").mean(), pre.held_out("after").mean()),
+                f"RBM preprocessor training (§5.3.2), {n_raw} → {n_hidden}",
+            ),
             "§5.3.2 (no figure in the dissertation): the RBM's reconstruction error per training "
-            "sweep, mean ± s.e.m. over runs; points: held-out images before / after training"),
+            "sweep, mean ± s.e.m. over runs; points: held-out images before / after training",
+        ),
     }

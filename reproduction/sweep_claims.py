@@ -17,9 +17,11 @@ def _hidden_size_verdicts(sweep: Sweep) -> Measured | None:
             if len(found) >= 2:
                 levels = [VERDICTS.index(v) for v in found.values()]
                 text = "; ".join(f"{n} hidden: {v}" for n, v in sorted(found.items()))
-                return Measured((max(levels) - min(levels), min(levels)),
-                                f"`{experiment}`, verdict of the same-action-pair claim "
-                                f"({SAME_ACTION_PAIRS_SOURCE}) by hidden size — {text}")
+                return Measured(
+                    (max(levels) - min(levels), min(levels)),
+                    f"`{experiment}`, verdict of the same-action-pair claim "
+                    f"({SAME_ACTION_PAIRS_SOURCE}) by hidden size — {text}",
+                )
     return None
 
 
@@ -31,9 +33,13 @@ def _same_across_sizes(value: tuple[int, int]) -> str:
 
 
 SWEEP_CLAIMS: list[Claim] = [
-    Claim("The reward-dependent representations do not severely depend on the number of hidden "
-          "nodes: with 10 and 40 hidden nodes the median firing patterns cluster as with 20.",
-          "§3.5.3, Fig. 3.13", _hidden_size_verdicts, _same_across_sizes,
-          "held: the same verdict (held or partly) at every size; partly: verdicts one level "
-          "apart; not held otherwise, or not held at every size"),
+    Claim(
+        "The reward-dependent representations do not severely depend on the number of hidden "
+        "nodes: with 10 and 40 hidden nodes the median firing patterns cluster as with 20.",
+        "§3.5.3, Fig. 3.13",
+        _hidden_size_verdicts,
+        _same_across_sizes,
+        "held: the same verdict (held or partly) at every size; partly: verdicts one level "
+        "apart; not held otherwise, or not held at every size",
+    ),
 ]

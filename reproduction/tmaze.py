@@ -32,28 +32,31 @@ from reproduction import preprocessor as preproc
 from reproduction import tmaze_figures as figs
 
 ENV_KIND = "tmaze"
-PHASE_EPISODES = 1000         # "first / last 1000 episodes" of Figs. 4.14–4.19
-N_PCS = 3                     # separation is scored on PC1–3, the space of Fig. 4.19(b)
+PHASE_EPISODES = 1000  # "first / last 1000 episodes" of Figs. 4.14–4.19
+N_PCS = 3  # separation is scored on PC1–3, the space of Fig. 4.19(b)
 MAX_SILHOUETTE_POINTS = 2000  # visits per run and phase; bounds the O(n²) distances
 PHASES = ("first", "last")
 LABELLINGS = {"condition": "conditions", "initial_signal": "initial signal"}
-MEMORY_LABELS = {OBSERVATION: "observation-predictor memory m^y",
-                 REWARD: "reward-predictor memory m^r"}
+MEMORY_LABELS: dict[str | None, str] = {
+    OBSERVATION: "observation-predictor memory m^y",
+    REWARD: "reward-predictor memory m^r",
+}
 
 
 @dataclass(frozen=True)
 class Projection:
     """PCA of one layer over the junction visits of one run in one phase."""
-    visits: np.ndarray     # indices into the junction records
-    scores: np.ndarray     # (n, N_PCS) coordinates on PC1–3
+
+    visits: np.ndarray  # indices into the junction records
+    scores: np.ndarray  # (n, N_PCS) coordinates on PC1–3
     explained: np.ndarray  # explained-variance ratio of every PC
 
 
 @dataclass
 class TMazeRun:
     run: Run
-    episodes: dict[str, np.ndarray]   # records/episodes.npz
-    junction: dict[str, np.ndarray]   # records/probe.npz (the T-junction's visits); {} without any
+    episodes: dict[str, np.ndarray]  # records/episodes.npz
+    junction: dict[str, np.ndarray]  # records/probe.npz (the T-junction's visits); {} without any
 
     @classmethod
     def load(cls, run: Run) -> TMazeRun:
@@ -96,8 +99,9 @@ class TMazeRun:
         records = self.run.records("preprocessor")
         if self.run.manifest.preprocessor is None or records is None:
             return None
-        return preproc.Preprocessing.from_records(records, self.env["observation_names"],
-                                                  self.env.get("digit_classes") or {})
+        return preproc.Preprocessing.from_records(
+            records, self.env["observation_names"], self.env.get("digit_classes") or {}
+        )
 
     @property
     def optimal_return(self) -> float:
@@ -136,11 +140,15 @@ class TMazeRun:
         by_epoch = nanmean(train[:, :, trained], axis=(0, 2, 3))
         early = np.flatnonzero((p.epochs > 0) & (p.epochs <= early_epochs * p.epochs[-1]))
         drop = by_epoch[0] - by_epoch[-1]
-        return {"initial": float(by_epoch[0]), "final": float(by_epoch[-1]),
-                "early_share": float((by_epoch[0] - by_epoch[early[-1]]) / drop)
-                if early.size and drop > 0 else float("nan"),
-                "test": float(nanmean(test[:, -1, trained])),
-                "longer": float(nanmean(test[:, -1, ~trained]))}
+        return {
+            "initial": float(by_epoch[0]),
+            "final": float(by_epoch[-1]),
+            "early_share": float((by_epoch[0] - by_epoch[early[-1]]) / drop)
+            if early.size and drop > 0
+            else float("nan"),
+            "test": float(nanmean(test[:, -1, trained])),
+            "longer": float(nanmean(test[:, -1, ~trained])),
+        }
 
     # ---- behaviour (Figs. 4.6–4.8, 4.11–4.13, 5.3–5.6, 5.18–5.19) ----
     def window_mean(self, key: str, first: bool) -> np.ndarray:
@@ -183,8 +191,9 @@ class TMazeRun:
 
     def phase_visits(self, phase: str, r: int) -> np.ndarray:
         episode = self.junction["episode"]
-        in_phase = (episode < self.phase_episodes if phase == "first"
-                    else episode >= self.n_episodes - self.phase_episodes)
+        in_phase = (
+            episode < self.phase_episodes if phase == "first" else episode >= self.n_episodes - self.phase_episodes
+        )
         return np.flatnonzero((self.junction["run"] == r) & in_phase)
 
     @cached_property
@@ -193,7 +202,7 @@ class TMazeRun:
 
     def nonfinite_visits(self, layer: str) -> np.ndarray:
         """Visits whose activations are not all finite (a diverged actor); PCA leaves them out."""
-        return ~np.isfinite(self.junction[layer].astype(np.float64)).all(axis=1)
+        return np.asarray(~np.isfinite(self.junction[layer].astype(np.float64)).all(axis=1))  # (visits,)
 
     def projection(self, layer: str, phase: str, r: int) -> Projection | None:
         """PCA fit on the finite visits of run r in one phase (None with fewer than 2)."""
@@ -202,8 +211,8 @@ class TMazeRun:
             visits = self.phase_visits(phase, r)
             visits = visits[~self.nonfinite_visits(layer)[visits]]
             self._projections[key] = (
-                Projection(visits, *pca(self.junction[layer][visits], N_PCS))
-                if len(visits) >= 2 else None)
+                Projection(visits, *pca(self.junction[layer][visits], N_PCS)) if len(visits) >= 2 else None
+            )
         return self._projections[key]
 
     def separation_labels(self, layer: str) -> list[str]:
@@ -224,17 +233,15 @@ class TMazeRun:
                         if proj is None:
                             continue
                         scores[p, r] = subsampled_silhouette(
-                            proj.scores, self.junction[labels][proj.visits], MAX_SILHOUETTE_POINTS)
+                            proj.scores, self.junction[labels][proj.visits], MAX_SILHOUETTE_POINTS
+                        )
                 out[layer, labels] = scores
         return out
 
     def explained(self, layer: str, phase: str) -> np.ndarray:
         """(R', units) explained-variance ratios of the runs with visits in the phase."""
         projs = [self.projection(layer, phase, r) for r in range(self.n_runs)]
-        return np.array([p.explained for p in projs if p is not None]).reshape(
-            -1, self.junction[layer].shape[1])
-
-
+        return np.array([p.explained for p in projs if p is not None]).reshape(-1, self.junction[layer].shape[1])
 
     def memory_layer(self, role: str) -> str | None:
         """The junction layer of the memory of the first predictor of a role."""
@@ -245,36 +252,47 @@ class TMazeRun:
         """The layer as the dissertation's figures name it: a memory by its predictor's role."""
         if not layer.startswith("memory_"):
             return layer
-        role = self.run.manifest.roles.get(layer[len("memory_"):])
+        role = self.run.manifest.roles.get(layer[len("memory_") :])
         return f"memory_{role}" if role else "memory"
 
     def layer_label(self, layer: str) -> str:
         named = {"state": "actor state (y, m)", "hidden": "actor hidden ĥ"}
         if not layer.startswith("memory"):
             return named.get(layer, layer)
-        role = self.run.manifest.roles.get(layer[len("memory_"):])
-        return MEMORY_LABELS.get(role, f"predictor memory ({layer[len('memory_'):]})")
+        role = self.run.manifest.roles.get(layer[len("memory_") :])
+        return MEMORY_LABELS.get(role, f"predictor memory ({layer[len('memory_') :]})")
 
 
 # ---- data files ------------------------------------------------------------
+
 
 def write_tables(run: TMazeRun, out: Path) -> list[str]:
     """Write the numbers behind the junction and preprocessor figures; return the file names."""
     written = []
     if run.layers:
         runs = [f"run_{r}" for r in range(run.n_runs)]
-        write_csv(out / "junction_separation.csv",
-                  ["layer", "labels", "phase", "episodes", "runs_defined", "silhouette_mean",
-                   "silhouette_sem", *runs],
-                  [(layer, labels, phase, run.phase_label(phase), n, fmt(mean), fmt(sem),
-                    *map(fmt, s[p]))
-                   for (layer, labels), s in run.separation.items()
-                   for p, phase in enumerate(PHASES) for mean, sem, n in [stats.mean_sem(s[p])]])
-        write_csv(out / "junction_explained_variance.csv", ["layer", "phase", "pc", "mean", "sem"],
-                  [(layer, phase, k + 1, fmt(mean), fmt(sem))
-                   for layer in run.layers for phase in PHASES
-                   for ratio in [run.explained(layer, phase)] for k in range(ratio.shape[1])
-                   for mean, sem, _ in [stats.mean_sem(ratio[:, k])]])
+        write_csv(
+            out / "junction_separation.csv",
+            ["layer", "labels", "phase", "episodes", "runs_defined", "silhouette_mean", "silhouette_sem", *runs],
+            [
+                (layer, labels, phase, run.phase_label(phase), n, fmt(mean), fmt(sem), *map(fmt, s[p]))
+                for (layer, labels), s in run.separation.items()
+                for p, phase in enumerate(PHASES)
+                for mean, sem, n in [stats.mean_sem(s[p])]
+            ],
+        )
+        write_csv(
+            out / "junction_explained_variance.csv",
+            ["layer", "phase", "pc", "mean", "sem"],
+            [
+                (layer, phase, k + 1, fmt(mean), fmt(sem))
+                for layer in run.layers
+                for phase in PHASES
+                for ratio in [run.explained(layer, phase)]
+                for k in range(ratio.shape[1])
+                for mean, sem, _ in [stats.mean_sem(ratio[:, k])]
+            ],
+        )
         written += ["junction_separation.csv", "junction_explained_variance.csv"]
     if run.preprocessing is not None:
         written += preproc.write_tables(run.preprocessing, out)
@@ -283,6 +301,7 @@ def write_tables(run: TMazeRun, out: Path) -> list[str]:
 
 # ---- figures ---------------------------------------------------------------
 
+
 def _junction_figures(run: TMazeRun, layer: str, num: Numbering) -> dict[str, tuple]:
     out = {}
     j, r = run.junction, FIGURE_RUN
@@ -290,38 +309,62 @@ def _junction_figures(run: TMazeRun, layer: str, num: Numbering) -> dict[str, tu
     what = f"{run.layer_label(layer)} at the T-junction, run {r}"
     numbers = num.layer(run.layer_key(layer)) or LayerFigures("", "")
     out[f"junction_{layer}_activations"] = (
-        figs.junction_activations(j[layer][mine].astype(np.float64), j["condition"][mine],
-                                  j["episode"][mine], run.condition_names, run.condition_title,
-                                  what),
-        caption(numbers.activations, f"{what}, every visit, sorted by condition then episode"))
+        figs.junction_activations(
+            j[layer][mine].astype(np.float64),
+            j["condition"][mine],
+            j["episode"][mine],
+            run.condition_names,
+            run.condition_title,
+            what,
+        ),
+        caption(numbers.activations, f"{what}, every visit, sorted by condition then episode"),
+    )
     panels, explained = [], []
     for p, phase in enumerate(PHASES):
         proj = run.projection(layer, phase, r)
         if proj is None:
             continue
-        scores = ", ".join(f"{LABELLINGS[labels]} {run.separation[layer, labels][p, r]:.2f}"
-                           for labels in run.separation_labels(layer))
-        panels.append((f"{run.phase_label(phase)}\nsilhouette on PC1–3: {scores}",
-                       proj.scores, j["condition"][proj.visits], run.steps_to_goal[proj.visits]))
+        scores = ", ".join(
+            f"{LABELLINGS[labels]} {run.separation[layer, labels][p, r]:.2f}" for labels in run.separation_labels(layer)
+        )
+        panels.append(
+            (
+                f"{run.phase_label(phase)}\nsilhouette on PC1–3: {scores}",
+                proj.scores,
+                j["condition"][proj.visits],
+                run.steps_to_goal[proj.visits],
+            )
+        )
         explained.append((run.phase_label(phase), proj.explained))
     if not panels:
         return out
     out[f"junction_{layer}_pca"] = (
-        figs.junction_pca(panels, explained, run.condition_names, run.condition_title,
-                          (run.optimal_steps, run.max_steps),
-                          caption(numbers.pca, f"{what}: PCA fit separately on each phase's "
-                                               "visits; marker size = steps to the goal")),
-        caption(numbers.pca, f"{what}, PC1–2 and explained-variance ratios of the PCA fit on "
-                             f"the visits of the first and, separately, the last "
-                             f"{run.phase_episodes} episodes"))
+        figs.junction_pca(
+            panels,
+            explained,
+            run.condition_names,
+            run.condition_title,
+            (run.optimal_steps, run.max_steps),
+            caption(numbers.pca, f"{what}: PCA fit separately on each phase's visits; marker size = steps to the goal"),
+        ),
+        caption(
+            numbers.pca,
+            f"{what}, PC1–2 and explained-variance ratios of the PCA fit on "
+            f"the visits of the first and, separately, the last "
+            f"{run.phase_episodes} episodes",
+        ),
+    )
     if numbers.pca3d:
         out[f"junction_{layer}_pca3d"] = (
-            figs.junction_pca3d([(t, s, c) for t, s, c, _ in panels], run.condition_names,
-                                run.condition_title,
-                                f"{numbers.pca3d}: {what}: projection on PC1–3"),
-            f"{numbers.pca3d}: {what} on PC1–3, PCA fit per phase as in junction_{layer}_pca")
+            figs.junction_pca3d(
+                [(t, s, c) for t, s, c, _ in panels],
+                run.condition_names,
+                run.condition_title,
+                f"{numbers.pca3d}: {what}: projection on PC1–3",
+            ),
+            f"{numbers.pca3d}: {what} on PC1–3, PCA fit per phase as in junction_{layer}_pca",
+        )
     return out
-
 
 
 def make_figures(run: TMazeRun, num: Numbering) -> dict[str, tuple]:
@@ -337,21 +380,33 @@ def _header(run: TMazeRun, num: Numbering) -> list[tuple[str, str]]:
     predictors = "; ".join(
         f"`{p.name}`: T = {p.lengths.min()}…{p.lengths.max()}, trained on T ≤ {p.trained_max} "
         f"(L_training = {run.run.l_training}{f', {num.parameters}' if num.parameters else ''}), "
-        f"{len(p.epochs)} logged epochs up to {p.epochs[-1]}" for p in run.run.predictors)
-    junction = (f"{len(run.junction['run'])} visits; layers "
-                f"{', '.join(f'`{k}` ({run.junction[k].shape[1]} units)' for k in run.layers)}; "
-                f"PCA (SVD) fit per run on the visits of the first and, separately, the last "
-                f"{run.phase_episodes} episodes; figures show run {FIGURE_RUN}; separation = "
-                f"silhouette of the labels on PC1–3 (≤ {MAX_SILHOUETTE_POINTS} visits per run "
-                "and phase)") if run.layers else "no junction activations recorded"
+        f"{len(p.epochs)} logged epochs up to {p.epochs[-1]}"
+        for p in run.run.predictors
+    )
+    junction = (
+        (
+            f"{len(run.junction['run'])} visits; layers "
+            f"{', '.join(f'`{k}` ({run.junction[k].shape[1]} units)' for k in run.layers)}; "
+            f"PCA (SVD) fit per run on the visits of the first and, separately, the last "
+            f"{run.phase_episodes} episodes; figures show run {FIGURE_RUN}; separation = "
+            f"silhouette of the labels on PC1–3 (≤ {MAX_SILHOUETTE_POINTS} visits per run "
+            "and phase)"
+        )
+        if run.layers
+        else "no junction activations recorded"
+    )
     dropped = {k: int(run.nonfinite_visits(k).sum()) for k in run.layers}
     if any(dropped.values()):
         junction += "; left out for non-finite activations: " + ", ".join(
-            f"`{k}` {n} visits" for k, n in dropped.items() if n)
+            f"`{k}` {n} visits" for k, n in dropped.items() if n
+        )
     header = [
         ("maze", f"{run.variant} T-maze, T_min = {run.optimal_steps:g}, T_max = {run.max_steps}"),
-        ("optimum", f"discounted return {run.optimal_return:.4f} "
-                    f"(γ = {float(run.episodes['gamma']):g}), {run.optimal_steps:g} steps"),
+        (
+            "optimum",
+            f"discounted return {run.optimal_return:.4f} "
+            f"(γ = {float(run.episodes['gamma']):g}), {run.optimal_steps:g} steps",
+        ),
         ("predictor training", predictors or "none recorded"),
         ("junction analysis", junction),
     ]
@@ -364,5 +419,9 @@ def analyze(run: Run, num: Numbering, out: Path) -> tuple[TMazeRun, RunAnalysis]
     """The junction and preprocessor figures and data files of a T-maze run, and the run as the
     claims of ``reproduction.ch4`` and ``ch5`` read it."""
     maze = TMazeRun.load(run)
-    return maze, RunAnalysis(f"T-maze ({maze.variant}): {run.experiment}", _header(maze, num),
-                             figures=make_figures(maze, num), data_files=write_tables(maze, out))
+    return maze, RunAnalysis(
+        f"T-maze ({maze.variant}): {run.experiment}",
+        _header(maze, num),
+        figures=make_figures(maze, num),
+        data_files=write_tables(maze, out),
+    )

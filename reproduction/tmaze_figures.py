@@ -9,7 +9,7 @@ learning curves, TD errors and prediction errors are generic figures (``ferl.ana
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 from matplotlib import colormaps
@@ -26,9 +26,14 @@ def _condition_colors(n: int) -> list:
     return [colormaps["tab10"](k) for k in range(n)]
 
 
-def junction_activations(acts: np.ndarray, condition: np.ndarray, episode: np.ndarray,
-                         condition_names: Sequence[str], condition_title: str,
-                         title: str) -> Figure:
+def junction_activations(
+    acts: np.ndarray,
+    condition: np.ndarray,
+    episode: np.ndarray,
+    condition_names: Sequence[str],
+    condition_title: str,
+    title: str,
+) -> Figure:
     """Figs. 4.14(a)/4.15(a)/4.17(a): every junction visit, sorted by condition then episode."""
     order = np.lexsort((episode, condition))
     acts, condition = acts[order], condition[order]
@@ -39,8 +44,7 @@ def junction_activations(acts: np.ndarray, condition: np.ndarray, episode: np.nd
     im = ax.imshow(acts, aspect="auto", interpolation="nearest", cmap="viridis", vmin=0, vmax=1)
     for b in ends[:-1]:
         ax.axhline(b, color="w", lw=1.5)
-    ax.set_yticks(ends - counts / 2, [f"{condition_names[c]}\n{n} visits"
-                                      for c, n in zip(present, counts)])
+    ax.set_yticks(ends - counts / 2, [f"{condition_names[c]}\n{n} visits" for c, n in zip(present, counts)])
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_xlabel("unit")
     ax.set_ylabel(f"junction visits by {condition_title}, then episode ↓")
@@ -49,24 +53,29 @@ def junction_activations(acts: np.ndarray, condition: np.ndarray, episode: np.nd
     return fig
 
 
-def _marker_sizes(steps: np.ndarray, shortest: float, longest: float) -> np.ndarray:
+def _marker_sizes(steps: np.ndarray | float, shortest: float, longest: float) -> np.ndarray | float:
     return np.interp(steps, [shortest, longest], MARKER_SIZES)
 
 
 def _condition_legend(ax, condition_names: Sequence[str], title: str, sizes=None) -> None:
     colors = _condition_colors(len(condition_names))
-    handles = [Line2D([], [], ls="", marker="o", color=c, label=n)
-               for c, n in zip(colors, condition_names)]
+    handles = [Line2D([], [], ls="", marker="o", color=c, label=n) for c, n in zip(colors, condition_names)]
     if sizes is not None:
-        handles += [Line2D([], [], ls="", marker="o", color="gray", markersize=np.sqrt(a),
-                           label=f"{s:g} steps") for s, a in sizes]
-    ax.legend(handles=handles, title=title, fontsize="x-small", title_fontsize="x-small",
-              loc="best")
+        handles += [
+            Line2D([], [], ls="", marker="o", color="gray", markersize=np.sqrt(a), label=f"{s:g} steps")
+            for s, a in sizes
+        ]
+    ax.legend(handles=handles, title=title, fontsize="x-small", title_fontsize="x-small", loc="best")
 
 
-def junction_pca(panels: Sequence[tuple], explained: Sequence[tuple],
-                 condition_names: Sequence[str], legend_title: str,
-                 steps_range: tuple[float, float], title: str) -> Figure:
+def junction_pca(
+    panels: Sequence[tuple],
+    explained: Sequence[tuple],
+    condition_names: Sequence[str],
+    legend_title: str,
+    steps_range: tuple[float, float],
+    title: str,
+) -> Figure:
     """Figs. 4.14(b)/4.15(b)/4.17(b) with the variance bars of Figs. 4.16/4.19(a).
 
     ``panels`` holds (subtitle, scores (n, ≥2), condition (n,), steps_to_goal (n,)) per phase,
@@ -76,19 +85,27 @@ def junction_pca(panels: Sequence[tuple], explained: Sequence[tuple],
     axes = fig.subplots(1, len(panels) + 1)
     colors = np.array(_condition_colors(len(condition_names)))
     for ax, (subtitle, scores, condition, steps) in zip(axes, panels):
-        ax.scatter(scores[:, 0], scores[:, 1], s=_marker_sizes(steps, *steps_range),
-                   c=colors[condition], alpha=0.5, linewidths=0)
+        ax.scatter(
+            scores[:, 0],
+            scores[:, 1],
+            s=_marker_sizes(steps, *steps_range),
+            c=colors[condition],
+            alpha=0.5,
+            linewidths=0,
+        )
         ax.set_xlabel("PC1")
         ax.set_ylabel("PC2")
         ax.set_title(subtitle, fontsize="small")
-    _condition_legend(axes[0], condition_names, legend_title,
-                      sizes=[(s, float(_marker_sizes(s, *steps_range))) for s in steps_range])
+    _condition_legend(
+        axes[0], condition_names, legend_title, sizes=[(s, float(_marker_sizes(s, *steps_range))) for s in steps_range]
+    )
     ax = axes[-1]
     n_show = min(10, max(len(r) for _, r in explained))
     width = 0.8 / len(explained)
     for k, (label, ratio) in enumerate(explained):
-        ax.bar(np.arange(1, n_show + 1) + (k - (len(explained) - 1) / 2) * width,
-               ratio[:n_show], width=width, label=label)
+        ax.bar(
+            np.arange(1, n_show + 1) + (k - (len(explained) - 1) / 2) * width, ratio[:n_show], width=width, label=label
+        )
     ax.set_xticks(range(1, n_show + 1))
     ax.set_xlabel("principal component")
     ax.set_ylabel("explained variance ratio")
@@ -99,16 +116,14 @@ def junction_pca(panels: Sequence[tuple], explained: Sequence[tuple],
 
 
 def _pc3_scatter(ax, scores: np.ndarray, colors: np.ndarray, subtitle: str) -> None:
-    ax.scatter(scores[:, 0], scores[:, 1], scores[:, 2], c=colors, s=8, alpha=0.6,
-               linewidths=0, depthshade=False)
+    ax.scatter(scores[:, 0], scores[:, 1], scores[:, 2], c=colors, s=8, alpha=0.6, linewidths=0, depthshade=False)
     ax.set_xlabel("PC1")
     ax.set_ylabel("PC2")
     ax.set_zlabel("PC3")
     ax.set_title(subtitle, fontsize="small")
 
 
-def junction_pca3d(panels: Sequence[tuple], condition_names: Sequence[str],
-                   legend_title: str, title: str) -> Figure:
+def junction_pca3d(panels: Sequence[tuple], condition_names: Sequence[str], legend_title: str, title: str) -> Figure:
     """Figs. 4.19(b)/5.10(b)/5.13(b)/5.23(b): projection on PC1–3; ``panels`` holds
     (subtitle, scores (n, 3), condition)."""
     fig = Figure(figsize=(12, 5.5), layout="constrained")
@@ -122,16 +137,21 @@ def junction_pca3d(panels: Sequence[tuple], condition_names: Sequence[str],
     return fig
 
 
-def class_pca(scores: np.ndarray, labels: np.ndarray, class_names: Sequence[str],
-              subtitle: str, spectra: Sequence[tuple], title: str) -> Figure:
+def class_pca(
+    scores: np.ndarray,
+    labels: np.ndarray,
+    class_names: Sequence[str],
+    subtitle: str,
+    spectra: Sequence[tuple],
+    title: str,
+) -> Figure:
     """Figs. 5.15/5.16: (a) images projected on PC1–3, coloured by digit class; then one
     panel of explained-variance ratios per (label, ratios) in ``spectra`` (Figs. 5.15(b–c),
     5.16(b))."""
     n_panels = 1 + len(spectra)
     fig = Figure(figsize=(5.5 + 4.5 * len(spectra), 4.8), layout="constrained")
     ax = fig.add_subplot(1, n_panels, 1, projection="3d")
-    _pc3_scatter(ax, scores, np.array(_condition_colors(len(class_names)))[labels],
-                 f"(a) {subtitle}")
+    _pc3_scatter(ax, scores, np.array(_condition_colors(len(class_names)))[labels], f"(a) {subtitle}")
     _condition_legend(ax, class_names, "digit class")
     for k, (label, ratio) in enumerate(spectra):
         ax = fig.add_subplot(1, n_panels, k + 2)
@@ -143,16 +163,16 @@ def class_pca(scores: np.ndarray, labels: np.ndarray, class_names: Sequence[str]
     return fig
 
 
-def reconstruction_error(mean: np.ndarray, sem: np.ndarray, n_runs: int,
-                         held_out: tuple[float, float], title: str) -> Figure:
+def reconstruction_error(
+    mean: np.ndarray, sem: np.ndarray, n_runs: int, held_out: tuple[float, float], title: str
+) -> Figure:
     """The RBM preprocessor's training (§5.3.2): reconstruction error per sweep, mean ± s.e.m.
     over runs, with the mean held-out error before and after training as points."""
     fig = Figure(figsize=(7, 4.2), layout="constrained")
     ax = fig.add_subplot()
     sweeps = np.arange(1, len(mean) + 1)
     band(ax, sweeps, mean, sem, None)
-    ax.plot([0, sweeps[-1]], held_out, "o", color="tab:red",
-            label="held-out images: before / after training")
+    ax.plot([0, sweeps[-1]], held_out, "o", color="tab:red", label="held-out images: before / after training")
     ax.legend(fontsize="small")
     ax.set_xlabel("sweep through the training images")
     ax.set_ylabel("mean squared reconstruction error")

@@ -15,9 +15,9 @@ agent's mean ± s.e.m. when it was run by at least two agents.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 from matplotlib.figure import Figure
@@ -27,25 +27,49 @@ from ferl.analysis import generic
 from ferl.analysis.figures import band
 from ferl.analysis.io import fmt, table_lines, write_csv
 from ferl.analysis.records import Run
-from ferl.analysis.sweep import metric_values
+from ferl.analysis.sweep import Job, metric_values
 from ferl.run.jsonio import strict_dumps
 
 DISSERTATION_AGENT = "dissertation agent"
 # The metrics a task's row shows, in this order, where its summaries have them (docs/records.md).
-HEADLINES = ("solved", "final_correct_goal_rate", "final_success_rate", "final_return", "best_return",
-             "final_discounted_return", "reward_per_step_last10pct",
-             "greedy_accuracy/0.125", "env_steps_to_solve", "env_steps_total", "wall_time_s", "agent_steps_per_s")
+HEADLINES = (
+    "solved",
+    "final_correct_goal_rate",
+    "final_success_rate",
+    "final_return",
+    "best_return",
+    "final_discounted_return",
+    "reward_per_step_last10pct",
+    "greedy_accuracy/0.125",
+    "env_steps_to_solve",
+    "env_steps_total",
+    "wall_time_s",
+    "agent_steps_per_s",
+)
 # How agents are ranked on a task: by the first of these their summaries have (higher is better),
 # then the next on ties; the finding compares the leader with the runner-up on the first of them
 # on which the two differ.
 # (An outside task's undiscounted return before the discounted one: its agents may discount differently.)
-RANKING = ("solved", "final_correct_goal_rate", "final_success_rate", "final_return", "final_discounted_return",
-           "reward_per_step_last10pct")
+RANKING = (
+    "solved",
+    "final_correct_goal_rate",
+    "final_success_rate",
+    "final_return",
+    "final_discounted_return",
+    "reward_per_step_last10pct",
+)
 # What a view of the environment changes of its facts (the oracle's ``true_state``): the task stays.
 # what an agent's view of a task is (the oracle's true state; an outside task's encoding and the
 # scale of the rewards it learns from), not the task
-VIEW_KEYS = ("true_state", "observation", "observation_size", "observation_names", "encoding", "vectorization",
-             "reward_scale")
+VIEW_KEYS = (
+    "true_state",
+    "observation",
+    "observation_size",
+    "observation_names",
+    "encoding",
+    "vectorization",
+    "reward_scale",
+)
 ORACLE = "oracle"
 # the curve each unit of run draws: the first of these it has (an outside task's undiscounted return)
 CURVE = {"episode": ("return", "discounted_return"), "step": ("reward",)}
@@ -82,7 +106,7 @@ def task_key(manifest) -> str:
 @dataclass
 class Entry:
     agent: str
-    job: object   # ferl.analysis.sweep.Job
+    job: Job
 
     @property
     def run(self) -> Run:
@@ -144,14 +168,18 @@ def finding(cells: Sequence[tuple[Entry, dict]]) -> str | None:
     name = lambda e: f"{e.agent} ({e.job.label})"  # noqa: E731
     diff, sem = b[metric][0] - c[metric][0], float(np.hypot(b[metric][1], c[metric][1]))
     clear = "" if diff > 2 * sem else " — within two s.e.m.: no clear leader"
-    text = (f"**Best: {name(best)}**, {metric} {cell_text(metric, b[metric])}, ahead of {name(second)} "
-            f"({cell_text(metric, c[metric])}) by {diff:.3f} ± {sem:.3f} (s.e.m. of the difference){clear}.")
+    text = (
+        f"**Best: {name(best)}**, {metric} {cell_text(metric, b[metric])}, ahead of {name(second)} "
+        f"({cell_text(metric, c[metric])}) by {diff:.3f} ± {sem:.3f} (s.e.m. of the difference){clear}."
+    )
     ours = ferl_agent([(e, h) for e, h in agents if metric in h])
     if ours is not None and ours[0] is not best:
         gap, gap_sem = b[metric][0] - ours[1][metric][0], float(np.hypot(b[metric][1], ours[1][metric][1]))
         rank = 1 + sum(ranking_key(h) > ranking_key(ours[1]) for _, h in agents)
-        text += (f" FERL ({name(ours[0])}): {cell_text(metric, ours[1][metric])}, "
-                 f"{gap:.3f} ± {gap_sem:.3f} behind, rank {rank} of {len(agents)}.")
+        text += (
+            f" FERL ({name(ours[0])}): {cell_text(metric, ours[1][metric])}, "
+            f"{gap:.3f} ± {gap_sem:.3f} behind, rank {rank} of {len(agents)}."
+        )
     oracle = [(e, h) for e, h in cells if e.agent.startswith(ORACLE) and metric in h]
     if oracle:
         text += f" Ceiling (oracle on the true state): {cell_text(metric, oracle[0][1][metric])}."
@@ -162,8 +190,13 @@ def ferl_agent(cells: Sequence[tuple[Entry, dict]]):
     """The dissertation's agent, or where no run has its components (an outside task), the best
     ranked run of its architecture: the free-energy actor on predictors' memories."""
     exact = [(e, h) for e, h in cells if e.agent == DISSERTATION_AGENT]
-    same_kind = [(e, h) for e, h in cells if e.job.manifest.actor.get("kind", "free_energy") == "free_energy"
-                 and e.job.manifest.predictors and not e.agent.startswith(ORACLE)]
+    same_kind = [
+        (e, h)
+        for e, h in cells
+        if e.job.manifest.actor.get("kind", "free_energy") == "free_energy"
+        and e.job.manifest.predictors
+        and not e.agent.startswith(ORACLE)
+    ]
     candidates = exact or same_kind
     return max(candidates, key=lambda eh: ranking_key(eh[1])) if candidates else None
 
@@ -214,23 +247,35 @@ def report(jobs: Sequence, out: Path, figures: dict, data_files: list) -> list[s
     groups = tasks(jobs)
     if not groups:
         return []
-    lines = ["", "## Agents side by side (findings of ours, §5.4)", "",
-             "Per task (runs whose environments recorded the same settings), the dissertation's agent "
-             "and every variant of its components or baseline agent that the sweep ran: mean ± s.e.m. over "
-             "runs (`env_steps_to_solve`: over the runs that solved)."]
+    lines = [
+        "",
+        "## Agents side by side (findings of ours, §5.4)",
+        "",
+        "Per task (runs whose environments recorded the same settings), the dissertation's agent "
+        "and every variant of its components or baseline agent that the sweep ran: mean ± s.e.m. over "
+        "runs (`env_steps_to_solve`: over the runs that solved).",
+    ]
     rows = []
     for i, group in enumerate(groups):
         cells = [(e, headline(e)) for e in group]
         names = [n for n in HEADLINES if any(n in h for _, h in cells)]
         lines += ["", f"### {title(group)}", ""]
-        lines += table_lines(["agent", "run as", "runs", *names],
-                             [(e.agent, e.job.label, max((h[n][2] for n in h), default=0),
-                               *(cell_text(n, h.get(n)) for n in names)) for e, h in cells])
+        lines += table_lines(
+            ["agent", "run as", "runs", *names],
+            [
+                (e.agent, e.job.label, max((h[n][2] for n in h), default=0), *(cell_text(n, h.get(n)) for n in names))
+                for e, h in cells
+            ],
+        )
         best = finding(cells)
         if best:
             lines += ["", best]
-        rows += [(title(group), e.agent, e.job.variant, n, *map(fmt, h[n][:2]), h[n][2])
-                 for e, h in cells for n in names if n in h]
+        rows += [
+            (title(group), e.agent, e.job.variant, n, *map(fmt, h[n][:2]), h[n][2])
+            for e, h in cells
+            for n in names
+            if n in h
+        ]
         fig = curve_figure(group)
         if fig is not None:
             name = f"agents_task{i + 1}"
@@ -239,4 +284,3 @@ def report(jobs: Sequence, out: Path, figures: dict, data_files: list) -> list[s
     write_csv(out / "agents_side_by_side.csv", ["task", "agent", "overrides", "metric", "mean", "sem", "n"], rows)
     data_files.append("agents_side_by_side.csv")
     return lines
-

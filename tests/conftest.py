@@ -79,17 +79,31 @@ def train_sweep(root: Path, jobs: dict) -> dict:
 def run_train(*overrides, cwd=ROOT, timeout=600, env=None, **popen):
     """Run train.py in a subprocess (in ``env``, by default this one's); returns the CompletedProcess."""
     env = {**(env or os.environ), "PYTHONUNBUFFERED": "1"}
-    return subprocess.run([sys.executable, str(ROOT / "train.py"), *eager(overrides)], cwd=cwd, env=env,
-                          capture_output=True, text=True, timeout=timeout, **popen)
+    return subprocess.run(
+        [sys.executable, str(ROOT / "train.py"), *eager(overrides)],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        **popen,
+    )
 
 
-TINY = ["n_runs=2", "trainer.steps=300", "trainer.log_every=100", "trainer.checkpoint_every=100",
-        "trainer.test_per_class=8", "trainer.test_noise_levels=[0.0,0.125,0.5]"]
+TINY = [
+    "n_runs=2",
+    "trainer.steps=300",
+    "trainer.log_every=100",
+    "trainer.checkpoint_every=100",
+    "trainer.test_per_class=8",
+    "trainer.test_noise_levels=[0.0,0.125,0.5]",
+]
 
 
 def tb_scalars(run_dir: Path) -> dict:
     """Every scalar a run logged to tb/ (its event files in order): tag → [(step, value)]."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
     acc = EventAccumulator(str(Path(run_dir) / "tb"), size_guidance={"scalars": 0})
     acc.Reload()
     return {tag: [(e.step, e.value) for e in acc.Scalars(tag)] for tag in acc.Tags()["scalars"]}
@@ -99,6 +113,7 @@ def assert_same_tb_log(resumed: Path, whole: Path) -> None:
     """A resumed run's scalars are the uninterrupted run's: every point once, at the same step
     with the same value (the hparam/ metrics include the timing, so only their steps)."""
     import numpy as np
+
     got, want = tb_scalars(resumed), tb_scalars(whole)
     assert got.keys() == want.keys()
     for tag in want:

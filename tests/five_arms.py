@@ -7,6 +7,7 @@ reward bits, its 6 inputs and the actor's 5 actions are all read off this class 
 steps follow (all bits 0), then the choice (bit 5): pulling the cued arm earns +1 and ends the
 episode, any other arm −1; every other step earns 0.
 """
+
 import torch
 
 from ferl.config.params import PositiveInt, checked
@@ -72,14 +73,23 @@ class FiveArms(EpisodicEnvironmentBase):
         return {"correct": self.correct}
 
     def optimal(self, gamma: float) -> dict:
-        return {"discounted_return": gamma ** self.delay, "steps_to_goal": self.optimal_steps}
+        return {"discounted_return": gamma**self.delay, "steps_to_goal": self.optimal_steps}
 
     def describe(self) -> dict:
-        return {"kind": "five_arms", "task": self.task, "episodic": True, "observation": "bits",
-                "observation_size": self.observation_size, "n_actions": self.n_actions,
-                "action_names": list(self.action_names), "observation_names": list(OBSERVATIONS),
-                "max_steps": self.max_steps, "reward_values": list(self.reward_values),
-                "labels": ["cue"], "outcomes": ["correct"]}
+        return {
+            "kind": "five_arms",
+            "task": self.task,
+            "episodic": True,
+            "observation": "bits",
+            "observation_size": self.observation_size,
+            "n_actions": self.n_actions,
+            "action_names": list(self.action_names),
+            "observation_names": list(OBSERVATIONS),
+            "max_steps": self.max_steps,
+            "reward_values": list(self.reward_values),
+            "labels": ["cue"],
+            "outcomes": ["correct"],
+        }
 
     def state_dict(self) -> dict:
         return {k: getattr(self, k).clone() for k in STATE_KEYS}

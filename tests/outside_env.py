@@ -8,6 +8,7 @@ does, −1 otherwise, and the episode terminates. The observation is a Tuple (sy
 or blank; whether the choice is now), so its one-hot encoding has 3 + 2 bits. With
 ``grid_actions`` the action is MultiDiscrete([2, 3]), whose first entry is the choice.
 """
+
 import gymnasium
 import numpy as np
 from gymnasium import spaces

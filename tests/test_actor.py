@@ -1,5 +1,6 @@
 """FERL actor: Eq. (3.1) free energies, Eq. (3.5–3.10) updates vs autograd, Eq. (3.11) policy,
 TD rules of §3.2 and alternating-Gibbs action sampling."""
+
 import copy
 import itertools
 
@@ -13,8 +14,20 @@ from ferl.schedules import Constant
 
 
 def make_actor(R=3, S=6, A=4, H=5, code="onehot", td_rule="sarsa", init_std=0.5, **kw):
-    actor = FERLActor(R, S, A, H, td_rule=td_rule, gamma=0.9, lr=Constant(0.1), beta=Constant(1.0),
-                      init_std=init_std, action_code=code, seed=3, **kw).double()
+    actor = FERLActor(
+        R,
+        S,
+        A,
+        H,
+        td_rule=td_rule,
+        gamma=0.9,
+        lr=Constant(0.1),
+        beta=Constant(1.0),
+        init_std=init_std,
+        action_code=code,
+        seed=3,
+        **kw,
+    ).double()
     g = torch.Generator().manual_seed(1)
     for name in ("b_s", "b_a", "b_h"):  # non-zero biases so every term is exercised
         getattr(actor, name).copy_(torch.randn(getattr(actor, name).shape, generator=g, dtype=torch.float64) * 0.3)
@@ -51,8 +64,9 @@ def test_update_is_minus_lr_delta_grad_free_energy(code):
     params = {n: getattr(actor, n).clone().requires_grad_(True) for n in ("W_sh", "W_ah", "b_s", "b_a", "b_h")}
     codes = actor.codes[a]
     v = torch.cat([s, codes], -1)
-    F = rbm.free_energy(v, torch.cat([params["W_sh"], params["W_ah"]], 1),
-                        torch.cat([params["b_s"], params["b_a"]], 1), params["b_h"])
+    F = rbm.free_energy(
+        v, torch.cat([params["W_sh"], params["W_ah"]], 1), torch.cat([params["b_s"], params["b_a"]], 1), params["b_h"]
+    )
     # Σ_r δ_r F_r: its gradient wrt run r's parameters is δ_r ∂F_r/∂θ_r
     (F * delta).sum().backward()
     _, x = actor.evaluate(s)
@@ -78,7 +92,9 @@ def test_learn_returns_the_free_energy_after_the_update(code, fresh):
     before = F_next[rows, 0, a_next[:, 0]].unsqueeze(1), x_next[rows, 0, a_next[:, 0]].unsqueeze(1)
     got = actor.learn(s, a, x[rows, 0, a[:, 0]].unsqueeze(1), delta, 0.05, s_next, a_next, *before)
     F_after, x_after = actor.evaluate(s_next)
-    want = (F_after[rows, 0, a_next[:, 0]].unsqueeze(1), x_after[rows, 0, a_next[:, 0]].unsqueeze(1)) if fresh else before
+    want = (
+        (F_after[rows, 0, a_next[:, 0]].unsqueeze(1), x_after[rows, 0, a_next[:, 0]].unsqueeze(1)) if fresh else before
+    )
     torch.testing.assert_close(got, want)
     assert not torch.allclose(F_after[rows, 0, a_next[:, 0]].unsqueeze(1), before[0])  # the update moved F(s', a')
 
@@ -111,10 +127,22 @@ def test_td_errors(rule):
     F_sa = torch.tensor([[-3.0], [0.5], [2.0]], dtype=torch.float64)
     uniform = torch.rand(3, 1, 1, generator=g, dtype=torch.float64)
     beta = 0.8
-    F_next = torch.stack([torch.stack([rbm.free_energy(torch.cat([s_next, actor.codes[b].expand(3, 1, -1)], -1),
-                                                       torch.cat([actor.W_sh, actor.W_ah], 1),
-                                                       torch.cat([actor.b_s, actor.b_a], 1), actor.b_h)
-                                       for b in range(4)], -1)]).squeeze(0)  # (R, 1, nA)
+    F_next = torch.stack(
+        [
+            torch.stack(
+                [
+                    rbm.free_energy(
+                        torch.cat([s_next, actor.codes[b].expand(3, 1, -1)], -1),
+                        torch.cat([actor.W_sh, actor.W_ah], 1),
+                        torch.cat([actor.b_s, actor.b_a], 1),
+                        actor.b_h,
+                    )
+                    for b in range(4)
+                ],
+                -1,
+            )
+        ]
+    ).squeeze(0)  # (R, 1, nA)
     a_next, F_a, _, F_boot = actor.act(s_next, beta, g, uniform)
     assert torch.equal(a_next, sample_categorical(torch.softmax(-beta * F_next, -1), uniform))
     torch.testing.assert_close(F_a, F_next.gather(-1, a_next.unsqueeze(-1)).squeeze(-1))
@@ -129,8 +157,21 @@ def test_td_errors(rule):
     for terminal in (None, torch.tensor([[True], [False], [True]])):
         alive = torch.ones(3, 1, dtype=torch.bool)
         frozen = copy.deepcopy(actor)
-        *_, delta = td_step(frozen, s, torch.zeros(3, 1, dtype=torch.long), F_sa, torch.zeros(3, 1, 5, dtype=torch.float64),
-                            r, s_next, 0.0, beta, g, uniform, alive, terminal)
+        *_, delta = td_step(
+            frozen,
+            s,
+            torch.zeros(3, 1, dtype=torch.long),
+            F_sa,
+            torch.zeros(3, 1, 5, dtype=torch.float64),
+            r,
+            s_next,
+            0.0,
+            beta,
+            g,
+            uniform,
+            alive,
+            terminal,
+        )
         kept = boot if terminal is None else boot * (~terminal)
         torch.testing.assert_close(delta, r.unsqueeze(1) - 0.9 * kept + F_sa)
 
@@ -140,12 +181,27 @@ def test_gibbs_sampling_reaches_free_energy_softmax(code):
     """The Gibbs chain's action law is exp(−β F_β(s,a)) normalised; β F_β(s, a) equals the unit-
     temperature free energy of the same RBM with all parameters scaled by β (§2.1.5)."""
     R, beta = 4000, 1.5
-    actor = FERLActor(R, 3, 4, 3, td_rule="sarsa", gamma=0.9, lr=Constant(0.1), beta=Constant(beta),
-                      init_std=0.0, action_code=code, action_selection="gibbs", gibbs_sweeps=30, seed=0).double()
+    actor = FERLActor(
+        R,
+        3,
+        4,
+        3,
+        td_rule="sarsa",
+        gamma=0.9,
+        lr=Constant(0.1),
+        beta=Constant(beta),
+        init_std=0.0,
+        action_code=code,
+        action_selection="gibbs",
+        gibbs_sweeps=30,
+        seed=0,
+    ).double()
     g = torch.Generator().manual_seed(0)
     # every run gets the same parameters so the R chains are R samples of one distribution
-    shared = {n: torch.randn(getattr(actor, n).shape[1:], generator=g, dtype=torch.float64) for n in
-              ("W_sh", "W_ah", "b_s", "b_a", "b_h")}
+    shared = {
+        n: torch.randn(getattr(actor, n).shape[1:], generator=g, dtype=torch.float64)
+        for n in ("W_sh", "W_ah", "b_s", "b_a", "b_h")
+    }
     for n, p in shared.items():
         getattr(actor, n).copy_(p.expand_as(getattr(actor, n)))
     s = torch.tensor([1.0, 0.0, 1.0], dtype=torch.float64).expand(R, 1, 3).contiguous()
@@ -161,8 +217,18 @@ def test_gibbs_sampling_reaches_free_energy_softmax(code):
 
 def test_bias_init_std_draws_biases_and_leaves_the_weights_alone():
     """§4.3.1: "weights and biases … initialized with a spherical Gaussian with variance 1"."""
-    kw = dict(n_runs=3, n_state=400, n_actions=4, n_hidden=300, td_rule="sarsa", gamma=0.9,
-              lr=Constant(0.1), beta=Constant(1.0), init_std=1.0, seed=5)
+    kw = dict(
+        n_runs=3,
+        n_state=400,
+        n_actions=4,
+        n_hidden=300,
+        td_rule="sarsa",
+        gamma=0.9,
+        lr=Constant(0.1),
+        beta=Constant(1.0),
+        init_std=1.0,
+        seed=5,
+    )
     zero, unit = FERLActor(**kw), FERLActor(**kw, bias_init_std=1.0)
     assert torch.equal(zero.W_sh, unit.W_sh) and torch.equal(zero.W_ah, unit.W_ah)
     for name in ("b_s", "b_a", "b_h"):

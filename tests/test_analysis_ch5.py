@@ -16,39 +16,61 @@ from test_analyze_cli import analyze
 
 LAYERS = ("memory_observation", "memory_reward", "state", "hidden")
 JUNCTION = [f"junction_{layer}_{kind}" for layer in LAYERS for kind in ("activations", "pca")]
-FIGURES = ["prediction_errors_observation", "prediction_errors_reward", "learning_curves",
-           "td_errors", *JUNCTION, "junction_state_pca3d"]
-PREPROCESSOR = ["preprocessor_raw_pca", "preprocessor_processed_pca",
-                "preprocessor_reconstruction_error"]
-DATA = ["summary.csv", "learning_curves.csv", "prediction_errors_observation.csv",
-        "prediction_errors_reward.csv", "junction_separation.csv",
-        "junction_explained_variance.csv", "claims.json"]
-PREPROCESSOR_DATA = ["preprocessor_explained_variance.csv",
-                     "preprocessor_reconstruction_error.csv", "preprocessor.json"]
+FIGURES = [
+    "prediction_errors_observation",
+    "prediction_errors_reward",
+    "learning_curves",
+    "td_errors",
+    *JUNCTION,
+    "junction_state_pca3d",
+]
+PREPROCESSOR = ["preprocessor_raw_pca", "preprocessor_processed_pca", "preprocessor_reconstruction_error"]
+DATA = [
+    "summary.csv",
+    "learning_curves.csv",
+    "prediction_errors_observation.csv",
+    "prediction_errors_reward.csv",
+    "junction_separation.csv",
+    "junction_explained_variance.csv",
+    "claims.json",
+]
+PREPROCESSOR_DATA = [
+    "preprocessor_explained_variance.csv",
+    "preprocessor_reconstruction_error.csv",
+    "preprocessor.json",
+]
 MEMORY_CLAIM = {"pixel": "§5.3.2, Figs. 5.20–5.21", "bit": "§5.3.1, Figs. 5.7–5.8"}
 CLASS_CLAIM = "§5.3.2, Figs. 5.15(a)/5.16(a)"
 # Where the report names each figure (its caption starts with the dissertation's number).
 CAPTIONS = {
-    "pixel": {"preprocessor_raw_pca": "Fig. 5.15", "preprocessor_processed_pca": "Fig. 5.16",
-              "prediction_errors_observation": "Fig. 5.17(a): absolute error",
-              "prediction_errors_reward": "Fig. 5.17(b): squared error",
-              "learning_curves": "Figs. 5.18–5.19(a–b)", "td_errors": "Fig. 5.19(c–d)",
-              "junction_memory_reward_pca": "Fig. 5.20(b)",
-              "junction_memory_observation_pca": "Fig. 5.21(b)",
-              "junction_state_pca3d": "Fig. 5.23(b)", "junction_hidden_pca": "Figs. 5.24(b)/5.25(b)"},
-    "bit": {"prediction_errors_observation": "Fig. 5.2(a): absolute error",
-            "prediction_errors_reward": "Fig. 5.2(b): squared error",
-            "learning_curves": "Figs. 5.3–5.5", "td_errors": "Fig. 5.6",
-            "junction_memory_reward_pca": "Fig. 5.7(b)",
-            "junction_memory_observation_pca": "Fig. 5.8(b)",
-            "junction_state_pca3d": "Fig. 5.10(b)", "junction_hidden_pca3d": "Fig. 5.13(b)"},
+    "pixel": {
+        "preprocessor_raw_pca": "Fig. 5.15",
+        "preprocessor_processed_pca": "Fig. 5.16",
+        "prediction_errors_observation": "Fig. 5.17(a): absolute error",
+        "prediction_errors_reward": "Fig. 5.17(b): squared error",
+        "learning_curves": "Figs. 5.18–5.19(a–b)",
+        "td_errors": "Fig. 5.19(c–d)",
+        "junction_memory_reward_pca": "Fig. 5.20(b)",
+        "junction_memory_observation_pca": "Fig. 5.21(b)",
+        "junction_state_pca3d": "Fig. 5.23(b)",
+        "junction_hidden_pca": "Figs. 5.24(b)/5.25(b)",
+    },
+    "bit": {
+        "prediction_errors_observation": "Fig. 5.2(a): absolute error",
+        "prediction_errors_reward": "Fig. 5.2(b): squared error",
+        "learning_curves": "Figs. 5.3–5.5",
+        "td_errors": "Fig. 5.6",
+        "junction_memory_reward_pca": "Fig. 5.7(b)",
+        "junction_memory_observation_pca": "Fig. 5.8(b)",
+        "junction_state_pca3d": "Fig. 5.10(b)",
+        "junction_hidden_pca3d": "Fig. 5.13(b)",
+    },
 }
 
 
 def separation_rows(run_dir) -> dict[tuple[str, str, str], float]:
     with (run_dir / "analysis" / "junction_separation.csv").open() as f:
-        return {(r["layer"], r["labels"], r["phase"]): float(r["silhouette_mean"])
-                for r in csv.DictReader(f)}
+        return {(r["layer"], r["labels"], r["phase"]): float(r["silhouette_mean"]) for r in csv.DictReader(f)}
 
 
 def check_chapter5_report(run_dir, kind: str, figures, data) -> None:
@@ -118,5 +140,5 @@ def test_shuffled_codes_lose_the_class_structure(tmp_path):
 
 def test_pcs_for_share():
     assert pcs_for_share(np.array([0.5, 0.3, 0.15, 0.05])) == 3
-    assert pcs_for_share(np.array([0.6, 0.3, 0.1])) == 2   # exactly 90 %
+    assert pcs_for_share(np.array([0.6, 0.3, 0.1])) == 2  # exactly 90 %
     assert pcs_for_share(np.array([0.95, 0.05, 0.0])) == 1

@@ -11,10 +11,13 @@ from ferl.stats import greedy_accuracy
 
 
 def test_median_firing_rates_hand_example():
-    hidden = np.array([[[0.1, 0.9], [0.5, 0.2], [0.3, 0.4]],     # class 0: 3 images, H = 2
-                       [[1.0, 0.0], [0.0, 1.0], [0.6, 0.7]]])
-    np.testing.assert_allclose(coding.median_firing_rates(hidden),
-                               [[0.3, 0.4], [0.6, 0.7]])
+    hidden = np.array(
+        [
+            [[0.1, 0.9], [0.5, 0.2], [0.3, 0.4]],  # class 0: 3 images, H = 2
+            [[1.0, 0.0], [0.0, 1.0], [0.6, 0.7]],
+        ]
+    )
+    np.testing.assert_allclose(coding.median_firing_rates(hidden), [[0.3, 0.4], [0.6, 0.7]])
 
 
 def test_gram_and_distance_hand_example():
@@ -22,8 +25,7 @@ def test_gram_and_distance_hand_example():
     c = 1 / np.sqrt(2)
     gram, dist = coding.gram_distance(mfr)
     np.testing.assert_allclose(gram, [[1, c, 0], [c, 1, c], [0, c, 1]], atol=1e-12)
-    np.testing.assert_allclose(dist, [[0, 2 - 2 * c, 2], [2 - 2 * c, 0, 2 - 2 * c],
-                                      [2, 2 - 2 * c, 0]], atol=1e-12)
+    np.testing.assert_allclose(dist, [[0, 2 - 2 * c, 2], [2 - 2 * c, 0, 2 - 2 * c], [2, 2 - 2 * c, 0]], atol=1e-12)
 
 
 def test_distance_is_squared_euclidean_of_normalised_mfr():
@@ -43,8 +45,9 @@ def _four_points_linkage():
     return coding.linkage_from_distance(cdist(x, x, "sqeuclidean"))
 
 
-@pytest.mark.parametrize("i, j, expected", [(0, 2, True), (2, 0, True), (1, 3, True),
-                                            (0, 1, False), (0, 3, False), (2, 1, False)])
+@pytest.mark.parametrize(
+    "i, j, expected", [(0, 2, True), (2, 0, True), (1, 3, True), (0, 1, False), (0, 3, False), (2, 1, False)]
+)
 def test_pair_forms_cluster_two_obvious_pairs(i, j, expected):
     assert coding.pair_forms_cluster(_four_points_linkage(), i, j) is expected
 
@@ -71,7 +74,8 @@ def test_same_action_pairs_cw_noise_floor():
     optimal = [e, s, s, e, -1, w, n, n, w]
     pairs = coding.same_action_pairs(classes, optimal)
     assert {frozenset((classes[i], classes[j])) for i, j in pairs} == {
-        frozenset(p) for p in (("1", "2"), ("0", "3"), ("6", "7"), ("8", "N"))}
+        frozenset(p) for p in (("1", "2"), ("0", "3"), ("6", "7"), ("8", "N"))
+    }
     assert all(i < j for i, j in pairs)
 
 
@@ -108,11 +112,9 @@ def _mi_by_loops(images_by_class, bins):
     for a, b in combinations(range(n_classes), 2):
         values = []
         for i in range(images_by_class[a].shape[1]):
-            hist = [np.histogram(images_by_class[k][:, i], bins=bins, range=(0, 1))[0]
-                    for k in (a, b)]
+            hist = [np.histogram(images_by_class[k][:, i], bins=bins, range=(0, 1))[0] for k in (a, b)]
             p_a, p_b = (h / h.sum() for h in hist)
-            values.append(_entropy(0.5 * p_a + 0.5 * p_b)
-                          - 0.5 * _entropy(hist[0]) - 0.5 * _entropy(hist[1]))
+            values.append(_entropy(0.5 * p_a + 0.5 * p_b) - 0.5 * _entropy(hist[0]) - 0.5 * _entropy(hist[1]))
         out[a, b] = out[b, a] = np.mean(values)
     return out
 
@@ -122,12 +124,13 @@ def test_mutual_information_matches_loop_computation(bins):
     rng = np.random.default_rng(3)
     # Unequal class sizes: the prior is still ½ per class of the pair.
     images = [rng.random((n, 12)) ** k for n, k in ((7, 1), (11, 2), (9, 3))]
-    np.testing.assert_allclose(coding.pairwise_mutual_information(images, bins=bins),
-                               _mi_by_loops(images, bins), atol=1e-12)
+    np.testing.assert_allclose(
+        coding.pairwise_mutual_information(images, bins=bins), _mi_by_loops(images, bins), atol=1e-12
+    )
 
 
 def test_greedy_accuracy_hand_example():
-    counts = np.zeros((1, 2, 3, 2), dtype=np.int64)   # R=1, L=2, C=3 (class 1 = goal), nA=2
+    counts = np.zeros((1, 2, 3, 2), dtype=np.int64)  # R=1, L=2, C=3 (class 1 = goal), nA=2
     counts[0, 0] = [[8, 2], [5, 5], [1, 9]]
     counts[0, 1] = [[3, 7], [10, 0], [6, 4]]
     optimal = [0, -1, 1]

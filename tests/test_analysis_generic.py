@@ -16,8 +16,7 @@ from ferl.analysis.claims import HELD, NOT_HELD, Chapter, Claim, Measured, Numbe
 from ferl.analysis.records import Manifest, predictor_role
 from ferl.analysis.report import RunAnalysis
 from reproduction import ch3, ch4, ch5
-from synthetic_runs import (assert_analysis_outputs, load_run, make_floor_run, make_tmaze_run,
-                            make_toy_run)
+from synthetic_runs import assert_analysis_outputs, load_run, make_floor_run, make_tmaze_run, make_toy_run
 from test_analyze_cli import analyze, event_files
 
 WINDOW = 200  # episodes: the moving average of Figs. 4.6–4.8
@@ -30,8 +29,12 @@ def rows(path: Path) -> list[dict]:
 
 def trailing_means(values: np.ndarray, window: int) -> np.ndarray:
     """Each run's mean over every `window` consecutive entries, one window at a time."""
-    return np.array([[row[k - window:k].mean() for k in range(window, len(row) + 1)]
-                     for row in np.asarray(values, dtype=np.float64)])
+    return np.array(
+        [
+            [row[k - window : k].mean() for k in range(window, len(row) + 1)]
+            for row in np.asarray(values, dtype=np.float64)
+        ]
+    )
 
 
 def test_a_run_of_an_unknown_task_gets_the_generic_figures_and_no_claims(tmp_path):
@@ -39,8 +42,10 @@ def test_a_run_of_an_unknown_task_gets_the_generic_figures_and_no_claims(tmp_pat
     result = analyze(run_dir)
     assert result.returncode == 0, result.stderr
     report = assert_analysis_outputs(
-        run_dir, ["learning_curves", "td_errors", "prediction_errors_world"],
-        ["summary.csv", "learning_curves.csv", "prediction_errors_world.csv", "claims.json"])
+        run_dir,
+        ["learning_curves", "td_errors", "prediction_errors_world"],
+        ["summary.csv", "learning_curves.csv", "prediction_errors_world.csv", "claims.json"],
+    )
     assert report.startswith("# toy_experiment (task `toy`)")
     assert "No dissertation claim applies to this run." in report
     assert "no chapter's model matches this run" in report and "Fig. " not in report
@@ -50,8 +55,11 @@ def test_a_run_of_an_unknown_task_gets_the_generic_figures_and_no_claims(tmp_pat
     # summary table: mean ± s.d. (ddof 1) over the runs with a value
     summary = {r["metric"]: r for r in rows(run_dir / "analysis" / "summary.csv")}
     assert set(summary) == {"final_return", "score/easy", "score/hard"}
-    for name, values in (("final_return", [1.0, 2.0, 3.0]), ("score/easy", [1.0, 0.5]),
-                         ("score/hard", [0.2, 0.4, 0.9])):
+    for name, values in (
+        ("final_return", [1.0, 2.0, 3.0]),
+        ("score/easy", [1.0, 0.5]),
+        ("score/hard", [0.2, 0.4, 0.9]),
+    ):
         assert float(summary[name]["mean"]) == pytest.approx(statistics.mean(values), rel=1e-5)
         assert float(summary[name]["sd"]) == pytest.approx(statistics.stdev(values), rel=1e-5)
         assert int(summary[name]["n_runs"]) == len(values)
@@ -64,19 +72,19 @@ def test_a_run_of_an_unknown_task_gets_the_generic_figures_and_no_claims(tmp_pat
     returns = trailing_means(np.arange(3)[:, None] + progress, WINDOW)
     for k in (0, 50, -1):
         r = curves[k]
-        assert float(r["discounted_return_ma200_mean"]) == pytest.approx(returns[:, k].mean(),
-                                                                         rel=1e-5)
+        assert float(r["discounted_return_ma200_mean"]) == pytest.approx(returns[:, k].mean(), rel=1e-5)
         assert float(r["discounted_return_ma200_sem"]) == pytest.approx(
-            statistics.stdev(returns[:, k]) / math.sqrt(3), rel=1e-5)
+            statistics.stdev(returns[:, k]) / math.sqrt(3), rel=1e-5
+        )
         assert float(r["td_abs_mean_ma200_mean"]) == pytest.approx(
-            trailing_means((1 - progress)[None], WINDOW)[0, k], rel=1e-5)
+            trailing_means((1 - progress)[None], WINDOW)[0, k], rel=1e-5
+        )
         assert float(r["discounted_return_ma200_run_2"]) == pytest.approx(returns[2, k], rel=1e-5)
     assert "reached_ma200_mean" in curves[0]  # the environment's boolean outcome, as a rate
 
     # prediction errors: n_epochs − epoch everywhere, so 5 at epoch 0 and 0 at the last
     errors = rows(run_dir / "analysis" / "prediction_errors_world.csv")
-    assert {(r["split"], int(r["T"])) for r in errors} == {(s, T) for s in ("train", "test")
-                                                           for T in (2, 3, 4)}
+    assert {(r["split"], int(r["T"])) for r in errors} == {(s, T) for s in ("train", "test") for T in (2, 3, 4)}
     assert all(float(r["epoch0_mean"]) == 5.0 and float(r["epoch5_mean"]) == 0.0 for r in errors)
     assert all(r["trained_length"] == "1" for r in errors)  # no L_training: all trained
 
@@ -88,9 +96,8 @@ def test_continuing_runs_get_reward_and_td_curves_from_steps_npz(tmp_path):
     assert (c.unit, c.window, c.length) == ("step", 100, 400)
     np.testing.assert_array_equal(c.x, np.arange(100, 401))
     np.testing.assert_allclose(c.series["reward"], trailing_means(steps["rewards"], 100), rtol=1e-6)
-    np.testing.assert_allclose(c.series["td_abs"], trailing_means(np.abs(steps["td_errors"]), 100),
-                               rtol=1e-6)
-    mean, sem = c.mean_sem("reward")
+    np.testing.assert_allclose(c.series["td_abs"], trailing_means(np.abs(steps["td_errors"]), 100), rtol=1e-6)
+    _, sem = c.mean_sem("reward")
     k = 123
     assert sem[k] == pytest.approx(statistics.stdev(c.series["reward"][:, k]) / math.sqrt(3))
     assert c.optima["reward"] == 8.0
@@ -98,19 +105,21 @@ def test_continuing_runs_get_reward_and_td_curves_from_steps_npz(tmp_path):
 
 def test_episodic_curves_take_the_optimum_from_the_records_and_the_environment(tmp_path):
     c = generic.curves(load_run(make_tmaze_run(tmp_path / "maze")))
-    assert list(c.series) == ["discounted_return", "steps", "terminal_reward", "correct_goal",
-                              "td_abs_mean"]
+    assert list(c.series) == ["discounted_return", "steps", "terminal_reward", "correct_goal", "td_abs_mean"]
     assert c.optima["discounted_return"] == pytest.approx(4.3175)
     assert (c.optima["steps"], c.optima["terminal_reward"]) == (3.0, 5.0)  # env.goal_reward
 
 
-@pytest.mark.parametrize("facts, role", [
-    ({"predicts_observation": True, "reward_output": "bits"}, "joint"),
-    ({"predicts_observation": True, "reward_output": "none"}, "observation"),
-    ({"predicts_observation": False, "reward_output": "linear"}, "reward"),
-    ({"predicts_observation": True, "reward_output": "linear"}, None),
-    ({"predicts_observation": False, "reward_output": "bits"}, None),
-])
+@pytest.mark.parametrize(
+    "facts, role",
+    [
+        ({"predicts_observation": True, "reward_output": "bits"}, "joint"),
+        ({"predicts_observation": True, "reward_output": "none"}, "observation"),
+        ({"predicts_observation": False, "reward_output": "linear"}, "reward"),
+        ({"predicts_observation": True, "reward_output": "linear"}, None),
+        ({"predicts_observation": False, "reward_output": "bits"}, None),
+    ],
+)
 def test_a_predictor_role_follows_what_it_predicts(facts, role):
     assert predictor_role({"kind": "anything", **facts}) == role
 
@@ -119,11 +128,20 @@ PHASED = {"kind": "phased", "phases": ["collect", "predictors", "actor"]}
 
 
 def manifest(kind: str, predictors: dict, trainer: dict = PHASED, memory: str = "elman", **env) -> Manifest:
-    facts = {"joint": {"predicts_observation": True, "reward_output": "bits"},
-             "obs": {"predicts_observation": True, "reward_output": "none"},
-             "rew": {"predicts_observation": False, "reward_output": "linear"}}
-    return Manifest("t", "e", trainer, {"kind": kind, **env}, None,
-                    {name: {"kind": memory, **facts[f]} for name, f in predictors.items()}, {})
+    facts = {
+        "joint": {"predicts_observation": True, "reward_output": "bits"},
+        "obs": {"predicts_observation": True, "reward_output": "none"},
+        "rew": {"predicts_observation": False, "reward_output": "linear"},
+    }
+    return Manifest(
+        "t",
+        "e",
+        trainer,
+        {"kind": kind, **env},
+        None,
+        {name: {"kind": memory, **facts[f]} for name, f in predictors.items()},
+        {},
+    )
 
 
 def test_chapters_are_chosen_by_recorded_facts_not_names():
@@ -155,6 +173,7 @@ def test_prediction_error_title_fits_when_all_episodes_have_one_length():
     """One episode length gives one column per split: a figure 3.1 inches wide, narrower than its
     title unless the title is wrapped to it."""
     from ferl.analysis import figures as figs
+
     errors = np.random.default_rng(0).random((5, 1, 4))
     title = "Fig. 4.5: prediction errors of the `joint` predictor, mean over 10 runs (table4_1_matching)"
     fig = figs.prediction_errors(errors, errors, np.array([3]), np.arange(5), 3, "cross entropy", title)
@@ -181,12 +200,23 @@ def test_ferl_alone_gives_the_generic_analysis_and_takes_a_plug_in(tmp_path, mon
     def floor_analysis(run, num, out):
         return run, RunAnalysis("the floor, by a plug-in", sections=[("Plug-in", [f"{run.experiment}"])])
 
-    two_runs = Claim("Two runs were trained.", "§9.9", lambda run: Measured(len(run.summary["seeds"]), "runs"),
-                     lambda n: HELD if n == 2 else NOT_HELD)
-    chapter = Chapter("a toy model", lambda m: m.env_kind == "digit_floor",
-                      lambda m: Numbering(learning_curves="Fig. 9.1"), [two_runs])
-    monkeypatch.setattr(runner, "REGISTRY", dispatch.Registry(
-        reference="toy paper", environments={"digit_floor": floor_analysis}, chapters=[chapter]))
+    two_runs = Claim(
+        "Two runs were trained.",
+        "§9.9",
+        lambda run: Measured(len(run.summary["seeds"]), "runs"),
+        lambda n: HELD if n == 2 else NOT_HELD,
+    )
+    chapter = Chapter(
+        "a toy model",
+        lambda m: m.env_kind == "digit_floor",
+        lambda m: Numbering(learning_curves="Fig. 9.1"),
+        [two_runs],
+    )
+    monkeypatch.setattr(
+        runner,
+        "REGISTRY",
+        dispatch.Registry(reference="toy paper", environments={"digit_floor": floor_analysis}, chapters=[chapter]),
+    )
     outcome = runner.analyze_run(run_dir)
     report = (run_dir / "analysis" / "report.md").read_text()
     assert [(r.claim, r.verdict) for r in outcome.results] == [(two_runs, HELD)]

@@ -46,8 +46,7 @@ def test_no_run_has_no_mean():
 
 def test_sem_along_the_runs_axis_matches_column_by_column():
     x = np.random.default_rng(0).normal(size=(4, 6, 2))
-    expected = np.array([[statistics.stdev(x[:, t, k]) / 2.0 for k in range(2)]
-                         for t in range(6)])
+    expected = np.array([[statistics.stdev(x[:, t, k]) / 2.0 for k in range(2)] for t in range(6)])
     np.testing.assert_allclose(stats.sem(x), expected, rtol=1e-12)
     np.testing.assert_allclose(stats.sem(x.transpose(1, 0, 2), axis=1), expected, rtol=1e-12)
     single = stats.sem(x[:1])
@@ -55,7 +54,5 @@ def test_sem_along_the_runs_axis_matches_column_by_column():
 
 
 def test_flat_metrics_names_levels_with_a_slash():
-    flat = stats.flat_metrics({"reward": [1.0, 2.0],
-                               "greedy_accuracy": {"0": [0.5, 1.0], "0.125": [0.25, None]}})
-    assert flat == {"reward": [1.0, 2.0], "greedy_accuracy/0": [0.5, 1.0],
-                    "greedy_accuracy/0.125": [0.25, None]}
+    flat = stats.flat_metrics({"reward": [1.0, 2.0], "greedy_accuracy": {"0": [0.5, 1.0], "0.125": [0.25, None]}})
+    assert flat == {"reward": [1.0, 2.0], "greedy_accuracy/0": [0.5, 1.0], "greedy_accuracy/0.125": [0.25, None]}

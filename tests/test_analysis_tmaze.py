@@ -15,15 +15,26 @@ from reproduction.tmaze import TMazeRun
 from synthetic_runs import assert_analysis_outputs, load_run, make_floor_run, make_tmaze_run
 from test_analyze_cli import analyze, event_files
 
-FIGURES = ["prediction_errors_joint", "learning_curves", "td_errors",
-           *(f"junction_{layer}_{kind}" for layer in ("memory_joint", "state", "hidden")
-             for kind in ("activations", "pca")), "junction_hidden_pca3d"]
-DATA = ["summary.csv", "learning_curves.csv", "prediction_errors_joint.csv",
-        "junction_separation.csv", "junction_explained_variance.csv", "claims.json"]
+FIGURES = [
+    "prediction_errors_joint",
+    "learning_curves",
+    "td_errors",
+    *(f"junction_{layer}_{kind}" for layer in ("memory_joint", "state", "hidden") for kind in ("activations", "pca")),
+    "junction_hidden_pca3d",
+]
+DATA = [
+    "summary.csv",
+    "learning_curves.csv",
+    "prediction_errors_joint.csv",
+    "junction_separation.csv",
+    "junction_explained_variance.csv",
+    "claims.json",
+]
 HIDDEN_CLAIM = "§4.3.2, Figs. 4.17–4.19"
 
 
 # ---- numbers -------------------------------------------------------------------
+
 
 def silhouette_loop(x: np.ndarray, labels: np.ndarray) -> float:
     """Rousseeuw's definition, one point at a time."""
@@ -71,6 +82,7 @@ def test_pca_scores_and_explained_variance():
 
 # ---- runs ------------------------------------------------------------------------
 
+
 def load_maze(run_dir: Path) -> TMazeRun:
     return TMazeRun.load(load_run(run_dir))
 
@@ -82,8 +94,7 @@ def judge(maze: TMazeRun) -> dict[str, str]:
 
 
 def claim_verdicts(run_dir: Path) -> dict[str, str]:
-    return {c["source"]: c["verdict"]
-            for c in json.loads((run_dir / "analysis" / "claims.json").read_text())}
+    return {c["source"]: c["verdict"] for c in json.loads((run_dir / "analysis" / "claims.json").read_text())}
 
 
 def check_outputs(run_dir: Path) -> None:
@@ -97,13 +108,12 @@ def check_outputs(run_dir: Path) -> None:
 def check_synthetic_truth(run_dir: Path) -> None:
     verdicts = claim_verdicts(run_dir)
     assert verdicts[HIDDEN_CLAIM] == HELD
-    assert verdicts["§4.3.2, Fig. 4.14; §4.3.3"] == HELD       # memory keeps the signal
-    assert verdicts["§4.3.2, Fig. 4.11"] == HELD               # solved in all runs
-    assert verdicts["§4.3.2, Fig. 4.10"] == HELD               # predictor learns, generalises
+    assert verdicts["§4.3.2, Fig. 4.14; §4.3.3"] == HELD  # memory keeps the signal
+    assert verdicts["§4.3.2, Fig. 4.11"] == HELD  # solved in all runs
+    assert verdicts["§4.3.2, Fig. 4.10"] == HELD  # predictor learns, generalises
     assert not any(source.startswith("§4.3.1") for source in verdicts)  # regular-only claims
     with (run_dir / "analysis" / "junction_separation.csv").open() as f:
-        rows = {(r["layer"], r["labels"], r["phase"]): float(r["silhouette_mean"])
-                for r in csv.DictReader(f)}
+        rows = {(r["layer"], r["labels"], r["phase"]): float(r["silhouette_mean"]) for r in csv.DictReader(f)}
     assert rows["hidden", "condition", "first"] < 0.1 < 0.7 < rows["hidden", "condition", "last"]
     assert rows["memory_joint", "initial_signal", "first"] > 0.7
     with (run_dir / "analysis" / "learning_curves.csv").open() as f:
@@ -149,10 +159,14 @@ def test_regular_maze_gets_its_own_claims_and_steps_from_episodes(tmp_path):
 
 
 def test_chapter_5_figures_follow_the_predictors_roles_not_their_names(tmp_path):
-    run = load_maze(make_tmaze_run(tmp_path / "run", predictors={"m_y": "observation",
-                                                                 "m_r": "reward"},
-                                   memory_keys=("memory_m_y", "memory_m_r"),
-                                   signal_memories=("memory_m_r",)))
+    run = load_maze(
+        make_tmaze_run(
+            tmp_path / "run",
+            predictors={"m_y": "observation", "m_r": "reward"},
+            memory_keys=("memory_m_y", "memory_m_r"),
+            signal_memories=("memory_m_r",),
+        )
+    )
     assert [p.name for p in run.run.predictors] == ["m_y", "m_r"]
     assert run.layers == ["memory_m_r", "memory_m_y", "state", "hidden"]
     assert {(m, "initial_signal") for m in ("memory_m_y", "memory_m_r")} <= set(run.separation)
@@ -170,17 +184,22 @@ def test_chapter_5_figures_follow_the_predictors_roles_not_their_names(tmp_path)
 
 
 def test_a_maze_with_a_predictor_of_no_role_gets_no_claims_and_unnumbered_figures(tmp_path):
-    run_dir = make_tmaze_run(tmp_path / "run", predictors={"world": "other"},
-                             memory_keys=("memory_world",))
+    run_dir = make_tmaze_run(tmp_path / "run", predictors={"world": "other"}, memory_keys=("memory_world",))
     result = analyze(run_dir)
     assert result.returncode == 0, result.stderr
     report = (run_dir / "analysis" / "report.md").read_text()
     assert "No dissertation claim applies to this run." in report
     assert "no chapter's model matches this run" in report
-    assert ("[junction_memory_world_pca.png](junction_memory_world_pca.png) — predictor memory "
-            "(world) at the T-junction") in report
+    assert (
+        "[junction_memory_world_pca.png](junction_memory_world_pca.png) — predictor memory (world) at the T-junction"
+    ) in report
     assert "Fig. " not in report
     assert json.loads((run_dir / "analysis" / "claims.json").read_text()) == []
-    for name in ("learning_curves", "td_errors", "prediction_errors_world",
-                 "junction_memory_world_pca", "junction_hidden_pca"):
+    for name in (
+        "learning_curves",
+        "td_errors",
+        "prediction_errors_world",
+        "junction_memory_world_pca",
+        "junction_hidden_pca",
+    ):
         assert (run_dir / "analysis" / f"{name}.png").is_file(), name

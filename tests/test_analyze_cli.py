@@ -11,25 +11,48 @@ import pytest
 from synthetic_runs import assert_analysis_outputs, load_run, make_floor_run
 
 REPO = Path(__file__).resolve().parents[1]
-FIGURES = ["learning_curves", "td_errors", "fig3_5_weights", "fig3_6a_greedy_before", "fig3_6b_greedy_after",
-           "fig3_6_accuracy_vs_noise", "fig3_7_outlier", "fig3_10_median_activation",
-           "fig3_11_dendrogram_run0", "fig3_11_dendrogram_all_runs",
-           "fig3_12_mutual_information"]
-DATA = ["greedy_accuracy.csv", "mfr_run0.csv", "mfr_run1.csv", "pair_clusters.json",
-        "mutual_information.csv", "learning_curves.csv", "summary.csv", "claims.json"]
+FIGURES = [
+    "learning_curves",
+    "td_errors",
+    "fig3_5_weights",
+    "fig3_6a_greedy_before",
+    "fig3_6b_greedy_after",
+    "fig3_6_accuracy_vs_noise",
+    "fig3_7_outlier",
+    "fig3_10_median_activation",
+    "fig3_11_dendrogram_run0",
+    "fig3_11_dendrogram_all_runs",
+    "fig3_12_mutual_information",
+]
+DATA = [
+    "greedy_accuracy.csv",
+    "mfr_run0.csv",
+    "mfr_run1.csv",
+    "pair_clusters.json",
+    "mutual_information.csv",
+    "learning_curves.csv",
+    "summary.csv",
+    "claims.json",
+]
 
 
 def analyze(*dirs: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, str(REPO / "analyze.py"), *map(str, dirs)],
-                          cwd=REPO, capture_output=True, text=True, timeout=120)
+    return subprocess.run(
+        [sys.executable, str(REPO / "analyze.py"), *map(str, dirs)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
 
 
 def snapshot(run_dir: Path, skip=("analysis", "tb")) -> dict[str, tuple[str, int]]:
     """Content hash and mtime of every file outside the given top-level folders."""
-    return {str(p.relative_to(run_dir)): (hashlib.sha256(p.read_bytes()).hexdigest(),
-                                         p.stat().st_mtime_ns)
-            for p in sorted(run_dir.rglob("*"))
-            if p.is_file() and p.relative_to(run_dir).parts[0] not in skip}
+    return {
+        str(p.relative_to(run_dir)): (hashlib.sha256(p.read_bytes()).hexdigest(), p.stat().st_mtime_ns)
+        for p in sorted(run_dir.rglob("*"))
+        if p.is_file() and p.relative_to(run_dir).parts[0] not in skip
+    }
 
 
 def event_files(run_dir: Path) -> list[Path]:
@@ -49,8 +72,7 @@ def test_single_run_writes_figures_data_and_report(analyzed_run):
     run_dir, _, result = analyzed_run
     assert result.returncode == 0, result.stderr
     report = assert_analysis_outputs(run_dir, FIGURES, DATA)
-    claim_rows = [line for line in report.splitlines()
-                  if line.startswith("| ") and line.rstrip().endswith("** |")]
+    claim_rows = [line for line in report.splitlines() if line.startswith("| ") and line.rstrip().endswith("** |")]
     assert claim_rows, report
     for name in FIGURES:
         assert f"]({name}.png)" in report
@@ -65,12 +87,12 @@ def test_single_run_results_reflect_the_synthetic_truth(analyzed_run):
     pairs = json.loads((run_dir / "analysis" / "pair_clusters.json").read_text())
     found = {tuple(p["pair"]): p["runs_forming_cluster"] for p in pairs["same_action_pairs"]}
     assert found == {("0", "3"): 2, ("1", "2"): 2, ("5", "8"): 2, ("6", "7"): 2}
-    claims = {c["source"]: c["verdict"]
-              for c in json.loads((run_dir / "analysis" / "claims.json").read_text())}
+    claims = {c["source"]: c["verdict"] for c in json.loads((run_dir / "analysis" / "claims.json").read_text())}
     assert claims["§3.5.3, Figs. 3.11(a)/(b), 3.13"] == "held"
     assert claims["§3.5.1, Fig. 3.6(b)"] == "held"
-    assert not any("without reward" in c["claim"].lower() for c in
-                   json.loads((run_dir / "analysis" / "claims.json").read_text()))
+    assert not any(
+        "without reward" in c["claim"].lower() for c in json.loads((run_dir / "analysis" / "claims.json").read_text())
+    )
 
 
 def test_rerun_overwrites_only_analysis_and_its_tb_log(analyzed_run):
@@ -94,8 +116,10 @@ def test_rerun_overwrites_only_analysis_and_its_tb_log(analyzed_run):
 
 def test_sweep_analyzes_every_run_and_links_them(tmp_path):
     sweep = tmp_path / "sweep"
-    runs = [make_floor_run(sweep / "0", seed=1),
-            make_floor_run(sweep / "nested" / "1", classes=[*"01234N678"], reward=False, seed=2)]
+    runs = [
+        make_floor_run(sweep / "0", seed=1),
+        make_floor_run(sweep / "nested" / "1", classes=[*"01234N678"], reward=False, seed=2),
+    ]
     older = sweep / "run_without_manifest"  # written before records/run.json existed
     older.mkdir()
     (older / "summary.json").write_text(json.dumps({"task": "tmaze", "experiment": "t"}))
@@ -143,9 +167,14 @@ def test_a_page_without_generated_blocks_is_refused_before_any_analysis(tmp_path
     run = make_floor_run(tmp_path / "sweep" / "0_run")
     page = tmp_path / "README.md"
     page.write_text("# no markers here\n")
-    result = subprocess.run([sys.executable, str(REPO / "analyze.py"), str(tmp_path / "sweep"),
-                             "--readme", str(page)], cwd=REPO, capture_output=True, text=True, timeout=120)
+    result = subprocess.run(
+        [sys.executable, str(REPO / "analyze.py"), str(tmp_path / "sweep"), "--readme", str(page)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert result.returncode == 2 and not (run / "analysis").exists()
-    line, = result.stderr.strip().splitlines()
+    (line,) = result.stderr.strip().splitlines()
     assert f"--readme {page}: needs a file with the marker lines" in line and "reproduction-scorecard:begin" in line
     assert page.read_text() == "# no markers here\n"

@@ -1,8 +1,11 @@
 """The architecture's rules (docs/architecture.md), checked on the code: ferl's own components meet
-the protocols of ferl/interfaces.py, and imports follow the data flow — models never import
-trainers or analysis, trainers never import each other, analysis imports no model, and ferl never
-imports the dissertation's analysis (reproduction/), which plugs into ferl's."""
+the protocols of ferl/interfaces.py, imports follow the data flow — models never import
+trainers or analysis, analysis imports no model, and ferl never imports the dissertation's analysis
+(reproduction/), which plugs into ferl's — and a trainer is written in config: its phases, not a
+class of its own."""
+
 import ast
+import sys
 from pathlib import Path
 
 import pytest
@@ -11,6 +14,7 @@ import torch
 from conftest import ROOT
 from ferl import interfaces
 from ferl.actors.free_energy import FERLActor
+from ferl.conformance import required_members
 from ferl.envs.digit_floor import DigitFloor
 from ferl.envs.digit_tmaze import DigitTMaze
 from ferl.envs.tmaze import TMaze
@@ -22,13 +26,14 @@ from test_digit_floor import tiny_split
 FERL = ROOT / "ferl"
 REPRODUCTION = ROOT / "reproduction"
 MODELS = ("envs", "preprocessors", "predictors", "actors")
-TRAINERS = ("floor", "algorithm")  # the procedures; the phases and the job are what they share
 
 
 def test_components_meet_their_protocols():
     gen = torch.Generator().manual_seed(0)
-    digits = {n: i for i, n in enumerate(("start_0", "start_1", "corridor", "junction_0", "junction_1",
-                                          "goal_left", "goal_right"))}
+    digits = {
+        n: i
+        for i, n in enumerate(("start_0", "start_1", "corridor", "junction_0", "junction_1", "goal_left", "goal_right"))
+    }
     assert isinstance(DigitFloor(2, tiny_split(), gen), interfaces.ContinuingEnvironment)
     assert isinstance(TMaze(2, gen), interfaces.EpisodicEnvironment)
     assert isinstance(DigitTMaze(2, gen, tiny_split(), digits, matching=True), interfaces.EpisodicEnvironment)
@@ -38,19 +43,23 @@ def test_components_meet_their_protocols():
     assert isinstance(actor, interfaces.Actor) and isinstance(actor, interfaces.ActorViews)
 
 
-@pytest.mark.parametrize("protocol, base", [
-    (interfaces.Environment, interfaces.EnvironmentBase),
-    (interfaces.EpisodicEnvironment, interfaces.EpisodicEnvironmentBase),
-    (interfaces.Preprocessor, interfaces.PreprocessorBase),
-    (interfaces.TrainingBatch, interfaces.TrainingBatchBase),
-    (interfaces.Predictor, interfaces.PredictorBase),
-    (interfaces.Actor, interfaces.ActorBase),
-    (interfaces.Trainer, interfaces.TrainerBase)])
+@pytest.mark.parametrize(
+    "protocol, base",
+    [
+        (interfaces.Environment, interfaces.EnvironmentBase),
+        (interfaces.EpisodicEnvironment, interfaces.EpisodicEnvironmentBase),
+        (interfaces.Preprocessor, interfaces.PreprocessorBase),
+        (interfaces.TrainingBatch, interfaces.TrainingBatchBase),
+        (interfaces.Predictor, interfaces.PredictorBase),
+        (interfaces.Actor, interfaces.ActorBase),
+        (interfaces.Trainer, interfaces.TrainerBase),
+    ],
+)
 def test_every_default_a_base_gives_is_a_member_its_protocol_declares(protocol, base):
     """A hook exists once as a declared member and once as a default: a base class that gave a
     member its protocol does not declare would bring back an undeclared, discovered hook."""
     given = {name for cls in base.__mro__[:-1] for name in vars(cls) if not name.startswith("_")}
-    assert given and given <= set(interfaces.required_members(protocol))
+    assert given and given <= set(required_members(protocol))
 
 
 def imports(path: Path, package: str = "ferl") -> set[str]:
@@ -64,17 +73,97 @@ def imports(path: Path, package: str = "ferl") -> set[str]:
     return {n for n in names if n == package or n.startswith(f"{package}.")}
 
 
+def module_file(name: str) -> Path | None:
+    """The file of ferl module ``name`` (a package: its __init__.py); None for what is no module."""
+    base = ROOT.joinpath(*name.split("."))
+    for path in (base.with_suffix(".py"), base / "__init__.py"):
+        if path.is_file():
+            return path
+    return None
+
+
+def imported_modules(name: str) -> set[str]:
+    """Every ferl module that module ``name`` imports, in each form: ``import ferl.a.b``,
+    ``from ferl.a import b`` (b a module), ``from ferl.a.b import c``, and relative imports."""
+    path = module_file(name)
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            parts = package.split(".")
+            base = ".".join(parts[: len(parts) - node.level + 1] if node.level else [])
+            base = ".".join(p for p in (base, node.module or "") if p)
+            found.add(base)
+            found.update(f"{base}.{alias.name}" for alias in node.names)
+    return {m for m in found if m.startswith("ferl") and module_file(m) is not None}
+
+
+def reachable(name: str) -> set[str]:
+    """The ferl modules that importing ``name`` loads, through any chain of imports (a module
+    brings its parent packages' __init__ with it)."""
+    seen, todo = set(), [name]
+    while todo:
+        module = todo.pop()
+        for m in imported_modules(module) | {".".join(module.split(".")[:i]) for i in range(1, module.count(".") + 1)}:
+            if m not in seen and module_file(m) is not None:
+                seen.add(m)
+                todo.append(m)
+    return seen - {name}
+
+
+def trainer_modules() -> dict[str, str]:
+    """conf/trainer option → the module of the class it names as the trainer (the trainer node's
+    ``_target_``, its defaults list composed): the entry points, whatever their phases are."""
+    from omegaconf import OmegaConf
+
+    from conftest import compose_config
+
+    options = sorted(p.stem for p in (ROOT / "conf" / "trainer").glob("*.yaml"))
+    targets = {o: OmegaConf.select(compose_config([f"trainer={o}"]), "trainer._target_") for o in options}
+    assert options and all(targets.values()), targets
+    return {o: t.rpartition(".")[0] for o, t in targets.items()}
+
+
 @pytest.mark.parametrize("package", MODELS)
 def test_models_import_no_trainer_and_no_analysis(package):
+    """docs/architecture.md: data flows one way; a model loads no trainer and no analysis module,
+    directly or through any chain of imports."""
     for path in (FERL / package).glob("*.py"):
-        bad = {n for n in imports(path) if n.startswith(("ferl.trainers", "ferl.analysis"))}
-        assert not bad, (path, bad)
+        module = ".".join(path.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__")
+        bad = {m for m in reachable(module) if m.startswith(("ferl.trainers", "ferl.analysis"))}
+        assert not bad, (module, bad)
 
 
-def test_trainers_never_import_each_other():
-    for name in TRAINERS:
-        bad = {n for n in imports(FERL / "trainers" / f"{name}.py") if n.rsplit(".", 1)[-1] in TRAINERS}
-        assert not bad, (name, bad)
+def test_every_trainer_is_written_in_config():
+    """Every conf/trainer option builds the one trainer class, PhasedTrainer, from its phases; no
+    module of ferl/ defines another procedure in Python (a class with fit, or a PhasedTrainer's subclass)."""
+    assert set(trainer_modules().values()) == {"ferl.trainers.phased"}
+    for path in FERL.rglob("*.py"):
+        tree = ast.parse(path.read_text())
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ClassDef):
+                bases = {b.id if isinstance(b, ast.Name) else getattr(b, "attr", "") for b in node.bases}
+                methods = {f.name for f in node.body if isinstance(f, ast.FunctionDef)}
+                is_trainer = "PhasedTrainer" in bases or ({"setup", "fit"} <= methods and "Protocol" not in bases)
+                assert not is_trainer or node.name == "PhasedTrainer", (path, node.name)
+
+
+def test_import_scan_finds_every_form(tmp_path, monkeypatch):
+    """The scan below sees each way of importing a module (a scan that missed one would pass the
+    rule vacuously)."""
+    package = tmp_path / "ferl" / "pkg"
+    package.mkdir(parents=True)
+    (tmp_path / "ferl" / "__init__.py").write_text("")
+    for name in ("__init__", "a", "b", "c", "d", "e"):
+        (package / f"{name}.py").write_text("")
+    (package / "a.py").write_text("import ferl.pkg.b\nfrom ferl.pkg import c\nfrom . import d\nfrom .e import x\n")
+    (package / "d.py").write_text("from ferl.pkg.e import y\n")
+    monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
+    assert imported_modules("ferl.pkg.a") == {"ferl.pkg", "ferl.pkg.b", "ferl.pkg.c", "ferl.pkg.d", "ferl.pkg.e"}
+    assert reachable("ferl.pkg.d") == {"ferl", "ferl.pkg", "ferl.pkg.e"}
+    assert reachable("ferl.pkg.c") == {"ferl", "ferl.pkg"}
 
 
 def test_analysis_reads_records_not_models():
@@ -98,7 +187,8 @@ def test_trainers_call_hooks_and_never_look_for_them():
     ferl/trainers would be a hook discovered rather than declared. The config checks' hooks of a
     ``_target_`` (``ferl.config.params.ConfigTarget``: any callable, no base class) are the exception."""
     from ferl.config.params import ConfigTarget
-    allowed = set(interfaces.required_members(ConfigTarget))
+
+    allowed = set(required_members(ConfigTarget))
     found = []
     for path in sorted((FERL / "trainers").glob("*.py")):
         for node in ast.walk(ast.parse(path.read_text())):

@@ -2,6 +2,7 @@
 the MLP-Q update against autograd, the oracle's tabular values against value iteration on the
 maze's definition, DRQN's GRU and its BPTT gradient against torch.nn.GRU run run by run, its Adam
 against torch.optim.Adam."""
+
 import numpy as np
 import pytest
 import torch
@@ -72,16 +73,31 @@ def test_oracle_tabular_values_are_the_value_iteration_fixed_point():
             active = ~env.done
             r, terminated, _ = env.advance(a.squeeze(1))
             s_next = env.observe().unsqueeze(1)
-            a, F_sa, c_sa, _ = td_step(actor, s, a, F_sa, c_sa, r, s_next, 1.0, 0.0, gen, None, alive,
-                                       (terminated | ~active).unsqueeze(1), active.unsqueeze(1))
+            a, F_sa, c_sa, _ = td_step(
+                actor,
+                s,
+                a,
+                F_sa,
+                c_sa,
+                r,
+                s_next,
+                1.0,
+                0.0,
+                gen,
+                None,
+                alive,
+                (terminated | ~active).unsqueeze(1),
+                active.unsqueeze(1),
+            )
             s = s_next
     Q_star = value_iteration_q(T_min, gamma)
     for position in range(T_min):
         for s0 in (0, 1):
             state = position * 4 + 2 * s0  # regular maze: s1 = 0 (ferl.envs.tmaze.true_state_names)
             side = s0  # s0 = 1 rewards the right goal
-            np.testing.assert_allclose(actor.Q[:, state].numpy(), np.broadcast_to(Q_star[position, :, side], (runs, 4)),
-                                       atol=1e-4)
+            np.testing.assert_allclose(
+                actor.Q[:, state].numpy(), np.broadcast_to(Q_star[position, :, side], (runs, 4)), atol=1e-4
+            )
 
 
 def test_true_state_view_names_every_state_once_and_keeps_the_dynamics():
@@ -124,9 +140,13 @@ def test_gru_step_is_torch_grucell_run_by_run():
 def episodes_batch(T=6, B=5, seed=0) -> dict:
     gen = torch.Generator().manual_seed(seed)
     lengths = torch.randint(1, T + 1, (R, B), generator=gen)
-    return {"states": torch.rand(R, B, T + 1, S, generator=gen), "actions": torch.randint(NA, (R, B, T), generator=gen),
-            "rewards": torch.randn(R, B, T, generator=gen), "lengths": lengths,
-            "terminated": torch.rand(R, B, generator=gen) < 0.5}
+    return {
+        "states": torch.rand(R, B, T + 1, S, generator=gen),
+        "actions": torch.randint(NA, (R, B, T), generator=gen),
+        "rewards": torch.randn(R, B, T, generator=gen),
+        "lengths": lengths,
+        "terminated": torch.rand(R, B, generator=gen) < 0.5,
+    }
 
 
 def reference_loss(actor: DRQNActor, r: int, batch: dict, cell, W_q, b_q) -> torch.Tensor:
@@ -199,9 +219,18 @@ def test_drqn_replay_draws_per_run_and_resumes_from_its_extra_state(draws):
     actor = DRQNActor(R, S, NA, H, 0.9, batch_episodes=4, updates_per_episode=0, seed=0, **schedules())
     T = 4
     for k in range(draws):
-        actor.end_episode(EndedEpisode(torch.full((T, R, S), float(k)), torch.full((R, 1, S), float(k)),
-                                       torch.zeros(T, R, dtype=torch.long), torch.zeros(T, R), torch.full((R,), T),
-                                       torch.ones(R, dtype=torch.bool), T), 0.01)
+        actor.end_episode(
+            EndedEpisode(
+                torch.full((T, R, S), float(k)),
+                torch.full((R, 1, S), float(k)),
+                torch.zeros(T, R, dtype=torch.long),
+                torch.zeros(T, R),
+                torch.full((R,), T),
+                torch.ones(R, dtype=torch.bool),
+                T,
+            ),
+            0.01,
+        )
     copy = DRQNActor(R, S, NA, H, 0.9, batch_episodes=4, updates_per_episode=0, seed=0, **schedules())
     copy.load_state_dict(actor.state_dict())
     first, again = actor.sample(), copy.sample()
@@ -221,8 +250,18 @@ def test_drqn_forgets_its_memory_when_the_episode_ends():
     assert all(torch.equal(actor.get_buffer(k), v) for k, v in weights.items())
     assert not torch.equal(actor.evaluate(s)[0], F_fresh)  # h and a_{t-1} moved on with the act
     T = 3
-    actor.end_episode(EndedEpisode(torch.zeros(T, R, S), torch.zeros(R, 1, S), torch.zeros(T, R, dtype=torch.long),
-                                   torch.zeros(T, R), torch.full((R,), T), torch.ones(R, dtype=torch.bool), T), 0.01)
+    actor.end_episode(
+        EndedEpisode(
+            torch.zeros(T, R, S),
+            torch.zeros(R, 1, S),
+            torch.zeros(T, R, dtype=torch.long),
+            torch.zeros(T, R),
+            torch.full((R,), T),
+            torch.ones(R, dtype=torch.bool),
+            T,
+        ),
+        0.01,
+    )
     assert (actor.h == 0).all() and (actor.a_prev == 0).all()
     assert torch.equal(actor.evaluate(s)[0], F_fresh)
 
@@ -254,10 +293,17 @@ def test_the_continuing_td_phase_refuses_an_actor_that_learns_only_from_episodes
     from types import SimpleNamespace
 
     from ferl.config.params import ConfigError
-    from ferl.trainers.online import OnlineTD
-    job = SimpleNamespace(actor=DRQNActor(R, S, NA, H, 0.9, **schedules()), env=SimpleNamespace(task="floor"), R=R)
+    from ferl.trainers.continuing_td import ContinuingTD
+    from ferl.trainers.phased import RunControl
+
+    job = SimpleNamespace(
+        actor=DRQNActor(R, S, NA, H, 0.9, **schedules()),
+        env=SimpleNamespace(task="floor"),
+        R=R,
+        control=RunControl(log_every=5, checkpoint_every=5, checkpoint_minutes=0.0, divergence_limit=1e6),
+    )
     with pytest.raises(ConfigError, match=r"^actor=drqn learns from whole episodes, and the continuing task floor"):
-        OnlineTD(10, 5, 5, 0.0, 1, 0).prepare(job)
+        ContinuingTD(10, 1, 0).prepare(job)
 
 
 def test_an_actor_without_the_logging_views_records_no_hidden_activations():
@@ -273,14 +319,19 @@ def test_an_actor_without_the_logging_views_records_no_hidden_activations():
     steps = 4
     probes = torch.zeros(steps, R, dtype=torch.bool)
     probes[1, 0] = probes[2, 2] = True
-    ep = {"probes": probes, "memories": [torch.rand(steps, R, 3)], "states": torch.rand(steps, R, S),
-          "caches": torch.rand(steps, R, H)}
+    ep = {
+        "probes": probes,
+        "memories": [torch.rand(steps, R, 3)],
+        "states": torch.rand(steps, R, S),
+        "caches": torch.rand(steps, R, H),
+    }
     env = SimpleNamespace(labels=lambda: {"cue": torch.tensor([1, 0, 1])})
     phase = ActorEpisodes.__new__(ActorEpisodes)
     seen = {}
     for actor in (Viewless(), DRQNActor(R, S, NA, H, 0.9, **schedules())):
-        seen[isinstance(actor, ActorViews)] = phase.probe_visits(SimpleNamespace(actor=actor, env=env,
-                                                                                 predictors={"m": None}), 7, ep)
+        seen[isinstance(actor, ActorViews)] = phase.probe_visits(
+            SimpleNamespace(actor=actor, env=env, predictors={"m": None}), 7, ep
+        )
     assert set(seen[True]) - set(seen[False]) == {"hidden"}
     assert seen[False]["run"].tolist() == [0, 2] and seen[False]["step"].tolist() == [1, 2]
     assert torch.equal(seen[True]["hidden"], ep["caches"][[1, 2], [0, 2]].half())

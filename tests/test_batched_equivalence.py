@@ -8,6 +8,7 @@ other, so a batched step that mixed runs up (or broadcast one run to all) would 
 The NumPy T-maze speed reference (benchmarks/numpy_tmaze_reference.py) is checked against the
 torch modules here too: environment, predictor step, BPTT gradients and epoch, one SARSA step.
 """
+
 import importlib.util
 import sys
 from pathlib import Path
@@ -46,7 +47,7 @@ def one_thread():
 
 def run_slice(module: torch.nn.Module, r: int, run_keys) -> dict:
     """Module state with the run-batched entries cut to run r (shape (1, …)); others as they are."""
-    return {k: (v[r:r + 1].clone() if k in run_keys else v.clone()) for k, v in module.state_dict().items()}
+    return {k: (v[r : r + 1].clone() if k in run_keys else v.clone()) for k, v in module.state_dict().items()}
 
 
 def single_copy(make_single, module, r: int, run_keys):
@@ -64,8 +65,9 @@ def assert_runs_match(batched: dict, singles: list, dtype, what=""):
         flat = b.reshape(b.shape[0], -1).double()
         for r in range(len(singles)):
             for q in range(r + 1, len(singles)):
-                assert not torch.allclose(flat[r], flat[q], rtol=1e-3, atol=1e-6), \
+                assert not torch.allclose(flat[r], flat[q], rtol=1e-3, atol=1e-6), (
                     f"{what}{name}: runs {r} and {q} agree, so the test could not see them mixed"
+                )
 
 
 def changes(after: dict, before: dict) -> dict:
@@ -82,8 +84,17 @@ S_NODES, HID = 6, 5
 
 def actors(code: str, dtype, n_actions: int, td_rule="sarsa"):
     """An R-run actor with random weights and biases, and a maker of 1-run actors."""
-    kw = dict(n_state=S_NODES, n_actions=n_actions, n_hidden=HID, td_rule=td_rule, gamma=0.9,
-              lr=Constant(0.1), beta=Constant(1.0), action_code=code, init_std=0.7)
+    kw = dict(
+        n_state=S_NODES,
+        n_actions=n_actions,
+        n_hidden=HID,
+        td_rule=td_rule,
+        gamma=0.9,
+        lr=Constant(0.1),
+        beta=Constant(1.0),
+        action_code=code,
+        init_std=0.7,
+    )
     batched = FERLActor(R, seed=3, **kw).to(dtype)
     g = torch.Generator().manual_seed(11)
     for name in ("b_s", "b_a", "b_h"):
@@ -118,11 +129,11 @@ def test_actor_update_equals_single_run_updates(code, n_actions, B, dtype):
     batched.update(s, a, x_sa, delta, lr)
     single_changes = []
     for r, one in enumerate(singles):
-        F_r, x_r = one.evaluate(s[r:r + 1])
-        torch.testing.assert_close(F_all[r:r + 1], F_r, **TOL[dtype])
-        torch.testing.assert_close(x[r:r + 1], x_r, **TOL[dtype])
+        F_r, x_r = one.evaluate(s[r : r + 1])
+        torch.testing.assert_close(F_all[r : r + 1], F_r, **TOL[dtype])
+        torch.testing.assert_close(x[r : r + 1], x_r, **TOL[dtype])
         start = actor_params(one)
-        one.update(s[r:r + 1], a[r:r + 1], x_sa[r:r + 1], delta[r:r + 1], lr)
+        one.update(s[r : r + 1], a[r : r + 1], x_sa[r : r + 1], delta[r : r + 1], lr)
         single_changes.append(changes(actor_params(one), start))
     assert_runs_match(changes(actor_params(batched), before), single_changes, dtype, "Δ")
     assert_runs_match(actor_params(batched), [actor_params(one) for one in singles], dtype)
@@ -145,8 +156,21 @@ def test_actor_sarsa_step_equals_single_run_steps(rule, dtype):
     def step(actor, sl):
         a, F_sa, x_sa, _ = actor.act(s[sl], beta, None, u[sl])
         alive = torch.ones(len(a), 1, dtype=torch.bool)
-        a_next, _, _, delta = td_step(actor, s[sl], a, F_sa, x_sa, reward[sl].squeeze(1), s_next[sl], lr, beta, None,
-                                      u_next[sl], alive, terminal[sl])
+        a_next, _, _, delta = td_step(
+            actor,
+            s[sl],
+            a,
+            F_sa,
+            x_sa,
+            reward[sl].squeeze(1),
+            s_next[sl],
+            lr,
+            beta,
+            None,
+            u_next[sl],
+            alive,
+            terminal[sl],
+        )
         return {"a": a, "a_next": a_next, "delta": delta}
 
     out = step(batched, slice(None))
@@ -163,8 +187,12 @@ def test_actor_sarsa_step_equals_single_run_steps(rule, dtype):
 
 Y, A, M, NR = 5, 4, 6, 3
 GAINS = dict(c_y=0.7, c_a=1.3, beta_m=0.8, beta_y=1.2, beta_r=0.9, rho_y=1.5, rho_r=2.5, init_std=0.7)
-KINDS = [dict(reward_output="bits"), dict(reward_output="linear", time_average=True),
-         dict(reward_output="none"), dict(reward_output="linear", predict_obs=False)]
+KINDS = [
+    dict(reward_output="bits"),
+    dict(reward_output="linear", time_average=True),
+    dict(reward_output="none"),
+    dict(reward_output="linear", predict_obs=False),
+]
 
 
 def predictors(dtype, lr=0.2, **kind):
@@ -179,8 +207,11 @@ def sequences(dtype, reward_output, B=6, T=7, seed=1):
     g = torch.Generator().manual_seed(seed)
     y = torch.randint(0, 2, (R, B, T + 1, Y), generator=g).to(dtype)
     a = F.one_hot(torch.randint(0, A, (R, B, T), generator=g), A).to(dtype)
-    r = (torch.randint(0, 2, (R, B, T + 1, NR), generator=g).to(dtype) if reward_output == "bits"
-         else torch.randn(R, B, T + 1, 1, generator=g, dtype=torch.float64).to(dtype))
+    r = (
+        torch.randint(0, 2, (R, B, T + 1, NR), generator=g).to(dtype)
+        if reward_output == "bits"
+        else torch.randn(R, B, T + 1, 1, generator=g, dtype=torch.float64).to(dtype)
+    )
     lengths = torch.randint(1, T + 1, (R, B), generator=g)
     return y, a, (None if reward_output == "none" else r), lengths
 
@@ -204,8 +235,9 @@ def test_predictor_train_epoch_equals_single_run_epochs(kind, dtype):
     single_changes = []
     for r, one in enumerate(singles):
         start = predictor_params(one)
-        one.train_epoch(y[r:r + 1], a[r:r + 1], r_[r:r + 1] if r_ is not None else None, lengths[r:r + 1],
-                        order[r:r + 1])
+        one.train_epoch(
+            y[r : r + 1], a[r : r + 1], r_[r : r + 1] if r_ is not None else None, lengths[r : r + 1], order[r : r + 1]
+        )
         single_changes.append(changes(predictor_params(one), start))
     assert_runs_match(changes(predictor_params(batched), before), single_changes, dtype, "Δ")
 
@@ -236,10 +268,34 @@ def test_predictor_forward_and_online_step_equal_single_runs(dtype):
         m1_r = one.step(m0_r, y_prev[sl], a_prev[sl])
         y1_r, r1_r = one.outputs(m1_r)
         yh_r, rh_r, m_r = one.forward_sequences(y[sl], a[sl], lengths[sl])
-        got.append({"m0": m0_r, "y0": y0_r, "m1": m1_r, "y1": y1_r, "r1": r1_r, "y_hat": yh_r, "r_hat": rh_r,
-                    "m": m_r, "err": torch.nan_to_num(one.prediction_errors(y[sl], a[sl], r_[sl], lengths[sl]), -1.0)})
-    assert_runs_match({"m0": m0, "y0": y0, "m1": m1, "y1": y1, "r1": r1, "y_hat": y_hat, "r_hat": r_hat, "m": m,
-                       "err": torch.nan_to_num(err, -1.0)}, got, dtype)
+        got.append(
+            {
+                "m0": m0_r,
+                "y0": y0_r,
+                "m1": m1_r,
+                "y1": y1_r,
+                "r1": r1_r,
+                "y_hat": yh_r,
+                "r_hat": rh_r,
+                "m": m_r,
+                "err": torch.nan_to_num(one.prediction_errors(y[sl], a[sl], r_[sl], lengths[sl]), -1.0),
+            }
+        )
+    assert_runs_match(
+        {
+            "m0": m0,
+            "y0": y0,
+            "m1": m1,
+            "y1": y1,
+            "r1": r1,
+            "y_hat": y_hat,
+            "r_hat": r_hat,
+            "m": m,
+            "err": torch.nan_to_num(err, -1.0),
+        },
+        got,
+        dtype,
+    )
 
 
 # ----------------------------------------------------------------------------
@@ -251,8 +307,7 @@ RBM_KEYS = ("W", "b_v", "b_h")
 
 
 def rbms(dtype, **kw):
-    kw = dict(n_visible=VIS, n_hidden=HIDDEN, batch_size=4, sweeps=2, init_std=0.5, initial_momentum_sweeps=1,
-              **kw)
+    kw = dict(n_visible=VIS, n_hidden=HIDDEN, batch_size=4, sweeps=2, init_std=0.5, initial_momentum_sweeps=1, **kw)
     batched = RBMPreprocessor(R, seed=2, **kw).to(dtype)
     g = torch.Generator().manual_seed(4)
     batched.b_v.copy_(0.3 * torch.randn(R, VIS, generator=g, dtype=torch.float64))
@@ -269,8 +324,9 @@ def rbm_params(model) -> dict:
 
 
 @pytest.mark.parametrize("dtype", DTYPES)
-@pytest.mark.parametrize("cd_k, persistent, visible", [(1, False, "mean_field"), (3, False, "binary"),
-                                                        (2, True, "binary")])
+@pytest.mark.parametrize(
+    "cd_k, persistent, visible", [(1, False, "mean_field"), (3, False, "binary"), (2, True, "binary")]
+)
 def test_cd_gradient_equals_single_runs(cd_k, persistent, visible, dtype):
     """The CD-k (PCD-k) gradient over R runs, each run drawing its Gibbs samples from its own
     stream, = the gradient of 1-run RBMs holding run r's parameters and drawing from a copy of
@@ -281,7 +337,7 @@ def test_cd_gradient_equals_single_runs(cd_k, persistent, visible, dtype):
     gens, single_gens = streams(range(100, 100 + R)), streams(range(100, 100 + R))
     for _ in range(2):
         grad = batched.cd_gradient(v, gens)
-        single_grads = [one.cd_gradient(v[r:r + 1], [single_gens[r]])._asdict() for r, one in enumerate(singles)]
+        single_grads = [one.cd_gradient(v[r : r + 1], [single_gens[r]])._asdict() for r, one in enumerate(singles)]
         assert_runs_match(grad._asdict(), single_grads, dtype)
         if persistent:
             assert_runs_match({"chains": batched.chains}, [{"chains": one.chains} for one in singles], dtype)
@@ -298,8 +354,10 @@ def test_cd_statistics_and_sgd_step_equal_single_runs(dtype):
     h, h_model = (torch.rand(R, 6, HIDDEN, generator=g, dtype=torch.float64).to(dtype) for _ in range(2))
     data, model = statistics(v, h), statistics(v_model, h_model)
     grad = type(data)(*(d - m for d, m in zip(data, model)))
-    velocity = [0.1 * torch.randn(p.shape, generator=g, dtype=torch.float64).to(dtype) for p in rbm_params(batched).values()]
-    single_velocity = [[vel[r:r + 1].clone() for vel in velocity] for r in range(R)]
+    velocity = [
+        0.1 * torch.randn(p.shape, generator=g, dtype=torch.float64).to(dtype) for p in rbm_params(batched).values()
+    ]
+    single_velocity = [[vel[r : r + 1].clone() for vel in velocity] for r in range(R)]
     before = rbm_params(batched)
     batched.sgd_step(grad, velocity, 0.9)
     single_changes = []
@@ -324,9 +382,10 @@ def test_rbm_fit_equals_single_run_fits(persistent):
     singles = [single_copy(make_single, batched, r, RBM_KEYS) for r in range(R)]
     images = torch.rand(R, 10, VIS, generator=torch.Generator().manual_seed(12), dtype=dtype)
     errors = batched.train(images, streams(range(50, 50 + R)), progress=False)
-    single_errors = [one.train(images[r:r + 1], streams([50 + r]), progress=False) for r, one in enumerate(singles)]
-    assert_runs_match({"errors": torch.as_tensor(errors)}, [{"errors": torch.as_tensor(e)} for e in single_errors],
-                      torch.float32)  # fit returns float32 errors
+    single_errors = [one.train(images[r : r + 1], streams([50 + r]), progress=False) for r, one in enumerate(singles)]
+    assert_runs_match(
+        {"errors": torch.as_tensor(errors)}, [{"errors": torch.as_tensor(e)} for e in single_errors], torch.float32
+    )  # fit returns float32 errors
     assert_runs_match(rbm_params(batched), [rbm_params(one) for one in singles], dtype)
 
 
@@ -355,8 +414,9 @@ def test_numpy_tmaze_dynamics_match_env(matching):
 
 
 def torch_predictor_from(P: dict, hp=ref.JOINT, lr=0.05) -> ElmanPredictor:
-    p = ElmanPredictor(1, ref.N_OBS, ref.N_ACTIONS, n_memory=P["b_m"].size, n_reward=P["b_r"].size,
-                       lr=lr, **hp).double()
+    p = ElmanPredictor(
+        1, ref.N_OBS, ref.N_ACTIONS, n_memory=P["b_m"].size, n_reward=P["b_r"].size, lr=lr, **hp
+    ).double()
     with torch.no_grad():
         for name, q in p.named_parameters():
             q.copy_(torch.from_numpy(P[name])[None])
@@ -372,14 +432,32 @@ def pad(seqs, T_max=10):
     lengths = torch.zeros(1, B, dtype=torch.long)
     for i, (ys, acts, rs) in enumerate(seqs):
         T = len(acts)
-        y[0, i, : T + 1], a[0, i, :T], r[0, i, : T + 1], lengths[0, i] = (torch.from_numpy(ys), torch.from_numpy(acts),
-                                                                         torch.from_numpy(rs), T)
+        y[0, i, : T + 1], a[0, i, :T], r[0, i, : T + 1], lengths[0, i] = (
+            torch.from_numpy(ys),
+            torch.from_numpy(acts),
+            torch.from_numpy(rs),
+            T,
+        )
     return y, a, r, lengths
 
 
-@pytest.mark.parametrize("hp", [ref.JOINT, {**ref.JOINT, "time_average": False, "beta_m": 0.8, "beta_y": 1.3,
-                                            "beta_r": 0.7, "c_y": 0.6, "c_a": 1.4, "rho_y": 1.5}],
-                         ids=["joint", "gains"])
+@pytest.mark.parametrize(
+    "hp",
+    [
+        ref.JOINT,
+        {
+            **ref.JOINT,
+            "time_average": False,
+            "beta_m": 0.8,
+            "beta_y": 1.3,
+            "beta_r": 0.7,
+            "c_y": 0.6,
+            "c_a": 1.4,
+            "rho_y": 1.5,
+        },
+    ],
+    ids=["joint", "gains"],
+)
 def test_numpy_bptt_matches_torch_autograd_and_train_epoch(hp):
     """The hand-written NumPy BPTT gradient = autograd of ElmanPredictor.loss (one sequence), its
     online step = ElmanPredictor.step, and one NumPy pattern-mode epoch = train_epoch."""
@@ -395,8 +473,9 @@ def test_numpy_bptt_matches_torch_autograd_and_train_epoch(hp):
     for name, g in grads.items():
         np.testing.assert_allclose(G[name], g[0].numpy(), rtol=1e-10, atol=1e-12, err_msg=name)
     m1 = p.step(p.initial_state(), y[:, 0, 0], a[:, 0, 0])
-    np.testing.assert_allclose(ref.predictor_step(P, ref.predictor_initial(P, hp), seqs[0][0][0], seqs[0][1][0], hp),
-                               m1[0].numpy(), rtol=1e-12)
+    np.testing.assert_allclose(
+        ref.predictor_step(P, ref.predictor_initial(P, hp), seqs[0][0][0], seqs[0][1][0], hp), m1[0].numpy(), rtol=1e-12
+    )
     order = rng.permutation(len(seqs))
     ref.bptt_epoch(P, seqs, order, 0.05, hp)
     p.train_epoch(y, a, r, lengths, torch.as_tensor(order)[None])
@@ -411,8 +490,9 @@ def test_numpy_sarsa_step_matches_ferl_actor():
     n_state = ref.N_OBS + 20
     params = ref.init_actor(rng, n_state, 20)
     params[2][:], params[3][:], params[4][:] = (rng.normal(0, 0.5, p.shape) for p in params[2:])
-    actor = FERLActor(1, n_state, ref.N_ACTIONS, 20, "sarsa", 0.95, Constant(0.05), Constant(1.0),
-                      lr_norm="fan_in").double()
+    actor = FERLActor(
+        1, n_state, ref.N_ACTIONS, 20, "sarsa", 0.95, Constant(0.05), Constant(1.0), lr_norm="fan_in"
+    ).double()
     for name, value in zip(ACTOR_KEYS, params):
         getattr(actor, name).copy_(torch.from_numpy(value)[None])
     s, s_next = rng.random(n_state), rng.random(n_state)
@@ -427,10 +507,21 @@ def test_numpy_sarsa_step_matches_ferl_actor():
         F_next, _ = actor.evaluate(st_next)
         np.testing.assert_allclose(F_all[0, 0].numpy(), F_np, rtol=1e-12)
         np.testing.assert_allclose(F_next[0, 0].numpy(), F_next_np, rtol=1e-12)
-        a_next, _, _, delta = td_step(actor, st, torch.tensor([[a]]), F_all[:, :, a], x[:, :, a],
-                                      torch.tensor([reward], dtype=torch.float64), st_next, alpha, 1.0, None,
-                                      torch.full((1, 1, 1), u, dtype=torch.float64),
-                                      torch.ones(1, 1, dtype=torch.bool), torch.tensor([[terminal]]))
+        a_next, _, _, delta = td_step(
+            actor,
+            st,
+            torch.tensor([[a]]),
+            F_all[:, :, a],
+            x[:, :, a],
+            torch.tensor([reward], dtype=torch.float64),
+            st_next,
+            alpha,
+            1.0,
+            None,
+            torch.full((1, 1, 1), u, dtype=torch.float64),
+            torch.ones(1, 1, dtype=torch.bool),
+            torch.tensor([[terminal]]),
+        )
         delta_np = ref.td_error(reward, F_np[a], F_next_np[int(a_next)], 0.95, terminal)
         assert float(delta) == pytest.approx(delta_np, rel=1e-12)
         ref.sarsa_update(params, s, a, ref.sigmoid(x_np[a]), delta_np, alpha)
@@ -445,22 +536,34 @@ def test_numpy_fresh_pair_is_the_free_energy_after_the_update(a_next):
     rng = np.random.default_rng(4)
     n_state = ref.N_OBS + 20
     params = ref.init_actor(rng, n_state, 20)
-    actor = FERLActor(1, n_state, ref.N_ACTIONS, 20, "sarsa", 0.95, Constant(0.05), Constant(1.0),
-                      lr_norm="fan_in", td_fresh=True).double()
+    actor = FERLActor(
+        1, n_state, ref.N_ACTIONS, 20, "sarsa", 0.95, Constant(0.05), Constant(1.0), lr_norm="fan_in", td_fresh=True
+    ).double()
     for name, value in zip(ACTOR_KEYS, params):
         getattr(actor, name).copy_(torch.from_numpy(value)[None])
     s, s_next, a, delta, alpha = rng.random(n_state), rng.random(n_state), 2, -3.0, 0.01
-    F, x = ref.free_energy_all_actions(s, *params)
+    _, x = ref.free_energy_all_actions(s, *params)
     F_next, x_next = ref.free_energy_all_actions(s_next, *params)
     ref.sarsa_update(params, s, a, ref.sigmoid(x[a]), delta, alpha)
     F_after, x_after = ref.free_energy_all_actions(s_next, *params)
-    F_np, x_np = ref.fresh_pair(s, a, ref.sigmoid(x[a]), delta, alpha, s_next, a_next, float(F_next[a_next]), x_next[a_next])
+    F_np, x_np = ref.fresh_pair(
+        s, a, ref.sigmoid(x[a]), delta, alpha, s_next, a_next, float(F_next[a_next]), x_next[a_next]
+    )
     np.testing.assert_allclose(F_np, F_after[a_next], rtol=1e-10)
     np.testing.assert_allclose(x_np, x_after[a_next], rtol=1e-10)
     assert abs(F_after[a_next] - F_next[a_next]) > 1e-3  # the update moved F(s', a')
     t = lambda v: torch.as_tensor(np.asarray(v, dtype=np.float64)).reshape(1, 1, -1)  # noqa: E731
-    F_t, x_t = actor.learn(t(s), torch.tensor([[a]]), t(x[a]), torch.tensor([[delta]], dtype=torch.float64), alpha,
-                               t(s_next), torch.tensor([[a_next]]), t(F_next[a_next]).reshape(1, 1), t(x_next[a_next]))
+    F_t, x_t = actor.learn(
+        t(s),
+        torch.tensor([[a]]),
+        t(x[a]),
+        torch.tensor([[delta]], dtype=torch.float64),
+        alpha,
+        t(s_next),
+        torch.tensor([[a_next]]),
+        t(F_next[a_next]).reshape(1, 1),
+        t(x_next[a_next]),
+    )
     np.testing.assert_allclose(float(F_t), F_np, rtol=1e-10)
     np.testing.assert_allclose(x_t[0, 0].numpy(), x_np, rtol=1e-10)
 

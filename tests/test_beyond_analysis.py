@@ -3,6 +3,7 @@ miniature sweep: online jobs with two memories at two corridor lengths, a phased
 online job with curiosity. The memory-length table is checked against the runs' records read
 another way (an episode ended in a goal iff the environment says it ended in the rewarded one, or
 its last reward is the wrong goal's −5), the sample-efficiency rows against summary.json."""
+
 import csv
 
 import numpy as np
@@ -10,18 +11,39 @@ import pytest
 
 from conftest import train_sweep
 
-TINY_ONLINE = ["trainer=online", "n_runs=2", "trainer.n_episodes=60", "trainer.final_window=20",
-               "trainer.log_every=20", "trainer.replay_sample=4"]
+TINY_ONLINE = [
+    "trainer=online",
+    "n_runs=2",
+    "trainer.n_episodes=60",
+    "trainer.final_window=20",
+    "trainer.log_every=20",
+    "trainer.replay_sample=4",
+]
 
 
 @pytest.fixture(scope="module")
 def sweep(tmp_path_factory):
     root = tmp_path_factory.mktemp("beyond")
-    jobs = {f"online_{memory}_{c}": ["experiment=table4_1_regular", *TINY_ONLINE, f"predictor.joint.memory={memory}",
-                                     f"env.corridor_length={c}", f"env.max_steps={2 * c + 4}"]
-            for memory in ("elman", "esn") for c in (3, 5)}
-    jobs["phased"] = ["experiment=table4_1_matching", "n_runs=2", "trainer.n_sample=300", "trainer.n_epoch=2",
-                      "trainer.n_episodes=60", "trainer.final_window=20", "trainer.log_every=20"]
+    jobs = {
+        f"online_{memory}_{c}": [
+            "experiment=table4_1_regular",
+            *TINY_ONLINE,
+            f"predictor.joint.memory={memory}",
+            f"env.corridor_length={c}",
+            f"env.max_steps={2 * c + 4}",
+        ]
+        for memory in ("elman", "esn")
+        for c in (3, 5)
+    }
+    jobs["phased"] = [
+        "experiment=table4_1_matching",
+        "n_runs=2",
+        "trainer.n_sample=300",
+        "trainer.n_epoch=2",
+        "trainer.n_episodes=60",
+        "trainer.final_window=20",
+        "trainer.log_every=20",
+    ]
     jobs["online_curious"] = ["experiment=table4_1_matching", *TINY_ONLINE, "trainer.curiosity=0.2"]
     return root, train_sweep(root, jobs)
 
@@ -34,8 +56,12 @@ def table(path):
 def test_memory_length_curve_matches_the_records(sweep):
     root, summaries = sweep
     curve = table(root / "analysis" / "memory_length_curve.csv")
-    assert [(r["memory"], r["corridor_length"]) for r in curve] == [("elman", "3"), ("elman", "5"), ("esn", "3"),
-                                                                   ("esn", "5")]
+    assert [(r["memory"], r["corridor_length"]) for r in curve] == [
+        ("elman", "3"),
+        ("elman", "5"),
+        ("esn", "3"),
+        ("esn", "5"),
+    ]
     for r in curve:
         name = f"online_{r['memory']}_{r['corridor_length']}"
         with np.load(root / name / "records" / "episodes.npz") as episodes:

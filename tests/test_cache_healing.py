@@ -2,6 +2,7 @@
 shapes match; one that fails (cut short, other bytes, another fit's file, the format before
 checksums) is reported in one warning line, removed and fitted again, and the run ends with the
 state of a clean fit. A good entry loads without a fit; two jobs filling one cache at once agree."""
+
 import io
 import os
 import subprocess
@@ -79,7 +80,7 @@ def old_format(tmp_path: Path) -> bytes:
 def flipped(raw: bytes) -> bytes:
     """One byte of the payload changed (the header intact)."""
     at = len(raw) - 100
-    return raw[:at] + bytes([raw[at] ^ 0x55]) + raw[at + 1:]
+    return raw[:at] + bytes([raw[at] ^ 0x55]) + raw[at + 1 :]
 
 
 DAMAGE = {
@@ -94,8 +95,9 @@ DAMAGE = {
 
 
 @pytest.mark.parametrize("damage", list(DAMAGE))
-def test_a_damaged_entry_warns_once_is_removed_and_refitted_to_the_clean_state(tmp_path, clean, counted, capsys,
-                                                                                monkeypatch, damage):
+def test_a_damaged_entry_warns_once_is_removed_and_refitted_to_the_clean_state(
+    tmp_path, clean, counted, capsys, monkeypatch, damage
+):
     load_or_fit(RBMPreprocessor(2, **SETTINGS), images(), tmp_path)
     path = entry(tmp_path)
     good = path.read_bytes()
@@ -129,12 +131,12 @@ def test_a_good_entry_is_loaded_without_a_fit_and_only_after_its_checksum(tmp_pa
     raw = entry(tmp_path).read_bytes()
     header = entry_header(entry(tmp_path))
     assert header["shapes"] == {"W": [2, 16, 4], "b_v": [2, 16], "b_h": [2, 4], "errors": [2, 2]}
-    assert header["bytes"] == len(raw) - len(MAGIC) - len(raw[len(MAGIC):].partition(b"\n")[0]) - 1
+    assert header["bytes"] == len(raw) - len(MAGIC) - len(raw[len(MAGIC) :].partition(b"\n")[0]) - 1
 
     second = RBMPreprocessor(2, **SETTINGS)
     errors, cached = load_or_fit(second, images(), tmp_path)
     assert cached and counted["train"] == 1 and messages(capsys.readouterr()) == []
-    assert counted["load"] == [raw[-header["bytes"]:]]  # exactly the checked payload
+    assert counted["load"] == [raw[-header["bytes"] :]]  # exactly the checked payload
     torch.testing.assert_close(second.state_dict(), clean[0], rtol=0, atol=0)
     assert (errors == clean[1]).all()
 
@@ -145,7 +147,7 @@ def test_a_header_that_lies_about_shapes_is_caught_before_loading(tmp_path, coun
     load_or_fit(RBMPreprocessor(2, **SETTINGS), images(), tmp_path)
     path = entry(tmp_path)
     raw = path.read_bytes()
-    line, _, payload = raw[len(MAGIC):].partition(b"\n")
+    line, _, payload = raw[len(MAGIC) :].partition(b"\n")
     path.write_bytes(MAGIC + line.replace(b'"W": [2, 16, 4]', b'"W": [2, 16, 5]') + b"\n" + payload)
     counted["load"] = []
     capsys.readouterr()
@@ -186,8 +188,16 @@ def test_two_jobs_filling_one_cache_at_once_agree(tmp_path, start):
         subprocess.run([sys.executable, "-c", FILL, str(tmp_path / "x")], cwd=ROOT, check=True, capture_output=True)
         [path] = (tmp_path / "x").glob("rbmpreprocessor-*.pt")
         (tmp_path / path.name).write_bytes(path.read_bytes()[:300])
-    jobs = [subprocess.Popen([sys.executable, "-c", FILL, str(tmp_path)], cwd=ROOT, stdout=subprocess.PIPE,
-                             stderr=subprocess.PIPE, text=True) for _ in range(2)]
+    jobs = [
+        subprocess.Popen(
+            [sys.executable, "-c", FILL, str(tmp_path)],
+            cwd=ROOT,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for _ in range(2)
+    ]
     results = [job.communicate(timeout=300) for job in jobs]
     assert all(job.returncode == 0 for job in jobs), results
     digests = {out.split()[0] for out, _ in results}

@@ -1,6 +1,7 @@
 """The digit floor's TD loop in chunks (ferl/trainers/chunks.py: td_steps): the chunk length
 does not change a run, `compile=true` (torch.compile of the chunk, run by groups of runs on a CPU)
 gives the eager results within floating-point tolerance, and the grouping changes no run."""
+
 import threading
 
 import numpy as np
@@ -8,11 +9,17 @@ import pytest
 import torch
 
 from conftest import train_job
-from ferl.trainers import chunks, online
+from ferl.trainers import chunks, continuing_td
 from ferl.trainers.chunks import chunk_length
 
-TINY = ["n_runs=3", "trainer.steps=480", "trainer.log_every=160", "trainer.checkpoint_every=160",
-        "trainer.test_per_class=5", "trainer.test_noise_levels=[0.125]"]
+TINY = [
+    "n_runs=3",
+    "trainer.steps=480",
+    "trainer.log_every=160",
+    "trainer.checkpoint_every=160",
+    "trainer.test_per_class=5",
+    "trainer.test_noise_levels=[0.125]",
+]
 
 
 @pytest.fixture(autouse=True)
@@ -26,8 +33,10 @@ def fresh_compiler():
 
 def run(compose_cfg, tmp_path, name, *overrides):
     summary = train_job(compose_cfg([*TINY, *overrides]), tmp_path / name)
-    with np.load(tmp_path / name / "records" / "steps.npz") as train, \
-            np.load(tmp_path / name / "records" / "weights.npz") as weights:
+    with (
+        np.load(tmp_path / name / "records" / "steps.npz") as train,
+        np.load(tmp_path / name / "records" / "weights.npz") as weights,
+    ):
         return summary, train["rewards"], train["td_errors"], weights["state_weights_after"]
 
 
@@ -52,10 +61,13 @@ def test_prefetched_random_numbers_change_no_run(compose_cfg, tmp_path, monkeypa
     runs: the same draws in the same order, so every run is bit-identical to drawing in turn."""
     monkeypatch.setattr(chunks, "MAX_CHUNK", 4)  # many chunks, so many prefetches
     threads = []
-    draw = online.OnlineTD.chunk_inputs
-    monkeypatch.setattr(online.OnlineTD, "chunk_inputs",
-                        lambda self, env: threads.append(threading.current_thread().name) or draw(self, env))
-    many = f"n_runs={online.PREFETCH_MIN_RUNS}"  # fewer runs draw in turn anyway
+    draw = continuing_td.ContinuingTD.chunk_inputs
+    monkeypatch.setattr(
+        continuing_td.ContinuingTD,
+        "chunk_inputs",
+        lambda self, env: threads.append(threading.current_thread().name) or draw(self, env),
+    )
+    many = f"n_runs={continuing_td.PREFETCH_MIN_RUNS}"  # fewer runs draw in turn anyway
     prefetched = run(compose_cfg, tmp_path, "prefetched", many, "trainer.prefetch=3")
     assert threads and all(name.startswith("ferl-random") for name in threads)
     threads.clear()

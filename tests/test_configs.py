@@ -2,24 +2,36 @@
 rejected with one line naming its key: by Hydra (unknown keys and options), by the checks of the
 constructors the config names (ferl/config/validate.py: types, ranges, cross-key rules), or by the
 trainer's setup (what involves two components)."""
+
 import pytest
 import torch
-from hydra.errors import HydraException
 from hydra.core.hydra_config import HydraConfig
+from hydra.errors import HydraException
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from conftest import EXPERIMENTS, ROOT, run_train
 from ferl.config.hydra_glue import condense_hydra_error
-from ferl.config.params import ConfigError, check_node, target
+from ferl.config.params import ConfigError, check_node
+from ferl.config.swaps import settings_read
 from ferl.config.validate import validate
 from ferl.data import DataError
 from ferl.trainers.job import Job, SeedOffsets
 
 
 def test_contract_experiments_exist():
-    assert {"ch3_floor", "ch3_coding_cw", "ch3_coding_ccw", "ch3_coding_noreward", "table4_1_regular",
-            "table4_1_matching", "table4_2_digit", "table5_1_bit", "table5_1_pixel", "passive_tmaze"} <= set(EXPERIMENTS)
+    assert {
+        "ch3_floor",
+        "ch3_coding_cw",
+        "ch3_coding_ccw",
+        "ch3_coding_noreward",
+        "table4_1_regular",
+        "table4_1_matching",
+        "table4_2_digit",
+        "table5_1_bit",
+        "table5_1_pixel",
+        "passive_tmaze",
+    } <= set(EXPERIMENTS)
 
 
 @pytest.mark.parametrize("name", EXPERIMENTS)
@@ -29,8 +41,8 @@ def test_experiment_composes_validates_and_builds(compose_cfg, name):
     assert cfg.name == (name if name != "none" else "digit_floor")  # none: the groups' defaults, named by the env
     validate(cfg)
     # built as its trainer builds it: every component checked against its protocol (ferl/trainers/facts.py)
-    job = Job(cfg, torch.device("cpu"), SeedOffsets(), cfg.trainer.divergence_limit,
-              target(cfg.trainer._target_).environment)
+    trainer = instantiate(cfg.trainer)
+    job = Job(cfg, torch.device("cpu"), SeedOffsets(), trainer.control, trainer.environment)
     # the actor's state: the (processed) observation, as the preprocessor reports it, and every predictor's memory
     n_obs = job.preprocessor.output_size if cfg.get("preprocessor") else job.env.observation_size
     n_state = n_obs + sum(p.n_memory for p in (cfg.get("predictor") or {}).values())
@@ -42,7 +54,9 @@ def test_experiment_composes_validates_and_builds(compose_cfg, name):
             assert predictor.W_rm.shape[1] == len(job.env.reward_values) == (2 if cfg.env.get("passive") else 4)
     optimal = job.env.optimal(cfg.actor.gamma)
     if job.env.task == "tmaze" and cfg.env.get("passive"):  # L steps of reward 0, then the goal
-        assert optimal["discounted_return"] == pytest.approx(cfg.actor.gamma ** cfg.env.corridor_length * cfg.env.goal_reward)
+        assert optimal["discounted_return"] == pytest.approx(
+            cfg.actor.gamma**cfg.env.corridor_length * cfg.env.goal_reward
+        )
     elif job.env.task == "tmaze":
         assert optimal["discounted_return"] == pytest.approx(4.3175)
     elif job.env.task == "gymnasium":  # an outside task's optimum only where its config states one
@@ -61,18 +75,45 @@ def test_every_option_file_is_its_constructors_signature():
     files = [p for p in (ROOT / "conf").glob("*/*.yaml") if p.parent.name not in ("experiment", "hparams_search")]
     assert len(files) >= 12
     for path in files:
+        if path.parent.name == "trainer":
+            continue  # phases that read the trainer's settings: composed below
         own = OmegaConf.load(path)
         # an option that extends another of its group (trainer/algorithm2_pixel → algorithm1)
         bases = [OmegaConf.load(path.parent / f"{d}.yaml") for d in own.get("defaults", []) if d != "_self_"]
         node = OmegaConf.to_container(OmegaConf.merge(*bases, own), resolve=False)
         node.pop("defaults", None)
-        for name, part in (node.items() if "_target_" not in node else [(path.stem, node)]):
+        for name, part in node.items() if "_target_" not in node else [(path.stem, node)]:
             if path.parent.name == "data" and any(v == "???" or "${" in str(v) for v in part.values()):
                 continue  # mnist_idx: data.root is the user's; mnist_full: the environment's ($FERL_MNIST_DIR)
             if path.read_text().startswith("# @package _global_") and "_target_" not in part:
                 assert name in ("env",), f"{path}: a global option may set keys of the env only"
                 continue  # actor/oracle's env.true_state: a key of another group's constructor
             check_node(part, f"{path.parent.name}.")
+
+
+@pytest.mark.parametrize("name", sorted(p.stem for p in (ROOT / "conf" / "trainer").glob("*.yaml")))
+def test_every_trainer_is_phases_and_a_run_node(compose_cfg, name):
+    """Each trainer option is the phased trainer: its phases (each a target with its own keys), the
+    run node every trainer shares, and settings that users override, each read by a phase or the
+    run node: nothing else, and no setting that nothing reads."""
+    cfg = compose_cfg(["experiment=none", f"trainer={name}"])
+    node = cfg.trainer
+    assert node._target_ == "ferl.trainers.phased.PhasedTrainer"
+    assert node.run._target_ == "ferl.trainers.phased.RunControl" and node.phases
+    fixed = {"_target_", "phases", "run", "kind", "environment", "seed_offsets"}
+    assert settings_read(node, "trainer") == set(node) - fixed
+    check_node(OmegaConf.to_container(node, resolve=True), "trainer.")  # every phase against its target
+
+
+def test_a_setting_that_no_phase_reads_is_refused(compose_cfg):
+    cfg = compose_cfg(["experiment=table4_1_matching", "+trainer.n_episode=5"])
+    HydraConfig.instance().set_config(cfg)
+    with pytest.raises(
+        ConfigError,
+        match=r"^trainer.n_episode is not allowed: no phase reads it; trainer takes "
+        r"actor_obs_scale, checkpoint_every, collect_batch, ",
+    ):
+        validate(cfg)
 
 
 def test_table_4_1_and_4_2_parameters(compose_cfg):
@@ -118,9 +159,9 @@ def test_dissertation_parameters(compose_cfg):
     cfg = compose_cfg(["experiment=ch3_floor"])
     actor = instantiate(cfg.actor, n_runs=1, n_state=784, n_actions=4, seed=0)
     edges = (784 + 4) * 20
-    assert actor.learning_rate(0.0) == pytest.approx(0.1 / edges ** 0.5)
-    assert actor.learning_rate(1.0) == pytest.approx(0.01 / edges ** 0.5)
-    assert actor.learning_rate(0.5) == pytest.approx((0.1 * 0.01) ** 0.5 / edges ** 0.5)
+    assert actor.learning_rate(0.0) == pytest.approx(0.1 / edges**0.5)
+    assert actor.learning_rate(1.0) == pytest.approx(0.01 / edges**0.5)
+    assert actor.learning_rate(0.5) == pytest.approx((0.1 * 0.01) ** 0.5 / edges**0.5)
     assert actor.inverse_temperature(0.0) == 0 and actor.inverse_temperature(1.0) == 2
     assert actor.inverse_temperature(0.25) == pytest.approx(0.5)
     assert cfg.actor.gamma == 0.9 and cfg.trainer.steps == 100_000 and cfg.n_runs == 10
@@ -147,18 +188,30 @@ def config_error(compose_cfg, overrides) -> tuple[str, str]:
 
 
 # a key that no config has, or a group option that does not exist: rejected while Hydra composes
-COMPOSE_ERRORS = [("actor.foo=1", "actor.foo"), ("task=maze", "task"), ("experiment=nope", "experiment"),
-                  ("experiment=table5_1_bit predictor.observation.rho_y=2", "predictor.observation.rho_y")]
+COMPOSE_ERRORS = [
+    ("actor.foo=1", "actor.foo"),
+    ("task=maze", "task"),
+    ("experiment=nope", "experiment"),
+    ("experiment=table5_1_bit predictor.observation.rho_y=2", "predictor.observation.rho_y"),
+]
 
 # a value of the wrong type or outside a set of values: rejected by the constructor's annotations
 TYPE_ERRORS = [
-    ("env.noise=abc", "env.noise"), ("n_runs=2.5", "n_runs"), ("env.patches=x", "env.patches"),
-    ("actor.td_rule=td_lambda", "actor.td_rule"), ("actor.lr_norm=sqrt", "actor.lr_norm"),
-    ("env.reward_condition=up", "env.reward_condition"), ("device=tpu", "device"),
-    ("seed=first", "seed"), ("resume=maybe", "resume"), ("compile=maybe", "compile"),
+    ("env.noise=abc", "env.noise"),
+    ("n_runs=2.5", "n_runs"),
+    ("env.patches=x", "env.patches"),
+    ("actor.td_rule=td_lambda", "actor.td_rule"),
+    ("actor.lr_norm=sqrt", "actor.lr_norm"),
+    ("env.reward_condition=up", "env.reward_condition"),
+    ("device=tpu", "device"),
+    ("seed=first", "seed"),
+    ("resume=maybe", "resume"),
+    ("compile=maybe", "compile"),
     ("actor.gamma=high", "actor.gamma"),
-    ("actor.action_code=gray", "actor.action_code"), ("actor.action_selection=argmax", "actor.action_selection"),
-    ("+actor.foo=1", "actor.foo"), ("trainer.test_noise_levels=[a]", "trainer.test_noise_levels"),
+    ("actor.action_code=gray", "actor.action_code"),
+    ("actor.action_selection=argmax", "actor.action_selection"),
+    ("+actor.foo=1", "actor.foo"),
+    ("trainer.test_noise_levels=[a]", "trainer.test_noise_levels"),
     ("data.test_per_class=many", "data.test_per_class"),
     ("experiment=table4_1_matching env.matching=perhaps", "env.matching"),
     ("experiment=table4_1_matching predictor.joint.time_average=maybe", "predictor.joint.time_average"),
@@ -173,11 +226,17 @@ TYPE_ERRORS = [
 
 # a value of the right type that cannot work: rejected by the constructor's ranges and cross-key rules
 VALUE_ERRORS = [
-    ("env.noise=1.5", "env.noise"), ("env.noise=-0.1", "env.noise"),
-    ("actor.n_hidden=0", "actor.n_hidden"), ("actor.n_hidden=-3", "actor.n_hidden"),
-    ("n_runs=0", "n_runs"), ("trainer.steps=0", "trainer.steps"), ("actor.gamma=1.0", "actor.gamma"),
-    ("env.noise_tile='4'", "env.noise_tile"), ("env.patches=0", "env.patches"),
-    ("data=mnist_idx", "data.root"), ("data=mnist_idx data.root=/nonexistent", "data.root"),
+    ("env.noise=1.5", "env.noise"),
+    ("env.noise=-0.1", "env.noise"),
+    ("actor.n_hidden=0", "actor.n_hidden"),
+    ("actor.n_hidden=-3", "actor.n_hidden"),
+    ("n_runs=0", "n_runs"),
+    ("trainer.steps=0", "trainer.steps"),
+    ("actor.gamma=1.0", "actor.gamma"),
+    ("env.noise_tile='4'", "env.noise_tile"),
+    ("env.patches=0", "env.patches"),
+    ("data=mnist_idx", "data.root"),
+    ("data=mnist_idx data.root=/nonexistent", "data.root"),
     ("experiment=table4_1_regular env.corridor_length=0", "env.corridor_length"),
     ("experiment=table4_1_regular env.corridor_length=5 env.max_steps=4", "env.max_steps"),
     ("experiment=table4_1_regular env.max_steps=null", "env.max_steps"),
@@ -188,7 +247,10 @@ VALUE_ERRORS = [
     ("experiment=table4_2_digit ~env.digit_classes.corridor", "env.digit_classes.corridor"),
     ("experiment=table4_1_matching predictor.joint.n_memory=0", "predictor.joint.n_memory"),
     ("experiment=table4_1_matching trainer.train_fraction=1.0", "trainer.train_fraction"),
-    ("experiment=table4_1_matching trainer.checkpoint_every_epochs=0", "trainer.checkpoint_every_epochs"),
+    (
+        "experiment=table4_1_matching trainer.phases.predictors.checkpoint_every_epochs=0",
+        "trainer.phases.predictors.checkpoint_every_epochs",
+    ),
     ("experiment=table4_2_digit trainer.actor_obs_scale=0", "trainer.actor_obs_scale"),
     ("experiment=table5_1_pixel preprocessor.cd_k=0", "preprocessor.cd_k"),
     ("experiment=table5_1_pixel preprocessor.n_hidden=0", "preprocessor.n_hidden"),
@@ -224,15 +286,24 @@ def test_bad_values_name_their_key(compose_cfg, override, key):
 
 
 def test_enum_errors_list_the_allowed_values(compose_cfg):
-    from ferl.actors.free_energy import TD_RULES
+    from ferl.actors.softmax import TD_RULES
 
     _, message = config_error(compose_cfg, ["actor.td_rule=td_lambda"])
     assert all(rule in message for rule in TD_RULES), message
 
 
-@pytest.mark.parametrize("override", ["n_runs=2.5", "env.noise=abc", "actor.td_rule=td_lambda", "device=tpu",
-                                      "actor.gamma=high", "trainer.steps=many",
-                                      "experiment=table4_1_matching predictor.joint.time_average=maybe"])
+@pytest.mark.parametrize(
+    "override",
+    [
+        "n_runs=2.5",
+        "env.noise=abc",
+        "actor.td_rule=td_lambda",
+        "device=tpu",
+        "actor.gamma=high",
+        "trainer.steps=many",
+        "experiment=table4_1_matching predictor.joint.time_average=maybe",
+    ],
+)
 def test_type_errors_through_train_py(tmp_path, override):
     """A wrong type stops train.py before any work: one line naming the full key, no traceback,
     exit status ≠ 0, no run directory."""

@@ -1,5 +1,6 @@
 """ferl asks for the AVX2 kernels on CPUs with AVX-512 (ferl/cpu_kernels.py): the rule, and on
 such a CPU the kernel that made table5_1_pixel's numbers depend on the machine."""
+
 import os
 import subprocess
 import sys
@@ -41,8 +42,14 @@ print(torch.backends.cpu.get_cpu_capability(), *torch.sigmoid(x).view(torch.int3
 
 def sigmoid_bits(first: str, **env) -> tuple[str, list]:
     environ = {k: v for k, v in os.environ.items() if k not in PINS}
-    out = subprocess.run([sys.executable, "-c", SIGMOID.format(first=first)], cwd=ROOT, capture_output=True, text=True,
-                         env={**environ, **env}, check=True).stdout.split()
+    out = subprocess.run(
+        [sys.executable, "-c", SIGMOID.format(first=first)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        env={**environ, **env},
+        check=True,
+    ).stdout.split()
     return out[0], out[1:]
 
 
@@ -63,8 +70,14 @@ def test_inductor_keeps_a_cache_per_vector_isa(tmp_path):
     environ = {k: v for k, v in os.environ.items() if k not in ("TORCHINDUCTOR_CACHE_DIR", *PINS)}
     folders = {}
     for capability in ("avx2", "default"):
-        out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True,
-                             env={**environ, "HOME": str(tmp_path), "ATEN_CPU_CAPABILITY": capability}).stdout.split()
+        out = subprocess.run(
+            [sys.executable, "-c", code],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            check=True,
+            env={**environ, "HOME": str(tmp_path), "ATEN_CPU_CAPABILITY": capability},
+        ).stdout.split()
         folders[capability] = out
     assert folders["avx2"] == [str(tmp_path / ".cache" / "ferl" / "inductor" / "avx2"), "avx2"]
     assert folders["default"][0] == str(tmp_path / ".cache" / "ferl" / "inductor" / folders["default"][1])
@@ -84,8 +97,9 @@ def test_the_discounted_return_is_the_exact_sum_in_step_order_whatever_blas_runs
     from ferl.trainers.episodes import discount_factors, discounted_return
 
     gamma, steps = 0.95, 37
-    rewards = torch.tensor(np.random.default_rng(0).choice([-5.0, -1.0, -0.1, 5.0], size=(steps, 7)),
-                           dtype=torch.float32)
+    rewards = torch.tensor(
+        np.random.default_rng(0).choice([-5.0, -1.0, -0.1, 5.0], size=(steps, 7)), dtype=torch.float32
+    )
     factors = discount_factors(gamma, steps)
     assert factors == [functools.reduce(operator.mul, [gamma] * t, 1.0) for t in range(steps)]  # 1·γ·γ·…, in order
     expected = np.zeros(7)

@@ -1,4 +1,5 @@
 """MNIST sources: the embedded split and the IDX reader."""
+
 import gzip
 
 import numpy as np
@@ -55,10 +56,12 @@ def write_idx(path, array, magic=None, gz=False, truncate=0):
 
 def fake_mnist(root, gz, n_train=30, n_test=20, **corrupt):
     rng = np.random.default_rng(0)
-    arrays = {"train-images-idx3-ubyte": rng.integers(0, 256, (n_train, 28, 28)),
-              "train-labels-idx1-ubyte": rng.integers(0, 10, n_train),
-              "t10k-images-idx3-ubyte": rng.integers(0, 256, (n_test, 28, 28)),
-              "t10k-labels-idx1-ubyte": rng.integers(0, 10, n_test)}
+    arrays = {
+        "train-images-idx3-ubyte": rng.integers(0, 256, (n_train, 28, 28)),
+        "train-labels-idx1-ubyte": rng.integers(0, 10, n_train),
+        "t10k-images-idx3-ubyte": rng.integers(0, 256, (n_test, 28, 28)),
+        "t10k-labels-idx1-ubyte": rng.integers(0, 10, n_test),
+    }
     for name, array in arrays.items():
         kw = corrupt if name == "t10k-images-idx3-ubyte" else {}
         write_idx(root / (name + (".gz" if gz else "")), array, gz=gz, **kw)
@@ -69,14 +72,19 @@ def fake_mnist(root, gz, n_train=30, n_test=20, **corrupt):
 def test_idx_reader_round_trip(tmp_path, gz):
     arrays = fake_mnist(tmp_path, gz)
     split = MnistIDX(str(tmp_path)).load()
-    np.testing.assert_allclose(split.train_images.numpy(), arrays["train-images-idx3-ubyte"].reshape(-1, 784) / 255, rtol=1e-6)
+    np.testing.assert_allclose(
+        split.train_images.numpy(), arrays["train-images-idx3-ubyte"].reshape(-1, 784) / 255, rtol=1e-6
+    )
     assert split.test_labels.tolist() == arrays["t10k-labels-idx1-ubyte"].tolist()
 
 
-@pytest.mark.parametrize("corrupt,message", [
-    ({"magic": 1234}, "magic number"),
-    ({"truncate": 10}, "header announces"),
-])
+@pytest.mark.parametrize(
+    "corrupt,message",
+    [
+        ({"magic": 1234}, "magic number"),
+        ({"truncate": 10}, "header announces"),
+    ],
+)
 def test_idx_reader_rejects_corrupt_files(tmp_path, corrupt, message):
     fake_mnist(tmp_path, gz=False, **corrupt)
     with pytest.raises(DataError, match=message):
@@ -101,7 +109,7 @@ def test_truncated_gzip_is_a_data_error(tmp_path):
     path = tmp_path / "x.gz"
     write_idx(path, np.zeros((3, 28, 28)), gz=True)
     path.write_bytes(path.read_bytes()[:20])
-    with pytest.raises(DataError, match="data.root"):
+    with pytest.raises(DataError, match=r"data.root"):
         read_idx(path)
 
 
@@ -124,10 +132,15 @@ def _corrupt_gzip(root):
     path.write_bytes(path.read_bytes()[:40])
 
 
-@pytest.mark.parametrize("corrupt, message", [
-    (_corrupt_wrong_magic, "magic number"), (_corrupt_truncated, "header announces"),
-    (_corrupt_counts, "20 images but 7 labels"), (_corrupt_gzip, "cannot read"),
-])
+@pytest.mark.parametrize(
+    "corrupt, message",
+    [
+        (_corrupt_wrong_magic, "magic number"),
+        (_corrupt_truncated, "header announces"),
+        (_corrupt_counts, "20 images but 7 labels"),
+        (_corrupt_gzip, "cannot read"),
+    ],
+)
 def test_corrupt_idx_through_train_py_is_one_line_and_leaves_nothing(tmp_path, corrupt, message):
     from conftest import run_train
 

@@ -1,10 +1,11 @@
 """Digit-floor environment (§3.4): rewards, torus moves, transport, noise, optimal tables."""
+
 import numpy as np
 import pytest
 import torch
 
 from ferl.data import MnistSplit, add_pixel_noise
-from ferl.envs.digit_floor import CW_CYCLE, DigitFloor, optimal_policy, patch_rewards
+from ferl.envs.digit_floor import DigitFloor, optimal_policy, patch_rewards
 
 N, E, S, W = range(4)
 
@@ -49,10 +50,13 @@ def test_ccw_is_reversed_cycle_and_none_is_silent():
     assert not patch_rewards("none").any()
 
 
-@pytest.mark.parametrize("condition,expected", [
-    ("cw", {0: E, 1: S, 2: S, 3: E, 5: W, 6: N, 7: N, 8: W}),
-    ("ccw", {0: S, 1: S, 2: W, 3: E, 5: W, 6: E, 7: N, 8: N}),
-])
+@pytest.mark.parametrize(
+    "condition,expected",
+    [
+        ("cw", {0: E, 1: S, 2: S, 3: E, 5: W, 6: N, 7: N, 8: W}),
+        ("ccw", {0: S, 1: S, 2: W, 3: E, 5: W, 6: E, 7: N, 8: N}),
+    ],
+)
 def test_optimal_action_tables(condition, expected):
     _, action, rate = optimal_policy(patch_rewards(condition))
     assert {p: int(action[p]) for p in range(9) if p != 4} == expected

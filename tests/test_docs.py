@@ -24,9 +24,9 @@ def local_links(page: Path) -> list[str]:
 def test_readme_is_short_and_opens_with_the_two_commands():
     lines = README.read_text().splitlines()
     assert len(lines) <= 150
-    first_block = lines[lines.index("```") + 1:lines.index("```", lines.index("```") + 1)]
+    first_block = lines[lines.index("```") + 1 : lines.index("```", lines.index("```") + 1)]
     assert [line.split()[:2] for line in first_block] == [["make", "run"], ["make", "test"]]
-    assert not any(line.startswith("```") for line in lines[:lines.index("```")])
+    assert not any(line.startswith("```") for line in lines[: lines.index("```")])
 
 
 def test_every_page_of_docs_is_linked_from_the_readme():
@@ -58,8 +58,12 @@ def test_make_figures_copies_each_figure_and_rewrites_only_its_block(tmp_path):
     out.mkdir(parents=True)
     page.write_text("# top\n{}\nold\n{}\nend\n".format(*gallery.MARKERS))
     script = ROOT / "docs" / "figures" / "gallery.py"
-    result = subprocess.run([sys.executable, str(script), str(sweep), "--readme", str(page), "--out", str(out)],
-                            capture_output=True, text=True, timeout=60)
+    result = subprocess.run(
+        [sys.executable, str(script), str(sweep), "--readme", str(page), "--out", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert result.returncode == 0, result.stderr
     for name, _, caption in gallery.GALLERY:
         assert (out / name).read_bytes() == f"png {name}".encode()
@@ -71,7 +75,11 @@ def test_make_figures_copies_each_figure_and_rewrites_only_its_block(tmp_path):
 def test_make_figures_refuses_a_sweep_without_its_figures_before_copying(tmp_path):
     out = tmp_path / "figures"
     out.mkdir()
-    result = subprocess.run([sys.executable, str(ROOT / "docs" / "figures" / "gallery.py"), str(tmp_path),
-                             "--out", str(out)], capture_output=True, text=True, timeout=60)
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "docs" / "figures" / "gallery.py"), str(tmp_path), "--out", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert result.returncode != 0 and list(out.iterdir()) == []
     assert result.stderr.strip().startswith("gallery: error:") and len(result.stderr.strip().splitlines()) == 1

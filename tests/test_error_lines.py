@@ -8,6 +8,7 @@ Disk faults are injected into the train.py subprocess by ``tests/faults/sitecust
 once a chosen file is opened for writing, every write() under the run directory fails with
 the errno and no file name, as on a real full disk (train.log included).
 """
+
 import errno
 import os
 import shutil
@@ -58,8 +59,10 @@ def test_full_disk_one_line_naming_the_file_then_resume_equals_uninterrupted(tmp
     line = assert_one_clean_line(result, 1)
     assert line.startswith(f"ferl: error: phase '{phase or ''}" if phase else "ferl: error: phase '"), line
     assert f"no space left on device writing {run_dir / file}" in line, line
-    assert "(errno ENOSPC); the last good checkpoint is kept: free space, then resume=true " \
-           f"hydra.run.dir={run_dir}" in line, line
+    assert (
+        "(errno ENOSPC); the last good checkpoint is kept: free space, then resume=true "
+        f"hydra.run.dir={run_dir}" in line
+    ), line
     assert "train.log" not in line  # it could not be written: the line does not claim it
     assert not (run_dir / "summary.json").exists()
     resumed = run_train("resume=true", f"hydra.run.dir={run_dir}")  # space freed
@@ -67,22 +70,27 @@ def test_full_disk_one_line_naming_the_file_then_resume_equals_uninterrupted(tmp
     assert_same_run(run_dir, whole)
 
 
-@pytest.mark.parametrize("name, says", [("EROFS", "read-only file system"),
-                                        ("EFBIG", "file larger than the file-size limit (ulimit -f)")])
+@pytest.mark.parametrize(
+    "name, says", [("EROFS", "read-only file system"), ("EFBIG", "file larger than the file-size limit (ulimit -f)")]
+)
 def test_read_only_and_file_size_limit_lines(tmp_path, name, says):
     run_dir = tmp_path / "run"
     result = run_train(*TMAZE, f"hydra.run.dir={run_dir}", env=faulty(run_dir, name, ".last.pt.*.tmp", 1))
     line = assert_one_clean_line(result, 1)
-    assert line.startswith(f"ferl: error: phase 'predictors': {says} writing {run_dir / 'checkpoints/last.pt'} "
-                           f"(errno {name}); the last good checkpoint is kept: "), line
+    assert line.startswith(
+        f"ferl: error: phase 'predictors': {says} writing {run_dir / 'checkpoints/last.pt'} "
+        f"(errno {name}); the last good checkpoint is kept: "
+    ), line
 
 
 def test_a_file_where_the_run_directory_should_be(tmp_path):
     (tmp_path / "taken").write_text("a file\n")
     for run_dir, code in ((tmp_path / "taken", "EEXIST"), (tmp_path / "taken" / "run", "ENOTDIR")):
         line = assert_one_clean_line(run_train(*TMAZE, f"hydra.run.dir={run_dir}"), 1)
-        assert line == (f"ferl: error: cannot create the run directory {run_dir}: a file stands where a directory "
-                        f"should be (errno {code}); choose another hydra.run.dir / hydra.sweep.dir")
+        assert line == (
+            f"ferl: error: cannot create the run directory {run_dir}: a file stands where a directory "
+            f"should be (errno {code}); choose another hydra.run.dir / hydra.sweep.dir"
+        )
     assert (tmp_path / "taken").read_text() == "a file\n"
 
 
@@ -91,14 +99,22 @@ def test_a_read_only_run_directory_at_the_first_write(tmp_path):
     one line naming it, not a flattened traceback."""
     run_dir = tmp_path / "run"
     line = assert_one_clean_line(run_train(*TMAZE, f"hydra.run.dir={run_dir}", env=faulty(run_dir, "EROFS", "*")), 1)
-    assert line.startswith(f"ferl: error: phase 'setup': read-only file system writing {run_dir / '.hydra'} "
-                           "(errno EROFS); no checkpoint was written yet"), line
-    assert "File \"" not in line and " | " not in line
+    assert line.startswith(
+        f"ferl: error: phase 'setup': read-only file system writing {run_dir / '.hydra'} "
+        "(errno EROFS); no checkpoint was written yet"
+    ), line
+    assert 'File "' not in line and " | " not in line
 
 
 # ---- signals ---------------------------------------------------------------------------------------
-FLOOR = ["n_runs=2", "trainer.steps=8000", "trainer.checkpoint_every=500", "trainer.log_every=500",
-         "trainer.test_per_class=8", "trainer.test_noise_levels=[0.0,0.125]"]
+FLOOR = [
+    "n_runs=2",
+    "trainer.steps=8000",
+    "trainer.checkpoint_every=500",
+    "trainer.log_every=500",
+    "trainer.test_per_class=8",
+    "trainer.test_noise_levels=[0.0,0.125]",
+]
 
 
 @pytest.fixture(scope="module")
@@ -111,8 +127,13 @@ def floor_whole(tmp_path_factory) -> Path:
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGHUP])
 def test_signal_checkpoints_one_line_and_resumes(tmp_path, floor_whole, sig):
     cut = tmp_path / "cut"
-    proc = subprocess.Popen([sys.executable, str(ROOT / "train.py"), *eager(FLOOR), f"hydra.run.dir={cut}"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    proc = subprocess.Popen(
+        [sys.executable, str(ROOT / "train.py"), *eager(FLOOR), f"hydra.run.dir={cut}"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+    )
     deadline = time.time() + 120
     while checkpointed_step(cut) == 0 and time.time() < deadline:
         time.sleep(0.05)
@@ -123,12 +144,15 @@ def test_signal_checkpoints_one_line_and_resumes(tmp_path, floor_whole, sig):
     assert len(lines) == 1 and "Traceback" not in err, err[-3000:]
     step = checkpointed_step(cut)
     assert 0 < step < 8000
-    assert lines[0] == (f"ferl: interrupted by {signal.Signals(sig).name} at phase 'actor', step {step}: checkpoint "
-                        f"written to {cut / 'checkpoints'}; resume=true hydra.run.dir={cut} continues")
+    assert lines[0] == (
+        f"ferl: interrupted by {signal.Signals(sig).name} at phase 'continuing_td', step {step}: checkpoint "
+        f"written to {cut / 'checkpoints'}; resume=true hydra.run.dir={cut} continues"
+    )
     result = run_train(*FLOOR, "resume=true", f"hydra.run.dir={cut}")
     assert result.returncode == 0, result.stderr[-2000:]
-    assert (cut / "summary.json").read_text().split('"wall_time_s"')[0] == \
-           (floor_whole / "summary.json").read_text().split('"wall_time_s"')[0]
+    assert (cut / "summary.json").read_text().split('"wall_time_s"')[0] == (
+        floor_whole / "summary.json"
+    ).read_text().split('"wall_time_s"')[0]
 
 
 @pytest.mark.parametrize("script, module, prog", [("train.py", "hydra", "ferl"), ("analyze.py", "numpy", "analyze.py")])
@@ -137,9 +161,15 @@ def test_sigint_during_imports_one_line(tmp_path, script, module, prog):
     env = {**os.environ, "PYTHONPATH": str(FAULTS), "FERL_SLOW_IMPORT": f"30:{module}:{marker}"}
     # a terminal's Ctrl-C: SIGINT at its default even when this test runs in a background job
     # (which inherits SIGINT ignored, and Python then installs no KeyboardInterrupt handler)
-    proc = subprocess.Popen([sys.executable, str(ROOT / script), str(tmp_path)], env=env, cwd=ROOT,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    proc = subprocess.Popen(
+        [sys.executable, str(ROOT / script), str(tmp_path)],
+        env=env,
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
     deadline = time.time() + 60
     while not marker.exists() and time.time() < deadline:
         time.sleep(0.02)
@@ -159,8 +189,9 @@ def test_analyze_names_unfinished_members_and_a_missing_records_file(tmp_path, w
     (sweep / "2_norecords" / "records" / "episodes.npz").unlink()
     shutil.rmtree(sweep / "3_early" / "checkpoints")  # killed before its first checkpoint
     (sweep / "3_early" / "summary.json").unlink()
-    result = subprocess.run([sys.executable, str(ROOT / "analyze.py"), str(sweep)], capture_output=True,
-                            text=True, timeout=600, cwd=ROOT)
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "analyze.py"), str(sweep)], capture_output=True, text=True, timeout=600, cwd=ROOT
+    )
     assert result.returncode == 1, result.stderr[-3000:]
     assert "Traceback" not in result.stderr and "TypeError" not in result.stderr, result.stderr[-3000:]
     assert result.stderr.splitlines() == [
@@ -169,7 +200,8 @@ def test_analyze_names_unfinished_members_and_a_missing_records_file(tmp_path, w
         f"analyze.py: skipped {sweep / '3_early'}: no summary.json (unfinished or killed run: "
         "it ended before its first checkpoint)",
         f"analyze.py: error: {sweep / '2_norecords'}: FileNotFoundError: records/episodes.npz is missing: "
-        "the analysis of this run needs it"], result.stderr
+        "the analysis of this run needs it",
+    ], result.stderr
     assert f"{sweep}: sweep of 2 runs; 2 skipped: 1_killed, 3_early, " in result.stdout, result.stdout
     assert (sweep / "0_done" / "analysis" / "report.md").is_file()
     assert "skipped: no summary.json" in (sweep / "analysis" / "report.md").read_text()
@@ -177,20 +209,24 @@ def test_analyze_names_unfinished_members_and_a_missing_records_file(tmp_path, w
 
 def test_a_running_member_is_named_by_its_lock(tmp_path):
     from ferl.analysis import members
+
     (tmp_path / "a" / ".hydra").mkdir(parents=True)
     (tmp_path / "a" / members.LOCK).touch()
     (tmp_path / "a" / "checkpoints" / "hydra").mkdir(parents=True)  # a run's copy of .hydra/: not a member
-    assert members.unfinished(tmp_path) == [(tmp_path / "a", "no summary.json yet (it holds .ferl.lock: still "
-                                                             "running, or killed while it held it)")]
+    assert members.unfinished(tmp_path) == [
+        (tmp_path / "a", "no summary.json yet (it holds .ferl.lock: still running, or killed while it held it)")
+    ]
 
 
 def test_a_write_error_without_a_file_name_is_named():
     """A failing write() names no file; ``writing`` adds the file, a temporary one is named as its target."""
     from ferl.run.failures import disk_line, writing
+
     with pytest.raises(OSError) as caught, writing(Path("/r/checkpoints/last.pt")):
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
     assert disk_line(caught.value, Path("/r")).startswith(
-        "no space left on device writing /r/checkpoints/last.pt (errno ENOSPC); no checkpoint was written yet")
+        "no space left on device writing /r/checkpoints/last.pt (errno ENOSPC); no checkpoint was written yet"
+    )
     temporary = OSError(errno.EFBIG, "File too large", "/r/records/.episodes.npz.ab12cd.tmp")
     assert "writing /r/records/episodes.npz (errno EFBIG)" in disk_line(temporary, Path("/r"))
 
@@ -201,8 +237,13 @@ def test_sighup_before_the_step_loop_one_line(tmp_path):
     the signal's silent default. Sent once the lock file appears, it may land in the first steps
     instead: then the step loop's line, exit 129 too."""
     run_dir = tmp_path / "run"
-    proc = subprocess.Popen([sys.executable, str(ROOT / "train.py"), *eager(FLOOR), f"hydra.run.dir={run_dir}"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    proc = subprocess.Popen(
+        [sys.executable, str(ROOT / "train.py"), *eager(FLOOR), f"hydra.run.dir={run_dir}"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+    )
     deadline = time.time() + 120
     while not (run_dir / ".ferl.lock").exists() and time.time() < deadline and proc.poll() is None:
         time.sleep(0.005)

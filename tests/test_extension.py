@@ -2,6 +2,7 @@
 components of tests/toy_components.py, selected by the ``_target_`` of their own YAML files in
 tests/toy/conf (put on Hydra's search path), train end to end through train.py under Algorithm 1
 with the FERL actor, and analyze.py gives the run its generic figures. Nothing in ferl/ names them."""
+
 import json
 import os
 import subprocess
@@ -18,7 +19,7 @@ from toy_components import CueEnv, TracePredictor
 
 TESTS = Path(__file__).resolve().parent
 TOY = [f"hydra.searchpath=[file://{TESTS / 'toy' / 'conf'}]", "experiment=toy_cue"]
-NAMES = ("toy_components", "CueEnv", "TracePredictor", "toy_cue", "toy_trace")
+NAMES = ("toy_components", "CueEnv", "TracePredictor", "toy_cue", "toy_trace", "toy_phases", "ActorWeightNorm")
 
 
 @pytest.fixture(scope="module")
@@ -57,9 +58,16 @@ def test_trains_end_to_end_and_learns(toy_run):
     assert manifest["predictors"]["trace"]["class"] == "toy_components.TracePredictor"
     assert manifest["trainer"]["phases"] == ["collect", "predictors", "actor"]
     metrics = summary["metrics"]
-    assert set(metrics) == {"final_discounted_return", "final_steps_to_goal", "final_correct_rate", "solved",
-                            "env_steps_total", "env_steps_to_solve", "episodes_to_solve"}
-    assert summary["optimal"]["discounted_return"] == pytest.approx(0.95 ** 2)
+    assert set(metrics) == {
+        "final_discounted_return",
+        "final_steps_to_goal",
+        "final_correct_rate",
+        "solved",
+        "env_steps_total",
+        "env_steps_to_solve",
+        "episodes_to_solve",
+    }
+    assert summary["optimal"]["discounted_return"] == pytest.approx(0.95**2)
     # the cue is only in the trace at the choice: an actor without memory is right half the time
     assert min(metrics["final_correct_rate"]) > 0.9, metrics
     junction = np.load(toy_run / "records" / "probe.npz")  # activations at the choice, labelled by the cue
@@ -70,8 +78,9 @@ def test_trains_end_to_end_and_learns(toy_run):
 
 
 def test_analyze_writes_the_generic_figures(toy_run):
-    result = subprocess.run([sys.executable, str(ROOT / "analyze.py"), str(toy_run)], capture_output=True, text=True,
-                            timeout=300)
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "analyze.py"), str(toy_run)], capture_output=True, text=True, timeout=300
+    )
     assert result.returncode == 0, result.stderr[-2000:]
     figures = {p.stem for p in (toy_run / "analysis").glob("*.png")}
     assert {"learning_curves", "td_errors"} <= figures and any("prediction" in f for f in figures), figures
@@ -85,3 +94,31 @@ def test_nothing_in_ferl_names_the_toys():
             assert not any(name in text for name in NAMES), path
     for path in (ROOT / "conf").rglob("*.yaml"):
         assert not any(name in path.read_text() for name in NAMES), path
+
+
+def test_a_phase_from_tests_is_inserted_by_yaml_alone(tmp_path):
+    """tests/toy/conf/trainer/toy_weight_norm.yaml adds tests/toy_phases.py's ActorWeightNorm to
+    Algorithm 1's phases; train.py runs it after the actor phase, and its metric is the 1-norm of
+    the trained actor's state weights, as the final checkpoint holds them (computed here in NumPy)."""
+    from ferl.run import checkpoint
+
+    run_dir = tmp_path / "run"
+    result = run_train(
+        *TOY,
+        "trainer=toy_weight_norm",
+        "trainer.n_epoch=2",
+        "trainer.n_episodes=60",
+        "trainer.log_every=20",
+        "trainer.td_sample_every=20",
+        "trainer.final_window=20",
+        "compile=false",
+        f"hydra.run.dir={run_dir}",
+        env={**os.environ, "PYTHONPATH": str(TESTS)},
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    manifest = json.loads((run_dir / "records" / "run.json").read_text())
+    assert manifest["trainer"]["phases"] == ["collect", "predictors", "actor", "weight_norm"]
+    norms = json.loads((run_dir / "summary.json").read_text())["metrics"]["actor_weight_norm"]
+    W = checkpoint.read(run_dir / "checkpoints" / "last.pt").state()["actor"]["W_sh"].numpy().astype(np.float64)
+    assert norms == pytest.approx(np.abs(W).reshape(len(W), -1).sum(1), rel=1e-5)
+    assert len(norms) == 2 and norms[0] != norms[1]  # the trained weights of each run

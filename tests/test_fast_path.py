@@ -8,18 +8,19 @@ sequences. A compiled episode (``ActorEpisodes.fuses``) plays all T_max steps wi
 masked, where eager stops when every run has ended: the same actions, and values within float32
 rounding of the generated kernels.
 """
+
 import subprocess
 import sys
 
 import numpy as np
 import pytest
 import torch
-from test_predictor import data, make, reference_loss
 
 from conftest import train_job
 from ferl import compiled as fast
 from ferl.predictors import training
 from ferl.predictors.training import PredictorBatch
+from test_predictor import data, make, reference_loss
 
 CPU = torch.device("cpu")
 
@@ -53,10 +54,16 @@ def test_fused_bptt_equals_autograd_sgd_of_each_run_alone(monkeypatch, batch_siz
             single = make(R=1, lr=lr, **{**kind, "seed": kind["seed"] + run})
             for epoch in orders:
                 for step in epoch[k][run].split(batch_size):
-                    losses = [reference_loss(single, 0, y[run, i, : int(lengths[run, i]) + 1],
-                                             a[run, i, : int(lengths[run, i])],
-                                             r[run, i, : int(lengths[run, i]) + 1] if k else None)
-                              for i in step.tolist()]
+                    losses = [
+                        reference_loss(
+                            single,
+                            0,
+                            y[run, i, : int(lengths[run, i]) + 1],
+                            a[run, i, : int(lengths[run, i])],
+                            r[run, i, : int(lengths[run, i]) + 1] if k else None,
+                        )
+                        for i in step.tolist()
+                    ]
                     grads = torch.autograd.grad(torch.stack(losses).mean(), list(single.parameters()))
                     with torch.no_grad():
                         for q, gq in zip(single.parameters(), grads):
@@ -67,8 +74,17 @@ def test_fused_bptt_equals_autograd_sgd_of_each_run_alone(monkeypatch, batch_siz
 
 def episodes(tmp_path, name: str, *overrides) -> tuple[dict, dict]:
     from conftest import compose_config
-    tiny = ["experiment=table5_1_bit", "n_runs=3", "trainer.n_sample=300", "trainer.n_epoch=2",
-            "trainer.n_episodes=60", "trainer.log_every=20", "trainer.td_sample_every=20", "trainer.final_window=20"]
+
+    tiny = [
+        "experiment=table5_1_bit",
+        "n_runs=3",
+        "trainer.n_sample=300",
+        "trainer.n_epoch=2",
+        "trainer.n_episodes=60",
+        "trainer.log_every=20",
+        "trainer.td_sample_every=20",
+        "trainer.final_window=20",
+    ]
     summary = train_job(compose_config([*tiny, *overrides]), tmp_path / name)
     with np.load(tmp_path / name / "records" / "episodes.npz") as ep:
         return summary, dict(ep)
@@ -100,12 +116,16 @@ def test_no_compiler_warns_once_and_runs_eagerly(monkeypatch, capsys):
 def test_the_first_run_says_it_compiles_and_later_ones_load(tmp_path):
     """Two processes compile the same function with one cache folder: the first prints one line
     naming the folder, the second loads from it and prints nothing."""
-    script = ("import torch; from ferl.compiled import compiled, fast_path; assert fast_path(True, torch.device('cpu')); "
-              "f = compiled(lambda x: torch.sigmoid(x) * 3 + 1, torch.device('cpu'), 'a test'); "
-              "f(torch.ones(4)); f(torch.zeros(4))")
+    script = (
+        "import torch; from ferl.compiled import compiled, fast_path; assert fast_path(True, torch.device('cpu')); "
+        "f = compiled(lambda x: torch.sigmoid(x) * 3 + 1, torch.device('cpu'), 'a test'); "
+        "f(torch.ones(4)); f(torch.zeros(4))"
+    )
     env = {"TORCHINDUCTOR_CACHE_DIR": str(tmp_path / "cache"), "PATH": "/usr/bin:/bin"}
-    first, second = (subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=300)
-                     for _ in range(2))
+    first, second = (
+        subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=300)
+        for _ in range(2)
+    )
     assert first.returncode == 0 and second.returncode == 0, first.stderr + second.stderr
     lines = [line for line in first.stderr.splitlines() if line.startswith("ferl:")]
     assert len(lines) == 1 and "compiled a test" in lines[0] and str(tmp_path / "cache") in lines[0]
@@ -115,8 +135,10 @@ def test_the_first_run_says_it_compiles_and_later_ones_load(tmp_path):
 def test_what_cannot_be_compiled_warns_once_and_runs_eagerly(capsys):
     """A data-dependent branch breaks the graph, which fullgraph refuses: one warning naming
     what, then the function's own results, eagerly, on every call."""
+
     def branchy(x):
         return x + 1 if bool(x.sum() > 0) else x - 1
+
     f = fast.compiled(branchy, CPU, "a branchy step")
     assert torch.equal(f(torch.ones(3)), torch.full((3,), 2.0))
     assert torch.equal(f(-torch.ones(3)), torch.full((3,), -2.0))

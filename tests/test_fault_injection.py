@@ -15,6 +15,7 @@ checkpoint, an npz with one run fewer, a JSON array, another fit's cache entry).
 and an exception inside a phase: one line naming the phase and the run, the traceback in the run's
 train.log, exit 1, and the last checkpoint resumes to the uninterrupted run's numbers.
 """
+
 import hashlib
 import json
 import os
@@ -30,12 +31,28 @@ from conftest import assert_same_tb_log, run_train
 from ferl.run import checkpoint
 from ferl.run.checkpoint import CheckpointError, RunIdentity
 
-TMAZE = ["experiment=table4_1_regular", "n_runs=2", "trainer.n_sample=200", "trainer.n_epoch=20",
-         "trainer.checkpoint_every_epochs=5", "trainer.n_episodes=300", "trainer.checkpoint_every=100",
-         "trainer.log_every=100"]  # checkpoints after episodes 100 and 200 and after the actor phase
-PIXEL = ["experiment=table5_1_pixel", "n_runs=2", "env.reservoir_size=5", "preprocessor.sweeps=20",
-         "trainer.n_sample=200", "trainer.n_epoch=2", "trainer.n_episodes=50", "trainer.log_every=25",
-         "trainer.td_sample_every=25", "trainer.final_window=25"]
+TMAZE = [
+    "experiment=table4_1_regular",
+    "n_runs=2",
+    "trainer.n_sample=200",
+    "trainer.n_epoch=20",
+    "trainer.phases.predictors.checkpoint_every_epochs=5",
+    "trainer.n_episodes=300",
+    "trainer.checkpoint_every=100",
+    "trainer.log_every=100",
+]  # checkpoints after episodes 100 and 200 and after the actor phase
+PIXEL = [
+    "experiment=table5_1_pixel",
+    "n_runs=2",
+    "env.reservoir_size=5",
+    "preprocessor.sweeps=20",
+    "trainer.n_sample=200",
+    "trainer.n_epoch=2",
+    "trainer.n_episodes=50",
+    "trainer.log_every=25",
+    "trainer.td_sample_every=25",
+    "trainer.final_window=25",
+]
 WAYS = ("truncated", "other_bytes", "other_shape")
 
 
@@ -58,6 +75,7 @@ def other_shape(path: Path) -> None:
         torch.save(checkpoint.read(path).state(), path)
     elif path.suffix == ".pt":  # the preprocessor cache: a good entry of another fit
         from ferl.preprocessors.cache import write_entry
+
         write_entry(path, "another fit", {"W": torch.zeros(3, 4)}, np.zeros((2, 5)))
     elif path.suffix == ".npz":  # the same arrays, one run fewer
         with np.load(path) as f:
@@ -73,8 +91,11 @@ DAMAGE = {"truncated": truncate, "other_bytes": other_bytes, "other_shape": othe
 
 def snapshot(run_dir: Path) -> dict:
     """Every file under ``run_dir`` and a hash of its bytes."""
-    return {p.relative_to(run_dir).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(run_dir.rglob("*")) if p.is_file()}
+    return {
+        p.relative_to(run_dir).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(run_dir.rglob("*"))
+        if p.is_file()
+    }
 
 
 def records(run_dir: Path) -> dict:
@@ -100,8 +121,11 @@ def assert_same_run(got: Path, want: Path) -> None:
 
 def stderr_lines(result) -> list[str]:
     """stderr without progress bars (tqdm redraws with carriage returns)."""
-    return [ln for ln in result.stderr.replace("\r", "\n").splitlines()
-            if ln.strip() and "%|" not in ln and not ln.startswith("warning: Embedding dir exists")]
+    return [
+        ln
+        for ln in result.stderr.replace("\r", "\n").splitlines()
+        if ln.strip() and "%|" not in ln and not ln.startswith("warning: Embedding dir exists")
+    ]
 
 
 # ---- the checkpoint format itself (in process) ---------------------------------------------------
@@ -117,16 +141,21 @@ def test_write_read_and_keep_the_last_two(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["last.pt", "previous.pt"]  # no temporary left
 
 
-@pytest.mark.parametrize("damage, problem", [
-    (lambda d: d[:10], "is truncated (10 bytes, shorter than its 56-byte header)"),
-    (lambda d: d[:-1], "is truncated ("),
-    (lambda d: b"", "is empty (0 bytes)"),
-    (lambda d: d + b"x", "1 bytes beyond its recorded length"),
-    (lambda d: d[:-5] + bytes(5), "checksum mismatch"),
-    (lambda d: b"GARBAGE!" * 20, "is not a ferl checkpoint (it does not start with FERLCKPT)"),
-    (lambda d: d[:8] + struct.pack("<I", 2) + d[12:],
-     "has checkpoint format 2; this ferl reads format 1 (written by a newer ferl)"),
-])
+@pytest.mark.parametrize(
+    "damage, problem",
+    [
+        (lambda d: d[:10], "is truncated (10 bytes, shorter than its 56-byte header)"),
+        (lambda d: d[:-1], "is truncated ("),
+        (lambda d: b"", "is empty (0 bytes)"),
+        (lambda d: d + b"x", "1 bytes beyond its recorded length"),
+        (lambda d: d[:-5] + bytes(5), "checksum mismatch"),
+        (lambda d: b"GARBAGE!" * 20, "is not a ferl checkpoint (it does not start with FERLCKPT)"),
+        (
+            lambda d: d[:8] + struct.pack("<I", 2) + d[12:],
+            "has checkpoint format 2; this ferl reads format 1 (written by a newer ferl)",
+        ),
+    ],
+)
 def test_each_damage_is_named_before_anything_is_unpickled(tmp_path, monkeypatch, damage, problem):
     checkpoint.write(tmp_path, {"step": 1}, IDENTITY)
     path = tmp_path / "last.pt"
@@ -139,7 +168,7 @@ def test_each_damage_is_named_before_anything_is_unpickled(tmp_path, monkeypatch
 
 def test_a_plain_torch_save_file_is_the_old_format(tmp_path):
     torch.save({"progress": {}}, tmp_path / "last.pt")
-    with pytest.raises(CheckpointError, match="format from before format 1 .*plain torch.save"):
+    with pytest.raises(CheckpointError, match=r"format from before format 1 .*plain torch.save"):
         checkpoint.read(tmp_path / "last.pt")
 
 
@@ -151,8 +180,11 @@ def test_newest_good_falls_back_with_one_warning_or_names_every_problem(tmp_path
     assert checkpoint.newest_good(tmp_path, warnings.append).state()["step"] == 1
     assert len(warnings) == 1 and "last.pt is truncated" in warnings[0] and "previous.pt" in warnings[0]
     other_bytes(tmp_path / "previous.pt")
-    with pytest.raises(CheckpointError, match=r"no good checkpoint: .*last.pt is truncated .*; .*previous.pt is "
-                                              r"damaged: checksum mismatch"):
+    with pytest.raises(
+        CheckpointError,
+        match=r"no good checkpoint: .*last.pt is truncated .*; .*previous.pt is "
+        r"damaged: checksum mismatch",
+    ):
         checkpoint.newest_good(tmp_path)
     assert checkpoint.newest_good(tmp_path / "none") is None
 
@@ -198,8 +230,11 @@ def test_damaged_last_checkpoint_falls_back_and_ends_as_uninterrupted(tmp_path, 
     assert len(warnings) == 1, result.stderr
     assert warnings[0].startswith(f"ferl: warning: {run_dir}: checkpoints/last.pt ")
     assert warnings[0].endswith("; resuming from the checkpoint before it, checkpoints/previous.pt")
-    assert {"truncated": "is truncated", "other_bytes": "checksum mismatch",
-            "other_shape": "format from before format 1"}[way] in warnings[0]
+    assert {
+        "truncated": "is truncated",
+        "other_bytes": "checksum mismatch",
+        "other_shape": "format from before format 1",
+    }[way] in warnings[0]
     assert "Traceback" not in result.stderr
     assert_same_run(run_dir, whole)
     assert (run_dir / "checkpoints" / "last.pt.damaged").read_bytes() == damaged  # set aside, not lost
@@ -221,8 +256,12 @@ def test_no_good_checkpoint_one_line_and_the_run_dir_untouched(tmp_path, whole, 
     assert result.returncode == 2
     lines = stderr_lines(result)
     assert len(lines) == 1, result.stderr
-    problem = {"truncated": "is truncated", "other_bytes": "checksum mismatch",
-               "other_shape": "format from before format 1", "newer_format": "has checkpoint format 2"}[way]
+    problem = {
+        "truncated": "is truncated",
+        "other_bytes": "checksum mismatch",
+        "other_shape": "format from before format 1",
+        "newer_format": "has checkpoint format 2",
+    }[way]
     assert lines[0].startswith(f"ferl: error: cannot resume {run_dir}: no good checkpoint: checkpoints/last.pt ")
     assert "; checkpoints/previous.pt " in lines[0] and lines[0].count(problem) == 2
     assert snapshot(run_dir) == before  # tb/ not cut, .hydra/ as the run wrote it, nothing new
@@ -331,8 +370,9 @@ def test_analyze_a_sweep_with_damaged_runs_analyses_the_others(tmp_path, whole):
     for i, (file, way) in enumerate(damaged):
         shutil.copytree(whole, sweep / f"bad{i}", ignore=shutil.ignore_patterns("analysis"))
         DAMAGE[way](sweep / f"bad{i}" / file)
-    result = subprocess.run([sys.executable, str(ROOT / "analyze.py"), str(sweep)], capture_output=True, text=True,
-                            timeout=600)
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "analyze.py"), str(sweep)], capture_output=True, text=True, timeout=600
+    )
     assert result.returncode == 1, result.stderr[-3000:]
     assert "Traceback" not in result.stderr, result.stderr[-3000:]
     errors = [ln for ln in result.stderr.splitlines() if ln.startswith("analyze.py: error:")]

@@ -2,6 +2,7 @@
 with ``final_window=5`` through train.py and analysed by analyze.py uses 5 episodes everywhere:
 the summary's metrics, the records, the TensorBoard moving averages and the analysis's learning
 curves and claims. Each is checked against a direct NumPy computation from the recorded episodes."""
+
 import csv
 import json
 
@@ -13,8 +14,16 @@ from ferl import runs
 from test_analyze_cli import analyze
 
 W, N = 5, 40  # the window, and episodes per run: both far from the default window of 200
-TINY = ["experiment=table4_1_matching", "n_runs=2", "trainer.n_sample=300", "trainer.n_epoch=2",
-        f"trainer.n_episodes={N}", "trainer.log_every=10", "trainer.td_sample_every=10", f"trainer.final_window={W}"]
+TINY = [
+    "experiment=table4_1_matching",
+    "n_runs=2",
+    "trainer.n_sample=300",
+    "trainer.n_epoch=2",
+    f"trainer.n_episodes={N}",
+    "trainer.log_every=10",
+    "trainer.td_sample_every=10",
+    f"trainer.final_window={W}",
+]
 
 
 @pytest.fixture(scope="module")
@@ -70,7 +79,7 @@ def test_tensorboard_moving_averages_are_over_w_episodes(run_dir, episodes):
     assert set(logged["tag"]) == {f"actor/discounted_return_ma{W}"}
     by_step = logged.set_index("step")["value"]
     for done in range(10, N + 1, 10):
-        want = episodes["discounted_return"][:, done - W:done].astype(np.float64).mean()
+        want = episodes["discounted_return"][:, done - W : done].astype(np.float64).mean()
         assert by_step[done] == pytest.approx(want, rel=1e-6)
 
 
@@ -81,7 +90,7 @@ def test_analysis_curves_and_claims_use_the_recorded_window(run_dir, episodes):
     ret = episodes["discounted_return"].astype(np.float64)
     for r in rows:
         k = int(r["episode"])
-        assert float(r[f"discounted_return_ma{W}_mean"]) == pytest.approx(ret[:, k - W:k].mean(), rel=1e-5)
+        assert float(r[f"discounted_return_ma{W}_mean"]) == pytest.approx(ret[:, k - W : k].mean(), rel=1e-5)
     td = episodes["td_abs_mean"].astype(np.float64)
     worst = (td[:, -W:].mean(1) / td[:, :W].mean(1)).max()
     claims = json.loads((run_dir / "analysis" / "claims.json").read_text())

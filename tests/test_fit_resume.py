@@ -2,6 +2,7 @@
 the run checkpoints the fit so far and exits 128 + signal, and ``resume=true`` continues the fit
 and ends as the uninterrupted run — summary, records, TensorBoard. Before, a stop waited for the
 fit's end (~90 min for data=mnist_full), past a cluster's grace period."""
+
 import os
 import signal
 
@@ -12,15 +13,32 @@ from ferl.preprocessors.rbm import RBMPreprocessor
 from ferl.run import checkpoint
 from test_tmaze_resume import assert_same_records
 
-PIXEL = ["experiment=table5_1_pixel", "seed=3", "n_runs=2", "trainer.n_sample=300", "trainer.n_epoch=2",
-         "trainer.n_episodes=40", "trainer.log_every=20", "trainer.td_sample_every=20", "trainer.final_window=20",
-         "preprocessor.sweeps=6", "env.reservoir_size=5", "preprocessor.cache_dir=null"]
+PIXEL = [
+    "experiment=table5_1_pixel",
+    "seed=3",
+    "n_runs=2",
+    "trainer.n_sample=300",
+    "trainer.n_epoch=2",
+    "trainer.n_episodes=40",
+    "trainer.log_every=20",
+    "trainer.td_sample_every=20",
+    "trainer.final_window=20",
+    "preprocessor.sweeps=6",
+    "env.reservoir_size=5",
+    "preprocessor.cache_dir=null",
+]
 
 
 @pytest.mark.parametrize("kind", ["rbm", "gaussian_rbm"])
 def test_a_stop_during_the_fit_checkpoints_between_sweeps_and_resumes(tmp_path, monkeypatch, kind):
-    overrides = [*PIXEL, *([] if kind == "rbm" else ["preprocessor=gaussian_rbm", "preprocessor.sweeps=6",
-                                                     "preprocessor.cache_dir=null"])]
+    overrides = [
+        *PIXEL,
+        *(
+            []
+            if kind == "rbm"
+            else ["preprocessor=gaussian_rbm", "preprocessor.sweeps=6", "preprocessor.cache_dir=null"]
+        ),
+    ]
     whole = tmp_path / "whole"
     expected = train_job(compose_config(overrides), whole)
 

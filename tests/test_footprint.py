@@ -4,6 +4,7 @@ refused in one line naming n_runs, the estimate and the limit, with nothing writ
 
 The estimate is checked against the bytes malloc actually hands out during whole runs (glibc's
 mallinfo2, sampled in the run's process), an independent measurement of the same thing."""
+
 import ctypes
 import json
 import random
@@ -23,10 +24,24 @@ from ferl.run import footprint
 from ferl.run.footprint import check_memory, estimate, host_free
 
 GOLDEN = json.loads((Path(__file__).parent / "golden" / "reduced_scale.json").read_text())
-ONLINE = ["experiment=table4_1_regular", "trainer=online", "trainer.n_episodes=30", "trainer.replay_sample=8",
-          "trainer.log_every=10", "trainer.td_sample_every=10", "trainer.final_window=10"]
-MAZE = ["experiment=table4_1_regular", "trainer.n_sample=300", "trainer.n_epoch=2", "trainer.n_episodes=40",
-        "trainer.log_every=20", "trainer.td_sample_every=20", "trainer.final_window=20"]
+ONLINE = [
+    "experiment=table4_1_regular",
+    "trainer=online",
+    "trainer.n_episodes=30",
+    "trainer.replay_sample=8",
+    "trainer.log_every=10",
+    "trainer.td_sample_every=10",
+    "trainer.final_window=10",
+]
+MAZE = [
+    "experiment=table4_1_regular",
+    "trainer.n_sample=300",
+    "trainer.n_epoch=2",
+    "trainer.n_episodes=40",
+    "trainer.log_every=20",
+    "trainer.td_sample_every=20",
+    "trainer.final_window=20",
+]
 
 
 # ---- the refusal ----------------------------------------------------------------------------------
@@ -50,9 +65,11 @@ def test_the_refusal_names_estimate_and_limit(monkeypatch):
     cfg = OmegaConf.create({"n_runs": 50, "device": "cpu", "memory_check": True})
     with pytest.raises(ConfigError) as e:
         check_memory(cfg)
-    assert str(e.value) == ("n_runs=50 needs about 1.7 MB of memory (30.0 kB a run + 200.0 kB fixed, estimated "
-                            "from set-ups with n_runs=1 and 2), more than the 1.0 MB free (MemAvailable): by this "
-                            "estimate at most n_runs=26 fit; memory_check=false skips this check")
+    assert str(e.value) == (
+        "n_runs=50 needs about 1.7 MB of memory (30.0 kB a run + 200.0 kB fixed, estimated "
+        "from set-ups with n_runs=1 and 2), more than the 1.0 MB free (MemAvailable): by this "
+        "estimate at most n_runs=26 fit; memory_check=false skips this check"
+    )
     cfg.n_runs = 26
     check_memory(cfg)  # 200 kB + 26 × 30 kB = 980 kB: fits
 
@@ -60,12 +77,13 @@ def test_the_refusal_names_estimate_and_limit(monkeypatch):
 def test_memory_check_false_skips_the_estimate(monkeypatch):
     monkeypatch.setattr(footprint, "estimate", lambda *a: pytest.fail("estimated although memory_check=false"))
     check_memory(OmegaConf.create({"n_runs": 10**12, "device": "cpu", "memory_check": False}))
-    with pytest.raises(ConfigError, match="^memory_check="):
+    with pytest.raises(ConfigError, match=r"^memory_check="):
         validated_config(["memory_check=sometimes"])
 
 
-@pytest.mark.parametrize("overrides", [["experiment=ch3_floor"], ["experiment=table4_1_regular"],
-                                       ["experiment=table5_1_pixel"], ONLINE[:2]])
+@pytest.mark.parametrize(
+    "overrides", [["experiment=ch3_floor"], ["experiment=table4_1_regular"], ["experiment=table5_1_pixel"], ONLINE[:2]]
+)
 def test_the_default_configs_pass_and_their_estimate_grows_with_n_runs(overrides):
     cfg = validated_config(overrides)
     check_memory(cfg)
@@ -95,8 +113,9 @@ class HookTrainer(TrainerBase):
 
 
 def test_the_estimate_counts_each_storage_once_fresh_state_and_the_hook():
-    cfg = OmegaConf.create({"trainer": {"_target_": f"{__name__}.HookTrainer"}, "n_runs": 7, "device": "cpu",
-                            "seed": 0})
+    cfg = OmegaConf.create(
+        {"trainer": {"_target_": f"{__name__}.HookTrainer"}, "n_runs": 7, "device": "cpu", "seed": 0}
+    )
     fp = estimate(cfg, torch.device("cpu"))
     assert fp == footprint.Footprint(host_fixed=1000, host_per_run=4000 + 2000 + 10**6)
     assert fp.host(7) == 1000 + 7 * 1_006_000
@@ -178,8 +197,9 @@ def has_mallinfo2() -> bool:
 def measured_peak(overrides: list) -> int:
     """Peak bytes malloc handed out during the whole run (data, set-up, every phase, records), over
     what the process held before it."""
-    result = subprocess.run([sys.executable, "-c", HEAP, *overrides, "compile=false"], cwd=ROOT, capture_output=True,
-                            text=True, timeout=600)
+    result = subprocess.run(
+        [sys.executable, "-c", HEAP, *overrides, "compile=false"], cwd=ROOT, capture_output=True, text=True, timeout=600
+    )
     assert result.returncode == 0, result.stderr[-2000:]
     return int(result.stdout.split()[-1])
 
@@ -189,8 +209,10 @@ def compare(overrides: list, small: int = 2, large: int = 200) -> tuple[float, f
     peaks = {n: measured_peak([*overrides, f"n_runs={n}"]) for n in (small, large)}
     fp = estimate(validated_config(overrides), torch.device("cpu"))
     slope = (peaks[large] - peaks[small]) / (large - small)
-    print(f"{' '.join(overrides[:2])}: per run measured {slope:.0f} B, estimated {fp.host_per_run} B; at {large} runs "
-          f"measured {peaks[large]} B, estimated {fp.host(large)} B")
+    print(
+        f"{' '.join(overrides[:2])}: per run measured {slope:.0f} B, estimated {fp.host_per_run} B; at {large} runs "
+        f"measured {peaks[large]} B, estimated {fp.host(large)} B"
+    )
     return slope / fp.host_per_run, peaks[large] / fp.host(large)
 
 
@@ -210,9 +232,13 @@ def test_the_estimate_is_within_a_factor_of_the_memory_runs_take(overrides):
 # floor tests' activations. Algorithm 1's is an upper bound: balancing keeps n per length, at most
 # n_sample episodes in all (here 48 of 300), so its estimate may be a few times what a run takes, and
 # never less.
-GAPS = {"algorithm1_maze": (MAZE, 200),
-        "floor_default_tests": (["experiment=ch3_floor", "trainer.steps=300", "trainer.log_every=100",
-                                 "trainer.checkpoint_every=100"], 20)}
+GAPS = {
+    "algorithm1_maze": (MAZE, 200),
+    "floor_default_tests": (
+        ["experiment=ch3_floor", "trainer.steps=300", "trainer.log_every=100", "trainer.checkpoint_every=100"],
+        20,
+    ),
+}
 
 
 @pytest.mark.skipif(not has_mallinfo2(), reason="measured with glibc's mallinfo2")

@@ -17,6 +17,7 @@ The digit mazes' numbers depend on how the CPU rounds 784-pixel sums (AVX-512 or
 holds this project's machines' numbers. Each run is a separate process from the one that wrote
 the file, so equality is also the determinism of CONTRACT §2 (same config and seed → same metrics).
 """
+
 import json
 import sys
 from pathlib import Path
@@ -26,13 +27,34 @@ import pytest
 from conftest import train_job
 
 GOLDEN = Path(__file__).parent / "golden" / "reduced_scale.json"
-FLOOR = ["n_runs=2", "trainer.steps=300", "trainer.test_per_class=5", "trainer.log_every=100",
-         "trainer.checkpoint_every=100", "trainer.test_noise_levels=[0.0,0.5]"]
-MAZE = ["n_runs=2", "trainer.n_sample=300", "trainer.n_epoch=2", "trainer.n_episodes=40", "trainer.log_every=20",
-        "trainer.td_sample_every=20", "trainer.final_window=20"]
-REDUCED = {"ch3_floor": FLOOR, "ch3_coding_cw": FLOOR, "ch3_coding_ccw": FLOOR, "ch3_coding_noreward": FLOOR,
-           "table4_1_regular": MAZE, "table4_1_matching": MAZE, "table4_2_digit": MAZE, "table5_1_bit": MAZE,
-           "table5_1_pixel": [*MAZE, "preprocessor.sweeps=2", "env.reservoir_size=5"]}
+FLOOR = [
+    "n_runs=2",
+    "trainer.steps=300",
+    "trainer.test_per_class=5",
+    "trainer.log_every=100",
+    "trainer.checkpoint_every=100",
+    "trainer.test_noise_levels=[0.0,0.5]",
+]
+MAZE = [
+    "n_runs=2",
+    "trainer.n_sample=300",
+    "trainer.n_epoch=2",
+    "trainer.n_episodes=40",
+    "trainer.log_every=20",
+    "trainer.td_sample_every=20",
+    "trainer.final_window=20",
+]
+REDUCED = {
+    "ch3_floor": FLOOR,
+    "ch3_coding_cw": FLOOR,
+    "ch3_coding_ccw": FLOOR,
+    "ch3_coding_noreward": FLOOR,
+    "table4_1_regular": MAZE,
+    "table4_1_matching": MAZE,
+    "table4_2_digit": MAZE,
+    "table5_1_bit": MAZE,
+    "table5_1_pixel": [*MAZE, "preprocessor.sweeps=2", "env.reservoir_size=5"],
+}
 
 
 def overrides(experiment: str) -> list[str]:
@@ -60,6 +82,14 @@ if __name__ == "__main__" and sys.argv[1:] == ["--write"]:
     from conftest import compose_config
 
     with tempfile.TemporaryDirectory() as tmp:
-        GOLDEN.write_text(json.dumps({e: {"overrides": overrides(e), "metrics": run(compose_config, Path(tmp), e)["metrics"]}
-                                      for e in REDUCED}, indent=1) + "\n")
+        GOLDEN.write_text(
+            json.dumps(
+                {
+                    e: {"overrides": overrides(e), "metrics": run(compose_config, Path(tmp), e)["metrics"]}
+                    for e in REDUCED
+                },
+                indent=1,
+            )
+            + "\n"
+        )
     print(f"wrote {GOLDEN}")

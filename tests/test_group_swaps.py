@@ -1,5 +1,6 @@
 """Every experiment × every trainer, predictor and actor option: the swap composes and validates, or is
 refused in one line that names the pair (ferl/config/swaps.py). Composition only: nothing is built."""
+
 import pytest
 from hydra import compose, initialize_config_dir
 from hydra.core.hydra_config import HydraConfig
@@ -14,7 +15,7 @@ EPISODIC_TRAINERS = {"algorithm1", "algorithm1_digit", "algorithm2_pixel", "onli
 
 
 def outcome(overrides) -> str:
-    """"" when the config composes and validates, else the refusal's line."""
+    """ "" when the config composes and validates, else the refusal's line."""
     cfg = compose("config", overrides=[*overrides, "compile=false"], return_hydra_config=True)
     HydraConfig.instance().set_config(cfg)
     try:
@@ -30,8 +31,9 @@ def test_every_swap_validates_or_names_the_pair(experiment):
     the refused ones are exactly the misfits: an episodic trainer on a continuing task or the other way
     round, and the oracle where the environment has no true-state view."""
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-        env = compose("config", overrides=[f"experiment={experiment}"], return_hydra_config=True) \
-            .hydra.runtime.choices.env
+        env = compose(
+            "config", overrides=[f"experiment={experiment}"], return_hydra_config=True
+        ).hydra.runtime.choices.env
         refused = {}
         for group, options in OPTIONS.items():
             for option in options:
@@ -47,18 +49,25 @@ def test_every_swap_validates_or_names_the_pair(experiment):
     assert set(refused) == expected, refused
 
 
-@pytest.mark.parametrize("overrides,group,kept,dropped", [
-    # the experiment's trainer.steps holds for a trainer that takes steps, and goes with one that does not
-    (["experiment=ch3_coding_cw", "trainer=online_td"], "trainer", {"steps": 30000}, ()),
-    (["experiment=table4_1_matching", "trainer=online"], "trainer", {"n_episodes": 10000}, ("n_sample", "n_epoch")),
-    # a card game's short horizon holds for every actor; its values for the FERL actor's nodes go
-    (["experiment=popgym_repeat_previous_easy", "actor=drqn"], "actor", {"gamma": 0.5}, ()),
-    (["experiment=large_action", "actor=mlp_q"], "actor", {"gamma": 0.0, "n_hidden": 13},
-     ("action_code", "action_selection", "gibbs_sweeps")),
-    # the experiment's predictor.joint values go with the joint predictor
-    (["experiment=table4_2_digit", "predictor=separate"], "predictor", {}, ("joint",)),
-    (["experiment=table4_2_digit", "predictor=none"], "predictor", {}, ("joint",)),
-])
+@pytest.mark.parametrize(
+    "overrides,group,kept,dropped",
+    [
+        # the experiment's trainer.steps holds for a trainer that takes steps, and goes with one that does not
+        (["experiment=ch3_coding_cw", "trainer=online_td"], "trainer", {"steps": 30000}, ()),
+        (["experiment=table4_1_matching", "trainer=online"], "trainer", {"n_episodes": 10000}, ("n_sample", "n_epoch")),
+        # a card game's short horizon holds for every actor; its values for the FERL actor's nodes go
+        (["experiment=popgym_repeat_previous_easy", "actor=drqn"], "actor", {"gamma": 0.5}, ()),
+        (
+            ["experiment=large_action", "actor=mlp_q"],
+            "actor",
+            {"gamma": 0.0, "n_hidden": 13},
+            ("action_code", "action_selection", "gibbs_sweeps"),
+        ),
+        # the experiment's predictor.joint values go with the joint predictor
+        (["experiment=table4_2_digit", "predictor=separate"], "predictor", {}, ("joint",)),
+        (["experiment=table4_2_digit", "predictor=none"], "predictor", {}, ("joint",)),
+    ],
+)
 def test_a_swap_keeps_the_experiments_values_the_option_takes(overrides, group, kept, dropped):
     cfg = compose_config(overrides)
     HydraConfig.instance().set_config(cfg)
@@ -77,20 +86,26 @@ def test_a_swapped_schedule_is_the_experiments():
     assert dict(cfg.actor.lr) == {"_target_": "ferl.schedules.Exponential", "start": 0.1, "end": 0.01}
 
 
-@pytest.mark.parametrize("overrides,message", [
-    # a key the user typed is never dropped: refused as without a swap, naming the key
-    (["experiment=ch3_floor", "trainer=online_td", "+trainer.n_sample=5"],
-     "trainer.n_sample is not allowed: OnlineTDTrainer takes"),
-    (["experiment=table4_2_digit", "predictor=separate", "predictor.joint.c_y=0.5"],
-     "predictor.joint.c_y=0.5 is not allowed: expected a component"),
-])
+@pytest.mark.parametrize(
+    "overrides,message",
+    [
+        # a key the user typed is never dropped: refused as without a swap, naming the key
+        (
+            ["experiment=ch3_floor", "trainer=online_td", "+trainer.n_sample=5"],
+            "trainer.n_sample is not allowed: no phase reads it; trainer takes checkpoint_every, compile_group_runs, ",
+        ),
+        (
+            ["experiment=table4_2_digit", "predictor=separate", "predictor.joint.c_y=0.5"],
+            "predictor.joint.c_y=0.5 is not allowed: expected a component",
+        ),
+    ],
+)
 def test_typed_keys_are_never_dropped(overrides, message):
     cfg = compose_config(overrides)
     HydraConfig.instance().set_config(cfg)
     with pytest.raises(ConfigError) as e:
         validate(cfg)
     assert str(e.value).startswith(message), str(e.value)
-
 
 
 @pytest.mark.parametrize("trainer", ["online", "online_long"])
@@ -107,15 +122,26 @@ def test_a_refusal_names_the_trainer_the_user_chose(trainer):
     assert str(e.value).startswith(f"predictor=none is not allowed with trainer={trainer}: "), str(e.value)
 
 
-@pytest.mark.parametrize("overrides,line", [
-    (["experiment=null"], "ferl: error: experiment=null is not allowed: a group's option cannot be null; "
-                          "experiment=none runs without an experiment"),
-    (["~experiment"], "ferl: error: ~experiment is not allowed: a run is named by its experiment; "
-                      "experiment=none runs without one"),
-    (["experiment=ch3_floor", "trainer=online"],
-     "ferl: error: trainer=online does not fit experiment=ch3_floor: OnlineAlgorithm trains on episodes, "
-     "and env=digit_floor (DigitFloor) is a continuing task"),
-])
+@pytest.mark.parametrize(
+    "overrides,line",
+    [
+        (
+            ["experiment=null"],
+            "ferl: error: experiment=null is not allowed: a group's option cannot be null; "
+            "experiment=none runs without an experiment",
+        ),
+        (
+            ["~experiment"],
+            "ferl: error: ~experiment is not allowed: a run is named by its experiment; "
+            "experiment=none runs without one",
+        ),
+        (
+            ["experiment=ch3_floor", "trainer=online"],
+            "ferl: error: trainer=online does not fit experiment=ch3_floor: its phases train on episodes, "
+            "and env=digit_floor (DigitFloor) is a continuing task",
+        ),
+    ],
+)
 def test_train_py_refuses_in_one_line(tmp_path, overrides, line):
     """Through train.py: exactly one line on stderr, exit status ≠ 0, no run directory."""
     from conftest import run_train

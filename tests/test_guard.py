@@ -1,4 +1,5 @@
 """The per-run divergence guard (ferl/run/guard.py): which run, at which step, why."""
+
 import math
 
 import torch
@@ -10,13 +11,14 @@ def test_first_bad_step_of_each_run_and_only_those_runs_frozen():
     guard = DivergenceGuard(4, limit=100.0, seeds=[7, 8, 9, 10], device="cpu")
     errors = torch.randn(50, 4)
     errors[13, 1] = math.nan
-    errors[20, 1] = math.inf            # later trouble of the same run does not move its step
-    errors[31, 3] = -250.0              # finite but beyond the limit
+    errors[20, 1] = math.inf  # later trouble of the same run does not move its step
+    errors[31, 3] = -250.0  # finite but beyond the limit
     guard.check(errors, first_step=1000)
     assert guard.alive.squeeze(1).tolist() == [True, False, True, False]
     assert guard.report() == [
         {"run": 1, "seed": 8, "step": 1013, "reason": "non-finite TD error"},
-        {"run": 3, "seed": 10, "step": 1031, "reason": "|TD error| 250 > limit 100"}]
+        {"run": 3, "seed": 10, "step": 1031, "reason": "|TD error| 250 > limit 100"},
+    ]
 
     delta = torch.full((4, 1), math.nan)
     masked = guard.mask(delta)
@@ -49,13 +51,34 @@ import pytest  # noqa: E402
 
 from conftest import train_job  # noqa: E402
 
-FLOOR = ["experiment=ch3_floor", "n_runs=3", "trainer.steps=600", "trainer.test_per_class=5",
-         "trainer.log_every=100", "trainer.test_noise_levels=[0.125]"]
-MAZE = ["experiment=table4_1_matching", "n_runs=3", "trainer.n_sample=300", "trainer.n_epoch=2",
-        "trainer.n_episodes=200", "trainer.log_every=50", "trainer.final_window=50"]
-RESERVOIR = ["experiment=table5_1_pixel", "n_runs=3", "env.reservoir_size=5", "preprocessor.sweeps=20",
-             "trainer.n_sample=300", "trainer.n_epoch=2", "trainer.n_episodes=200", "trainer.log_every=50",
-             "trainer.final_window=50"]
+FLOOR = [
+    "experiment=ch3_floor",
+    "n_runs=3",
+    "trainer.steps=600",
+    "trainer.test_per_class=5",
+    "trainer.log_every=100",
+    "trainer.test_noise_levels=[0.125]",
+]
+MAZE = [
+    "experiment=table4_1_matching",
+    "n_runs=3",
+    "trainer.n_sample=300",
+    "trainer.n_epoch=2",
+    "trainer.n_episodes=200",
+    "trainer.log_every=50",
+    "trainer.final_window=50",
+]
+RESERVOIR = [
+    "experiment=table5_1_pixel",
+    "n_runs=3",
+    "env.reservoir_size=5",
+    "preprocessor.sweeps=20",
+    "trainer.n_sample=300",
+    "trainer.n_epoch=2",
+    "trainer.n_episodes=200",
+    "trainer.log_every=50",
+    "trainer.final_window=50",
+]
 
 
 def poison_run_1_at(update, at: int):
@@ -67,16 +90,21 @@ def poison_run_1_at(update, at: int):
         if calls[0] == at:
             self.W_sh[1] = math.nan
         return update(self, *args)
+
     return wrapped
 
 
-@pytest.mark.parametrize("task, overrides, unit, at", [
-    ("digit_floor", FLOOR, "step", 250),
-    ("tmaze", MAZE, "episode", None),
-    ("tmaze", RESERVOIR, "episode", None),  # images drawn from a reservoir every step
-])
+@pytest.mark.parametrize(
+    "task, overrides, unit, at",
+    [
+        ("digit_floor", FLOOR, "step", 250),
+        ("tmaze", MAZE, "episode", None),
+        ("tmaze", RESERVOIR, "episode", None),  # images drawn from a reservoir every step
+    ],
+)
 def test_injected_nan_marks_only_that_run(compose_cfg, tmp_path, monkeypatch, task, overrides, unit, at):
     from ferl.actors.free_energy import FERLActor
+
     cache = ["preprocessor.cache_dir=" + str(tmp_path / "cache")] if "experiment=table5_1_pixel" in overrides else []
     clean = train_job(compose_cfg(overrides + cache), tmp_path / "clean")
     assert clean["diverged"] == []

@@ -1,5 +1,6 @@
 """Gymnasium views of the batched environments (CONTRACT §5): API checks, seeding, episode ends,
 vector autoreset, and agreement with the batched classes that training steps."""
+
 import warnings
 
 import gymnasium
@@ -11,12 +12,19 @@ from gymnasium.vector import AutoresetMode
 from omegaconf import OmegaConf
 
 import ferl.envs  # noqa: F401  (importing the package registers the ids)
+from conftest import ROOT
 from ferl.envs.digit_floor import DigitFloor
 from ferl.envs.digit_tmaze import DigitTMaze
-from ferl.envs.gym import (DIGIT_CLASSES, ENV_SPECS, FLOOR_EPISODE_STEPS, DigitFloorEnv, DigitFloorVectorEnv,
-                           TMazeVectorEnv, embedded_mnist, register_envs)
+from ferl.envs.gym import (
+    ENV_SPECS,
+    FLOOR_EPISODE_STEPS,
+    DigitFloorEnv,
+    DigitFloorVectorEnv,
+    TMazeVectorEnv,
+    register_envs,
+)
+from ferl.envs.gym_batches import DIGIT_CLASSES, embedded_mnist
 from ferl.envs.tmaze import TMaze
-from conftest import ROOT
 
 IDS = list(ENV_SPECS)
 MAZE_REWARDS = (5.0, -5.0, -1.0, -0.1)
@@ -128,7 +136,7 @@ def test_vector_env_matches_the_batched_environment_until_an_episode_ends():
     obs, _ = vec.reset(seed=2)
     np.testing.assert_array_equal(obs, twin.reset().numpy())
     for actions in np.random.default_rng(2).integers(4, size=(3, 6)):  # no episode ends in < T_min steps
-        obs, reward, terminated, truncated, _ = vec.step(actions)
+        obs, reward, _, _, _ = vec.step(actions)
         twin_obs, twin_reward, _, _ = twin.step(torch.as_tensor(actions))
         np.testing.assert_array_equal(obs, twin_obs.numpy())
         np.testing.assert_array_equal(reward, twin_reward.numpy())

@@ -5,6 +5,7 @@ and against loops written out; the vector of environments against single environ
 by hand with Gymnasium's next-step auto-reset; the whole path through train.py and analyze.py on
 the environment of tests/outside_env.py, which nothing in ferl names.
 """
+
 import json
 import os
 import signal
@@ -30,16 +31,33 @@ sys.path.insert(0, str(TESTS))
 # FERL trained online (§5.4) on the cue task: a POPGym experiment with its environment swapped, its
 # rewards ×5 for predictor and actor and the predictor's reward unnormalised, which learns in 1 000
 # episodes (tests/test_reward_norm.py learns the native scale, normalised, in 2 000)
-RUN = ["experiment=popgym_repeat_previous_easy", f"env.id={CUE}", "+env.kwargs.delay=2", "env.optimal_return=0.8",
-       "env.reward_scale=5", "predictor.joint.reward_norm=none", "trainer.n_episodes=1000",
-       "trainer.replay_sample=16", "trainer.log_every=100", "trainer.checkpoint_every=100", "n_runs=3"]
+RUN = [
+    "experiment=popgym_repeat_previous_easy",
+    f"env.id={CUE}",
+    "+env.kwargs.delay=2",
+    "env.optimal_return=0.8",
+    "env.reward_scale=5",
+    "predictor.joint.reward_norm=none",
+    "trainer.n_episodes=1000",
+    "trainer.replay_sample=16",
+    "trainer.log_every=100",
+    "trainer.checkpoint_every=100",
+    "n_runs=3",
+]
 
 
-@pytest.mark.parametrize("space", [
-    spaces.Discrete(5), spaces.Discrete(4, start=-2), spaces.MultiDiscrete([3, 2, 4]),
-    spaces.MultiDiscrete([[2, 3], [4, 2]]), spaces.MultiBinary(6),
-    spaces.Tuple((spaces.Discrete(3), spaces.MultiDiscrete([2, 5]))),
-    spaces.Dict({"b": spaces.Discrete(2), "a": spaces.Tuple((spaces.Discrete(3), spaces.MultiBinary(2)))})])
+@pytest.mark.parametrize(
+    "space",
+    [
+        spaces.Discrete(5),
+        spaces.Discrete(4, start=-2),
+        spaces.MultiDiscrete([3, 2, 4]),
+        spaces.MultiDiscrete([[2, 3], [4, 2]]),
+        spaces.MultiBinary(6),
+        spaces.Tuple((spaces.Discrete(3), spaces.MultiDiscrete([2, 5]))),
+        spaces.Dict({"b": spaces.Discrete(2), "a": spaces.Tuple((spaces.Discrete(3), spaces.MultiBinary(2)))}),
+    ],
+)
 def test_onehot_is_gymnasiums_flattening(space):
     encode, size = encoder_for(space, "auto")
     assert size == spaces.flatdim(space)
@@ -79,6 +97,7 @@ def reference_runs(n_runs, seed, kwargs, actions_per_step):
     """Single CueRecall environments stepped as Gymnasium's next-step auto-reset steps them in a
     vector, with ferl's lockstep: (rewards, dones, encoded observations) per lockstep step."""
     import gymnasium
+
     envs = [gymnasium.make(CUE, **kwargs) for _ in range(n_runs)]
     encode, _ = encoder_for(envs[0].observation_space, "onehot")
     out, obs, seeded = [], [None] * n_runs, False
@@ -174,23 +193,31 @@ def test_trains_and_analyses_end_to_end(cue_run):
     np.testing.assert_allclose(episodes["return"][:, -200:].mean(1), metrics["final_return"], rtol=1e-6)
     # a memoryless agent is right half the time at the choice: return −0.2 + 0 on average
     assert min(metrics["final_return"]) > 0.4, metrics["final_return"]
-    result = subprocess.run([sys.executable, str(ROOT / "analyze.py"), str(cue_run)], capture_output=True, text=True,
-                            timeout=300, env=ENV)
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "analyze.py"), str(cue_run)], capture_output=True, text=True, timeout=300, env=ENV
+    )
     assert result.returncode == 0, result.stderr[-2000:]
     assert "learning_curves" in {p.stem for p in (cue_run / "analysis").glob("*.png")}
 
 
 def test_same_seed_same_numbers_sync_and_async(tmp_path):
     short = [*RUN[:-3], "trainer.n_episodes=40", "n_runs=2"]
-    runs = [train_job(compose_config([*short, *extra]), tmp_path / name)["metrics"]
-            for name, extra in (("a", []), ("b", []), ("c", ["env.vectorization=async"]))]
+    runs = [
+        train_job(compose_config([*short, *extra]), tmp_path / name)["metrics"]
+        for name, extra in (("a", []), ("b", []), ("c", ["env.vectorization=async"]))
+    ]
     assert runs[0] == runs[1] == runs[2]
 
 
 def test_sigterm_then_resume_equals_uninterrupted(tmp_path, cue_run):
     cut = tmp_path / "cut"
-    proc = subprocess.Popen([sys.executable, str(ROOT / "train.py"), *eager(RUN), f"hydra.run.dir={cut}"], cwd=ROOT,
-                            env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        [sys.executable, str(ROOT / "train.py"), *eager(RUN), f"hydra.run.dir={cut}"],
+        cwd=ROOT,
+        env=ENV,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     deadline = time.time() + 240
     while time.time() < deadline and proc.poll() is None:
         saved = progress(cut)
@@ -205,15 +232,22 @@ def test_sigterm_then_resume_equals_uninterrupted(tmp_path, cue_run):
     got, want = (json.loads((d / "summary.json").read_text())["metrics"] for d in (cut, cue_run))
     assert got == want
     for key in ("return", "discounted_return", "steps"):
-        np.testing.assert_array_equal(np.load(cut / "records" / "episodes.npz")[key],
-                                      np.load(cue_run / "records" / "episodes.npz")[key])
+        np.testing.assert_array_equal(
+            np.load(cut / "records" / "episodes.npz")[key], np.load(cue_run / "records" / "episodes.npz")[key]
+        )
 
 
-@pytest.mark.parametrize("override, names", [
-    ("env.id=outside_env:Nope-v0", "env.id"), ("env.id=nowhere:Cue-v0", "env.id"),
-    ("env.id=Pendulum-v1", "action space Box"), ("env.id=CartPole-v1", "observation space"),
-    # Algorithm 1's predictors need the observation table before the episodes
-    (f"env.id={CUE} trainer=algorithm1", "trainer=online, or predictor=none")])
+@pytest.mark.parametrize(
+    "override, names",
+    [
+        ("env.id=outside_env:Nope-v0", "env.id"),
+        ("env.id=nowhere:Cue-v0", "env.id"),
+        ("env.id=Pendulum-v1", "action space Box"),
+        ("env.id=CartPole-v1", "observation space"),
+        # Algorithm 1's predictors need the observation table before the episodes
+        (f"env.id={CUE} trainer=algorithm1", "trainer=online, or predictor=none"),
+    ],
+)
 def test_bad_input_one_line_nothing_written(tmp_path, override, names):
     run_dir = tmp_path / "out" / "run"
     result = run_train(RUN[0], *override.split(), f"hydra.run.dir={run_dir}", env=ENV)

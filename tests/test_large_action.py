@@ -1,5 +1,6 @@
 """Sallans & Hinton (2004)'s large-action task: rewards against a brute-force reading of the task,
 run views and checkpoints, the experiment end to end, and learning at reduced scale."""
+
 import json
 
 import numpy as np
@@ -27,7 +28,7 @@ def test_rewards_follow_the_definition():
     g = torch.Generator().manual_seed(1)
     for _ in range(50):
         s = task.state.clone()
-        action = torch.randint(2 ** 40, (3,), generator=g)
+        action = torch.randint(2**40, (3,), generator=g)
         _, reward, terminated, _ = task.step(action)
         assert not terminated.any()
         bits = to_bits(action, 40).numpy()
@@ -72,8 +73,9 @@ def test_large_action_experiment_learns_at_reduced_scale(tmp_path):
     """3 runs × 4 000 steps, 20 Gibbs sweeps: every run's reward over the last 10 % of its steps is
     above a random policy's 20 by more than 6 standard errors of that mean (400 steps, s.d. √10)."""
     run_dir = tmp_path / "run"
-    result = run_train("experiment=large_action", "n_runs=3", "trainer.steps=4000", "actor.gibbs_sweeps=20",
-                       f"hydra.run.dir={run_dir}")
+    result = run_train(
+        "experiment=large_action", "n_runs=3", "trainer.steps=4000", "actor.gibbs_sweeps=20", f"hydra.run.dir={run_dir}"
+    )
     assert result.returncode == 0, result.stderr[-2000:]
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["task"] == "large_action" and summary["optimal"]["reward_per_step"] == 40.0

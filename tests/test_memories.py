@@ -2,6 +2,7 @@
 references written from their equations, their training gradients against central finite
 differences on padded sequences, the reservoir's spectral radius against NumPy, the memory chosen
 by name, and a memory that lasts: LSTM and GRU keep a bit over 12 steps."""
+
 import numpy as np
 import pytest
 import torch
@@ -41,13 +42,13 @@ def reference_memory(p, run: int, y, a) -> list:
         u = torch.cat([p.c_y * y[t], p.c_a * a[t]])
         if p.kind == "lstm":
             z = W @ u + U @ h + b
-            i, f, g, o = sig(z[:M]), sig(z[M:2 * M]), torch.tanh(z[2 * M:3 * M]), sig(z[3 * M:])
+            i, f, g, o = sig(z[:M]), sig(z[M : 2 * M]), torch.tanh(z[2 * M : 3 * M]), sig(z[3 * M :])
             c = f * c + i * g
             h = o * torch.tanh(c)
         elif p.kind == "gru":
             x, hh = W @ u + b, U @ h
-            r, z = sig(x[:M] + hh[:M]), sig(x[M:2 * M] + hh[M:2 * M])
-            n = torch.tanh(x[2 * M:] + r * (hh[2 * M:] + p.b_hn[run]))
+            r, z = sig(x[:M] + hh[:M]), sig(x[M : 2 * M] + hh[M : 2 * M])
+            n = torch.tanh(x[2 * M :] + r * (hh[2 * M :] + p.b_hn[run]))
             h = (1 - z) * n + z * h
         else:  # esn
             lam = p.leak_rate
@@ -126,9 +127,9 @@ def test_memory_is_chosen_by_name_and_checked_as_that_class():
     assert make("lstm").memory_size == M and make("lstm").initial_state().shape == (2, 2 * M)
     with pytest.raises(ConfigError, match=r"predictor.joint.memory='tcn' is not allowed: one of elman, esn, gru, lstm"):
         check_arguments(predictor, {"memory": "tcn"}, "predictor.joint.")
-    with pytest.raises(ConfigError, match="predictor.joint.spectral_radius is not allowed"):
+    with pytest.raises(ConfigError, match=r"predictor.joint.spectral_radius is not allowed"):
         check_arguments(predictor, {"memory": "gru", "spectral_radius": 0.9}, "predictor.joint.")
-    with pytest.raises(ConfigError, match="beta_m=2.0 is not allowed: 1 with memory=lstm"):
+    with pytest.raises(ConfigError, match=r"beta_m=2.0 is not allowed: 1 with memory=lstm"):
         check_arguments(predictor, {"memory": "lstm", "beta_m": 2.0}, "predictor.joint.")
 
 
@@ -153,8 +154,18 @@ def test_gated_memory_keeps_a_bit_over_twelve_steps(memory):
     """After 30 pattern-mode epochs on 64 sequences (float32, 2 runs), the memory recalls at the
     cue the bit shown 12 steps earlier, on fresh sequences (chance: 0.5)."""
     delay, R = 12, 2
-    p = predictor(memory=memory, n_runs=R, n_obs=Y, n_actions=A, n_memory=8, n_reward=NR, lr=0.3, seed=4,
-                  rho_y=0.0, time_average=False)
+    p = predictor(
+        memory=memory,
+        n_runs=R,
+        n_obs=Y,
+        n_actions=A,
+        n_memory=8,
+        n_reward=NR,
+        lr=0.3,
+        seed=4,
+        rho_y=0.0,
+        time_average=False,
+    )
     y, a, r, lengths, _ = delayed_bit(R, 64, delay, seed=0)
     batch = PredictorBatch([p], y, a, [r], lengths)
     g = torch.Generator().manual_seed(1)

@@ -4,6 +4,7 @@ The tests on the real files read them where ``make setup`` put them (``python -m
 ``$FERL_MNIST_DIR``, else ~/.cache/ferl/mnist) and skip only when they are not there. What needs no real file (the
 checksum's refusal, the dotted names, the missing root) runs everywhere.
 """
+
 import gzip
 import hashlib
 from pathlib import Path
@@ -24,7 +25,9 @@ TRAIN_PER_CLASS = [5923, 6742, 5958, 6131, 5842, 5421, 5918, 6265, 5851, 5949]
 TEST_PER_CLASS = [980, 1135, 1032, 1010, 982, 892, 958, 1028, 974, 1009]
 
 REAL_ROOT = str(default_dir())
-needs_real = pytest.mark.skipif(not present(default_dir()), reason=f"no MNIST in {REAL_ROOT}: python -m ferl.mnist_download")
+needs_real = pytest.mark.skipif(
+    not present(default_dir()), reason=f"no MNIST in {REAL_ROOT}: python -m ferl.mnist_download"
+)
 
 
 @pytest.fixture(scope="module")
@@ -55,11 +58,11 @@ def raw_file(stem: str) -> bytes:
 @needs_real
 def test_first_training_image_equals_the_files_bytes(real):
     images, labels = raw_file(IDX_FILES["train_images"]), raw_file(IDX_FILES["train_labels"])
-    first = images[16:16 + 784]  # after the magic number and three sizes
+    first = images[16 : 16 + 784]  # after the magic number and three sizes
     loaded = (real.train_images[0] * 255).round().to(torch.uint8).numpy().tobytes()
     assert hashlib.sha256(loaded).hexdigest() == hashlib.sha256(first).hexdigest()
     assert labels[8] == 5 and int(real.train_labels[0]) == 5  # the first MNIST digit is a 5
-    last = images[16 + 59_999 * 784:]
+    last = images[16 + 59_999 * 784 :]
     assert (real.train_images[-1] * 255).round().to(torch.uint8).numpy().tobytes() == last
 
 
@@ -107,10 +110,23 @@ def test_mnist_full_composes_and_a_tiny_pixel_run_fits_the_rbm_on_all_60000(tmp_
         return fit(self, images, *args, **kwargs)
 
     monkeypatch.setattr(RBMPreprocessor, "train", recording)
-    cfg = validated_config(["experiment=table5_1_pixel", "data=mnist_full", f"data.root={REAL_ROOT}", "n_runs=2",
-                            "preprocessor.sweeps=1", "preprocessor.cache_dir=null", "env.reservoir_size=5",
-                            "trainer.n_sample=300", "trainer.n_epoch=2", "trainer.n_episodes=40",
-                            "trainer.log_every=20", "trainer.td_sample_every=20", "trainer.final_window=20"])
+    cfg = validated_config(
+        [
+            "experiment=table5_1_pixel",
+            "data=mnist_full",
+            f"data.root={REAL_ROOT}",
+            "n_runs=2",
+            "preprocessor.sweeps=1",
+            "preprocessor.cache_dir=null",
+            "env.reservoir_size=5",
+            "trainer.n_sample=300",
+            "trainer.n_epoch=2",
+            "trainer.n_episodes=40",
+            "trainer.log_every=20",
+            "trainer.td_sample_every=20",
+            "trainer.final_window=20",
+        ]
+    )
     assert OmegaConf.to_container(cfg.data) == {"_target_": "ferl.data.MnistFull", "root": REAL_ROOT}
     summary = train_job(cfg, tmp_path / "run")
     returns = summary["metrics"]["final_discounted_return"]
@@ -118,14 +134,16 @@ def test_mnist_full_composes_and_a_tiny_pixel_run_fits_the_rbm_on_all_60000(tmp_
     [images] = fitted_on
     assert torch.equal(images, real.train_images)  # all 60 000 training images, in the files' order
 
+
 def test_other_idx_files_through_train_py_are_one_line_and_leave_nothing(tmp_path):
     from conftest import run_train
 
     root, run_dir = tmp_path / "mnist", tmp_path / "run"
     root.mkdir()
     fake_mnist(root, gz=True)
-    result = run_train("experiment=table5_1_pixel", "data=mnist_full", f"data.root={root}", "n_runs=1",
-                       f"hydra.run.dir={run_dir}")
+    result = run_train(
+        "experiment=table5_1_pixel", "data=mnist_full", f"data.root={root}", "n_runs=1", f"hydra.run.dir={run_dir}"
+    )
     lines = result.stderr.strip().splitlines()
     assert result.returncode != 0 and len(lines) == 1, result.stderr[-2000:]
     assert lines[0].startswith("ferl: error: data.root") and "not the standard MNIST file" in lines[0]

@@ -102,10 +102,7 @@ def test_random_non_goal_covers_all_non_goal_tiles():
 def test_build_floor_assigns_images_of_the_right_class():
     rng = np.random.default_rng(1)
     # image of class c is filled with c/10 + a distinct tiny per-image offset
-    images = {
-        c: (c / 10 + 1e-4 * np.arange(30)[:, None] + np.zeros((30, 784))).astype(np.float32)
-        for c in range(10)
-    }
+    images = {c: (c / 10 + 1e-4 * np.arange(30)[:, None] + np.zeros((30, 784))).astype(np.float32) for c in range(10)}
     tile_class, tile_images = ref.build_floor(images, 4, rng)
     assert tile_class.shape == (SIZE, SIZE) and tile_images.shape == (SIZE, SIZE, 784)
     for c in range(9):

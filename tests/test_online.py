@@ -1,6 +1,7 @@
 """The online trainer (§5.4) and sample efficiency: learning at reduced scale, the steps counted
 against the recorded episodes, ``env_steps_to_solve`` against a loop over every window, β's rule,
 the curiosity bonus against the predictor's own sequence outputs, and SIGTERM → resume."""
+
 import signal
 import subprocess
 import sys
@@ -17,8 +18,14 @@ from test_tmaze_resume import progress, records
 from test_train_cli import summary
 
 ROOT = Path(__file__).resolve().parents[1]
-ONLINE = ["experiment=table4_1_regular", "trainer=online", "n_runs=2", "trainer.n_episodes=1500",
-          "trainer.log_every=100", "trainer.checkpoint_every=100"]
+ONLINE = [
+    "experiment=table4_1_regular",
+    "trainer=online",
+    "n_runs=2",
+    "trainer.n_episodes=1500",
+    "trainer.log_every=100",
+    "trainer.checkpoint_every=100",
+]
 
 
 @pytest.fixture(scope="module")
@@ -49,16 +56,21 @@ def test_env_steps_to_solve_against_a_loop_over_windows():
     rng = np.random.default_rng(0)
     R, N, W, opt = 4, 60, 10, 4.0
     good = np.arange(N) > rng.integers(15, 70, size=(R, 1))  # runs improve at random points (one never)
-    ep = {"discounted_return": np.where(good, 4.2, -1.0) + rng.normal(0, 0.3, (R, N)),
-          "steps": rng.integers(3, 11, size=(R, N)), "correct_goal": good | (rng.random((R, N)) < 0.3)}
+    ep = {
+        "discounted_return": np.where(good, 4.2, -1.0) + rng.normal(0, 0.3, (R, N)),
+        "steps": rng.integers(3, 11, size=(R, N)),
+        "correct_goal": good | (rng.random((R, N)) < 0.3),
+    }
     random_steps = rng.integers(0, 1000, size=R)
     got = sample_efficiency(ep, random_steps, ("discounted_return", opt), W, ["correct_goal"])
     for r in range(R):
         want = None
         for k in range(W - 1, N):
             window = slice(k - W + 1, k + 1)
-            if (ep["discounted_return"][r, window].mean() >= SOLVED_SHARE * opt
-                    and ep["correct_goal"][r, window].mean() >= SOLVED_SHARE):
+            if (
+                ep["discounted_return"][r, window].mean() >= SOLVED_SHARE * opt
+                and ep["correct_goal"][r, window].mean() >= SOLVED_SHARE
+            ):
                 want = k
                 break
         steps = int(random_steps[r] + ep["steps"][r, : want + 1].sum()) if want is not None else None
@@ -72,6 +84,7 @@ def online_phase(*overrides):
     """The online phase of a composed config, set up on its job (nothing trained)."""
     from hydra.utils import instantiate
     from omegaconf import open_dict
+
     cfg = compose_config([*ONLINE, *overrides])
     with open_dict(cfg):
         del cfg["hydra"]
@@ -115,8 +128,12 @@ def test_curiosity_bonus_is_eta_times_the_observation_prediction_error():
 def test_sigterm_mid_online_then_resume_equals_uninterrupted(tmp_path, online_run):
     whole, result = online_run
     cut = tmp_path / "cut"
-    proc = subprocess.Popen([sys.executable, str(ROOT / "train.py"), *eager(ONLINE), f"hydra.run.dir={cut}",
-                             "cpu_threads=1"], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        [sys.executable, str(ROOT / "train.py"), *eager(ONLINE), f"hydra.run.dir={cut}", "cpu_threads=1"],
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     deadline = time.time() + 240
     while time.time() < deadline and proc.poll() is None:
         found = progress(cut)
@@ -125,8 +142,20 @@ def test_sigterm_mid_online_then_resume_equals_uninterrupted(tmp_path, online_ru
         time.sleep(0.05)
     proc.send_signal(signal.SIGTERM)
     assert proc.wait(timeout=240) == 128 + signal.SIGTERM
-    resumed = subprocess.run([sys.executable, str(ROOT / "train.py"), *eager(ONLINE), f"hydra.run.dir={cut}", "resume=true",
-                              "cpu_threads=1"], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    resumed = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "train.py"),
+            *eager(ONLINE),
+            f"hydra.run.dir={cut}",
+            "resume=true",
+            "cpu_threads=1",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert resumed.returncode == 0, resumed.stderr[-2000:]
     assert summary(cut)["metrics"] == result["metrics"]
     for name in ("episodes", "online"):

@@ -7,6 +7,7 @@ The environment is tests/outside_env.py's ``Faulty``: CueRecall with a MultiDisc
 observation whose run 1 (keyed by its seed) misbehaves from its 100th step on. Episodes last 3
 steps in lockstep, so step 100 is episode 33's first step.
 """
+
 import json
 import os
 import re
@@ -30,14 +31,32 @@ ENV = {**os.environ, "PYTHONPATH": str(TESTS)}
 sys.path.insert(0, str(TESTS))
 FAULTY = "outside_env:Faulty-v0"
 BAD_RUN, AT, EPISODE, STEP = 1, 100, 33, 1
-BASE = ["experiment=popgym_repeat_previous_easy", f"env.id={FAULTY}", "env.optimal_return=0.8", "env.reward_scale=5",
-        "trainer.n_episodes=60", "trainer.replay_sample=16", "trainer.log_every=20", "trainer.checkpoint_every=20",
-        "n_runs=3", f"+env.kwargs.at={AT}"]
-WHAT = {"raise": "raised", "shape": "returned an observation outside its space MultiDiscrete([3 2])",
-        "range": "returned an observation outside its space MultiDiscrete([3 2])",
-        "nan_reward": "returned the reward nan", "inf_reward": "returned the reward inf"}
-DETAIL = {"raise": ": ValueError: operands could not be broadcast together with shapes (3,) (2,) (at step 100)",
-          "shape": ": array([0, 0, 0])", "range": ": array([3, 1])", "nan_reward": "", "inf_reward": ""}
+BASE = [
+    "experiment=popgym_repeat_previous_easy",
+    f"env.id={FAULTY}",
+    "env.optimal_return=0.8",
+    "env.reward_scale=5",
+    "trainer.n_episodes=60",
+    "trainer.replay_sample=16",
+    "trainer.log_every=20",
+    "trainer.checkpoint_every=20",
+    "n_runs=3",
+    f"+env.kwargs.at={AT}",
+]
+WHAT = {
+    "raise": "raised",
+    "shape": "returned an observation outside its space MultiDiscrete([3 2])",
+    "range": "returned an observation outside its space MultiDiscrete([3 2])",
+    "nan_reward": "returned the reward nan",
+    "inf_reward": "returned the reward inf",
+}
+DETAIL = {
+    "raise": ": ValueError: operands could not be broadcast together with shapes (3,) (2,) (at step 100)",
+    "shape": ": array([0, 0, 0])",
+    "range": ": array([3, 1])",
+    "nan_reward": "",
+    "inf_reward": "",
+}
 
 
 def overrides(fault: str, bad_run: int | None = BAD_RUN) -> list:
@@ -48,8 +67,10 @@ def overrides(fault: str, bad_run: int | None = BAD_RUN) -> list:
 
 def strict(text: str) -> dict:
     """JSON as any parser reads it: NaN and Infinity are not JSON."""
+
     def refuse(constant):
         raise ValueError(f"{constant} is not JSON")
+
     return json.loads(text, parse_constant=refuse)
 
 
@@ -66,8 +87,10 @@ def fault_lines(stderr: str) -> list[str]:
 
 
 def expected_line(fault: str) -> str:
-    return (f"ferl: run {BAD_RUN} (seed {BAD_RUN}): env {FAULTY!r} {WHAT[fault]} at episode {EPISODE}, step {STEP}"
-            f"{DETAIL[fault]}; frozen, the other runs go on")
+    return (
+        f"ferl: run {BAD_RUN} (seed {BAD_RUN}): env {FAULTY!r} {WHAT[fault]} at episode {EPISODE}, step {STEP}"
+        f"{DETAIL[fault]}; frozen, the other runs go on"
+    )
 
 
 @pytest.fixture(scope="module")
@@ -84,13 +107,21 @@ def test_a_failing_environment_freezes_its_run_only(tmp_path, capsys, healthy, f
     summary = train(tmp_path / "run", fault)
     err = capsys.readouterr().err
     assert fault_lines(err) == [expected_line(fault)], err
-    assert summary["diverged"] == [{"run": BAD_RUN, "seed": BAD_RUN, "episode": EPISODE, "env_id": FAULTY,
-                                    "step": STEP, "reason": expected_line(fault)[len("ferl: run 1 (seed 1): "):
-                                                                                 -len("; frozen, the other runs go on")]}]
+    assert summary["diverged"] == [
+        {
+            "run": BAD_RUN,
+            "seed": BAD_RUN,
+            "episode": EPISODE,
+            "env_id": FAULTY,
+            "step": STEP,
+            "reason": expected_line(fault)[len("ferl: run 1 (seed 1): ") : -len("; frozen, the other runs go on")],
+        }
+    ]
     for name, values in summary["metrics"].items():  # the other runs: exactly their numbers without the fault
-        assert values[BAD_RUN] is None, name        # the failed run's episodes after the fault are stand-ins
-        assert [v for r, v in enumerate(values) if r != BAD_RUN] == \
-            [v for r, v in enumerate(want["metrics"][name]) if r != BAD_RUN], name
+        assert values[BAD_RUN] is None, name  # the failed run's episodes after the fault are stand-ins
+        assert [v for r, v in enumerate(values) if r != BAD_RUN] == [
+            v for r, v in enumerate(want["metrics"][name]) if r != BAD_RUN
+        ], name
     episodes = np.load(tmp_path / "run" / "records" / "episodes.npz")
     healthy_runs = [r for r in range(3) if r != BAD_RUN]
     for key in ("return", "steps", "td_abs_mean"):
@@ -142,20 +173,28 @@ def test_an_observation_outside_its_space_is_not_encoded():
             env.step(torch.zeros(3, dtype=torch.long))
             if bool(env.done.all()):
                 env.reset()
-    assert str(caught.value) == (f"run 1 (seed 11): env {FAULTY!r} returned an observation outside its space "
-                                 f"MultiDiscrete([3 2]) at episode 1, step 1: array([3, 1])")
-    table = env.observation_table[:len(env.ids)]
+    assert str(caught.value) == (
+        f"run 1 (seed 11): env {FAULTY!r} returned an observation outside its space "
+        f"MultiDiscrete([3 2]) at episode 1, step 1: array([3, 1])"
+    )
+    table = env.observation_table[: len(env.ids)]
     assert (table[:, :3].sum(1) == 1).all() and (table[:, 3:].sum(1) == 1).all()  # every row one symbol, one flag
 
 
-@pytest.mark.parametrize("space, value, inside", [
-    (spaces.MultiDiscrete([3, 2]), np.array([2, 1]), True), (spaces.MultiDiscrete([3, 2]), np.array([3, 1]), False),
-    (spaces.MultiDiscrete([3, 2]), np.array([0, 0, 0]), False), (spaces.Discrete(4), np.int64(4), False),
-    (spaces.Box(0, 1, (2,), np.float32), np.array([0.5, 1.0]), True),  # float64 in a float32 box: the same bits
-    (spaces.Box(0, 1, (2,), np.float32), np.array([0.5, np.nan]), False),
-    (spaces.Box(0, 1, (2,), np.float32), np.array([0.5]), False),
-    (spaces.Tuple((spaces.Discrete(3), spaces.Discrete(2))), (2, 1), True),
-    (spaces.Tuple((spaces.Discrete(3), spaces.Discrete(2))), (2,), False),
-    (spaces.Dict({"a": spaces.Discrete(2)}), {"b": 0}, False)])
+@pytest.mark.parametrize(
+    "space, value, inside",
+    [
+        (spaces.MultiDiscrete([3, 2]), np.array([2, 1]), True),
+        (spaces.MultiDiscrete([3, 2]), np.array([3, 1]), False),
+        (spaces.MultiDiscrete([3, 2]), np.array([0, 0, 0]), False),
+        (spaces.Discrete(4), np.int64(4), False),
+        (spaces.Box(0, 1, (2,), np.float32), np.array([0.5, 1.0]), True),  # float64 in a float32 box: the same bits
+        (spaces.Box(0, 1, (2,), np.float32), np.array([0.5, np.nan]), False),
+        (spaces.Box(0, 1, (2,), np.float32), np.array([0.5]), False),
+        (spaces.Tuple((spaces.Discrete(3), spaces.Discrete(2))), (2, 1), True),
+        (spaces.Tuple((spaces.Discrete(3), spaces.Discrete(2))), (2,), False),
+        (spaces.Dict({"a": spaces.Discrete(2)}), {"b": 0}, False),
+    ],
+)
 def test_within_its_space(space, value, inside):
     assert within(space, value) is inside

@@ -1,6 +1,7 @@
 """The passive T-maze (Ni et al. 2023; ferl/envs/passive.py) against its definition, written out
 here a second time in their coordinates: every action sequence of small corridors, batched
 runs against single runs, the optimal return by brute force, the Gymnasium view, bad input."""
+
 import itertools
 
 import gymnasium
@@ -56,8 +57,9 @@ def all_sequences(L: int) -> torch.Tensor:
 
 
 def passive(R: int, L: int, seed: int = 0, goal: float = 1.0) -> TMaze:
-    return TMaze(R, torch.Generator().manual_seed(seed), corridor_length=L, max_steps=None, passive=True,
-                 goal_reward=goal)
+    return TMaze(
+        R, torch.Generator().manual_seed(seed), corridor_length=L, max_steps=None, passive=True, goal_reward=goal
+    )
 
 
 def roll(env: TMaze, cues: torch.Tensor, actions: torch.Tensor):
@@ -107,8 +109,10 @@ def test_optimal_return_is_the_best_action_sequence(L, gamma):
     sequence of the definition, per cue (the cue is known: the oracle's bound), averaged."""
     best = []
     for cue in (-1, 1):
-        returns = [sum(gamma ** k * r for k, r in enumerate(ni_episode(L, cue, seq)[1]))
-                   for seq in itertools.product(range(4), repeat=L + 1)]
+        returns = [
+            sum(gamma**k * r for k, r in enumerate(ni_episode(L, cue, seq)[1]))
+            for seq in itertools.product(range(4), repeat=L + 1)
+        ]
         best.append(max(returns))
     env = passive(1, L, goal=2.0)
     assert env.optimal(gamma)["discounted_return"] == pytest.approx(2.0 * np.mean(best))
@@ -123,9 +127,9 @@ def test_batched_runs_equal_single_runs():
     cues = torch.randint(2, (R,), generator=g)
     together = roll(passive(R, L), cues, actions)
     for r in range(R):
-        alone = roll(passive(1, L, seed=r), cues[r:r + 1], actions[r:r + 1])
+        alone = roll(passive(1, L, seed=r), cues[r : r + 1], actions[r : r + 1])
         for x, y in zip(together, alone, strict=True):
-            torch.testing.assert_close(x[r:r + 1], y, rtol=0, atol=0)
+            torch.testing.assert_close(x[r : r + 1], y, rtol=0, atol=0)
 
 
 def test_gymnasium_view_is_the_batched_maze():
@@ -158,8 +162,7 @@ def test_an_lstm_solves_the_passive_maze_at_reduced_scale(tmp_path):
     actions before the choice), 2 runs × 1 500 episodes (~35 s of CPU): both runs solved (ferl's
     criterion, docs/records.md), the correct-goal rate at Ni et al.'s success. L = 10 takes
     thousands of episodes per run (docs/beyond.md) and is measured, not tested."""
-    cfg = compose_config(["experiment=passive_tmaze", "env.corridor_length=2", "n_runs=2",
-                          "trainer.n_episodes=1500"])
+    cfg = compose_config(["experiment=passive_tmaze", "env.corridor_length=2", "n_runs=2", "trainer.n_episodes=1500"])
     result = train_job(cfg, tmp_path / "run")
     assert result["metrics"]["solved"] == [1, 1], result["metrics"]
     assert min(result["metrics"]["final_correct_goal_rate"]) >= 0.95

@@ -1,6 +1,7 @@
 """Elman predictor: Eqs. (4.1–4.5) against a per-run, per-step loop, BPTT gradients of Eqs. (4.6)
 and (5.2) against finite differences, pattern-mode SGD (§4.3.1) batched vs single runs, learning
 and run independence."""
+
 from types import SimpleNamespace
 
 import pytest
@@ -13,8 +14,12 @@ from ferl.predictors.training import PredictorBatch
 
 Y, A, M, NR = 4, 3, 5, 2
 GAINS = dict(c_y=0.7, c_a=1.3, beta_m=0.8, beta_y=1.2, beta_r=0.9, rho_y=1.5, rho_r=2.5)
-KINDS = [dict(reward_output="bits"), dict(reward_output="linear"), dict(reward_output="none"),
-         dict(reward_output="linear", predict_obs=False)]
+KINDS = [
+    dict(reward_output="bits"),
+    dict(reward_output="linear"),
+    dict(reward_output="none"),
+    dict(reward_output="linear", predict_obs=False),
+]
 
 
 def make(R=2, seed=0, **kw):
@@ -27,8 +32,11 @@ def data(R, B, T, kind="bits", seed=1, lengths=None):
     g = torch.Generator().manual_seed(seed)
     y = torch.randint(0, 2, (R, B, T + 1, Y), generator=g).double()
     a = F.one_hot(torch.randint(0, A, (R, B, T), generator=g), A).double()
-    r = (torch.randint(0, 2, (R, B, T + 1, NR), generator=g).double() if kind == "bits"
-         else torch.randn(R, B, T + 1, 1, generator=g, dtype=torch.float64))
+    r = (
+        torch.randint(0, 2, (R, B, T + 1, NR), generator=g).double()
+        if kind == "bits"
+        else torch.randn(R, B, T + 1, 1, generator=g, dtype=torch.float64)
+    )
     if lengths is None:
         lengths = torch.randint(1, T + 1, (R, B), generator=g)
     return y, a, r, lengths
@@ -36,12 +44,17 @@ def data(R, B, T, kind="bits", seed=1, lengths=None):
 
 def reference(p: ElmanPredictor, r: int, y, a):
     """Eqs. (4.1–4.5) for run r and one unpadded sequence y (T+1, Y), a (T, A), step by step."""
-    sig = lambda x, beta: 1 / (1 + torch.exp(-beta * x))
+
+    def sig(x, beta):
+        return 1 / (1 + torch.exp(-beta * x))
+
     m = sig(p.b_init[r], p.beta_m)
     ms, ys, rs = [], [], []
     for t in range(len(y)):
         if t > 0:
-            m = sig(p.W_my[r] @ (p.c_y * y[t - 1]) + p.W_ma[r] @ (p.c_a * a[t - 1]) + p.W_mm[r] @ m + p.b_m[r], p.beta_m)
+            m = sig(
+                p.W_my[r] @ (p.c_y * y[t - 1]) + p.W_ma[r] @ (p.c_a * a[t - 1]) + p.W_mm[r] @ m + p.b_m[r], p.beta_m
+            )
         ms.append(m)
         ys.append(sig(p.W_ym[r] @ m + p.b_y[r], p.beta_y) if p.predict_obs else None)
         if p.reward_output == "bits":
@@ -54,7 +67,7 @@ def reference(p: ElmanPredictor, r: int, y, a):
 @pytest.mark.parametrize("kind", KINDS)
 def test_forward_matches_per_step_loop(kind):
     p = make(R=3, **kind)
-    y, a, r, lengths = data(3, 4, 6, kind["reward_output"])
+    y, a, _, lengths = data(3, 4, 6, kind["reward_output"])
     with torch.no_grad():
         y_hat, r_hat, m = p.forward_sequences(y, a, lengths)
         for run in range(3):
@@ -72,7 +85,7 @@ def test_forward_matches_per_step_loop(kind):
 def test_online_step_matches_sequence_forward():
     """initial_state() + step() reproduce forward_sequences, as the actor phase uses them."""
     p = make(R=3)
-    y, a, r, _ = data(3, 1, 5)
+    y, a, _, _ = data(3, 1, 5)
     lengths = torch.full((3, 1), 5)
     y_hat, r_hat, m_seq = p.forward_sequences(y, a, lengths)
     m = p.initial_state()
@@ -90,7 +103,10 @@ def test_online_step_matches_sequence_forward():
 def reference_loss(p, run, y, a, r):
     """Σ_t E_t of Eq. (4.6) / Eq. (5.2) for one unpadded sequence, from the per-step loop."""
     _, ys, rs = reference(p, run, y, a)
-    ce = lambda x, xh: -(x * torch.log(xh) + (1 - x) * torch.log(1 - xh)).sum()
+
+    def ce(x, xh):
+        return -(x * torch.log(xh) + (1 - x) * torch.log(1 - xh)).sum()
+
     E = sum(p.rho_y * ce(y[t], ys[t]) for t in range(len(y))) if p.predict_obs else 0.0
     for t in range(1, len(y)):
         if p.reward_output == "bits":
@@ -109,7 +125,9 @@ def test_loss_matches_per_step_loop(kind):
         for run in range(2):
             for b in range(3):
                 T = int(lengths[run, b])
-                torch.testing.assert_close(loss[run, b], reference_loss(p, run, y[run, b, : T + 1], a[run, b, :T], r[run, b, : T + 1]))
+                torch.testing.assert_close(
+                    loss[run, b], reference_loss(p, run, y[run, b, : T + 1], a[run, b, :T], r[run, b, : T + 1])
+                )
 
 
 def grad(p, y, a, r, lengths):
@@ -145,7 +163,14 @@ def test_bptt_gradient_matches_finite_differences_and_ignores_padding(kind):
     pad = (t > lengths.unsqueeze(-1)).unsqueeze(-1)
     gen = torch.Generator().manual_seed(5)
     for fill in ("random", "nan"):
-        noise = lambda x: torch.randn(x.shape, generator=gen, dtype=x.dtype) * 9 if fill == "random" else torch.full_like(x, torch.nan)
+
+        def noise(x, fill=fill):
+            return (
+                torch.randn(x.shape, generator=gen, dtype=x.dtype) * 9
+                if fill == "random"
+                else torch.full_like(x, torch.nan)
+            )
+
         y2 = torch.where(pad, noise(y), y)
         a2 = torch.where(pad[:, :, 1:], noise(a), a)
         r2 = torch.where(pad, noise(r), r) if r is not None else None
@@ -208,9 +233,16 @@ def test_batched_epoch_is_sgd_on_the_mean_loss_of_each_chunk(batch_size):
         single = make(R=1, seed=20 + run, lr=lr)
         chunks = order[run].split(batch_size)
         for chunk in chunks:
-            losses = [reference_loss(single, 0, y[run, i, : int(lengths[run, i]) + 1],
-                                     a[run, i, : int(lengths[run, i])], r[run, i, : int(lengths[run, i]) + 1])
-                      for i in chunk.tolist()]
+            losses = [
+                reference_loss(
+                    single,
+                    0,
+                    y[run, i, : int(lengths[run, i]) + 1],
+                    a[run, i, : int(lengths[run, i])],
+                    r[run, i, : int(lengths[run, i]) + 1],
+                )
+                for i in chunk.tolist()
+            ]
             grads = torch.autograd.grad(torch.stack(losses).mean(), list(single.parameters()))
             with torch.no_grad():
                 for q, gq in zip(single.parameters(), grads):
@@ -226,7 +258,7 @@ def test_predictor_batch_equals_training_each_alone():
     R, N = 2, 6
     obs = dict(reward_output="none", time_average=True, lr=0.1)
     rew = dict(reward_output="linear", predict_obs=False, time_average=True, lr=0.1)
-    y, a, r_bits, lengths = data(R, N, 7, seed=6)
+    y, a, _, lengths = data(R, N, 7, seed=6)
     r = torch.randn(R, N, 8, 1, generator=torch.Generator().manual_seed(7), dtype=torch.float64)
     batch = [make(R=R, seed=30, **obs), make(R=R, seed=40, **rew)]
     alone = [make(R=R, seed=30, **obs), make(R=R, seed=40, **rew)]
@@ -238,13 +270,17 @@ def test_predictor_batch_equals_training_each_alone():
             p.train_epoch(y, a, target, lengths, order)
     for b, s in zip(batch, alone):
         for (name, qb), qs in zip(b.named_parameters(), s.parameters()):
-            assert not torch.equal(qb, make(R=R, seed=30 if b.predict_obs else 40, **(obs if b.predict_obs else rew)).get_parameter(name))
+            assert not torch.equal(
+                qb, make(R=R, seed=30 if b.predict_obs else 40, **(obs if b.predict_obs else rew)).get_parameter(name)
+            )
             torch.testing.assert_close(qb, qs, rtol=1e-12, atol=1e-12, msg=name)
 
 
 def test_predictor_batch_needs_the_same_memory():
     with pytest.raises(ValueError, match="same memory"):
-        PredictorBatch([make(R=2), make(R=2, c_y=0.5)], *data(2, 3, 4)[:2], [None, None], torch.ones(2, 3, dtype=torch.long))
+        PredictorBatch(
+            [make(R=2), make(R=2, c_y=0.5)], *data(2, 3, 4)[:2], [None, None], torch.ones(2, 3, dtype=torch.long)
+        )
 
 
 def test_runs_are_independent():
@@ -254,9 +290,15 @@ def test_runs_are_independent():
     y2, a2, r2, lengths2 = data(R, N, 7, seed=3)
     order = torch.stack([torch.randperm(N, generator=torch.Generator().manual_seed(k)) for k in range(R)])
     order2 = torch.stack([torch.randperm(N, generator=torch.Generator().manual_seed(9 + k)) for k in range(R)])
-    keep = lambda u, v: torch.cat([u[:1], v[1:]])
+
+    def keep(u, v):
+        return torch.cat([u[:1], v[1:]])
+
     runs = []
-    for data_ in ((y, a, r, lengths, order), tuple(keep(u, v) for u, v in zip((y, a, r, lengths, order), (y2, a2, r2, lengths2, order2)))):
+    for data_ in (
+        (y, a, r, lengths, order),
+        tuple(keep(u, v) for u, v in zip((y, a, r, lengths, order), (y2, a2, r2, lengths2, order2))),
+    ):
         p = make(R=R, seed=4, lr=0.1)
         for _ in range(3):
             p.train_epoch(*data_)

@@ -1,5 +1,6 @@
 """RBM observation preprocessor (§5.3.2): CD-k against the exact gradient of a tiny RBM, training on
 embedded MNIST, run independence, caching and config."""
+
 import itertools
 
 import pytest
@@ -57,8 +58,9 @@ def exact_gradient(model, data) -> torch.Tensor:
     p = torch.softmax(neg_energy.flatten(1), -1).view_as(neg_energy)  # p(v_a, h_b) per run
     model_term = Gradient(torch.einsum("rab,av,bh->rvh", p, vs, hs), p.sum(2) @ vs, p.sum(1) @ hs)
     h_data = torch.sigmoid(torch.einsum("nv,rvh->rnh", data, W) + b_h[:, None])
-    data_term = Gradient(torch.einsum("nv,rnh->rvh", data, h_data) / len(data), data.mean(0).expand_as(b_v),
-                         h_data.mean(1))
+    data_term = Gradient(
+        torch.einsum("nv,rnh->rvh", data, h_data) / len(data), data.mean(0).expand_as(b_v), h_data.mean(1)
+    )
     return flat(Gradient(*(d - m for d, m in zip(data_term, model_term))))
 
 
@@ -122,8 +124,9 @@ def test_training_lowers_held_out_reconstruction_error(mnist):
     history = model.train(train, progress=False)
     after = model.reconstruction_error(test)
     mean_image = (train.mean(0) - test).pow(2).mean()  # what the visible biases alone could reach
-    print(f"held-out reconstruction error: before {before.tolist()}, after {after.tolist()}, "
-          f"mean image {mean_image:.4f}")
+    print(
+        f"held-out reconstruction error: before {before.tolist()}, after {after.tolist()}, mean image {mean_image:.4f}"
+    )
     assert history.shape == (2, 10) and (history[:, -1] < history[:, 0]).all()
     assert (after < 0.3 * before).all() and (after < 0.8 * mean_image).all()
 
@@ -168,7 +171,7 @@ def test_load_or_fit_caches_by_settings(tmp_path, monkeypatch):
     torch.testing.assert_close(second.state_dict(), first.state_dict())
 
     load_or_fit(RBMPreprocessor(2, **{**settings, "cd_k": 1}), images, tmp_path)  # other settings
-    load_or_fit(RBMPreprocessor(2, **settings), images[:40], tmp_path)           # other images
+    load_or_fit(RBMPreprocessor(2, **settings), images[:40], tmp_path)  # other images
     load_or_fit(RBMPreprocessor(2, **settings, cache_dir="elsewhere"), images, tmp_path)  # where: not the key
     assert len(list(tmp_path.glob("rbmpreprocessor-*.pt"))) == 3 and not list(tmp_path.glob("*.tmp"))
 

@@ -1,6 +1,7 @@
 """Preprocessors beyond §5.3.2 (§5.4 "Second" and "Fifth"): the Gaussian–binary RBM against
 enumeration and quadrature on tiny models, the DBN against its layers built and trained by hand,
 caching and training on synthetic data, bad settings, and the digit maze's pixel noise."""
+
 import itertools
 import math
 
@@ -155,6 +156,7 @@ def prototypes_split(n_pixels=20, n_train=400, n_test=100, flip=0.05, seed=0) ->
         labels = torch.randint(4, (n,), generator=g)
         flips = (torch.rand(n, n_pixels, generator=g) < flip).float()
         return (protos[labels] - flips).abs(), labels
+
     return MnistSplit(*draw(n_train), *draw(n_test))
 
 
@@ -242,7 +244,7 @@ def test_both_meet_the_preprocessor_protocol():
 
 @pytest.mark.parametrize("layers", [[784], [], [784, 0, 20], [784, -3]])
 def test_layers_that_do_not_chain_name_the_key(layers):
-    with pytest.raises(ValueError, match="^layers="):
+    with pytest.raises(ValueError, match=r"^layers="):
         DBNPreprocessor(1, layers=layers)
     with pytest.raises(ConfigError, match=r"^preprocessor\.layers=.*is not allowed"):
         check_node({"_target_": "ferl.preprocessors.dbn.DBNPreprocessor", "layers": layers}, "preprocessor.")
@@ -272,8 +274,15 @@ def grey_split(per_class=3) -> MnistSplit:
 
 
 def noisy_maze(n_runs=1, generator=None, **kw) -> DigitTMaze:
-    return DigitTMaze(n_runs, generator or torch.Generator().manual_seed(0), grey_split(), CLASSES,
-                      binarize_threshold=None, matching=True, **kw)
+    return DigitTMaze(
+        n_runs,
+        generator or torch.Generator().manual_seed(0),
+        grey_split(),
+        CLASSES,
+        binarize_threshold=None,
+        matching=True,
+        **kw,
+    )
 
 
 def test_emitted_observations_are_the_image_plus_gaussian_noise():
@@ -303,5 +312,5 @@ def test_noise_is_one_table_per_config_shared_by_a_class():
 
 
 def test_noise_with_a_binarize_threshold_is_refused():
-    with pytest.raises(ValueError, match="^pixel_noise_std=0.3 is not allowed: .*binarize_threshold"):
+    with pytest.raises(ValueError, match=r"^pixel_noise_std=0.3 is not allowed: .*binarize_threshold"):
         DigitTMaze(1, torch.Generator(), grey_split(), CLASSES, matching=True, pixel_noise_std=0.3)

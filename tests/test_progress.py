@@ -1,6 +1,7 @@
 """A multirun's progress (ferl/run/progress.py): the sweep's job count, the time-left estimate, the
 line of each finished job (a failed one too), nothing extra for a single run, and a real joblib
 multirun whose worker processes print their lines."""
+
 import itertools
 import json
 
@@ -15,14 +16,29 @@ from omegaconf import open_dict
 from conftest import EXPERIMENTS, ROOT, eager, run_train
 from ferl.run.progress import FILE, SweepProgress, planned_jobs, progress_line, sweep_size, time_left
 
-pytestmark = pytest.mark.filterwarnings(r"ignore:\s*'hydra/launcher/\w+' is validated against ConfigStore schema:UserWarning")
+pytestmark = pytest.mark.filterwarnings(
+    r"ignore:\s*'hydra/launcher/\w+' is validated against ConfigStore schema:UserWarning"
+)
 
 
 def test_sweep_size_is_the_cartesian_product_of_the_values():
-    arguments = ["experiment=ch3_floor,table4_1_matching", "env.noise=0.0,0.5,1.0", "n_runs=2",
-                 "seed=range(0,40,10)", "hydra/launcher=joblib", "actor.n_hidden=5,6", "actor.n_hidden=10,20,40"]
-    values = [["ch3_floor", "table4_1_matching"], ["0.0", "0.5", "1.0"], ["2"], [0, 10, 20, 30], ["joblib"],
-              ["10", "20", "40"]]  # a key given twice: its last values
+    arguments = [
+        "experiment=ch3_floor,table4_1_matching",
+        "env.noise=0.0,0.5,1.0",
+        "n_runs=2",
+        "seed=range(0,40,10)",
+        "hydra/launcher=joblib",
+        "actor.n_hidden=5,6",
+        "actor.n_hidden=10,20,40",
+    ]
+    values = [
+        ["ch3_floor", "table4_1_matching"],
+        ["0.0", "0.5", "1.0"],
+        ["2"],
+        [0, 10, 20, 30],
+        ["joblib"],
+        ["10", "20", "40"],
+    ]  # a key given twice: its last values
     assert sweep_size(arguments) == len(list(itertools.product(*values))) == 72
     assert sweep_size(["n_runs=2"]) == 1
     assert sweep_size(["env.noise=interval(0.0,1.0)"]) is None  # the basic sweeper cannot run it
@@ -48,18 +64,23 @@ def test_time_left_schedules_the_mean_job_on_the_lanes():
 
 
 def test_progress_line():
-    events = [{"event": "sweep", "time": 0.0, "jobs": 4},
-              {"event": "start", "job": "0_a", "time": 0.0}, {"event": "start", "job": "1_b", "time": 0.0},
-              {"event": "end", "job": "0_a", "time": 600.0, "seconds": 600.0, "failed": False}]
+    events = [
+        {"event": "sweep", "time": 0.0, "jobs": 4},
+        {"event": "start", "job": "0_a", "time": 0.0},
+        {"event": "start", "job": "1_b", "time": 0.0},
+        {"event": "end", "job": "0_a", "time": 600.0, "seconds": 600.0, "failed": False},
+    ]
     # 2 lanes (both ran at once), mean 600 s: 1_b ends now, 2_ and 3_ take 600 s side by side
     assert progress_line(events, 600.0) == "ferl: 1/4 jobs done (0_a, 10 min); about 10 min left"
     # a failed job counts, and only the jobs that succeeded give the mean
     events += [{"event": "end", "job": "1_b", "time": 660.0, "seconds": 660.0, "failed": True}]
     assert progress_line(events, 660.0) == "ferl: 2/4 jobs done, 1 failed (1_b failed after 11 min); about 10 min left"
-    events += [{"event": "start", "job": "2_c", "time": 660.0}, {"event": "end", "job": "2_c", "time": 700.0,
-                                                                 "seconds": 40.0, "failed": False},
-               {"event": "start", "job": "3_d", "time": 700.0}, {"event": "end", "job": "3_d", "time": 7900.0,
-                                                                 "seconds": 7200.0, "failed": False}]
+    events += [
+        {"event": "start", "job": "2_c", "time": 660.0},
+        {"event": "end", "job": "2_c", "time": 700.0, "seconds": 40.0, "failed": False},
+        {"event": "start", "job": "3_d", "time": 700.0},
+        {"event": "end", "job": "3_d", "time": 7900.0, "seconds": 7200.0, "failed": False},
+    ]
     assert progress_line(events, 7900.0) == "ferl: 4/4 jobs done, 1 failed (3_d, 2.0 h); sweep took 2.2 h"
     unknown = [{"event": "sweep", "time": 0.0, "jobs": None}, *events[1:4]]  # a sweeper that does not say
     assert progress_line(unknown, 600.0) == "ferl: 1 jobs done (0_a, 10 min)"
@@ -93,10 +114,21 @@ def test_callback_counts_a_failed_job_and_leaves_single_runs_alone(compose_cfg, 
 
 def test_joblib_multirun_prints_one_line_per_job(tmp_path):
     sweep = tmp_path / "sweep"
-    result = run_train("-m", "experiment=ch3_coding_cw", "seed=0,10", "n_runs=2", "trainer.steps=300",
-                       "trainer.log_every=100", "trainer.checkpoint_every=100", "trainer.test_per_class=8",
-                       "trainer.test_noise_levels=[0.0]", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2",
-                       f"hydra.sweep.dir={sweep}", timeout=300)
+    result = run_train(
+        "-m",
+        "experiment=ch3_coding_cw",
+        "seed=0,10",
+        "n_runs=2",
+        "trainer.steps=300",
+        "trainer.log_every=100",
+        "trainer.checkpoint_every=100",
+        "trainer.test_per_class=8",
+        "trainer.test_noise_levels=[0.0]",
+        "hydra/launcher=joblib",
+        "hydra.launcher.n_jobs=2",
+        f"hydra.sweep.dir={sweep}",
+        timeout=300,
+    )
     assert result.returncode == 0, result.stderr[-2000:]
     lines = [line for line in result.stdout.splitlines() if " jobs done " in line]
     assert len(lines) == 2, result.stdout

@@ -12,10 +12,10 @@ from hypothesis import strategies as st
 from omegaconf import OmegaConf
 from omegaconf.errors import ValidationError
 
-from ferl.envs.digit_floor import DigitFloor
-from ferl.envs.tmaze import TMaze
 from ferl.config.params import ConfigError
 from ferl.config.validate import validate
+from ferl.envs.digit_floor import DigitFloor
+from ferl.envs.tmaze import TMaze
 from test_digit_floor import tiny_split
 
 SETTINGS = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -23,14 +23,20 @@ FLOOR_REWARDS = {10.0, 4.0, -2.0}  # goal, CW/CCW boundary move, any other move 
 
 
 @SETTINGS
-@given(seed=st.integers(0, 2**31 - 1), corridor=st.integers(2, 6), extra=st.integers(0, 6),
-       matching=st.booleans(), actions=st.lists(st.integers(0, 3), min_size=1, max_size=40))
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    corridor=st.integers(2, 6),
+    extra=st.integers(0, 6),
+    matching=st.booleans(),
+    actions=st.lists(st.integers(0, 3), min_size=1, max_size=40),
+)
 def test_tmaze_invariants(seed, corridor, extra, matching, actions):
     """Rewards in the maze's set, positions on the maze, t ≤ T_max, ended runs frozen, every
     episode over by T_max actions — for any corridor, T_max ≥ T_min and action sequence."""
     R, max_steps = 3, corridor + extra
-    env = TMaze(R, torch.Generator().manual_seed(seed), corridor_length=corridor,
-                max_steps=max_steps, matching=matching)
+    env = TMaze(
+        R, torch.Generator().manual_seed(seed), corridor_length=corridor, max_steps=max_steps, matching=matching
+    )
     allowed = set(np.float32(env.reward_values).tolist()) | {0.0}
     for k, a in enumerate(actions):
         was_done, position = env.done.clone(), env.position.clone()
@@ -48,15 +54,19 @@ def test_tmaze_invariants(seed, corridor, extra, matching, actions):
 
 
 @SETTINGS
-@given(seed=st.integers(0, 2**31 - 1), patches=st.integers(1, 4),
-       condition=st.sampled_from(["cw", "ccw", "none"]),
-       actions=st.lists(st.integers(0, 3), min_size=1, max_size=30))
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    patches=st.integers(1, 4),
+    condition=st.sampled_from(["cw", "ccw", "none"]),
+    actions=st.lists(st.integers(0, 3), min_size=1, max_size=30),
+)
 def test_digit_floor_invariants(seed, patches, condition, actions):
     """Rewards in the floor's set (all 0 without reward), the agent on a non-goal tile of the
     board after every step (entering the goal transports it, §3.4), observations in [0, 1]."""
     R = 3
-    env = DigitFloor(R, SPLIT, torch.Generator().manual_seed(seed), patches=patches, noise=0.25,
-                     reward_condition=condition)
+    env = DigitFloor(
+        R, SPLIT, torch.Generator().manual_seed(seed), patches=patches, noise=0.25, reward_condition=condition
+    )
     n_tiles = (3 * patches) ** 2
     for a in actions:
         obs, reward, terminated, truncated = env.step(torch.full((R,), a))
@@ -71,6 +81,7 @@ SPLIT = tiny_split()
 
 
 # ---- config validation: accepted exactly inside the range the error message names ----------
+
 
 @pytest.fixture
 def base_cfgs(compose_cfg):
@@ -95,20 +106,24 @@ def _accepted(cfg, key: str, value) -> bool:
 NUMBERS = st.one_of(st.integers(-5, 20), st.floats(-2.0, 3.0, allow_nan=False))
 
 
-@pytest.mark.parametrize("which, key, allowed", [
-    ("floor", "env.noise", lambda x: 0 <= x <= 1),
-    ("floor", "actor.gamma", lambda x: 0 <= x < 1),
-    ("floor", "n_runs", lambda x: isinstance(x, int) and x >= 1),
-    ("floor", "env.patches", lambda x: isinstance(x, int) and x >= 1),
-    ("floor", "actor.n_hidden", lambda x: isinstance(x, int) and x >= 1),
-    ("maze", "env.corridor_length", lambda x: isinstance(x, int) and 2 <= x <= 10),  # T_max = 10
-    ("maze", "trainer.train_fraction", lambda x: 0 < x < 1),
-    ("maze", "predictor.joint.lr", lambda x: x > 0),
-])
+@pytest.mark.parametrize(
+    "which, key, allowed",
+    [
+        ("floor", "env.noise", lambda x: 0 <= x <= 1),
+        ("floor", "actor.gamma", lambda x: 0 <= x < 1),
+        ("floor", "n_runs", lambda x: isinstance(x, int) and x >= 1),
+        ("floor", "env.patches", lambda x: isinstance(x, int) and x >= 1),
+        ("floor", "actor.n_hidden", lambda x: isinstance(x, int) and x >= 1),
+        ("maze", "env.corridor_length", lambda x: isinstance(x, int) and 2 <= x <= 10),  # T_max = 10
+        ("maze", "trainer.train_fraction", lambda x: 0 < x < 1),
+        ("maze", "predictor.joint.lr", lambda x: x > 0),
+    ],
+)
 def test_validation_accepts_exactly_the_allowed_values(base_cfgs, which, key, allowed):
     @SETTINGS
     @given(value=NUMBERS)
     def check(value):
         accepted = _accepted(base_cfgs[which], key, value)
         assert accepted == bool(allowed(value)), f"{key}={value!r}: accepted={accepted}"
+
     check()

@@ -1,5 +1,6 @@
 """Random numbers drawn in blocks (ferl/random_blocks.py): chunks of steps see the same stream
 as step-by-step draws, and Floyd's subsets are uniform."""
+
 import itertools
 import math
 
@@ -51,7 +52,9 @@ def test_random_subsets_are_distinct_and_uniform():
     assert len(subsets) == math.comb(n, k)
 
 
-@pytest.mark.parametrize("n, k, rows", [(784, 98, 300), (30, 20, 2000), (6, 3, 500), (5, 5, 50), (10, 1, 50), (4, 0, 5)])
+@pytest.mark.parametrize(
+    "n, k, rows", [(784, 98, 300), (30, 20, 2000), (6, 3, 500), (5, 5, 50), (10, 1, 50), (4, 0, 5)]
+)
 def test_random_subsets_are_floyds_draw_by_draw_picks(n, k, rows):
     """The vectorised resolution picks what Floyd's loop picks from the same uniforms, in order."""
     u = torch.rand(rows, k, generator=torch.Generator().manual_seed(n + k), dtype=torch.float64)

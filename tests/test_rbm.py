@@ -1,4 +1,5 @@
 """Free energy and hidden expectations against brute-force enumeration of all 2^H hidden states."""
+
 import itertools
 
 import pytest
@@ -12,8 +13,11 @@ def brute_force(v, W, b_v, b_h):
     H = W.shape[-1]
     hs = torch.tensor(list(itertools.product([0.0, 1.0], repeat=H)), dtype=torch.float64)  # (2^H, H)
     # E(v, h) = −vᵀWh − vᵀb_v − hᵀb_h for every run r, state b, hidden config k
-    energy = -(torch.einsum("rbv,rvh,kh->rbk", v, W, hs) + (v * b_v[:, None]).sum(-1, keepdim=True)
-               + torch.einsum("rh,kh->rk", b_h, hs)[:, None])
+    energy = -(
+        torch.einsum("rbv,rvh,kh->rbk", v, W, hs)
+        + (v * b_v[:, None]).sum(-1, keepdim=True)
+        + torch.einsum("rh,kh->rk", b_h, hs)[:, None]
+    )
     F = -torch.logsumexp(-energy, dim=-1)
     p = torch.softmax(-energy, dim=-1)
     return F, torch.einsum("rbk,kh->rbh", p, hs)

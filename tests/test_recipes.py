@@ -13,6 +13,7 @@ interpreter, ``train.py`` and ``analyze.py`` ferl's own scripts (the page says t
 Each recipe of a component (``COMPONENTS``) must train through train.py and then be analysed by
 analyze.py; the others (a snippet of docs/usage.md) must run.
 """
+
 import os
 import re
 import shlex
@@ -25,15 +26,38 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 PAGES = [ROOT / "docs" / "architecture.md", ROOT / "docs" / "usage.md"]
 MARKED = re.compile(r"<!-- recipe: (\S+) (file=(\S+)|run) -->\n```[a-z]*\n(.*?)\n```", re.S)
-COMPONENTS = {"environment", "predictor", "actor", "gymnasium"}
+COMPONENTS = {"environment", "predictor", "actor", "gymnasium", "phase"}
 OTHERS = {"gym_views"}
 # appended to each printed train.py command, by the trainer it names: a tiny scale, eager
 REDUCED = {
-    "trainer=algorithm1": ["n_runs=2", "compile=false", "trainer.n_sample=200", "trainer.n_epoch=2",
-                           "trainer.n_episodes=50", "trainer.log_every=25", "trainer.td_sample_every=25",
-                           "trainer.final_window=25"],
-    "trainer=online": ["n_runs=2", "compile=false", "trainer.n_episodes=40", "trainer.replay_sample=4",
-                       "trainer.log_every=20", "trainer.final_window=20"],
+    "trainer=algorithm1": [
+        "n_runs=2",
+        "compile=false",
+        "trainer.n_sample=200",
+        "trainer.n_epoch=2",
+        "trainer.n_episodes=50",
+        "trainer.log_every=25",
+        "trainer.td_sample_every=25",
+        "trainer.final_window=25",
+    ],
+    "trainer=algorithm1_norm": [
+        "n_runs=2",
+        "compile=false",
+        "trainer.n_sample=200",
+        "trainer.n_epoch=2",
+        "trainer.n_episodes=50",
+        "trainer.log_every=25",
+        "trainer.td_sample_every=25",
+        "trainer.final_window=25",
+    ],
+    "trainer=online": [
+        "n_runs=2",
+        "compile=false",
+        "trainer.n_episodes=40",
+        "trainer.replay_sample=4",
+        "trainer.log_every=20",
+        "trainer.final_window=20",
+    ],
 }
 
 
@@ -81,8 +105,9 @@ def run_recipe(name: str, folder: Path) -> dict:
         (folder / path).write_text(text)
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     for line in recipe["run"]:
-        result = subprocess.run(["bash", "-c", as_run(line)], cwd=folder, env=env, capture_output=True, text=True,
-                                timeout=600)
+        result = subprocess.run(
+            ["bash", "-c", as_run(line)], cwd=folder, env=env, capture_output=True, text=True, timeout=600
+        )
         assert result.returncode == 0, f"{line}\n{result.stderr[-3000:]}"
     return recipe
 

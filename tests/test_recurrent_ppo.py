@@ -4,6 +4,7 @@ can produce, and analyze.py puts it beside a ferl run of the same maze in a swee
 side" table; on an outside Gymnasium id (tests/outside_env.py) it describes the environment as
 ferl's ``env=gymnasium`` does and records episodes the environment can produce; bad input is one
 line. Skipped without sb3-contrib (`pip install -e '.[baselines]'`)."""
+
 import csv
 import json
 import os
@@ -16,19 +17,32 @@ import torch
 
 pytest.importorskip("sb3_contrib")
 
-from conftest import ROOT, compose_config, train_job  # noqa: E402
-from ferl.analysis.records import Manifest  # noqa: E402
-from reproduction.variants import VIEW_KEYS  # noqa: E402
-from ferl.envs.gymnasium_vector import GymnasiumEnv  # noqa: E402
-from ferl.run.directory import RunDir  # noqa: E402
+from conftest import ROOT, compose_config, train_job
+from ferl.analysis.records import Manifest
+from ferl.envs.gymnasium_vector import GymnasiumEnv
+from ferl.run.directory import RunDir
+from reproduction.variants import VIEW_KEYS
 
 GAMMA, T_MIN, T_MAX, GOAL = 0.95, 3, 10, 5.0
 STEP, WALL = -0.1, -1.0
 SEEDS = [3, 4]
-MAZE = ["experiment=table4_1_regular", "n_runs=2", "trainer.n_sample=300", "trainer.n_epoch=2",
-        "trainer.n_episodes=60", "trainer.final_window=20", "trainer.log_every=20"]
-TMAZE_METRICS = ("final_discounted_return", "final_steps_to_goal", "final_correct_goal_rate", "solved",
-                 "env_steps_total", "env_steps_to_solve")
+MAZE = [
+    "experiment=table4_1_regular",
+    "n_runs=2",
+    "trainer.n_sample=300",
+    "trainer.n_epoch=2",
+    "trainer.n_episodes=60",
+    "trainer.final_window=20",
+    "trainer.log_every=20",
+]
+TMAZE_METRICS = (
+    "final_discounted_return",
+    "final_steps_to_goal",
+    "final_correct_goal_rate",
+    "solved",
+    "env_steps_total",
+    "env_steps_to_solve",
+)
 
 
 # CueRecall (tests/outside_env.py) with MultiDiscrete actions: 3-step episodes, −0.1, −0.1, then ±1
@@ -39,22 +53,41 @@ CUE_SETTINGS = {"optimal_return": 0.8, "success_threshold": 0.0}
 
 
 def run_script(*args, env=None):
-    return subprocess.run([sys.executable, str(ROOT / "baselines" / "recurrent_ppo.py"), *args],
-                          capture_output=True, text=True, timeout=300, env=env)
+    return subprocess.run(
+        [sys.executable, str(ROOT / "baselines" / "recurrent_ppo.py"), *args],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=env,
+    )
 
 
 @pytest.fixture(scope="module")
 def sweep(tmp_path_factory):
     """A sweep folder: the baseline (2 runs, ~2 000 steps) and a tiny ferl run of the same maze, analysed."""
     root = tmp_path_factory.mktemp("ppo_sweep")
-    done = run_script("--env-id", "ferl/TMaze-v0", "--env-kwargs", json.dumps({"corridor_length": T_MIN}),
-                      "--runs", "2", "--seed", str(SEEDS[0]), "--steps", "2000", "--n-envs", "4",
-                      "--out", str(root / "ppo"))
+    done = run_script(
+        "--env-id",
+        "ferl/TMaze-v0",
+        "--env-kwargs",
+        json.dumps({"corridor_length": T_MIN}),
+        "--runs",
+        "2",
+        "--seed",
+        str(SEEDS[0]),
+        "--steps",
+        "2000",
+        "--n-envs",
+        "4",
+        "--out",
+        str(root / "ppo"),
+    )
     assert done.returncode == 0, done.stderr
     ferl_run = RunDir(root / "ferl")
     ferl_run.write_summary(train_job(compose_config(MAZE), ferl_run.path))
-    analysis = subprocess.run([sys.executable, str(ROOT / "analyze.py"), str(root)], capture_output=True, text=True,
-                              timeout=300)
+    analysis = subprocess.run(
+        [sys.executable, str(ROOT / "analyze.py"), str(root)], capture_output=True, text=True, timeout=300
+    )
     assert analysis.returncode == 0, analysis.stderr
     return root, done.stdout
 
@@ -64,7 +97,7 @@ def reachable_returns(k: int, terminal: float) -> np.ndarray:
     step a move (−0.1) or a wall bump (−1)."""
     head = np.zeros(1)
     for t in range(k - 1):
-        head = np.concatenate([head + GAMMA ** t * STEP, head + GAMMA ** t * WALL])
+        head = np.concatenate([head + GAMMA**t * STEP, head + GAMMA**t * WALL])
     return head + GAMMA ** (k - 1) * terminal
 
 
@@ -125,9 +158,27 @@ def test_a_directory_holding_a_run_is_refused(sweep):
 def cue(tmp_path_factory):
     """The baseline on an id that nothing in ferl names (2 runs of 2 048 steps, a few seconds)."""
     out = tmp_path_factory.mktemp("ppo_cue") / "ppo"
-    done = run_script("--env-id", CUE, "--env-kwargs", json.dumps(CUE_KWARGS), "--runs", "2", "--steps", "2048",
-                      "--n-envs", "2", "--gamma", str(CUE_GAMMA), "--optimal-return", "0.8", "--success-threshold", "0",
-                      "--out", str(out), env={**os.environ, "PYTHONPATH": str(TESTS)})
+    done = run_script(
+        "--env-id",
+        CUE,
+        "--env-kwargs",
+        json.dumps(CUE_KWARGS),
+        "--runs",
+        "2",
+        "--steps",
+        "2048",
+        "--n-envs",
+        "2",
+        "--gamma",
+        str(CUE_GAMMA),
+        "--optimal-return",
+        "0.8",
+        "--success-threshold",
+        "0",
+        "--out",
+        str(out),
+        env={**os.environ, "PYTHONPATH": str(TESTS)},
+    )
     assert done.returncode == 0, done.stderr
     return out, done.stdout
 
@@ -158,8 +209,9 @@ def test_gymnasium_records_are_episodes_of_the_environment(cue):
     assert ret.shape == steps.shape == ep["success"].shape == (2, ret.shape[1]) and ret.shape[1] > 200
     assert np.all(steps == 3) and set(np.unique(ep["terminal_reward"])) <= {-1.0, 1.0}
     np.testing.assert_allclose(ret, -0.2 + ep["terminal_reward"], atol=1e-6)  # raw rewards, undiscounted
-    np.testing.assert_allclose(ep["discounted_return"], -0.1 - 0.1 * CUE_GAMMA + CUE_GAMMA ** 2 * ep["terminal_reward"],
-                               atol=1e-6)
+    np.testing.assert_allclose(
+        ep["discounted_return"], -0.1 - 0.1 * CUE_GAMMA + CUE_GAMMA**2 * ep["terminal_reward"], atol=1e-6
+    )
     np.testing.assert_array_equal(ep["success"], ret > 0)
     assert float(ep["gamma"]) == CUE_GAMMA and np.isnan(ep["optimal_return"]) and np.isnan(ep["optimal_steps"])
     assert np.isnan(ep["td_abs_mean"]).all()
@@ -168,10 +220,15 @@ def test_gymnasium_records_are_episodes_of_the_environment(cue):
     np.testing.assert_allclose(metrics["final_success_rate"], ep["success"][:, -200:].mean(1))
 
 
-@pytest.mark.parametrize("args, names", [
-    (["--env-id", "Pendulum-v1"], "action space Box"), (["--env-id", "outside_env:Nope-v0"], "--env-id"),
-    (["--env-id", "CartPole-v1"], "--encoding"),
-    (["--env-id", "ferl/TMaze-v0", "--optimal-return", "1"], "Gymnasium ids")])
+@pytest.mark.parametrize(
+    "args, names",
+    [
+        (["--env-id", "Pendulum-v1"], "action space Box"),
+        (["--env-id", "outside_env:Nope-v0"], "--env-id"),
+        (["--env-id", "CartPole-v1"], "--encoding"),
+        (["--env-id", "ferl/TMaze-v0", "--optimal-return", "1"], "Gymnasium ids"),
+    ],
+)
 def test_bad_input_is_one_line_and_writes_nothing(tmp_path, args, names):
     out = tmp_path / "ppo"
     done = run_script(*args, "--steps", "100", "--out", str(out), env={**os.environ, "PYTHONPATH": str(TESTS)})

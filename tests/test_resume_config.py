@@ -2,6 +2,7 @@
 checkpoint, the overrides given now are applied to it, and any that would change what the run
 computes is refused in one line listing each key, old → new; ``ferl.run.resume.ALLOWED`` lists
 what a resume may change."""
+
 import hashlib
 import shutil
 from pathlib import Path
@@ -15,9 +16,16 @@ from ferl.run import checkpoint
 from ferl.run.checkpoint import RunIdentity
 from ferl.run.resume import ALLOWED, apply_overrides, resumed_run
 
-TMAZE = ["experiment=table4_1_regular", "n_runs=2", "trainer.n_sample=200", "trainer.n_epoch=20",
-         "trainer.checkpoint_every_epochs=5", "trainer.n_episodes=300", "trainer.checkpoint_every=100",
-         "trainer.log_every=100"]
+TMAZE = [
+    "experiment=table4_1_regular",
+    "n_runs=2",
+    "trainer.n_sample=200",
+    "trainer.n_epoch=20",
+    "trainer.phases.predictors.checkpoint_every_epochs=5",
+    "trainer.n_episodes=300",
+    "trainer.checkpoint_every=100",
+    "trainer.log_every=100",
+]
 
 
 def saved_run(tmp_path, overrides=TMAZE, device="cpu") -> Path:
@@ -48,12 +56,28 @@ def test_the_same_overrides_again_are_no_change(tmp_path):
 def test_a_changing_override_is_refused_listing_every_key(tmp_path):
     run = saved_run(tmp_path)
     with pytest.raises(ConfigError) as e:
-        resumed_run(run, ["n_runs=3", "seed=5", "env.corridor_length=4", "trainer.log_every=50", "compile=true",
-                          "cpu_threads=2", "resume=true"], cpu)
+        resumed_run(
+            run,
+            [
+                "n_runs=3",
+                "seed=5",
+                "env.corridor_length=4",
+                "trainer.log_every=50",
+                "compile=true",
+                "cpu_threads=2",
+                "resume=true",
+            ],
+            cpu,
+        )
     message = str(e.value)
     assert "\n" not in message
-    for change in ("n_runs: 2 → 3", "seed: 0 → 5", "env.corridor_length: 3 → 4", "trainer.log_every: 100 → 50",
-                   "compile: false → true"):
+    for change in (
+        "n_runs: 2 → 3",
+        "seed: 0 → 5",
+        "env.corridor_length: 3 → 4",
+        "trainer.log_every: 100 → 50",
+        "compile: false → true",
+    ):
         assert change in message, message
     assert "cpu_threads: 1" not in message  # allowed
     assert f"a resume may change only {', '.join(ALLOWED)}" in message
@@ -61,8 +85,7 @@ def test_a_changing_override_is_refused_listing_every_key(tmp_path):
 
 def test_another_experiment_or_group_choice_is_refused(tmp_path):
     run = saved_run(tmp_path)
-    with pytest.raises(ConfigError, match="experiment: table4_1_regular → table4_1_matching, "
-                                          "actor: ferl_tmaze → drqn"):
+    with pytest.raises(ConfigError, match="experiment: table4_1_regular → table4_1_matching, actor: ferl_tmaze → drqn"):
         resumed_run(run, ["experiment=table4_1_matching", "actor=drqn"], cpu)
 
 
@@ -74,10 +97,24 @@ def test_a_key_the_run_does_not_have_is_a_change(tmp_path):
 
 def test_allowed_keys_are_applied(tmp_path):
     run = saved_run(tmp_path)
-    cfg = resumed_run(run, ["cpu_threads=2", "device=cpu", "trainer.checkpoint_minutes=0.5",
-                            "trainer.checkpoint_every_epochs=2", "memory_check=false"], cpu).config
-    assert (cfg.cpu_threads, cfg.device, cfg.trainer.checkpoint_minutes, cfg.trainer.checkpoint_every_epochs,
-            cfg.memory_check) == (2, "cpu", 0.5, 2, False)
+    cfg = resumed_run(
+        run,
+        [
+            "cpu_threads=2",
+            "device=cpu",
+            "trainer.run.checkpoint_minutes=0.5",
+            "trainer.phases.predictors.checkpoint_every_epochs=2",
+            "memory_check=false",
+        ],
+        cpu,
+    ).config
+    assert (
+        cfg.cpu_threads,
+        cfg.device,
+        cfg.trainer.run.checkpoint_minutes,
+        cfg.trainer.phases.predictors.checkpoint_every_epochs,
+        cfg.memory_check,
+    ) == (2, "cpu", 0.5, 2, False)
 
 
 def test_another_device_is_refused(tmp_path):
@@ -123,20 +160,25 @@ def cut_copy(whole: Path, dst: Path) -> Path:
     """``whole`` as it was at its checkpoint after episode 200: previous.pt made the last one,
     the records and summary the end writes removed (tb/ is cut back by the resume)."""
     from test_fault_injection import cut_copy as copy
+
     run_dir = copy(whole, dst)
     (run_dir / "checkpoints" / "last.pt").unlink()
     return run_dir
 
 
 def snapshot(run_dir: Path) -> dict:
-    return {p.relative_to(run_dir).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(run_dir.rglob("*")) if p.is_file()}
+    return {
+        p.relative_to(run_dir).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(run_dir.rglob("*"))
+        if p.is_file()
+    }
 
 
 def test_plain_resume_continues_the_run_not_the_default_experiment(tmp_path, whole):
     """`resume=true hydra.run.dir=DIR` with no experiment= (the default is ch3_floor) continues the
     regular T-maze run and ends as it would have; .hydra/ holds the run's own files again."""
     from test_fault_injection import assert_same_run
+
     run_dir = cut_copy(whole, tmp_path / "run")
     result = run_train("resume=true", f"hydra.run.dir={run_dir}")
     assert result.returncode == 0, result.stderr[-2000:]
@@ -149,6 +191,7 @@ def test_plain_resume_continues_the_run_not_the_default_experiment(tmp_path, who
 def test_resume_on_two_threads_ends_as_the_one_thread_run(tmp_path, whole):
     """cpu_threads is allowed: the actor phase resumed on 2 threads ends with the 1-thread numbers."""
     from test_fault_injection import assert_same_run
+
     run_dir = cut_copy(whole, tmp_path / "run")
     result = run_train("resume=true", "cpu_threads=2", f"hydra.run.dir={run_dir}")
     assert result.returncode == 0, result.stderr[-2000:]
@@ -164,8 +207,10 @@ def test_n_runs_3_on_a_2_run_run_is_one_line_and_changes_nothing(tmp_path, whole
     assert result.returncode == 2
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1, result.stderr
-    assert lines[0].startswith(f"ferl: error: resume=true continues the run in {run_dir} under its own config, and "
-                               f"these overrides would change what it computes: n_runs: 2 → 3 (a resume may change")
+    assert lines[0].startswith(
+        f"ferl: error: resume=true continues the run in {run_dir} under its own config, and "
+        f"these overrides would change what it computes: n_runs: 2 → 3 (a resume may change"
+    )
     assert snapshot(run_dir) == before  # .hydra/ put back as the run wrote it, tb/ and checkpoints as they were
 
 

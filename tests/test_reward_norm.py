@@ -8,6 +8,7 @@ tests/outside_env.py at its native scale (rewards −0.1 and ±1, ``env.reward_s
 trained online does not learn without the normalisation (2/10 runs at the optimum, 9/10 with it:
 docs/beyond.md).
 """
+
 import sys
 
 import numpy as np
@@ -22,10 +23,22 @@ sys.path.insert(0, str(ROOT / "tests"))
 # CueRecall's optimum: two blank steps (−0.1 each), then the cue recalled (+1)
 # the groups' own defaults, as a new environment gets them (docs/beyond.md, "Reward scale"): reward_scale 1 and
 # predictor=joint_scalar's PopArt; γ = 0.5 as the card games (the setting measured with 10 runs there)
-NATIVE = ["experiment=none", "env=gymnasium", "predictor=joint_scalar", "actor=ferl_tmaze", "trainer=online",
-          "env.id=outside_env:CueRecall-v0", "env.kwargs={delay:2}", "env.optimal_return=0.8", "actor.gamma=0.5",
-          "trainer.n_episodes=2000", "trainer.replay_sample=16",
-          "trainer.log_every=500", "trainer.checkpoint_every=100000", "n_runs=3"]
+NATIVE = [
+    "experiment=none",
+    "env=gymnasium",
+    "predictor=joint_scalar",
+    "actor=ferl_tmaze",
+    "trainer=online",
+    "env.id=outside_env:CueRecall-v0",
+    "env.kwargs={delay:2}",
+    "env.optimal_return=0.8",
+    "actor.gamma=0.5",
+    "trainer.n_episodes=2000",
+    "trainer.replay_sample=16",
+    "trainer.log_every=500",
+    "trainer.checkpoint_every=100000",
+    "n_runs=3",
+]
 
 
 def test_statistics_are_the_moments_of_every_reward_seen():
@@ -46,7 +59,9 @@ def test_statistics_are_the_moments_of_every_reward_seen():
 
 
 def test_head_outputs_in_the_environments_units_are_preserved():
-    p = predictor(memory="lstm", n_runs=2, n_obs=4, n_actions=2, reward_output="linear", n_reward=1, reward_norm="popart")
+    p = predictor(
+        memory="lstm", n_runs=2, n_obs=4, n_actions=2, reward_output="linear", n_reward=1, reward_norm="popart"
+    )
     y, a = torch.rand(2, 3, 5, 4).round(), torch.nn.functional.one_hot(torch.randint(2, (2, 3, 4)), 2).float()
     lengths = torch.tensor([[4, 2, 3], [1, 4, 4]])
 
@@ -63,8 +78,10 @@ def test_head_outputs_in_the_environments_units_are_preserved():
 
 def test_off_by_default_and_only_for_a_scalar_reward():
     assert predictor(memory="elman", n_runs=1, n_obs=3, n_actions=2, n_reward=4).reward_stats is None
-    with pytest.raises(ValueError, match="reward_norm=.popart. is not allowed"):
-        predictor(memory="elman", n_runs=1, n_obs=3, n_actions=2, reward_output="bits", n_reward=4, reward_norm="popart")
+    with pytest.raises(ValueError, match=r"reward_norm=.popart. is not allowed"):
+        predictor(
+            memory="elman", n_runs=1, n_obs=3, n_actions=2, reward_output="bits", n_reward=4, reward_norm="popart"
+        )
 
 
 def test_native_scale_delayed_recall_is_learnt_online(tmp_path):

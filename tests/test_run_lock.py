@@ -3,6 +3,7 @@ refused launch leaves an existing run byte-identical, two launches or two resume
 directory leave one run (its .hydra/, summary.json and TensorBoard agree), a stale lock is taken
 over; wall_time_s adds up over resumes; leftovers of killed writes are removed and an interrupted
 copy of .hydra/ is made again."""
+
 import json
 import os
 import shutil
@@ -29,8 +30,13 @@ LONG = [*TINY, "trainer.steps=6000", "trainer.checkpoint_every=500", "trainer.lo
 
 
 def launch(run_dir: Path, *args: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, str(ROOT / "train.py"), *eager([*args, f"hydra.run.dir={run_dir}"])],
-                            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        [sys.executable, str(ROOT / "train.py"), *eager([*args, f"hydra.run.dir={run_dir}"])],
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
 
 
 def together(run_dir: Path, *variants: list) -> list[tuple]:
@@ -46,8 +52,9 @@ def hydra_seed(run_dir: Path) -> int:
 def assert_refused_by(stderr: str, run_dir: Path, pid: int) -> None:
     lines = stderr_lines(SimpleNamespace(stderr=stderr))
     assert len(lines) == 1, stderr
-    assert lines[0].startswith(f"ferl: error: hydra.run.dir={run_dir} is in use by pid {pid} on host {HOST} "
-                               f"(lock {run_dir / LOCK_FILE}): "), lines[0]
+    assert lines[0].startswith(
+        f"ferl: error: hydra.run.dir={run_dir} is in use by pid {pid} on host {HOST} (lock {run_dir / LOCK_FILE}): "
+    ), lines[0]
 
 
 @pytest.fixture(scope="module")
@@ -84,8 +91,10 @@ def test_a_refused_launch_leaves_a_finished_run_byte_identical(tmp_path, finishe
     before = snapshot(run_dir)
     result = run_train(*TINY, "experiment=ch3_coding_ccw", "seed=5", "actor.n_hidden=7", f"hydra.run.dir={run_dir}")
     assert result.returncode == 2
-    assert stderr_lines(result) == [f"ferl: error: hydra.run.dir={run_dir} already holds a run: pass resume=true "
-                                    f"to continue it, or another directory"]
+    assert stderr_lines(result) == [
+        f"ferl: error: hydra.run.dir={run_dir} already holds a run: pass resume=true "
+        f"to continue it, or another directory"
+    ]
     assert snapshot(run_dir) == before  # .hydra/ and train.log included: Hydra wrote nothing either
 
 
@@ -148,8 +157,10 @@ def test_a_stale_lock_is_taken_over(tmp_path):
     (run_dir / LOCK_FILE).write_text(json.dumps({"pid": gone.pid, "host": HOST}) + "\n")
     result = run_train(*TINY, f"hydra.run.dir={run_dir}")
     assert result.returncode == 0, result.stderr[-2000:]
-    assert (f"ferl: warning: {run_dir}: took over the lock that pid {gone.pid} on host {HOST} left "
-            f"({LOCK_FILE}; that process is gone)") in stderr_lines(result)
+    assert (
+        f"ferl: warning: {run_dir}: took over the lock that pid {gone.pid} on host {HOST} left "
+        f"({LOCK_FILE}; that process is gone)"
+    ) in stderr_lines(result)
     assert (run_dir / "summary.json").is_file() and not (run_dir / LOCK_FILE).exists()
 
 
@@ -182,8 +193,11 @@ def test_resumed_wall_time_adds_every_process(tmp_path, interrupted):
 
 def test_leftovers_are_removed_and_an_interrupted_hydra_copy_is_made_again(tmp_path, interrupted):
     run_dir = copy_of(interrupted, tmp_path / "run")
-    leftovers = [run_dir / ".summary.json.k2j4x9_a.tmp", run_dir / "records" / ".steps.npz.a8f3kq0z.tmp",
-                 run_dir / ".hydra" / ".config.yaml.zz81kd7e.tmp"]
+    leftovers = [
+        run_dir / ".summary.json.k2j4x9_a.tmp",
+        run_dir / "records" / ".steps.npz.a8f3kq0z.tmp",
+        run_dir / ".hydra" / ".config.yaml.zz81kd7e.tmp",
+    ]
     for path in leftovers:
         path.write_bytes(b"half a write")
     cut_copy = run_dir / "checkpoints" / ".hydra.w8x1m2qa.tmp"  # a kill inside keep_hydra_files

@@ -1,4 +1,5 @@
 """Random-policy episodes, length balancing and the train/test split (§4.3.1)."""
+
 import torch
 
 from ferl.envs.tmaze import TMaze

@@ -7,6 +7,7 @@ through the Job, and a component is checked against its protocol when it is buil
 * A size stated against the environment, or an environment lacking what its protocol declares, is
   one ``ferl: error:`` line, exit ≠ 0, and no run directory left behind.
 """
+
 import json
 import os
 import re
@@ -17,19 +18,39 @@ import torch
 
 from conftest import run_train
 from ferl.config.params import ConfigError
-from ferl.interfaces import EpisodicEnvironment, EpisodicEnvironmentBase, TrainingBatch, missing_members, required_members
+from ferl.conformance import missing_members, required_members
+from ferl.interfaces import EpisodicEnvironment, EpisodicEnvironmentBase, TrainingBatch
 from ferl.trainers.facts import check_conforms, facts_for
 from five_arms import FiveArms, Forgetful
 
 TESTS = Path(__file__).resolve().parent
 ENV = {**os.environ, "PYTHONPATH": str(TESTS)}
 # the recipe's command (docs/architecture.md, "Add an environment") on this environment, tiny
-COMMAND = [f"hydra.searchpath=[file://{TESTS / 'toy' / 'conf'}]", "experiment=none", "env=five_arms",
-           "predictor=joint", "actor=ferl_tmaze"]
-ALGORITHM1 = ["trainer=algorithm1", "n_runs=2", "trainer.n_sample=60", "trainer.n_epoch=3", "trainer.n_episodes=60",
-              "trainer.log_every=20", "trainer.final_window=20", "trainer.l_training=1"]
-ONLINE = ["trainer=online", "n_runs=2", "trainer.n_episodes=40", "trainer.replay_sample=4", "trainer.log_every=20",
-          "trainer.final_window=20"]
+COMMAND = [
+    f"hydra.searchpath=[file://{TESTS / 'toy' / 'conf'}]",
+    "experiment=none",
+    "env=five_arms",
+    "predictor=joint",
+    "actor=ferl_tmaze",
+]
+ALGORITHM1 = [
+    "trainer=algorithm1",
+    "n_runs=2",
+    "trainer.n_sample=60",
+    "trainer.n_epoch=3",
+    "trainer.n_episodes=60",
+    "trainer.log_every=20",
+    "trainer.final_window=20",
+    "trainer.l_training=1",
+]
+ONLINE = [
+    "trainer=online",
+    "n_runs=2",
+    "trainer.n_episodes=40",
+    "trainer.replay_sample=4",
+    "trainer.log_every=20",
+    "trainer.final_window=20",
+]
 ERROR = re.compile(r"ferl: error: [^\n]+")
 
 
@@ -59,8 +80,10 @@ def test_an_environment_of_other_sizes_trains_with_the_stock_joint_predictor(tmp
 def test_a_size_that_disagrees_with_the_environment_is_one_line_before_any_file(tmp_path):
     run_dir = tmp_path / "out" / "run"
     result = run_train(*COMMAND, *ALGORITHM1, "+predictor.joint.n_reward=4", f"hydra.run.dir={run_dir}", env=ENV)
-    assert only_error_line(result) == ("ferl: error: predictor.joint.n_reward=4 disagrees with the environment: "
-                                       "env=five_arms.FiveArms has 3 reward values (-1.0, 0.0, 1.0); leave it out")
+    assert only_error_line(result) == (
+        "ferl: error: predictor.joint.n_reward=4 disagrees with the environment: "
+        "env=five_arms.FiveArms has 3 reward values (-1.0, 0.0, 1.0); leave it out"
+    )
     assert not (tmp_path / "out").exists()
 
 
@@ -80,17 +103,23 @@ def test_an_environment_without_reward_values_gives_no_reward_bits():
     node = {"_target_": "ferl.predictors.recurrent.predictor", "memory": "gru"}
     assert facts_for(node, "predictor.joint", env) == {}
     from ferl.predictors.recurrent import predictor
+
     with pytest.raises(ValueError, match=r"^n_reward is required with reward_output=bits: .*reward_output=linear"):
         predictor(memory="gru", n_runs=1, n_obs=6, n_actions=5)
 
 
 def test_a_missing_attribute_is_named_in_one_line_before_any_file(tmp_path):
     run_dir = tmp_path / "out" / "run"
-    result = run_train(*[o.replace("env=five_arms", "env=forgetful") for o in COMMAND], *ALGORITHM1,
-                       f"hydra.run.dir={run_dir}", env=ENV)
+    result = run_train(
+        *[o.replace("env=five_arms", "env=forgetful") for o in COMMAND],
+        *ALGORITHM1,
+        f"hydra.run.dir={run_dir}",
+        env=ENV,
+    )
     assert only_error_line(result) == (
         "ferl: error: env: five_arms.Forgetful lacks max_steps, optimal_steps, observation_names "
-        '(an episodic environment needs them: docs/architecture.md, "Add an environment")')
+        '(an episodic environment needs them: docs/architecture.md, "Add an environment")'
+    )
     assert not (tmp_path / "out").exists()
 
 
@@ -105,17 +134,28 @@ def test_hooks_are_declared_and_the_base_gives_their_defaults():
     assert {"traceable_steps", "discovers_observations", "on_fault"} <= set(required_members(EpisodicEnvironment))
     assert "fuse" in required_members(TrainingBatch)
     assert missing_members(Forgetful(2, torch.Generator()), EpisodicEnvironment) == [
-        "max_steps", "optimal_steps", "observation_names"]
+        "max_steps",
+        "optimal_steps",
+        "observation_names",
+    ]
 
     class Unbased:  # FiveArms' members copied onto a class outside the base
         pass
 
     bare = Unbased()
-    bare.__dict__.update({name: getattr(env, name) for name in required_members(EpisodicEnvironment)
-                          if name not in dir(EpisodicEnvironmentBase) and name != "probe"})
+    bare.__dict__.update(
+        {
+            name: getattr(env, name)
+            for name in required_members(EpisodicEnvironment)
+            if name not in dir(EpisodicEnvironmentBase) and name != "probe"
+        }
+    )
     bare.probe = env.probe
     assert missing_members(bare, EpisodicEnvironment) == ["on_fault", "traceable_steps", "discovers_observations"]
-    with pytest.raises(ConfigError, match=r"lacks on_fault, traceable_steps, discovers_observations \(.*; "
-                                          r"ferl\.interfaces\.EpisodicEnvironmentBase gives the defaults of on_fault, "
-                                          r"traceable_steps, discovers_observations\)$"):
+    with pytest.raises(
+        ConfigError,
+        match=r"lacks on_fault, traceable_steps, discovers_observations \(.*; "
+        r"ferl\.interfaces\.EpisodicEnvironmentBase gives the defaults of on_fault, "
+        r"traceable_steps, discovers_observations\)$",
+    ):
         check_conforms(bare, EpisodicEnvironment, "env")

@@ -1,14 +1,21 @@
 """The third-party suites (issue 5/8; `make suites`): every experiment trains a few episodes on the
 real POPGym and MiniGrid environments, and every job of the suites' table composes to the agent
 it names and passes train.py's checks."""
+
 import importlib.util
 
 import numpy as np
 import pytest
+
 from conftest import ROOT, compose_config, train_job, validated_config
 
-SUITES = ["popgym_repeat_previous_easy", "popgym_count_recall_easy", "popgym_autoencode_easy",
-          "popgym_minesweeper_easy", "minigrid_memory_s7"]
+SUITES = [
+    "popgym_repeat_previous_easy",
+    "popgym_count_recall_easy",
+    "popgym_autoencode_easy",
+    "popgym_minesweeper_easy",
+    "minigrid_memory_s7",
+]
 
 
 def load(name: str):

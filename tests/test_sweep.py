@@ -25,38 +25,61 @@ REPO = Path(__file__).resolve().parents[1]
 LEVELS = ["0", "0.5", "1"]
 
 
-def fake_job(run_dir: Path, experiment: str, metrics: dict, overrides=(), facts=None,
-             verdict: str | None = None, wall: float = 1.0) -> sw.Job:
+def fake_job(
+    run_dir: Path,
+    experiment: str,
+    metrics: dict,
+    overrides=(),
+    facts=None,
+    verdict: str | None = None,
+    wall: float = 1.0,
+) -> sw.Job:
     """A job directory holding only summary.json, Hydra's overrides and records/run.json with
     the parts' parameters in `facts` ({"env": {"noise": 0.5}})."""
     (run_dir / ".hydra").mkdir(parents=True)
     (run_dir / "records").mkdir()
-    summary = {"experiment": experiment, "task": "digit_floor", "metrics": metrics,
-               "wall_time_s": wall, "agent_steps_per_s": 100.0}
+    summary = {
+        "experiment": experiment,
+        "task": "digit_floor",
+        "metrics": metrics,
+        "wall_time_s": wall,
+        "agent_steps_per_s": 100.0,
+    }
     (run_dir / "summary.json").write_text(json.dumps(summary))
     (run_dir / ".hydra" / "overrides.yaml").write_text(
-        yaml.safe_dump([f"experiment={experiment}", *overrides, "hydra/launcher=joblib"]))
-    (run_dir / "records" / "run.json").write_text(json.dumps(
-        {"task": "digit_floor", "experiment": experiment, **(facts or {})}))
+        yaml.safe_dump([f"experiment={experiment}", *overrides, "hydra/launcher=joblib"])
+    )
+    (run_dir / "records" / "run.json").write_text(
+        json.dumps({"task": "digit_floor", "experiment": experiment, **(facts or {})})
+    )
     results = []
     if verdict is not None:
         claim = Claim("pairs cluster", ch3.SAME_ACTION_PAIRS_SOURCE, lambda run: None, lambda v: v)
         results = [ClaimResult(claim, Measured(verdict, verdict), verdict)]
-    return sw.Job(RunOutcome(run_dir, experiment, "digit_floor", "analyzed", results=results),
-                  summary)
+    return sw.Job(RunOutcome(run_dir, experiment, "digit_floor", "analyzed", results=results), summary)
 
 
 def noise_job(root: Path, k: int, train_noise: float, acc: dict) -> sw.Job:
-    return fake_job(root / f"{k}", "floor", {"reward_per_step_last10pct": [1.0, 2.0],
-                                             "greedy_accuracy": acc},
-                    overrides=[f"env.noise={train_noise}"], facts={"env": {"noise": train_noise}})
+    return fake_job(
+        root / f"{k}",
+        "floor",
+        {"reward_per_step_last10pct": [1.0, 2.0], "greedy_accuracy": acc},
+        overrides=[f"env.noise={train_noise}"],
+        facts={"env": {"noise": train_noise}},
+    )
 
 
 def test_aggregate_is_mean_and_sem_over_runs(tmp_path):
-    a = fake_job(tmp_path / "a", "floor", {"reward_per_step_last10pct": [1.0, 2.0, 6.0],
-                                           "greedy_accuracy": {"0.5": [0.5, 0.7]}})
-    b = fake_job(tmp_path / "b", "maze", {"solved": [1, 0, 1, 1], "final": [2.0, float("nan")]},
-                 overrides=["env.corridor_length=6"], wall=5.0)
+    a = fake_job(
+        tmp_path / "a", "floor", {"reward_per_step_last10pct": [1.0, 2.0, 6.0], "greedy_accuracy": {"0.5": [0.5, 0.7]}}
+    )
+    b = fake_job(
+        tmp_path / "b",
+        "maze",
+        {"solved": [1, 0, 1, 1], "final": [2.0, float("nan")]},
+        overrides=["env.corridor_length=6"],
+        wall=5.0,
+    )
     rows = {(r.experiment, r.variant, r.metric): r for r in sw.aggregate([a, b])}
 
     reward = rows["floor", sw.DISSERTATION_SETTING, "reward_per_step_last10pct"]
@@ -78,13 +101,20 @@ def test_aggregate_is_mean_and_sem_over_runs(tmp_path):
 
 def test_noise_grid_from_jobs_that_differ_only_in_training_noise(tmp_path):
     truth = np.array([[0.9, 0.8, 0.3], [0.7, 0.7, 0.4]])  # rows: training noise 0, 0.5
-    jobs = [noise_job(tmp_path, k, noise, {lvl: [truth[k, j] - 0.1, truth[k, j] + 0.1]
-                                          for j, lvl in enumerate(LEVELS)})
-            for k, noise in enumerate([0.0, 0.5])]
+    jobs = [
+        noise_job(tmp_path, k, noise, {lvl: [truth[k, j] - 0.1, truth[k, j] + 0.1] for j, lvl in enumerate(LEVELS)})
+        for k, noise in enumerate([0.0, 0.5])
+    ]
     # A job with another override too belongs to another grid (here: a single level, no grid).
-    jobs.append(fake_job(tmp_path / "x", "floor", {"greedy_accuracy": {"0": [0.0]}},
-                         overrides=["env.noise=1.0", "actor.n_hidden=40"],
-                         facts={"env": {"noise": 1.0}}))
+    jobs.append(
+        fake_job(
+            tmp_path / "x",
+            "floor",
+            {"greedy_accuracy": {"0": [0.0]}},
+            overrides=["env.noise=1.0", "actor.n_hidden=40"],
+            facts={"env": {"noise": 1.0}},
+        )
+    )
     [grid] = noise_grid.noise_grids(sw.Sweep(tmp_path, jobs))
     np.testing.assert_allclose(grid.train, [0.0, 0.5])
     np.testing.assert_allclose(grid.test, [0.0, 0.5, 1.0])
@@ -92,27 +122,45 @@ def test_noise_grid_from_jobs_that_differ_only_in_training_noise(tmp_path):
     np.testing.assert_allclose(grid.sem, 0.1)
 
 
-@pytest.mark.parametrize("verdicts, expected", [
-    ({10: HELD, 20: HELD, 40: HELD}, HELD),
-    ({10: PARTLY, 20: HELD, 40: HELD}, PARTLY),
-    ({10: NOT_HELD, 20: HELD, 40: HELD}, NOT_HELD),
-    ({10: NOT_HELD, 20: NOT_HELD}, NOT_HELD),
-])
+@pytest.mark.parametrize(
+    "verdicts, expected",
+    [
+        ({10: HELD, 20: HELD, 40: HELD}, HELD),
+        ({10: PARTLY, 20: HELD, 40: HELD}, PARTLY),
+        ({10: NOT_HELD, 20: HELD, 40: HELD}, NOT_HELD),
+        ({10: NOT_HELD, 20: NOT_HELD}, NOT_HELD),
+    ],
+)
 def test_hidden_size_claim_flips_with_the_verdicts_per_size(tmp_path, verdicts, expected):
-    jobs = [fake_job(tmp_path / str(n), "coding", {}, overrides=[f"actor.n_hidden={n}"],
-                     facts={"actor": {"n_hidden": n}}, verdict=v) for n, v in verdicts.items()]
+    jobs = [
+        fake_job(
+            tmp_path / str(n),
+            "coding",
+            {},
+            overrides=[f"actor.n_hidden={n}"],
+            facts={"actor": {"n_hidden": n}},
+            verdict=v,
+        )
+        for n, v in verdicts.items()
+    ]
     [result] = evaluate(SWEEP_CLAIMS, sw.Sweep(tmp_path, jobs))
     assert result.verdict == expected
     assert all(f"{n} hidden: {v}" in result.measured.text for n, v in verdicts.items())
 
 
 def test_claims_are_judged_on_the_job_with_fewest_overrides(tmp_path):
-    jobs = [fake_job(tmp_path / "variant", "coding", {}, overrides=["actor.n_hidden=40"],
-                     facts={"actor": {"n_hidden": 40}}, verdict=NOT_HELD),
-            fake_job(tmp_path / "main", "coding", {}, facts={"actor": {"n_hidden": 20}},
-                     verdict=HELD)]
-    rows = sw.reproduction_rows(jobs, evaluate(SWEEP_CLAIMS, sw.Sweep(tmp_path, jobs)),
-                                reproduction.CLAIM_ORDER)
+    jobs = [
+        fake_job(
+            tmp_path / "variant",
+            "coding",
+            {},
+            overrides=["actor.n_hidden=40"],
+            facts={"actor": {"n_hidden": 40}},
+            verdict=NOT_HELD,
+        ),
+        fake_job(tmp_path / "main", "coding", {}, facts={"actor": {"n_hidden": 20}}, verdict=HELD),
+    ]
+    rows = sw.reproduction_rows(jobs, evaluate(SWEEP_CLAIMS, sw.Sweep(tmp_path, jobs)), reproduction.CLAIM_ORDER)
     [row] = [r for r in rows if r.job is not None]
     [across] = [r for r in rows if r.job is None]
     assert row.job.run_dir.name == "main" and row.result.verdict == HELD
@@ -139,9 +187,10 @@ def test_near_optimal_claim_flips_at_0_8_of_the_optimum(tmp_path, reward, expect
     assert _verdict(results, "§3.5.1, Fig. 3.4, fn. 4") == expected
 
 
-@pytest.mark.parametrize("solved, expected", [([1] * 10, HELD), ([1] * 9 + [0], PARTLY),
-                                              ([1] * 8 + [0] * 2, PARTLY),
-                                              ([1] * 7 + [0] * 3, NOT_HELD)])
+@pytest.mark.parametrize(
+    "solved, expected",
+    [([1] * 10, HELD), ([1] * 9 + [0], PARTLY), ([1] * 8 + [0] * 2, PARTLY), ([1] * 7 + [0] * 3, NOT_HELD)],
+)
 def test_solved_claim_flips_at_all_runs_and_at_8_in_10(tmp_path, solved, expected):
     run_dir = make_tmaze_run(tmp_path / "run", matching=False)
     _rewrite_summary(run_dir, solved=solved)
@@ -150,8 +199,7 @@ def test_solved_claim_flips_at_all_runs_and_at_8_in_10(tmp_path, solved, expecte
 
 
 def test_generated_blocks_are_replaced_and_nothing_else(tmp_path):
-    jobs = [fake_job(tmp_path / "job", "coding", {}, facts={"actor": {"n_hidden": 20}},
-                     verdict=PARTLY)]
+    jobs = [fake_job(tmp_path / "job", "coding", {}, facts={"actor": {"n_hidden": 20}}, verdict=PARTLY)]
     rows = sw.reproduction_rows(jobs, [], reproduction.CLAIM_ORDER)
     (tmp_path / "docs").mkdir()
     readme, table = tmp_path / "README.md", tmp_path / "docs" / "reproduction.md"
@@ -169,25 +217,33 @@ def test_generated_blocks_are_replaced_and_nothing_else(tmp_path):
     assert "| pairs cluster |" in text and "**partly**" in text
 
 
-@pytest.mark.parametrize("source, expected", [("§3.5.1, Fig. 3.4", "3"), ("§4.3.2, Fig. 4.14; §4.3.3", "4"),
-                                              ("§5.3.2, Observation preprocessor", "5"), ("Fig. 9", "?")])
+@pytest.mark.parametrize(
+    "source, expected",
+    [
+        ("§3.5.1, Fig. 3.4", "3"),
+        ("§4.3.2, Fig. 4.14; §4.3.3", "4"),
+        ("§5.3.2, Observation preprocessor", "5"),
+        ("Fig. 9", "?"),
+    ],
+)
 def test_a_claim_counts_for_the_chapter_of_its_first_section(source, expected):
     assert published.chapter(source) == expected
 
 
 def run(*args: str, timeout: int = 300) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, *args], cwd=REPO, capture_output=True, text=True,
-                          timeout=timeout)
+    return subprocess.run([sys.executable, *args], cwd=REPO, capture_output=True, text=True, timeout=timeout)
 
 
 def test_smoke_sweep_through_train_and_analyze(tmp_path):
     sweep = tmp_path / "sweep"
     tiny = ["trainer.steps=200", "n_runs=2", "trainer.test_per_class=5", "env.patches=1"]
-    result = run("train.py", "-m", "experiment=ch3_floor,ch3_coding_cw", *tiny,
-                 f"hydra.sweep.dir={sweep / 'experiments'}")
+    result = run(
+        "train.py", "-m", "experiment=ch3_floor,ch3_coding_cw", *tiny, f"hydra.sweep.dir={sweep / 'experiments'}"
+    )
     assert result.returncode == 0, result.stderr[-2000:]
-    result = run("train.py", "-m", "experiment=ch3_floor", "env.noise=0.0,0.5", *tiny,
-                 f"hydra.sweep.dir={sweep / 'noise_grid'}")
+    result = run(
+        "train.py", "-m", "experiment=ch3_floor", "env.noise=0.0,0.5", *tiny, f"hydra.sweep.dir={sweep / 'noise_grid'}"
+    )
     assert result.returncode == 0, result.stderr[-2000:]
     readme = tmp_path / "README.md"
     readme.write_text("{}\n{}\n".format(*published.TABLE))

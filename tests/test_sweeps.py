@@ -1,6 +1,7 @@
 """Hydra launchers and sweepers (issue 6/7): the joblib launcher runs multirun jobs in parallel,
 the SLURM launcher config composes without a cluster, the Optuna search composes and optimises the
 metric that train.py's main() returns; the final summary table."""
+
 import json
 import math
 
@@ -18,27 +19,57 @@ from ferl.config.validate import validate
 
 # our conf/hydra/launcher/*.yaml extend the plugins' configs of the same name (ferl.config.hydra_glue
 # silences Hydra's notice about that; pytest resets warning filters for each test)
-pytestmark = pytest.mark.filterwarnings(r"ignore:\s*'hydra/launcher/\w+' is validated against ConfigStore schema:UserWarning")
+pytestmark = pytest.mark.filterwarnings(
+    r"ignore:\s*'hydra/launcher/\w+' is validated against ConfigStore schema:UserWarning"
+)
 
-TMAZE_TINY = ["n_runs=2", "trainer.n_sample=200", "trainer.n_epoch=3", "trainer.n_episodes=60",
-              "trainer.log_every=20", "trainer.td_sample_every=20", "trainer.final_window=20"]
+TMAZE_TINY = [
+    "n_runs=2",
+    "trainer.n_sample=200",
+    "trainer.n_epoch=3",
+    "trainer.n_episodes=60",
+    "trainer.log_every=20",
+    "trainer.td_sample_every=20",
+    "trainer.final_window=20",
+]
 
 
 def fake_summary(task="digit_floor"):
-    metrics = ({"reward_per_step_last10pct": [5.0, 7.0],
-                "greedy_accuracy": {"0": [0.5, 1.0], "0.125": [0.25, None]},
-                "greedy_accuracy_before": {"0": [0.25, 0.25], "0.125": [None, None]}}
-               if task == "digit_floor" else
-               {"final_discounted_return": [4.0, 3.0, 2.0], "final_steps_to_goal": [3.0, 3.0, 4.0],
-                "final_correct_goal_rate": [1.0, 1.0, 0.5], "solved": [1, 1, 0]})
-    return {"experiment": "x", "task": task, "seeds": list(range(len(next(iter(metrics.values()))))),
-            "metrics": metrics, "optimal": {"reward_per_step": 8.0}}
+    metrics = (
+        {
+            "reward_per_step_last10pct": [5.0, 7.0],
+            "greedy_accuracy": {"0": [0.5, 1.0], "0.125": [0.25, None]},
+            "greedy_accuracy_before": {"0": [0.25, 0.25], "0.125": [None, None]},
+        }
+        if task == "digit_floor"
+        else {
+            "final_discounted_return": [4.0, 3.0, 2.0],
+            "final_steps_to_goal": [3.0, 3.0, 4.0],
+            "final_correct_goal_rate": [1.0, 1.0, 0.5],
+            "solved": [1, 1, 0],
+        }
+    )
+    return {
+        "experiment": "x",
+        "task": task,
+        "seeds": list(range(len(next(iter(metrics.values()))))),
+        "metrics": metrics,
+        "optimal": {"reward_per_step": 8.0},
+    }
 
 
 def test_joblib_multirun_runs_both_jobs(tmp_path):
     sweep = tmp_path / "sweep"
-    result = run_train("-m", *TINY, "experiment=ch3_coding_cw", "seed=0,10", "hydra/launcher=joblib",
-                       "hydra.launcher.n_jobs=2", f"hydra.sweep.dir={sweep}", timeout=300)
+    result = run_train(
+        "-m",
+        *TINY,
+        "experiment=ch3_coding_cw",
+        "seed=0,10",
+        "hydra/launcher=joblib",
+        "hydra.launcher.n_jobs=2",
+        f"hydra.sweep.dir={sweep}",
+        timeout=300,
+    )
     assert result.returncode == 0, result.stderr[-2000:]
     assert "Joblib.Parallel(n_jobs=2" in result.stdout + result.stderr
     assert "ConfigStore schema" not in result.stderr  # our launcher config on top of the plugin's, quietly
@@ -87,11 +118,24 @@ def test_optuna_search_config_composes(compose_cfg):
 
 def test_optuna_sweep_maximises_main_return_value(tmp_path):
     sweep = tmp_path / "optuna"
-    result = run_train("-m", "hparams_search=matching_optuna", "hydra.sweeper.n_trials=2", *TMAZE_TINY,
-                       f"hydra.sweep.dir={sweep}", timeout=300)
+    result = run_train(
+        "-m",
+        "hparams_search=matching_optuna",
+        "hydra.sweeper.n_trials=2",
+        *TMAZE_TINY,
+        f"hydra.sweep.dir={sweep}",
+        timeout=300,
+    )
     assert result.returncode == 0, result.stderr[-2000:]
-    means = [sum(m) / len(m) for m in (json.loads((sweep / f"{i}_table4_1_matching" / "summary.json").read_text())
-                                       ["metrics"]["final_discounted_return"] for i in range(2))]
+    means = [
+        sum(m) / len(m)
+        for m in (
+            json.loads((sweep / f"{i}_table4_1_matching" / "summary.json").read_text())["metrics"][
+                "final_discounted_return"
+            ]
+            for i in range(2)
+        )
+    ]
     best = yaml.safe_load((sweep / "optimization_results.yaml").read_text())
     assert best["best_value"] == pytest.approx(max(means), rel=1e-6)
     assert set(best["best_params"]) == {"actor.lr.value", "actor.beta.end"}
@@ -132,13 +176,16 @@ def check_before_work(cfg) -> None:
     instantiate(cfg.trainer).setup(cfg, torch.device("cpu"))
 
 
-@pytest.mark.parametrize("overrides,message", [
-    (["optimized_metric=reward"], "optimized_metric='reward' is not allowed"),
-    (["optimized_metric=1"], "optimized_metric=1 is not allowed"),
-    # the metrics of this run are named: a T-maze's, or the floor's at its own test levels
-    (["experiment=table4_1_matching", "optimized_metric=greedy_accuracy/0"], "final_discounted_return"),
-    (["optimized_metric=greedy_accuracy/0.3"], "greedy_accuracy/0.125"),
-])
+@pytest.mark.parametrize(
+    "overrides,message",
+    [
+        (["optimized_metric=reward"], "optimized_metric='reward' is not allowed"),
+        (["optimized_metric=1"], "optimized_metric=1 is not allowed"),
+        # the metrics of this run are named: a T-maze's, or the floor's at its own test levels
+        (["experiment=table4_1_matching", "optimized_metric=greedy_accuracy/0"], "final_discounted_return"),
+        (["optimized_metric=greedy_accuracy/0.3"], "greedy_accuracy/0.125"),
+    ],
+)
 def test_optimized_metric_is_validated(compose_cfg, overrides, message):
     with pytest.raises(ConfigError, match=message.replace("(", r"\(")) as e:
         check_before_work(compose_cfg([*overrides, "n_runs=1"]))
@@ -146,7 +193,10 @@ def test_optimized_metric_is_validated(compose_cfg, overrides, message):
 
 
 def test_optimized_metric_accepts_every_task_metric(compose_cfg):
-    for overrides in (["optimized_metric=greedy_accuracy/0.125"], ["optimized_metric=greedy_accuracy_before/1"],
-                      ["optimized_metric=reward_per_step_last10pct"],
-                      ["experiment=table5_1_bit", "optimized_metric=final_correct_goal_rate"]):
+    for overrides in (
+        ["optimized_metric=greedy_accuracy/0.125"],
+        ["optimized_metric=greedy_accuracy_before/1"],
+        ["optimized_metric=reward_per_step_last10pct"],
+        ["experiment=table5_1_bit", "optimized_metric=final_correct_goal_rate"],
+    ):
         check_before_work(compose_cfg([*overrides, "n_runs=1"]))

@@ -4,6 +4,7 @@ One tiny digit-floor run and one tiny T-maze run go into a sweep-like folder (as
 multirun would lay them out); the server is started on that folder and queried through its
 HTTP data API (the routes of tensorboard's scalars, hparams, images, histograms and projector
 plugins)."""
+
 import json
 import socket
 import subprocess
@@ -18,8 +19,13 @@ import pytest
 from conftest import ROOT, TINY, eager
 from ferl import runs
 
-TMAZE = ["experiment=table4_1_matching", "n_runs=2", "trainer.n_sample=200", "trainer.n_epoch=10",
-         "trainer.n_episodes=300"]
+TMAZE = [
+    "experiment=table4_1_matching",
+    "n_runs=2",
+    "trainer.n_sample=200",
+    "trainer.n_epoch=10",
+    "trainer.n_episodes=300",
+]
 FLOOR_RUN, TMAZE_RUN = "0_ch3_coding_cw", "1_table4_1_matching"
 PHASES = {"actor", "schedule", "test", "collect", "preprocessor", "hparam"}
 
@@ -28,9 +34,16 @@ PHASES = {"actor", "schedule", "test", "collect", "preprocessor", "hparam"}
 def sweep(tmp_path_factory):
     """Both runs trained at the same time (two processes) into one folder."""
     root = tmp_path_factory.mktemp("sweep")
-    jobs = [subprocess.Popen([sys.executable, str(ROOT / "train.py"), *eager(args), f"hydra.run.dir={root / name}"],
-                             cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-            for name, args in ((FLOOR_RUN, [*TINY, "experiment=ch3_coding_cw"]), (TMAZE_RUN, TMAZE))]
+    jobs = [
+        subprocess.Popen(
+            [sys.executable, str(ROOT / "train.py"), *eager(args), f"hydra.run.dir={root / name}"],
+            cwd=ROOT,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for name, args in ((FLOOR_RUN, [*TINY, "experiment=ch3_coding_cw"]), (TMAZE_RUN, TMAZE))
+    ]
     for job in jobs:
         _, err = job.communicate(timeout=300)
         assert job.returncode == 0, err[-2000:]
@@ -74,17 +87,22 @@ def test_runs_reads_back_config_metrics_and_scalars(sweep):
     assert series(FLOOR_RUN, "actor/reward_ma100")[0] == [100, 200, 300]
     assert series(FLOOR_RUN, "schedule/beta")[0] == [100, 200, 300]
     assert series(FLOOR_RUN, "test/greedy_accuracy_0.125")[0] == [0, 300]  # before and after training
-    np.testing.assert_allclose(series(FLOOR_RUN, "hparam/reward_per_step_last10pct")[1],
-                               [np.mean(floor["reward_per_step_last10pct"])], rtol=1e-6)
+    np.testing.assert_allclose(
+        series(FLOOR_RUN, "hparam/reward_per_step_last10pct")[1],
+        [np.mean(floor["reward_per_step_last10pct"])],
+        rtol=1e-6,
+    )
     assert series(TMAZE_RUN, "actor/discounted_return_ma200")[0] == [100, 200, 300]
     assert series(TMAZE_RUN, "predictor_joint/error_test")[0] == list(range(1, 11))
     assert series(TMAZE_RUN, "collect/train_sequences")[0] == [0]
-    np.testing.assert_allclose(series(TMAZE_RUN, "hparam/final_discounted_return")[1],
-                               [np.mean(tmaze["final_discounted_return"])], rtol=1e-6)
+    np.testing.assert_allclose(
+        series(TMAZE_RUN, "hparam/final_discounted_return")[1], [np.mean(tmaze["final_discounted_return"])], rtol=1e-6
+    )
 
     one = runs.load(sweep / TMAZE_RUN, tags=r"^actor/")
     assert list(one.configs["run"]) == ["."] and set(one.scalars["tag"]) == {
-        f"actor/{q}_ma200" for q in ("discounted_return", "steps", "terminal_reward", "td_abs_mean", "correct_goal")}
+        f"actor/{q}_ma200" for q in ("discounted_return", "steps", "terminal_reward", "td_abs_mean", "correct_goal")
+    }
 
 
 def free_port() -> int:
@@ -104,8 +122,12 @@ class TensorBoard:
         return body if raw else json.loads(body)
 
     def post(self, route: str, payload: dict):
-        request = urllib.request.Request(f"{self.base}{route}", data=json.dumps(payload).encode(),
-                                         headers={"Content-Type": "application/json"}, method="POST")
+        request = urllib.request.Request(
+            f"{self.base}{route}",
+            data=json.dumps(payload).encode(),
+            headers={"Content-Type": "application/json"},
+            method="POST",
+        )
         with urllib.request.urlopen(request, timeout=30) as response:
             return json.loads(response.read())
 
@@ -113,9 +135,12 @@ class TensorBoard:
 @pytest.fixture(scope="module")
 def server(sweep):
     port = free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "tensorboard.main", "--logdir", str(sweep),
-                             "--host", "127.0.0.1", "--port", str(port)],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tensorboard.main", "--logdir", str(sweep), "--host", "127.0.0.1", "--port", str(port)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     tb = TensorBoard(port)
     try:
         deadline = time.time() + 90
@@ -141,8 +166,9 @@ def server(sweep):
 def test_tensorboard_serves_scalars(server, sweep):
     tags = server.get("/data/plugin/scalars/tags")
     assert {"actor/reward_ma100", "schedule/beta", "test/greedy_accuracy_0.125"} <= set(tags[f"{FLOOR_RUN}/tb"])
-    assert {"actor/discounted_return_ma200", "predictor_joint/error_test", "collect/train_sequences"} \
-        <= set(tags[f"{TMAZE_RUN}/tb"])
+    assert {"actor/discounted_return_ma200", "predictor_joint/error_test", "collect/train_sequences"} <= set(
+        tags[f"{TMAZE_RUN}/tb"]
+    )
     points = server.get("/data/plugin/scalars/scalars", run=f"{TMAZE_RUN}/tb", tag="actor/discounted_return_ma200")
     read_back = runs.scalars(sweep / TMAZE_RUN, tags=["actor/discounted_return_ma200"])
     assert [p[1] for p in points] == list(read_back["step"]) == [100, 200, 300]
@@ -153,13 +179,32 @@ def test_tensorboard_serves_hparams_one_row_per_job(server, sweep):
     experiment = server.post("/data/plugin/hparams/experiment", {"experimentName": ""})
     hparams = {h["name"] for h in experiment["hparamInfos"]}
     # the union over both jobs' configs, lists included; not just the first job's keys
-    assert {"name", "seed", "actor.n_hidden", "trainer.test_noise_levels", "trainer.n_episodes", "env.matching"} <= hparams
+    assert {
+        "name",
+        "seed",
+        "actor.n_hidden",
+        "trainer.test_noise_levels",
+        "trainer.n_episodes",
+        "env.matching",
+    } <= hparams
     metrics = {m["name"]["tag"] for m in experiment["metricInfos"]}
-    assert {"hparam/reward_per_step_last10pct", "hparam/greedy_accuracy/0.125", "hparam/final_discounted_return",
-            "hparam/solved", "hparam/agent_steps_per_s"} <= metrics
-    groups = server.post("/data/plugin/hparams/session_groups", {
-        "experimentName": "", "allowedStatuses": ["STATUS_SUCCESS", "STATUS_UNKNOWN"],
-        "colParams": [], "startIndex": 0, "sliceSize": 100})["sessionGroups"]
+    assert {
+        "hparam/reward_per_step_last10pct",
+        "hparam/greedy_accuracy/0.125",
+        "hparam/final_discounted_return",
+        "hparam/solved",
+        "hparam/agent_steps_per_s",
+    } <= metrics
+    groups = server.post(
+        "/data/plugin/hparams/session_groups",
+        {
+            "experimentName": "",
+            "allowedStatuses": ["STATUS_SUCCESS", "STATUS_UNKNOWN"],
+            "colParams": [],
+            "startIndex": 0,
+            "sliceSize": 100,
+        },
+    )["sessionGroups"]
     rows = {g["sessions"][0]["name"]: g for g in groups}
     assert len(groups) == 2 and set(rows) == {f"{FLOOR_RUN}/tb", f"{TMAZE_RUN}/tb"}
     tmaze = rows[f"{TMAZE_RUN}/tb"]
@@ -185,8 +230,9 @@ def test_tensorboard_serves_images_histograms_and_embeddings(server):
 
     assert {f"{FLOOR_RUN}/tb", f"{TMAZE_RUN}/tb"} <= set(server.get("/data/plugin/projector/runs"))
     for run, tag, n_points, header in (
-            (FLOOR_RUN, "actor/hidden_test_digits:00300", 9 * 8, "class\toptimal_action\tgreedy_action"),
-            (TMAZE_RUN, "actor/hidden_at_probe:00300", None, "condition\tinitial_signal\tjunction_signal")):
+        (FLOOR_RUN, "actor/hidden_test_digits:00300", 9 * 8, "class\toptimal_action\tgreedy_action"),
+        (TMAZE_RUN, "actor/hidden_at_probe:00300", None, "condition\tinitial_signal\tjunction_signal"),
+    ):
         info = server.get("/data/plugin/projector/info", run=f"{run}/tb")
         assert tag in [e["tensorName"] for e in info["embeddings"]]
         rows = server.get("/data/plugin/projector/metadata", raw=True, run=f"{run}/tb", name=tag).decode().splitlines()

@@ -1,4 +1,5 @@
 """T-mazes (§4.3.1–4.3.3): moves, walls, goals, signals, truncation, optimal return, images."""
+
 import pytest
 import torch
 
@@ -147,7 +148,7 @@ def test_shortest_path_takes_T_min_actions(T, matching):
 @pytest.mark.parametrize("T", [2, 3, 6])
 def test_optimal_discounted_return(T):
     gamma = 0.95
-    closed_form = sum(-0.1 * gamma ** k for k in range(T - 1)) + 5 * gamma ** (T - 1)
+    closed_form = sum(-0.1 * gamma**k for k in range(T - 1)) + 5 * gamma ** (T - 1)
     for matching in (False, True):
         for max_steps in (T, 10):  # T_max = T_min leaves exactly the shortest path
             env = make_env(corridor_length=T, max_steps=max(max_steps, T), matching=matching)
@@ -199,8 +200,9 @@ def test_reproducible_with_seed_and_state_dict_resume():
     assert torch.equal(rollout(resumed, actions[3:]), rest)
 
 
-@pytest.mark.parametrize("kw,key", [({"corridor_length": 1}, "^corridor_length=1"),
-                                    ({"corridor_length": 4, "max_steps": 3}, "^max_steps=3")])
+@pytest.mark.parametrize(
+    "kw,key", [({"corridor_length": 1}, "^corridor_length=1"), ({"corridor_length": 4, "max_steps": 3}, "^max_steps=3")]
+)
 def test_invalid_sizes_raise(kw, key):
     with pytest.raises(ValueError, match=key):
         make_env(**kw)
@@ -245,12 +247,29 @@ def test_digit_reservoir_images_come_from_their_class():
     from test_digit_floor import tiny_split
 
     data = tiny_split()
-    classes = {"start_0": 0, "start_1": 1, "corridor": 2, "junction_0": 0, "junction_1": 1, "goal_left": 3, "goal_right": 4}
-    env = DigitTMaze(3, torch.Generator().manual_seed(0), data, classes, reservoir_size=4, binarize_threshold=None,
-                     corridor_length=3, max_steps=10, matching=True)
+    classes = {
+        "start_0": 0,
+        "start_1": 1,
+        "corridor": 2,
+        "junction_0": 0,
+        "junction_1": 1,
+        "goal_left": 3,
+        "goal_right": 4,
+    }
+    env = DigitTMaze(
+        3,
+        torch.Generator().manual_seed(0),
+        data,
+        classes,
+        reservoir_size=4,
+        binarize_threshold=None,
+        corridor_length=3,
+        max_steps=10,
+        matching=True,
+    )
     pools = {c: data.train_images[data.train_labels == c][:4] for c in range(5)}
     for name, label in classes.items():
         n = env.observation_names.index(name)
-        assert torch.equal(env.observation_table[n * 4:(n + 1) * 4], pools[label])
-    with pytest.raises(ValueError, match="env.reservoir_size"):
+        assert torch.equal(env.observation_table[n * 4 : (n + 1) * 4], pools[label])
+    with pytest.raises(ValueError, match=r"env.reservoir_size"):
         DigitTMaze(1, torch.Generator(), data, classes, reservoir_size=10_000, matching=True)

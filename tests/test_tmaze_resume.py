@@ -16,14 +16,27 @@ from ferl.run import checkpoint
 from test_train_cli import summary
 
 ROOT = Path(__file__).resolve().parents[1]
-TINY = ["experiment=table4_1_matching", "n_runs=2", "trainer.n_sample=200", "trainer.n_epoch=60",
-        "trainer.error_every=5", "trainer.checkpoint_every_epochs=5", "trainer.n_episodes=1500",
-        "trainer.checkpoint_every=100", "trainer.log_every=100"]
+TINY = [
+    "experiment=table4_1_matching",
+    "n_runs=2",
+    "trainer.n_sample=200",
+    "trainer.n_epoch=60",
+    "trainer.error_every=5",
+    "trainer.phases.predictors.checkpoint_every_epochs=5",
+    "trainer.n_episodes=1500",
+    "trainer.checkpoint_every=100",
+    "trainer.log_every=100",
+]
 
 
 def train(*args: str, stderr=subprocess.PIPE) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, str(ROOT / "train.py"), *eager([*TINY, *args])], cwd=ROOT,
-                            stdout=subprocess.DEVNULL, stderr=stderr, text=True)
+    return subprocess.Popen(
+        [sys.executable, str(ROOT / "train.py"), *eager([*TINY, *args])],
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=stderr,
+        text=True,
+    )
 
 
 def progress(run_dir: Path) -> dict | None:
@@ -96,8 +109,9 @@ def test_sigterm_in_each_phase_then_resume_equals_uninterrupted(tmp_path, whole,
 
 def test_kill_9_mid_actor_resumes_from_the_last_periodic_checkpoint(tmp_path, whole):
     run_dir = tmp_path / "killed"
-    saved = interrupt_when(run_dir, lambda p: (p["partial"].get("actor") or {}).get("episode", 0) >= 300,
-                           signal.SIGKILL)
+    saved = interrupt_when(
+        run_dir, lambda p: (p["partial"].get("actor") or {}).get("episode", 0) >= 300, signal.SIGKILL
+    )
     assert saved is not None, "the last checkpoint is unreadable"
     assert saved["partial"]["actor"]["episode"] % 100 == 0  # a periodic one: nothing ran a handler
     assert_same_as_uninterrupted(run_dir, whole)
@@ -114,16 +128,35 @@ def test_a_finished_phase_is_not_recomputed(tmp_path, whole):
     assert summary(run_dir)["metrics"] == summary(whole)["metrics"]
 
 
-PIXEL = ["experiment=table5_1_pixel", "n_runs=2", "env.reservoir_size=5", "preprocessor.sweeps=60",
-         "trainer.n_sample=300", "trainer.n_epoch=3", "trainer.n_episodes=100", "trainer.log_every=50",
-         "trainer.td_sample_every=50", "trainer.final_window=50"]
+PIXEL = [
+    "experiment=table5_1_pixel",
+    "n_runs=2",
+    "env.reservoir_size=5",
+    "preprocessor.sweeps=60",
+    "trainer.n_sample=300",
+    "trainer.n_epoch=3",
+    "trainer.n_episodes=100",
+    "trainer.log_every=50",
+    "trainer.td_sample_every=50",
+    "trainer.final_window=50",
+]
 
 
 def train_pixel(run_dir: Path, *args: str, stderr=subprocess.PIPE) -> subprocess.Popen:
     # a cache of its own per run directory: every run fits its RBM (no shortcut through the cache)
-    return subprocess.Popen([sys.executable, str(ROOT / "train.py"), *eager([*PIXEL, *args]), f"hydra.run.dir={run_dir}",
-                             f"preprocessor.cache_dir={run_dir.parent / (run_dir.name + '_cache')}"],
-                            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=stderr, text=True)
+    return subprocess.Popen(
+        [
+            sys.executable,
+            str(ROOT / "train.py"),
+            *eager([*PIXEL, *args]),
+            f"hydra.run.dir={run_dir}",
+            f"preprocessor.cache_dir={run_dir.parent / (run_dir.name + '_cache')}",
+        ],
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=stderr,
+        text=True,
+    )
 
 
 def test_sigterm_in_the_preprocessor_phase_then_resume(tmp_path):
@@ -161,8 +194,9 @@ def test_drqn_resumes_mid_actor_equal_to_uninterrupted(tmp_path):
     whole, cut = tmp_path / "whole", tmp_path / "cut"
     proc = train(*agent, f"hydra.run.dir={whole}")
     assert proc.wait(timeout=300) == 0, proc.stderr.read()[-2000:]
-    saved = interrupt_when(cut, lambda p: (p["partial"].get("actor") or {}).get("episode", 0) >= 300,
-                           signal.SIGTERM, *agent)
+    saved = interrupt_when(
+        cut, lambda p: (p["partial"].get("actor") or {}).get("episode", 0) >= 300, signal.SIGTERM, *agent
+    )
     assert 0 < saved["partial"]["actor"]["episode"] < 1500
     proc = train(*agent, "resume=true", f"hydra.run.dir={cut}")
     assert proc.wait(timeout=300) == 0, proc.stderr.read()[-2000:]

@@ -1,4 +1,5 @@
 """Algorithm 1 end to end through train.py: records, summary, analysis, and real learning."""
+
 import json
 import subprocess
 import sys
@@ -8,8 +9,15 @@ import pytest
 
 from conftest import ROOT, run_train
 
-SMALL = ["n_runs=2", "trainer.n_sample=600", "trainer.n_epoch=3", "trainer.n_episodes=60",
-         "trainer.log_every=20", "trainer.td_sample_every=20", "trainer.final_window=20"]
+SMALL = [
+    "n_runs=2",
+    "trainer.n_sample=600",
+    "trainer.n_epoch=3",
+    "trainer.n_episodes=60",
+    "trainer.log_every=20",
+    "trainer.td_sample_every=20",
+    "trainer.final_window=20",
+]
 
 
 @pytest.fixture(scope="module")
@@ -27,20 +35,27 @@ def test_summary_and_records(small_run):
         assert len(s["metrics"][key]) == 2, key
     assert s["optimal"]["discounted_return"] == pytest.approx(4.3175)
     ep = np.load(small_run / "records" / "episodes.npz")
-    np.testing.assert_allclose(ep["discounted_return"][:, -20:].mean(1), s["metrics"]["final_discounted_return"], rtol=1e-5)
+    np.testing.assert_allclose(
+        ep["discounted_return"][:, -20:].mean(1), s["metrics"]["final_discounted_return"], rtol=1e-5
+    )
     assert ep["td_sampled"].shape == (2, 3, 10)
     pred = np.load(small_run / "records" / "predictor.npz")
     assert pred["joint_error_train"].shape == (2, 4, 8, 11)  # epochs 0…3, T = 3…10, t = 0…10
     junction = np.load(small_run / "records" / "probe.npz")
-    assert junction["memory_joint"].shape[1] == 20 and junction["state"].shape[1] == 27 and junction["hidden"].shape[1] == 20
+    assert (
+        junction["memory_joint"].shape[1] == 20
+        and junction["state"].shape[1] == 27
+        and junction["hidden"].shape[1] == 20
+    )
     assert set(np.unique(junction["condition"])) <= {0, 1, 2, 3}
     # every junction visit is also a step of its episode
     assert (junction["step"] < ep["steps"][junction["run"], junction["episode"]]).all()
 
 
 def test_analyze_tmaze_run(small_run):
-    result = subprocess.run([sys.executable, str(ROOT / "analyze.py"), str(small_run)],
-                            capture_output=True, text=True, timeout=300)
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "analyze.py"), str(small_run)], capture_output=True, text=True, timeout=300
+    )
     assert result.returncode == 0, result.stderr[-2000:]
     assert (small_run / "analysis" / "report.md").exists()
 
@@ -60,8 +75,14 @@ def test_reduced_scale_regular_tmaze_is_learnt(tmp_path):
     the junction is learnt (a memoryless agent gets 0.5 correct; random walkers take ~7 steps).
     With the β ramp compressed into 2 000 episodes an actor can commit to one side before its
     memory features are useful (seed 1 does), so two of the three runs must learn it."""
-    result = run_train("experiment=table4_1_regular", "n_runs=3", "trainer.n_epoch=40", "predictor.joint.lr=0.2", "trainer.n_episodes=2000",
-                       f"hydra.run.dir={tmp_path / 'learn'}")
+    result = run_train(
+        "experiment=table4_1_regular",
+        "n_runs=3",
+        "trainer.n_epoch=40",
+        "predictor.joint.lr=0.2",
+        "trainer.n_episodes=2000",
+        f"hydra.run.dir={tmp_path / 'learn'}",
+    )
     assert result.returncode == 0, result.stderr[-2000:]
     m = json.loads((tmp_path / "learn" / "summary.json").read_text())["metrics"]
     assert sorted(m["final_correct_goal_rate"])[1] > 0.9, m
@@ -71,8 +92,13 @@ def test_reduced_scale_regular_tmaze_is_learnt(tmp_path):
 def test_algorithm2_pixel_run_records_and_cached_preprocessor(tmp_path):
     """Algorithm 2: RBM preprocessor → separate predictors → actor on (y, m^y, m^r); a second run
     with the same settings reuses the fitted RBM from the cache."""
-    pixel = ["experiment=table5_1_pixel", *SMALL, "trainer.error_every=1", "preprocessor.sweeps=2",
-             f"preprocessor.cache_dir={tmp_path / 'cache'}"]
+    pixel = [
+        "experiment=table5_1_pixel",
+        *SMALL,
+        "trainer.error_every=1",
+        "preprocessor.sweeps=2",
+        f"preprocessor.cache_dir={tmp_path / 'cache'}",
+    ]
     for name in ("first", "second"):
         result = run_train(*pixel, f"hydra.run.dir={tmp_path / name}")
         assert result.returncode == 0, result.stderr[-2000:]
@@ -102,9 +128,16 @@ def test_reduced_scale_pixel_agent_beats_a_memoryless_one(tmp_path):
     2 000 random episodes, 100 predictor epochs, 6 000 actor episodes; measured 0.685, 0.88, 0.615):
     choosing the goal needs the initial signal from the reward
     predictor's memory, so a memoryless agent is right at most half of the time."""
-    result = run_train("experiment=table5_1_pixel", "n_runs=3", "preprocessor.sweeps=30", "trainer.n_sample=2000",
-                       f"preprocessor.cache_dir={tmp_path / 'cache'}", "trainer.n_epoch=100",
-                       "trainer.n_episodes=6000", f"hydra.run.dir={tmp_path / 'pixel'}")
+    result = run_train(
+        "experiment=table5_1_pixel",
+        "n_runs=3",
+        "preprocessor.sweeps=30",
+        "trainer.n_sample=2000",
+        f"preprocessor.cache_dir={tmp_path / 'cache'}",
+        "trainer.n_epoch=100",
+        "trainer.n_episodes=6000",
+        f"hydra.run.dir={tmp_path / 'pixel'}",
+    )
     assert result.returncode == 0, result.stderr[-2000:]
     rates = json.loads((tmp_path / "pixel" / "summary.json").read_text())["metrics"]["final_correct_goal_rate"]
     assert np.mean(rates) > 0.6 and min(rates) > 0.5, rates

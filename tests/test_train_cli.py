@@ -1,4 +1,5 @@
 """train.py end to end: run directory, summary schema, bad input, determinism, resume, learning."""
+
 import json
 import signal
 import subprocess
@@ -11,7 +12,7 @@ import torch
 
 from conftest import ROOT, TINY, assert_same_tb_log, eager, run_train
 from ferl.run import checkpoint
-from ferl.trainers.online import PREFETCH_MIN_RUNS
+from ferl.trainers.continuing_td import PREFETCH_MIN_RUNS
 
 
 def summary(run_dir):
@@ -46,7 +47,9 @@ def test_run_directory_and_summary_schema(tiny_run):
 
 
 def test_analyze_runs_on_a_real_run(tiny_run):
-    result = subprocess.run([sys.executable, str(ROOT / "analyze.py"), str(tiny_run)], capture_output=True, text=True, timeout=300)
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "analyze.py"), str(tiny_run)], capture_output=True, text=True, timeout=300
+    )
     assert result.returncode == 0, result.stderr[-2000:]
     report = (tiny_run / "analysis" / "report.md").read_text()
     assert any(f"**{v}**" in report for v in ("held", "partly", "not held"))
@@ -59,27 +62,35 @@ def test_same_seed_same_numbers(tmp_path, tiny_run):
     assert summary(again)["metrics"] == summary(tiny_run)["metrics"]
 
 
-@pytest.mark.parametrize("override", ["env.noise=1.5", "actor.n_hidden=0", "actor.td_rule=td_lambda",
-                                      "data=mnist_idx", "actor.foo=1", "experiment=nope",
-                                      # found once the data are loaded: the embedded subset has 100 per class
-                                      "experiment=table5_1_pixel env.reservoir_size=101",
-                                      "experiment=table5_1_pixel preprocessor.cd_k=0",
-                                      # issue 2/8: an unknown memory, a negative curiosity, a corridor T_max cannot hold
-                                      "experiment=table4_1_regular predictor.joint.memory=tcn",
-                                      "experiment=table4_1_matching trainer=online trainer.curiosity=-0.5",
-                                      "experiment=table4_1_regular env.max_steps=10 env.corridor_length"
-                                      "=20",
-                                      # issue 3/8: a DBN whose sizes do not chain, noise on binarized pixels
-                                      "experiment=table5_1_pixel_dbn preprocessor.layers=[784]",
-                                      "experiment=table5_1_pixel_gaussian env.binarize_threshold=0.5",
-                                      # issue 3/8: an unknown value form; 2^40 factored actions by softmax
-                                      # selection or one node each; a Gibbs chain for the expected energy
-                                      "experiment=large_action actor.q=advantage",
-                                      "experiment=large_action actor.action_selection=clamp",
-                                      "experiment=large_action actor.action_code=onehot",
-                                      "experiment=table4_1_matching actor.action_selection=gibbs actor.q=expected_energy",
-                                      # issue 4/8: a memoryless agent has nothing to train online
-                                      "experiment=table4_1_matching trainer=online predictor=none"])
+@pytest.mark.parametrize(
+    "override",
+    [
+        "env.noise=1.5",
+        "actor.n_hidden=0",
+        "actor.td_rule=td_lambda",
+        "data=mnist_idx",
+        "actor.foo=1",
+        "experiment=nope",
+        # found once the data are loaded: the embedded subset has 100 per class
+        "experiment=table5_1_pixel env.reservoir_size=101",
+        "experiment=table5_1_pixel preprocessor.cd_k=0",
+        # issue 2/8: an unknown memory, a negative curiosity, a corridor T_max cannot hold
+        "experiment=table4_1_regular predictor.joint.memory=tcn",
+        "experiment=table4_1_matching trainer=online trainer.curiosity=-0.5",
+        "experiment=table4_1_regular env.max_steps=10 env.corridor_length=20",
+        # issue 3/8: a DBN whose sizes do not chain, noise on binarized pixels
+        "experiment=table5_1_pixel_dbn preprocessor.layers=[784]",
+        "experiment=table5_1_pixel_gaussian env.binarize_threshold=0.5",
+        # issue 3/8: an unknown value form; 2^40 factored actions by softmax
+        # selection or one node each; a Gibbs chain for the expected energy
+        "experiment=large_action actor.q=advantage",
+        "experiment=large_action actor.action_selection=clamp",
+        "experiment=large_action actor.action_code=onehot",
+        "experiment=table4_1_matching actor.action_selection=gibbs actor.q=expected_energy",
+        # issue 4/8: a memoryless agent has nothing to train online
+        "experiment=table4_1_matching trainer=online predictor=none",
+    ],
+)
 def test_bad_input_one_line_nothing_written(tmp_path, override):
     run_dir = tmp_path / "out" / "run"
     result = run_train(*override.split(), f"hydra.run.dir={run_dir}")
@@ -104,18 +115,20 @@ def checkpointed_step(run_dir) -> int:
         progress = checkpoint.read(run_dir / "checkpoints" / "last.pt").state()["progress"]
     except checkpoint.CheckpointError:  # not written yet
         return 0
-    return (progress["partial"].get("actor") or {}).get("step", 0)
+    return (progress["partial"].get("continuing_td") or {}).get("step", 0)
 
 
-def interrupt_and_resume(tmp_path, args: list, steps: int, sig: int, expected_code: int,
-                         settle: float = 0.0) -> None:
+def interrupt_and_resume(tmp_path, args: list, steps: int, sig: int, expected_code: int, settle: float = 0.0) -> None:
     """Run `args` whole; run them again and send `sig` once a checkpoint within the training
     phase exists (after `settle` seconds); check the checkpoint lies inside the run, resume,
     compare with the whole run."""
     whole, cut = tmp_path / "whole", tmp_path / "cut"
     assert run_train(*args, f"hydra.run.dir={whole}").returncode == 0
-    proc = subprocess.Popen([sys.executable, str(ROOT / "train.py"), *eager(args), f"hydra.run.dir={cut}"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        [sys.executable, str(ROOT / "train.py"), *eager(args), f"hydra.run.dir={cut}"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     deadline = time.time() + 120
     while checkpointed_step(cut) == 0 and time.time() < deadline:
         time.sleep(0.05)
@@ -132,25 +145,41 @@ def interrupt_and_resume(tmp_path, args: list, steps: int, sig: int, expected_co
 
 @pytest.mark.parametrize("runs", [2, PREFETCH_MIN_RUNS])  # the second draws random numbers ahead
 def test_sigterm_then_resume_equals_uninterrupted(tmp_path, runs):
-    args = [*(a for a in TINY if not a.startswith("n_runs=")), f"n_runs={runs}",
-            "trainer.steps=20000", "trainer.checkpoint_every=500", "trainer.log_every=500"]
+    args = [
+        *(a for a in TINY if not a.startswith("n_runs=")),
+        f"n_runs={runs}",
+        "trainer.steps=20000",
+        "trainer.checkpoint_every=500",
+        "trainer.log_every=500",
+    ]
     interrupt_and_resume(tmp_path, args, 20000, signal.SIGTERM, 128 + signal.SIGTERM)
 
 
 def test_large_action_task_resumes_equal_to_uninterrupted(tmp_path):
     """The large-action task's checkpoint (its key states, the states drawn ahead, the Gibbs
     chains' generator) continues the run exactly."""
-    args = ["experiment=large_action", "n_runs=2", "actor.gibbs_sweeps=5", "trainer.steps=6000",
-            "trainer.checkpoint_every=200", "trainer.log_every=200"]
+    args = [
+        "experiment=large_action",
+        "n_runs=2",
+        "actor.gibbs_sweeps=5",
+        "trainer.steps=6000",
+        "trainer.checkpoint_every=200",
+        "trainer.log_every=200",
+    ]
     interrupt_and_resume(tmp_path, args, 6000, signal.SIGTERM, 128 + signal.SIGTERM)
 
 
 def test_kill_9_resumes_from_a_checkpoint_the_clock_wrote(tmp_path):
-    """No step count reaches checkpoint_every inside the run: only trainer.checkpoint_minutes
+    """No step count reaches checkpoint_every inside the run: only trainer.run.checkpoint_minutes
     writes checkpoints. kill -9 (no handler) leaves the last one intact, and the resumed run
     ends as an uninterrupted one."""
-    args = [*TINY, "trainer.steps=8000", "trainer.checkpoint_every=1000000", "trainer.log_every=500",
-            "trainer.checkpoint_minutes=0.002"]
+    args = [
+        *TINY,
+        "trainer.steps=8000",
+        "trainer.checkpoint_every=1000000",
+        "trainer.log_every=500",
+        "trainer.run.checkpoint_minutes=0.002",
+    ]
     interrupt_and_resume(tmp_path, args, 8000, signal.SIGKILL, -signal.SIGKILL, settle=0.3)
 
 
@@ -164,8 +193,9 @@ def test_reduced_scale_learning_beats_random_policy(tmp_path):
     g = torch.Generator().manual_seed(1)
     random_rate = torch.stack([env.step(torch.randint(4, (50,), generator=g))[1] for _ in range(2000)]).mean().item()
     run_dir = tmp_path / "learn"
-    result = run_train("n_runs=3", "trainer.steps=20000", "actor.init_std=0.1", "trainer.test_per_class=20",
-                       f"hydra.run.dir={run_dir}")
+    result = run_train(
+        "n_runs=3", "trainer.steps=20000", "actor.init_std=0.1", "trainer.test_per_class=20", f"hydra.run.dir={run_dir}"
+    )
     assert result.returncode == 0, result.stderr[-2000:]
     learned = np.array(summary(run_dir)["metrics"]["reward_per_step_last10pct"])
     assert (learned > random_rate + 1.0).all(), (learned, random_rate)

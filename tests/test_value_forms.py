@@ -1,6 +1,7 @@
 """Value forms of the FERL actor (actor.q): Q(s, a) against brute-force enumeration of the hidden
 states, the update against autograd, td_fresh, the normalised step, and factored Gibbs actions
 against the exact Boltzmann law over every action."""
+
 import itertools
 
 import pytest
@@ -16,8 +17,21 @@ PARAMS = ("W_sh", "W_ah", "b_s", "b_a", "b_h")
 
 
 def make_actor(q, R=2, S=3, A=4, H=4, code="onehot", **kw):
-    actor = FERLActor(R, S, A, H, td_rule="sarsa", gamma=0.9, lr=Constant(0.1), beta=Constant(1.0), init_std=0.8,
-                      action_code=code, q=q, seed=2, **kw).double()
+    actor = FERLActor(
+        R,
+        S,
+        A,
+        H,
+        td_rule="sarsa",
+        gamma=0.9,
+        lr=Constant(0.1),
+        beta=Constant(1.0),
+        init_std=0.8,
+        action_code=code,
+        q=q,
+        seed=2,
+        **kw,
+    ).double()
     g = torch.Generator().manual_seed(7)
     for name in ("b_s", "b_a", "b_h"):
         getattr(actor, name).copy_(torch.randn(getattr(actor, name).shape, generator=g, dtype=torch.float64) * 0.5)
@@ -36,7 +50,7 @@ def brute_force_q(q, params, s, code, n_state):
     if q == "expected_energy":
         return (torch.softmax(neg_energy, 0) * neg_energy).sum()
     log_z = torch.logsumexp(neg_energy, 0)
-    return log_z / n_state ** 0.5 if q == "scaled_free_energy" else log_z
+    return log_z / n_state**0.5 if q == "scaled_free_energy" else log_z
 
 
 @pytest.mark.parametrize("code", ["onehot", "binary"])
@@ -47,10 +61,12 @@ def test_every_form_is_its_sum_over_hidden_states(q, code):
     F, _ = actor.evaluate(s)
     for r, b, a in itertools.product(range(2), range(3), range(4)):
         params = {n: getattr(actor, n)[r] for n in PARAMS}
-        assert -F[r, b, a].item() == pytest.approx(brute_force_q(q, params, s[r, b], actor.codes[a], 3).item(), rel=1e-10)
+        assert -F[r, b, a].item() == pytest.approx(
+            brute_force_q(q, params, s[r, b], actor.codes[a], 3).item(), rel=1e-10
+        )
     if code == "binary":  # only the chosen actions' F
         a = torch.tensor([[0, 3, 1], [2, 2, 0]])
-        F_a, x_a = actor.evaluate_actions(s, a)
+        F_a, _ = actor.evaluate_actions(s, a)
         torch.testing.assert_close(F_a, F.gather(-1, a.unsqueeze(-1)).squeeze(-1))
 
 
@@ -83,10 +99,21 @@ def test_td_fresh_gives_the_next_value_at_the_updated_parameters(q, code):
     rows = torch.arange(2)
     _, x = actor.evaluate(s)
     F_next, x_next = actor.evaluate(s_next)
-    got = actor.learn(s, a, x[rows, 0, a[:, 0]].unsqueeze(1), delta, 0.05, s_next, a_next,
-                      F_next[rows, 0, a_next[:, 0]].unsqueeze(1), x_next[rows, 0, a_next[:, 0]].unsqueeze(1))
+    got = actor.learn(
+        s,
+        a,
+        x[rows, 0, a[:, 0]].unsqueeze(1),
+        delta,
+        0.05,
+        s_next,
+        a_next,
+        F_next[rows, 0, a_next[:, 0]].unsqueeze(1),
+        x_next[rows, 0, a_next[:, 0]].unsqueeze(1),
+    )
     F_after, x_after = actor.evaluate(s_next)
-    torch.testing.assert_close(got, (F_after[rows, 0, a_next[:, 0]].unsqueeze(1), x_after[rows, 0, a_next[:, 0]].unsqueeze(1)))
+    torch.testing.assert_close(
+        got, (F_after[rows, 0, a_next[:, 0]].unsqueeze(1), x_after[rows, 0, a_next[:, 0]].unsqueeze(1))
+    )
 
 
 @pytest.mark.parametrize("q", FORMS)
@@ -111,8 +138,22 @@ def test_gradient_norm_and_the_normalised_step(q):
 
 
 def factored_actor(R, beta, q="free_energy", sweeps=30):
-    actor = FERLActor(R, 3, 8, 3, td_rule="sarsa", gamma=0.0, lr=Constant(0.1), beta=Constant(beta), init_std=0.0,
-                      action_code="binary", action_selection="gibbs", gibbs_sweeps=sweeps, q=q, seed=0).double()
+    actor = FERLActor(
+        R,
+        3,
+        8,
+        3,
+        td_rule="sarsa",
+        gamma=0.0,
+        lr=Constant(0.1),
+        beta=Constant(beta),
+        init_std=0.0,
+        action_code="binary",
+        action_selection="gibbs",
+        gibbs_sweeps=sweeps,
+        q=q,
+        seed=0,
+    ).double()
     g = torch.Generator().manual_seed(3)
     shared = {n: torch.randn(getattr(actor, n).shape[1:], generator=g, dtype=torch.float64) for n in PARAMS}
     for n, p in shared.items():  # every run the same network: R chains are R samples of one law
@@ -142,7 +183,7 @@ def test_factored_gibbs_samples_the_boltzmann_law_over_all_actions(monkeypatch, 
     s = torch.tensor([1.0, 0.0, 1.0], dtype=torch.float64)
     a, F_a, _, F_boot = actor.act(s.expand(R, 1, 3).contiguous(), beta, torch.Generator().manual_seed(5))
     freq = torch.bincount(a.flatten(), minlength=8).double() / R
-    chain_beta = beta / 3 ** 0.5 if q == "scaled_free_energy" else beta
+    chain_beta = beta / 3**0.5 if q == "scaled_free_energy" else beta
     exact = exact_law(actor, s, chain_beta)
     assert 0.5 * (freq - exact).abs().sum() < 0.02
     assert 0.5 * (exact_law(actor, s, 2 * chain_beta) - exact).abs().sum() > 0.05  # the bound tells them apart
@@ -150,7 +191,7 @@ def test_factored_gibbs_samples_the_boltzmann_law_over_all_actions(monkeypatch, 
 
 
 def test_bits_round_trip():
-    i = torch.tensor([0, 1, 5, 2 ** 40 - 1, 2 ** 39 + 3])
+    i = torch.tensor([0, 1, 5, 2**40 - 1, 2**39 + 3])
     bits = to_bits(i, 40)
     assert bits.shape == (5, 40) and bits[2, -3:].tolist() == [1.0, 0.0, 1.0]
     assert torch.equal(from_bits(bits), i)
@@ -159,11 +200,44 @@ def test_bits_round_trip():
 def test_annealed_chain_rises_geometrically_to_beta():
     """gibbs_anneal_from: the sweeps' inverse temperatures go from that value to β by a constant
     ratio (at β / Z for the scaled free energy); without it every sweep runs at β."""
-    plain = FERLActor(1, 3, 8, 2, td_rule="sarsa", gamma=0.0, lr=Constant(0.1), beta=Constant(1.0),
-                      action_code="binary", action_selection="gibbs", gibbs_sweeps=5)
+    plain = FERLActor(
+        1,
+        3,
+        8,
+        2,
+        td_rule="sarsa",
+        gamma=0.0,
+        lr=Constant(0.1),
+        beta=Constant(1.0),
+        action_code="binary",
+        action_selection="gibbs",
+        gibbs_sweeps=5,
+    )
     assert plain.chain_betas(4.0) == [4.0] * 5
-    annealed = FERLActor(1, 4, 8, 2, td_rule="sarsa", gamma=0.0, lr=Constant(0.1), beta=Constant(1.0),
-                         action_code="binary", action_selection="gibbs", gibbs_sweeps=5, gibbs_anneal_from=1.0,
-                         q="scaled_free_energy")
+    annealed = FERLActor(
+        1,
+        4,
+        8,
+        2,
+        td_rule="sarsa",
+        gamma=0.0,
+        lr=Constant(0.1),
+        beta=Constant(1.0),
+        action_code="binary",
+        action_selection="gibbs",
+        gibbs_sweeps=5,
+        gibbs_anneal_from=1.0,
+        q="scaled_free_energy",
+    )
     betas = torch.tensor(annealed.chain_betas(16.0), dtype=torch.float64)
     torch.testing.assert_close(betas, torch.tensor([1.0, 2.0, 4.0, 8.0, 16.0], dtype=torch.float64) / 2)
+
+
+def test_the_configs_value_forms_are_the_implemented_ones():
+    """``actor.q``'s allowed values (a Literal the type checker reads) name exactly the forms of
+    ``ferl.actors.values``: a form added to one and not the other fails here."""
+    from typing import get_args
+
+    from ferl.actors.values import FORMS
+
+    assert sorted(get_args(free_energy.ValueForm)) == sorted(FORMS)

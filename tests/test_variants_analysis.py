@@ -2,6 +2,7 @@
 miniature sweep: the digit floor with the dissertation's actor and with the expected-energy
 actor, the regular T-maze with and without a predictor, and a matching T-maze that one agent ran
 (no table). Rows are checked against summary.json."""
+
 import csv
 
 import numpy as np
@@ -11,21 +12,28 @@ from conftest import TINY, train_sweep
 from ferl.analysis.records import Manifest
 from reproduction.scope import dissertation_components
 
-
-MAZE = ["n_runs=2", "trainer.n_sample=300", "trainer.n_epoch=2", "trainer.n_episodes=60", "trainer.final_window=20",
-        "trainer.log_every=20"]
+MAZE = [
+    "n_runs=2",
+    "trainer.n_sample=300",
+    "trainer.n_epoch=2",
+    "trainer.n_episodes=60",
+    "trainer.final_window=20",
+    "trainer.log_every=20",
+]
 
 
 @pytest.fixture(scope="module")
 def sweep(tmp_path_factory):
     root = tmp_path_factory.mktemp("variants")
-    jobs = {"floor_fe": ["experiment=ch3_floor", *TINY],
-            "floor_ee": ["experiment=ch3_floor", *TINY, "actor.q=expected_energy"],
-            "maze": ["experiment=table4_1_regular", *MAZE],
-            "maze_memoryless": ["experiment=table4_1_regular", *MAZE, "predictor=none"],
-            "maze_mlp_q": ["experiment=table4_1_regular", *MAZE, "actor=mlp_q"],
-            "maze_oracle": ["experiment=table4_1_regular", *MAZE, "actor=oracle", "predictor=none"],
-            "matching": ["experiment=table4_1_matching", *MAZE]}
+    jobs = {
+        "floor_fe": ["experiment=ch3_floor", *TINY],
+        "floor_ee": ["experiment=ch3_floor", *TINY, "actor.q=expected_energy"],
+        "maze": ["experiment=table4_1_regular", *MAZE],
+        "maze_memoryless": ["experiment=table4_1_regular", *MAZE, "predictor=none"],
+        "maze_mlp_q": ["experiment=table4_1_regular", *MAZE, "actor=mlp_q"],
+        "maze_oracle": ["experiment=table4_1_regular", *MAZE, "actor=oracle", "predictor=none"],
+        "matching": ["experiment=table4_1_matching", *MAZE],
+    }
     return root, train_sweep(root, jobs)
 
 
@@ -33,8 +41,13 @@ def test_one_table_per_task_with_every_agent(sweep):
     root, summaries = sweep
     with open(root / "analysis" / "agents_side_by_side.csv") as f:
         rows = list(csv.DictReader(f))
-    assert {r["agent"] for r in rows} == {"dissertation agent", "actor.q=expected_energy", "predictor=none",
-                                          "actor=mlp_q", "oracle, actor=tabular_q, predictor=none"}
+    assert {r["agent"] for r in rows} == {
+        "dissertation agent",
+        "actor.q=expected_energy",
+        "predictor=none",
+        "actor=mlp_q",
+        "oracle, actor=tabular_q, predictor=none",
+    }
     # the oracle's true-state view is the same task; the matching maze, run by one agent, has no table
     assert {r["task"] for r in rows} == {"digit_floor: ch3_floor", "tmaze: table4_1_regular"}
     for name, agent in (("floor_fe", "dissertation agent"), ("floor_ee", "actor.q=expected_energy")):
@@ -60,8 +73,13 @@ def test_the_finding_names_the_leader_among_the_agents_that_see_what_the_agent_s
     """The leader by (solved, correct-goal rate, return), the oracle aside, from summary.json."""
     root, summaries = sweep
     agents = {"maze": "dissertation agent", "maze_memoryless": "predictor=none", "maze_mlp_q": "actor=mlp_q"}
-    key = lambda name: tuple(np.mean(summaries[name]["metrics"][m])  # noqa: E731
-                             for m in ("solved", "final_correct_goal_rate", "final_discounted_return"))
+
+    def key(name):
+        return tuple(
+            np.mean(summaries[name]["metrics"][m])
+            for m in ("solved", "final_correct_goal_rate", "final_discounted_return")
+        )
+
     best = max(agents, key=key)
     report = (root / "analysis" / "report.md").read_text()
     line = next(x for x in report.splitlines() if x.startswith("**Best: ") and "table4_1_regular" in x)

@@ -7,6 +7,7 @@ it equals the cue, −1 otherwise, and ends the episode. ``TracePredictor``: an 
 the observations, m_t = λ m_{t−1} + (1 − λ) y_{t−1}, m_0 = 0, whose output heads (ferl's) learn by
 full-batch gradient descent; the trace keeps λ^delay of the cue, so an actor that sees it can choose.
 """
+
 import torch
 from torch import nn
 
@@ -71,14 +72,23 @@ class CueEnv(EpisodicEnvironmentBase):
         return {"correct": self.correct, "cue": self.cue}
 
     def optimal(self, gamma: float) -> dict:
-        return {"discounted_return": gamma ** self.delay, "steps_to_goal": self.optimal_steps}
+        return {"discounted_return": gamma**self.delay, "steps_to_goal": self.optimal_steps}
 
     def describe(self) -> dict:
-        return {"kind": "cue", "task": self.task, "episodic": True, "observation": "bits",
-                "observation_size": self.observation_size, "n_actions": self.n_actions,
-                "action_names": list(self.action_names), "observation_names": list(OBSERVATIONS),
-                "max_steps": self.max_steps, "reward_values": list(self.reward_values),
-                "labels": ["cue"], "outcomes": ["correct", "cue"]}
+        return {
+            "kind": "cue",
+            "task": self.task,
+            "episodic": True,
+            "observation": "bits",
+            "observation_size": self.observation_size,
+            "n_actions": self.n_actions,
+            "action_names": list(self.action_names),
+            "observation_names": list(OBSERVATIONS),
+            "max_steps": self.max_steps,
+            "reward_values": list(self.reward_values),
+            "labels": ["cue"],
+            "outcomes": ["correct", "cue"],
+        }
 
     def state_dict(self) -> dict:
         return {k: getattr(self, k).clone() for k in STATE_KEYS}
@@ -92,8 +102,15 @@ class TracePredictor(OutputHeads):
     """An exponential trace of the observations with ferl's output heads (``ferl.interfaces.Predictor``)."""
 
     @checked
-    def __init__(self, n_runs: PositiveInt, n_obs: PositiveInt, n_actions: PositiveInt, decay: UnitInterval = 0.5,
-                 lr: Positive = 0.5, seed: int = 0):
+    def __init__(
+        self,
+        n_runs: PositiveInt,
+        n_obs: PositiveInt,
+        n_actions: PositiveInt,
+        decay: UnitInterval = 0.5,
+        lr: Positive = 0.5,
+        seed: int = 0,
+    ):
         super().__init__()
         gens = [torch.Generator().manual_seed(seed + r) for r in range(n_runs)]
 

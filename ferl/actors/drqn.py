@@ -19,14 +19,14 @@ independent: the loss is summed over runs, Adam is elementwise, and each run rep
 episodes, drawn for every run at once from the actor's generator, never from the trainer's (so
 the lockstep episodes' pre-drawn streams stay as they are).
 """
+
 import math
-from typing import Literal
 
 import torch
 from torch.nn import functional as nnf
 
 from ferl import rng
-from ferl.actors.softmax import TD_RULES, SoftmaxActor
+from ferl.actors.softmax import SoftmaxActor, TDRule
 from ferl.config.params import Discount, NonNegative, NonNegativeInt, PositiveInt, checked
 from ferl.interfaces import EndedEpisode
 from ferl.predictors.gated import gru_cell
@@ -66,12 +66,33 @@ class DRQNActor(SoftmaxActor):
     episodes by BPTT on the Huber TD loss with a target network (module docstring)."""
 
     learns_from_episodes = True  # nothing per step; its memory h steps in place with every act
+    # GRU weights (R, ·), then Q's head (PARAMETERS); their Adam moments and target copies are
+    # buffers named with _m, _v, _target, read through ``params``
+    W_x: torch.Tensor  # (R, S + nA, 3H)
+    W_h: torch.Tensor  # (R, H, 3H)
+    W_q: torch.Tensor  # (R, H, nA)
+    h: torch.Tensor  # (R, 1, H) the memory
+    a_prev: torch.Tensor  # (R, 1, nA) the previous action, one-hot
+    replay: dict[str, torch.Tensor] | None
 
     @checked
-    def __init__(self, n_runs: PositiveInt, n_state: PositiveInt, n_actions: PositiveInt, n_hidden: PositiveInt,
-                 gamma: Discount, lr, beta, replay_episodes: PositiveInt = 1000, batch_episodes: PositiveInt = 16,
-                 updates_per_episode: NonNegativeInt = 1, target_every: PositiveInt = 100,
-                 td_rule: Literal[TD_RULES] = "q", seed: NonNegativeInt = 0, init_std: NonNegative | None = None):
+    def __init__(
+        self,
+        n_runs: PositiveInt,
+        n_state: PositiveInt,
+        n_actions: PositiveInt,
+        n_hidden: PositiveInt,
+        gamma: Discount,
+        lr,
+        beta,
+        replay_episodes: PositiveInt = 1000,
+        batch_episodes: PositiveInt = 16,
+        updates_per_episode: NonNegativeInt = 1,
+        target_every: PositiveInt = 100,
+        td_rule: TDRule = "q",
+        seed: NonNegativeInt = 0,
+        init_std: NonNegative | None = None,
+    ):
         super().__init__()
         self.td_rule, self.gamma, self.n_hidden, self.n_actions = td_rule, gamma, n_hidden, n_actions
         self.lr_schedule, self.beta_schedule, self.lr_divisor = lr, beta, 1.0
@@ -80,11 +101,21 @@ class DRQNActor(SoftmaxActor):
         # PyTorch's GRU initialisation U(−1/√H, 1/√H) unless init_std is given, per run from seed + r
         generators = rng.run_generators(seed, n_runs)
         bound = 1 / math.sqrt(n_hidden)
-        shapes = {"W_x": (n_state + n_actions, 3 * n_hidden), "W_h": (n_hidden, 3 * n_hidden), "b_x": (3 * n_hidden,),
-                  "b_h": (3 * n_hidden,), "W_q": (n_hidden, n_actions), "b_q": (n_actions,)}
+        shapes = {
+            "W_x": (n_state + n_actions, 3 * n_hidden),
+            "W_h": (n_hidden, 3 * n_hidden),
+            "b_x": (3 * n_hidden,),
+            "b_h": (3 * n_hidden,),
+            "W_q": (n_hidden, n_actions),
+            "b_q": (n_actions,),
+        }
         for name, shape in shapes.items():
-            draws = [torch.rand(shape, generator=g) * 2 * bound - bound if init_std is None
-                     else torch.randn(shape, generator=g) * init_std for g in generators]
+            draws = [
+                torch.rand(shape, generator=g) * 2 * bound - bound
+                if init_std is None
+                else torch.randn(shape, generator=g) * init_std
+                for g in generators
+            ]
             self.register_buffer(name, torch.stack(draws))
         for name in PARAMETERS:  # Adam's moments and the target network
             self.register_buffer(f"{name}_m", torch.zeros_like(getattr(self, name)))
@@ -94,7 +125,7 @@ class DRQNActor(SoftmaxActor):
         self.register_buffer("a_prev", torch.zeros(n_runs, 1, n_actions))
         # the replay's draws for every run at once, from a seed that run 0's stream gives
         self.generator = rng.generator(rng.child_seed(generators[0]))
-        self.replay = None      # allocated by the first episode, whose length fixes T_max
+        self.replay = None  # allocated by the first episode, whose length fixes T_max
         self.episodes = self.adam_steps = 0
 
     @property
@@ -105,10 +136,17 @@ class DRQNActor(SoftmaxActor):
         return {name: getattr(self, name + suffix) for name in PARAMETERS}
 
     def describe(self) -> dict:
-        return {"kind": "drqn", "memory": "gru", "n_hidden": self.n_hidden, "gamma": self.gamma,
-                "td_rule": self.td_rule, "replay_episodes": self.replay_episodes,
-                "batch_episodes": self.batch_episodes, "updates_per_episode": self.updates_per_episode,
-                "target_every": self.target_every}
+        return {
+            "kind": "drqn",
+            "memory": "gru",
+            "n_hidden": self.n_hidden,
+            "gamma": self.gamma,
+            "td_rule": self.td_rule,
+            "replay_episodes": self.replay_episodes,
+            "batch_episodes": self.batch_episodes,
+            "updates_per_episode": self.updates_per_episode,
+            "target_every": self.target_every,
+        }
 
     def state_weights(self) -> torch.Tensor:
         """The observation's weights into the GRU's gates (R, S, 3H)."""
@@ -125,7 +163,7 @@ class DRQNActor(SoftmaxActor):
         h = gru_step(p, torch.cat([s, self.a_prev.expand(-1, s.shape[1], -1)], -1), self.h.expand(-1, s.shape[1], -1))
         return -q_values(p, h), h.unsqueeze(2).expand(-1, -1, self.n_actions, -1)
 
-    def act(self, s: torch.Tensor, beta: float, generator: torch.Generator, uniform: torch.Tensor = None):
+    def act(self, s: torch.Tensor, beta: float, generator: torch.Generator, uniform: torch.Tensor | None = None):
         """``SoftmaxActor.act`` at s (R, 1, S), then the memory steps: h ← GRU((s, a_{t−1}), h)
         and a_{t−1} ← the action drawn."""
         a, F_a, h, F_boot = super().act(s, beta, generator, uniform)
@@ -139,8 +177,13 @@ class DRQNActor(SoftmaxActor):
         Adam steps on replayed episodes at step size ``lr``, and forget the episode: h = 0 and no
         previous action in every run. Nothing is learnt per step (``ActorBase.learn``)."""
         states, actions, rewards, lengths, terminated = episode.padded()
-        stored = {"states": states, "actions": actions, "rewards": rewards, "lengths": lengths,
-                   "terminated": terminated}
+        stored = {
+            "states": states,
+            "actions": actions,
+            "rewards": rewards,
+            "lengths": lengths,
+            "terminated": terminated,
+        }
         if self.replay is None:
             self.replay = new_replay(stored, self.replay_episodes)
         store_episode(self.replay, self.episodes, stored)
@@ -156,6 +199,7 @@ class DRQNActor(SoftmaxActor):
     def sample(self) -> dict:
         """``batch_episodes`` stored episodes per run, drawn uniformly with replacement, every
         run's in one draw."""
+        assert self.replay is not None  # end_episode has stored one
         index = draw_episodes(self.replay, self.episodes, self.batch_episodes, self.generator).to(self.W_q.device)
         return stored_episodes(self.replay, index)
 
@@ -163,9 +207,9 @@ class DRQNActor(SoftmaxActor):
         """Σ over runs of the mean Huber TD loss of the module docstring over the batch's steps."""
         states, actions, rewards = batch["states"], batch["actions"], batch["rewards"]
         T = actions.shape[-1]
-        onehot = nnf.one_hot(actions, self.n_actions).to(states.dtype)            # (R, B, T, nA)
-        prev = torch.cat([torch.zeros_like(onehot[:, :, :1]), onehot], 2)          # a_{t−1}, (R, B, T+1, nA)
-        q = unroll(p, states, prev)                                                  # (R, B, T+1, nA)
+        onehot = nnf.one_hot(actions, self.n_actions).to(states.dtype)  # (R, B, T, nA)
+        prev = torch.cat([torch.zeros_like(onehot[:, :, :1]), onehot], 2)  # a_{t−1}, (R, B, T+1, nA)
+        q = unroll(p, states, prev)  # (R, B, T+1, nA)
         with torch.no_grad():
             q_next = unroll(self.params("_target"), states, prev)[:, :, 1:].max(-1).values  # (R, B, T)
             t = torch.arange(T, device=states.device)
@@ -193,13 +237,17 @@ class DRQNActor(SoftmaxActor):
                 m, v = getattr(self, f"{name}_m"), getattr(self, f"{name}_v")
                 m.mul_(b1).add_(g, alpha=1 - b1)
                 v.mul_(b2).addcmul_(g, g, value=1 - b2)
-                denominator = (v.sqrt() / math.sqrt(1 - b2 ** k)).add_(ADAM_EPS)
-                getattr(self, name).addcdiv_(m, denominator, value=-lr / (1 - b1 ** k))
+                denominator = (v.sqrt() / math.sqrt(1 - b2**k)).add_(ADAM_EPS)
+                getattr(self, name).addcdiv_(m, denominator, value=-lr / (1 - b1**k))
 
     def get_extra_state(self) -> dict:
         """What a checkpoint needs beyond the buffers: the replay, the counters, the generator."""
-        return {"replay": self.replay, "episodes": self.episodes, "adam_steps": self.adam_steps,
-                "generator": self.generator.get_state()}
+        return {
+            "replay": self.replay,
+            "episodes": self.episodes,
+            "adam_steps": self.adam_steps,
+            "generator": self.generator.get_state(),
+        }
 
     def set_extra_state(self, state: dict) -> None:
         self.replay, self.episodes, self.adam_steps = state["replay"], state["episodes"], state["adam_steps"]

@@ -20,23 +20,24 @@ All parameters carry the run dimension first, ``W_sh`` (R, S, H); states are (R,
 B = 1 in the online step loop and B = many for test images. The cache of ``evaluate`` is the
 hidden input x (R, B, nA, H), ĥ = σ(x).
 """
+
 import math
 from typing import Literal
 
 import torch
 
 from ferl import rbm, rng
-from ferl.actors.softmax import TD_RULES, SoftmaxActor, check_schedules, sample_categorical
+from ferl.actors.softmax import SoftmaxActor, TDRule, check_schedules, sample_categorical
 from ferl.actors.values import FORMS, value_form
 from ferl.bits import from_bits, to_bits
 from ferl.config.params import ArgumentError, Discount, NonNegative, NonNegativeInt, Positive, PositiveInt, checked
 
 # what α is divided by: the square root of the edges or of a hidden node's fan-in, nothing, or
 # ‖∂Q(s, a)/∂θ‖² (normalised LMS: α is then the share of δ that one update corrects)
-LR_NORMS = ("edges", "fan_in", "none", "gradient")
-ACTION_CODES = ("onehot", "binary")
-ACTION_SELECTIONS = ("clamp", "gibbs")
-VALUE_FORMS = tuple(FORMS)
+LRNorm = Literal["edges", "fan_in", "none", "gradient"]
+ActionCode = Literal["onehot", "binary"]
+ActionSelection = Literal["clamp", "gibbs"]
+ValueForm = Literal["free_energy", "scaled_free_energy", "expected_energy"]  # ferl.actors.values.FORMS' names
 # Up to this many actions every action's F is computed at every step (clamped softmax, Q(0),
 # expected SARSA); beyond it actions are factored bit codes drawn by Gibbs sampling.
 MAX_ENUMERATED_ACTIONS = 4096
@@ -59,13 +60,36 @@ class FERLActor(SoftmaxActor):
     online by θ ← θ + α δ (−∂F/∂θ) (Eqs. 3.5–3.10); batched over runs (module docstring)."""
 
     shared_buffers = ("codes",)
+    codes: torch.Tensor  # (nA, bits) the actions' codes, shared by the runs
+    W_sh: torch.Tensor  # (R, S, H)
+    W_ah: torch.Tensor  # (R, bits, H)
+    b_s: torch.Tensor  # (R, S)
+    b_a: torch.Tensor  # (R, bits)
+    b_h: torch.Tensor  # (R, H)
+
     @checked
-    def __init__(self, n_runs: PositiveInt, n_state: PositiveInt, n_actions: PositiveInt, n_hidden: PositiveInt,
-                 td_rule: Literal[TD_RULES], gamma: Discount, lr, beta, lr_norm: Literal[LR_NORMS] = "edges",
-                 init_std: NonNegative = 0.01, bias_init_std: NonNegative = 0.0,
-                 action_code: Literal[ACTION_CODES] = "onehot", action_selection: Literal[ACTION_SELECTIONS] = "clamp",
-                 gibbs_sweeps: PositiveInt = 20, gibbs_anneal_from: Positive | None = None, td_fresh: bool = False,
-                 q: Literal[VALUE_FORMS] = "free_energy", q_scale: Positive | None = None, seed: NonNegativeInt = 0):
+    def __init__(
+        self,
+        n_runs: PositiveInt,
+        n_state: PositiveInt,
+        n_actions: PositiveInt,
+        n_hidden: PositiveInt,
+        td_rule: TDRule,
+        gamma: Discount,
+        lr,
+        beta,
+        lr_norm: LRNorm = "edges",
+        init_std: NonNegative = 0.01,
+        bias_init_std: NonNegative = 0.0,
+        action_code: ActionCode = "onehot",
+        action_selection: ActionSelection = "clamp",
+        gibbs_sweeps: PositiveInt = 20,
+        gibbs_anneal_from: Positive | None = None,
+        td_fresh: bool = False,
+        q: ValueForm = "free_energy",
+        q_scale: Positive | None = None,
+        seed: NonNegativeInt = 0,
+    ):
         super().__init__()
         self.td_rule, self.gamma, self.td_fresh = td_rule, gamma, td_fresh
         self.n_hidden, self.lr_norm = n_hidden, lr_norm
@@ -77,12 +101,16 @@ class FERLActor(SoftmaxActor):
         self.onehot = action_code == "onehot"
         self.enumerated = n_actions <= MAX_ENUMERATED_ACTIONS
         # factored actions are the bits of their index (ferl.bits); no table of 2^K rows
-        codes = action_code_table(n_actions, action_code) if self.enumerated else torch.zeros(0, int(math.log2(n_actions)))
+        codes = (
+            action_code_table(n_actions, action_code) if self.enumerated else torch.zeros(0, int(math.log2(n_actions)))
+        )
         n_bits = codes.shape[1]
         self.register_buffer("codes", codes)
         # Each run is initialised from its own seed, so run r does not depend on n_runs.
         gens = rng.run_generators(seed, n_runs)
-        self.register_buffer("W_sh", torch.stack([torch.randn(n_state, n_hidden, generator=g) for g in gens]) * init_std)
+        self.register_buffer(
+            "W_sh", torch.stack([torch.randn(n_state, n_hidden, generator=g) for g in gens]) * init_std
+        )
         self.register_buffer("W_ah", torch.stack([torch.randn(n_bits, n_hidden, generator=g) for g in gens]) * init_std)
         # biases N(0, bias_init_std²), drawn after the weights so the weights do not depend on it
         biases = [torch.randn(n_state + n_bits + n_hidden, generator=g) for g in gens]
@@ -102,8 +130,11 @@ class FERLActor(SoftmaxActor):
         gives ``n_actions``) coded in bits, drawn by Gibbs sampling and learnt by SARSA."""
         check_schedules(args)
         if args["action_selection"] == "gibbs" and not FORMS[args["q"]].boltzmann:
-            raise ArgumentError("q", "free_energy or scaled_free_energy with action_selection=gibbs "
-                                     "(no Gibbs chain samples exp(β Q) of the expected energy)")
+            raise ArgumentError(
+                "q",
+                "free_energy or scaled_free_energy with action_selection=gibbs "
+                "(no Gibbs chain samples exp(β Q) of the expected energy)",
+            )
         n_actions = args.get("n_actions", 0)
         if n_actions <= MAX_ENUMERATED_ACTIONS:
             return
@@ -122,9 +153,16 @@ class FERLActor(SoftmaxActor):
         return self.W_sh.shape[0]
 
     def describe(self) -> dict:
-        return {"kind": "free_energy", "q": self.form.name, "n_hidden": self.n_hidden, "gamma": self.gamma,
-                "td_rule": self.td_rule, "action_selection": self.action_selection, "td_fresh": self.td_fresh,
-                "action_bits": self.W_ah.shape[1]}
+        return {
+            "kind": "free_energy",
+            "q": self.form.name,
+            "n_hidden": self.n_hidden,
+            "gamma": self.gamma,
+            "td_rule": self.td_rule,
+            "action_selection": self.action_selection,
+            "td_fresh": self.td_fresh,
+            "action_bits": self.W_ah.shape[1],
+        }
 
     @property
     def samples_with_generator(self) -> bool:
@@ -149,7 +187,9 @@ class FERLActor(SoftmaxActor):
         """Energies F = −Q of every action and the hidden inputs: s (R, B, S) or shared (B, S) →
         F (R, B, nA), x (R, B, nA, H) with ĥ = σ(x) (Eq. 3.1c)."""
         x = rbm.hidden_input(s, self.W_sh, self.b_h).unsqueeze(2) + self.action_input(self.W_ah).unsqueeze(1)
-        visible = rbm.visible_term(s, self.b_s).unsqueeze(-1) + self.action_input(self.b_a.unsqueeze(-1)).transpose(1, 2)
+        visible = rbm.visible_term(s, self.b_s).unsqueeze(-1) + self.action_input(self.b_a.unsqueeze(-1)).transpose(
+            1, 2
+        )
         return self.form.energy(visible, x), x
 
     def evaluate_actions(self, s: torch.Tensor, a: torch.Tensor):
@@ -169,7 +209,7 @@ class FERLActor(SoftmaxActor):
         One-hot codes are the identity, so the product is skipped on the hot path."""
         return weights if self.onehot else self.codes @ weights
 
-    def act(self, s: torch.Tensor, beta: float, generator: torch.Generator, uniform: torch.Tensor = None):
+    def act(self, s: torch.Tensor, beta: float, generator: torch.Generator, uniform: torch.Tensor | None = None):
         """At states s (R, 1, S): an action a (R, 1) by the actor's selection, its F(s, a) (R, 1) and
         hidden input (R, 1, H), and the F that a TD error bootstraps from at s (§3.2): F(s, a)
         (SARSA), min_a F (Q(0)) or the policy's mean F (expected SARSA). Factored actions are
@@ -180,8 +220,14 @@ class FERLActor(SoftmaxActor):
             return a, F_a, x_a, F_a
         return super().act(s, beta, generator, uniform)
 
-    def select(self, s: torch.Tensor, F: torch.Tensor, beta: float, generator: torch.Generator,
-               uniform: torch.Tensor = None) -> torch.Tensor:
+    def select(
+        self,
+        s: torch.Tensor,
+        F: torch.Tensor,
+        beta: float,
+        generator: torch.Generator,
+        uniform: torch.Tensor | None = None,
+    ) -> torch.Tensor:
         """An action index per (run, state): clamped softmax (Eq. 3.11) or alternating Gibbs.
 
         ``uniform`` (R, B, 1) may carry pre-drawn U(0, 1) numbers for the clamped softmax.
@@ -207,7 +253,9 @@ class FERLActor(SoftmaxActor):
             h = torch.bernoulli(torch.sigmoid(b * x), generator=generator)
             action_field = torch.bmm(h, self.W_ah.transpose(1, 2)) + self.b_a.unsqueeze(1)
             probs = torch.softmax(b * action_field @ self.codes.T, -1)
-            a = sample_categorical(probs, torch.rand(a.shape + (1,), generator=generator, device=s.device, dtype=probs.dtype))
+            a = sample_categorical(
+                probs, torch.rand(a.shape + (1,), generator=generator, device=s.device, dtype=probs.dtype)
+            )
         return a
 
     def gibbs_bits(self, s: torch.Tensor, beta: float, generator: torch.Generator) -> torch.Tensor:
@@ -262,7 +310,9 @@ class FERLActor(SoftmaxActor):
         overlap = (s_next * s).sum(-1) + self.codes_overlap(a, a_next)
         x_new = x_next + (overlap + 1).unsqueeze(-1) * g
         phi = self.form.hidden_term
-        F_new = F_next - self.scaled(self.scaled(lr * delta * overlap)) - self.scaled((phi(x_new) - phi(x_next)).sum(-1))
+        F_new = (
+            F_next - self.scaled(self.scaled(lr * delta * overlap)) - self.scaled((phi(x_new) - phi(x_next)).sum(-1))
+        )
         return F_new, x_new
 
     def gradient_norm(self, s: torch.Tensor, a: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
@@ -297,7 +347,9 @@ class FERLActor(SoftmaxActor):
             self.b_s.add_(torch.bmm(step.unsqueeze(1), s).squeeze(1))
         self.b_h.add_(g.sum(1))
         if self.onehot:  # the action node of a is the only active one: update row a only
-            rows = (a + torch.arange(0, a.shape[0] * self.W_ah.shape[1], self.W_ah.shape[1], device=a.device).unsqueeze(1)).flatten()
+            rows = (
+                a + torch.arange(0, a.shape[0] * self.W_ah.shape[1], self.W_ah.shape[1], device=a.device).unsqueeze(1)
+            ).flatten()
             self.W_ah.view(-1, self.W_ah.shape[2]).index_add_(0, rows, g.flatten(0, 1))
             self.b_a.view(-1).index_add_(0, rows, step.flatten())
         else:

@@ -14,16 +14,17 @@ Q(s, a), θ ← θ + α δ ∂Q(s, a)/∂θ (the FERL actor's Eq. 3.10 with anot
 Parameters carry the run dimension first: W_1 (R, S, H), b_1 (R, H), W_2 (R, H, nA), b_2 (R, nA).
 The cache of ``evaluate`` is h, shared by all actions: (R, B, nA, H) as a broadcast view.
 """
+
 import math
 from typing import Literal
 
 import torch
 
 from ferl import rng
-from ferl.actors.softmax import TD_RULES, SoftmaxActor
+from ferl.actors.softmax import SoftmaxActor, TDRule
 from ferl.config.params import Discount, NonNegative, NonNegativeInt, PositiveInt, checked
 
-LR_NORMS = ("fan_in", "none")  # α / √(state inputs of a hidden node), or α as given
+LRNorm = Literal["fan_in", "none"]  # α / √(state inputs of a hidden node), or α as given
 
 
 class MLPQActor(SoftmaxActor):
@@ -31,10 +32,27 @@ class MLPQActor(SoftmaxActor):
     + b_2[a] in place of the RBM of §4.2, with the FERL actor's TD rule and softmax (Eq. 3.11),
     updated by θ ← θ + α δ ∂Q/∂θ (Eq. 3.10 with this Q; module docstring)."""
 
+    W_1: torch.Tensor  # (R, S, H)
+    W_2: torch.Tensor  # (R, H, nA)
+    b_1: torch.Tensor  # (R, H)
+    b_2: torch.Tensor  # (R, nA)
+
     @checked
-    def __init__(self, n_runs: PositiveInt, n_state: PositiveInt, n_actions: PositiveInt, n_hidden: PositiveInt,
-                 td_rule: Literal[TD_RULES], gamma: Discount, lr, beta, lr_norm: Literal[LR_NORMS] = "fan_in",
-                 init_std: NonNegative = 0.1, td_fresh: bool = True, seed: NonNegativeInt = 0):
+    def __init__(
+        self,
+        n_runs: PositiveInt,
+        n_state: PositiveInt,
+        n_actions: PositiveInt,
+        n_hidden: PositiveInt,
+        td_rule: TDRule,
+        gamma: Discount,
+        lr,
+        beta,
+        lr_norm: LRNorm = "fan_in",
+        init_std: NonNegative = 0.1,
+        td_fresh: bool = True,
+        seed: NonNegativeInt = 0,
+    ):
         super().__init__()
         self.td_rule, self.gamma, self.td_fresh, self.n_hidden = td_rule, gamma, td_fresh, n_hidden
         self.lr_schedule, self.beta_schedule = lr, beta
@@ -51,8 +69,13 @@ class MLPQActor(SoftmaxActor):
         return self.W_1.shape[0]
 
     def describe(self) -> dict:
-        return {"kind": "mlp_q", "n_hidden": self.n_hidden, "gamma": self.gamma, "td_rule": self.td_rule,
-                "td_fresh": self.td_fresh}
+        return {
+            "kind": "mlp_q",
+            "n_hidden": self.n_hidden,
+            "gamma": self.gamma,
+            "td_rule": self.td_rule,
+            "td_fresh": self.td_fresh,
+        }
 
     def state_weights(self) -> torch.Tensor:
         return self.W_1
@@ -86,9 +109,9 @@ class MLPQActor(SoftmaxActor):
     def update(self, s, a, h, delta, lr) -> None:
         """The gradient step of the module docstring, summed over the B axis: s (R, B, S),
         a (R, B), h (R, B, H) at (s, a), delta (R, B)."""
-        step = lr * delta                                       # α δ (R, B)
+        step = lr * delta  # α δ (R, B)
         w_a = self.W_2.transpose(1, 2).gather(1, a.unsqueeze(-1).expand(-1, -1, self.n_hidden))  # W_2[:, a] (R, B, H)
-        g_hidden = step.unsqueeze(-1) * w_a * h * (1 - h)      # α δ ∂Q/∂b_1
+        g_hidden = step.unsqueeze(-1) * w_a * h * (1 - h)  # α δ ∂Q/∂b_1
         onehot = torch.nn.functional.one_hot(a, self.W_2.shape[2]).to(h.dtype)  # (R, B, nA)
         self.W_2.baddbmm_(h.transpose(1, 2), step.unsqueeze(-1) * onehot)
         self.b_2.add_((step.unsqueeze(-1) * onehot).sum(1))

@@ -6,7 +6,10 @@ the actor's schedules over training. Actors say only how they evaluate and updat
 All parameters carry the run dimension first and are buffers, so ``slice_runs`` can hand out views of
 a slice of the runs whose updates land in the whole batch.
 """
+
 import copy
+from collections.abc import Callable
+from typing import Literal, get_args
 
 import torch
 from hydra.utils import instantiate
@@ -15,7 +18,8 @@ from torch import nn
 from ferl.config.params import ArgumentError
 from ferl.interfaces import ActorBase
 
-TD_RULES = ("sarsa", "q", "expected_sarsa")
+TDRule = Literal["sarsa", "q", "expected_sarsa"]
+TD_RULES = get_args(TDRule)
 
 
 def pick(x: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
@@ -53,6 +57,15 @@ class SoftmaxActor(ActorBase, nn.Module):
     ``ActorBase`` gives the other hooks' defaults."""
 
     shared_buffers: tuple = ()  # buffers without a run dimension (``slice_runs`` keeps them whole)
+    td_rule: str  # a TDRule
+    gamma: float
+    lr_schedule: Callable[[float], float]  # α at a fraction of training done
+    beta_schedule: Callable[[float], float]  # β likewise
+    lr_divisor: float
+
+    def evaluate(self, s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """F (R, B, nA) and the cache (R, B, nA, ·) at states s: the subclass's."""
+        raise NotImplementedError
 
     @classmethod
     def check_config(cls, args: dict) -> None:
@@ -62,7 +75,9 @@ class SoftmaxActor(ActorBase, nn.Module):
         """This actor restricted to a slice of its runs. The parameters are views, so updates
         of the slice land in this actor's."""
         part = copy.copy(self)
-        part._buffers = {name: b if name in self.shared_buffers else b[index] for name, b in self._buffers.items()}
+        part._buffers = {
+            name: b if name in self.shared_buffers or b is None else b[index] for name, b in self._buffers.items()
+        }
         return part
 
     def learning_rate(self, progress: float) -> float:
@@ -76,15 +91,21 @@ class SoftmaxActor(ActorBase, nn.Module):
         """Softmax action-selection probabilities, Eq. (3.11)."""
         return torch.softmax(-beta * F, dim=-1)
 
-    def select(self, s: torch.Tensor, F: torch.Tensor, beta: float, generator: torch.Generator,
-               uniform: torch.Tensor = None) -> torch.Tensor:
+    def select(
+        self,
+        s: torch.Tensor,
+        F: torch.Tensor,
+        beta: float,
+        generator: torch.Generator,
+        uniform: torch.Tensor | None = None,
+    ) -> torch.Tensor:
         """An action index per (run, state) by the clamped softmax (Eq. 3.11); ``uniform``
         (R, B, 1) may carry pre-drawn U(0, 1) numbers."""
         if uniform is None:
             uniform = torch.rand(F.shape[:-1] + (1,), generator=generator, device=F.device, dtype=F.dtype)
         return sample_categorical(self.policy(F, beta), uniform)
 
-    def act(self, s: torch.Tensor, beta: float, generator: torch.Generator, uniform: torch.Tensor = None):
+    def act(self, s: torch.Tensor, beta: float, generator: torch.Generator, uniform: torch.Tensor | None = None):
         """At states s (R, 1, S): an action a (R, 1), its F(s, a) (R, 1) and cache (R, 1, ·), and
         the F a TD error bootstraps from at s (§3.2): F(s, a) (SARSA), min_a F (Q(0)) or the
         policy's mean F (expected SARSA)."""

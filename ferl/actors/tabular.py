@@ -11,11 +11,10 @@ is Watkins' Q-learning; on other states it is the linear Q of the same gradient 
 those of every actor (``ferl.actors.td``). With values initialised to 0 the table learns from
 what it visits only, as value iteration's fixed point (``tests/test_baselines.py``) requires.
 """
-from typing import Literal
 
 import torch
 
-from ferl.actors.softmax import TD_RULES, SoftmaxActor
+from ferl.actors.softmax import SoftmaxActor, TDRule
 from ferl.config.params import Discount, NonNegativeInt, PositiveInt, checked
 
 
@@ -23,10 +22,21 @@ class TabularQActor(SoftmaxActor):
     """The oracle baseline's actor: Q(s, a) = sᵀ Θ[:, a] (a Q-table on one-hot true states),
     Watkins' Q-learning by the TD update of §3.2 and the softmax of Eq. 3.11 (module docstring)."""
 
+    Q: torch.Tensor  # (R, S, nA)
+
     @checked
-    def __init__(self, n_runs: PositiveInt, n_state: PositiveInt, n_actions: PositiveInt,
-                 td_rule: Literal[TD_RULES], gamma: Discount, lr, beta, init_value: float = 0.0,
-                 seed: NonNegativeInt = 0):
+    def __init__(
+        self,
+        n_runs: PositiveInt,
+        n_state: PositiveInt,
+        n_actions: PositiveInt,
+        td_rule: TDRule,
+        gamma: Discount,
+        lr,
+        beta,
+        init_value: float = 0.0,
+        seed: NonNegativeInt = 0,
+    ):
         super().__init__()
         self.td_rule, self.gamma = td_rule, gamma
         self.lr_schedule, self.beta_schedule, self.lr_divisor = lr, beta, 1.0

@@ -7,6 +7,7 @@ F(s', a') and its cache are carried to the next step, so no free energy is compu
 the actor's ``td_fresh`` reading ``learn`` moves them to the parameters its update produced, so
 that δ_t takes both free energies at one θ as Eq. (3.2) writes it.
 """
+
 import torch
 
 
@@ -16,8 +17,9 @@ def first_action(actor, s: torch.Tensor, beta: float, generator: torch.Generator
     return a, F_a, cache_a
 
 
-def td_step(actor, s, a, F_sa, cache_sa, reward, s_next, lr, beta, generator, uniform, alive,
-            terminal=None, active=None):
+def td_step(
+    actor, s, a, F_sa, cache_sa, reward, s_next, lr, beta, generator, uniform, alive, terminal=None, active=None
+):
     """One TD step of every run: select a' at s' (R, 1, S), δ of (s, a) (Eq. 3.2) with the actor's
     TD rule, and the update (Eq. 3.10) of the runs that are ``alive`` (R, 1) (the divergence guard).
 

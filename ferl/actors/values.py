@@ -17,6 +17,7 @@ energy −Q ("F": lower is better) in every formula of §3.2.
   expected energy"): Q = −⟨E(s, a, h)⟩ under p(h | s, a) = c + Σ_k x_k σ(x_k), so
   φ(x) = x σ(x) and φ'(x) = σ(x) (1 + x (1 − σ(x))), κ = 1.
 """
+
 import torch
 from torch.nn import functional as nnf
 
@@ -27,8 +28,8 @@ class FreeEnergy:
     """Q = −F(s, a), the equilibrium free energy (Eqs. 2.21–2.22)."""
 
     name = "free_energy"
-    scale = 1.0           # κ
-    boltzmann = True      # exp(β Q) is the RBM's own marginal: alternating Gibbs samples it
+    scale = 1.0  # κ
+    boltzmann = True  # exp(β Q) is the RBM's own marginal: alternating Gibbs samples it
 
     def energy(self, visible: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         """−Q from the visible term (…) and the hidden inputs (…, H)."""
@@ -68,7 +69,7 @@ class ExpectedEnergy(FreeEnergy):
     """Q = −⟨E(s, a, h)⟩ = c + Σ_k x_k σ(x_k) (Elfwing et al. 2016)."""
 
     name = "expected_energy"
-    boltzmann = False     # exp(β Q) is not a marginal of the RBM: no Gibbs chain samples it
+    boltzmann = False  # exp(β Q) is not a marginal of the RBM: no Gibbs chain samples it
 
     def energy(self, visible: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         return -visible - self.hidden_term(x).sum(-1)
@@ -82,7 +83,7 @@ class ExpectedEnergy(FreeEnergy):
         return p * (1 + x * (1 - p))
 
 
-FORMS = {form.name: form for form in (FreeEnergy, ScaledFreeEnergy, ExpectedEnergy)}
+FORMS: dict[str, type[FreeEnergy]] = {form.name: form for form in (FreeEnergy, ScaledFreeEnergy, ExpectedEnergy)}
 
 
 def value_form(name: str, z: float) -> FreeEnergy:

@@ -25,31 +25,33 @@ VERDICTS = (HELD, PARTLY, NOT_HELD)
 @dataclass(frozen=True)
 class Measured:
     """What a claim's measure found on a run: the value its rule judges and the report's text."""
-    value: Any   # what the rule judges
-    text: str    # what the report prints
+
+    value: Any  # what the rule judges
+    text: str  # what the report prints
 
 
 @dataclass(frozen=True)
 class Claim:
     """A statement of a publication, where it says so, how to measure it on a run and how to judge
     the measurement."""
+
     text: str
     source: str
     measure: Callable[[Any], Measured | None]  # None: the run has no data for this claim
     rule: Callable[[Any], str]
-    criterion: str = ""                        # the rule in words, for the report
+    criterion: str = ""  # the rule in words, for the report
 
 
 @dataclass(frozen=True)
 class ClaimResult:
     """A claim judged on one run (or across the jobs of a sweep)."""
+
     claim: Claim
     measured: Measured
     verdict: str
 
 
-def only(applies: Callable[[Any], bool],
-         measure: Callable[[Any], Measured | None]) -> Callable[[Any], Measured | None]:
+def only(applies: Callable[[Any], bool], measure: Callable[[Any], Measured | None]) -> Callable[[Any], Measured | None]:
     """``measure`` on the runs that ``applies`` accepts (the claim's model or maze variant); None,
     no claim, on any other."""
     return lambda run: measure(run) if applies(run) else None
@@ -66,6 +68,7 @@ def evaluate(claims: Sequence[Claim], run: Any) -> list[ClaimResult]:
 
 
 # ---- rules ---------------------------------------------------------------------
+
 
 def at_least(held: float, partly: float) -> Callable[[float], str]:
     return lambda v: HELD if v >= held else PARTLY if v >= partly else NOT_HELD
@@ -92,9 +95,15 @@ def at_most_text(what: str, limits: tuple[float, float]) -> str:
     return f"{what}: held ≤ {limits[0]:g}, partly ≤ {limits[1]:g}"
 
 
-def threshold_claim(text: str, source: str, measure: Callable[[Any], Measured | None],
-                    limits: tuple[float, float], what: str, upper: bool = False,
-                    note: str = "") -> Claim:
+def threshold_claim(
+    text: str,
+    source: str,
+    measure: Callable[[Any], Measured | None],
+    limits: tuple[float, float],
+    what: str,
+    upper: bool = False,
+    note: str = "",
+) -> Claim:
     """A claim judged by one number against (held, partly) limits: at least them, or at most
     with ``upper``; its criterion says so in words (``what``, then ``note``)."""
     if upper:
@@ -103,7 +112,7 @@ def threshold_claim(text: str, source: str, measure: Callable[[Any], Measured | 
 
 
 def mean_sd_text(values) -> str:
-    """"mean ± s.d. (mean ± s.d., n runs)" over the runs that have a value (``ferl.stats``)."""
+    """ "mean ± s.d. (mean ± s.d., n runs)" over the runs that have a value (``ferl.stats``)."""
     mean, sd, n = stats.mean_sd(values)
     if n < 2:
         return f"{mean:.3g} ({n} run{'' if n == 1 else 's'})"
@@ -112,10 +121,12 @@ def mean_sd_text(values) -> str:
 
 # ---- chapters --------------------------------------------------------------------
 
+
 @dataclass(frozen=True)
 class LayerFigures:
     """Where a publication shows a junction layer: its activations, their PCA per phase with
     the explained variance, and the projection on PC1–3 (None: not shown, not drawn)."""
+
     activations: str
     pca: str
     pca3d: str | None = None
@@ -128,28 +139,29 @@ class Numbering:
     ``predictor_panels`` gives a predictor role its panel of the prediction-error figure; ``layers``
     maps a junction layer (``state``, ``hidden``, ``memory_<role>``, and ``memory`` for any other
     memory) to its figures."""
+
     learning_curves: str = ""
     td_errors: str = ""
     prediction_errors: str = ""
     predictor_panels: dict[str, str] = field(default_factory=dict)
-    parameters: str = ""             # the table of parameters (L_training)
+    parameters: str = ""  # the table of parameters (L_training)
     layers: dict[str, LayerFigures] = field(default_factory=dict)
 
     def prediction_figure(self, role: str | None) -> str:
         if not self.prediction_errors:
             return ""
-        return self.prediction_errors + self.predictor_panels.get(role, "")
+        return self.prediction_errors + (self.predictor_panels.get(role, "") if role is not None else "")
 
     def layer(self, key: str) -> LayerFigures | None:
-        return self.layers.get(key) or self.layers.get("memory" if key.startswith("memory")
-                                                       else key)
+        return self.layers.get(key) or self.layers.get("memory" if key.startswith("memory") else key)
 
 
 @dataclass(frozen=True)
 class Chapter:
     """The claims and figure numbers of one model of a publication, and which runs they
     apply to, decided on the run's recorded facts."""
-    model: str                                   # the report's line on the model
+
+    model: str  # the report's line on the model
     applies: Callable[[Manifest], bool]
     numbering: Callable[[Manifest], Numbering]
     claims: list[Claim]

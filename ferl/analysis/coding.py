@@ -66,12 +66,10 @@ def pair_forms_cluster(linkage_matrix: np.ndarray, i: int, j: int) -> bool:
     two members — the "pair forms its own cluster" reading of Fig. 3.11.
     """
     merged = np.asarray(linkage_matrix)[:, :2].astype(np.int64)
-    return bool(np.any(((merged[:, 0] == i) & (merged[:, 1] == j))
-                       | ((merged[:, 0] == j) & (merged[:, 1] == i))))
+    return bool(np.any(((merged[:, 0] == i) & (merged[:, 1] == j)) | ((merged[:, 0] == j) & (merged[:, 1] == i))))
 
 
-def same_action_pairs(classes: Sequence[str],
-                      optimal_action: Sequence[int]) -> list[tuple[int, int]]:
+def same_action_pairs(classes: Sequence[str], optimal_action: Sequence[int]) -> list[tuple[int, int]]:
     """Index pairs (i < j) of classes sharing an optimal action (Fig. 3.9).
 
     The goal class (optimal action −1) is excluded; with the CW noise-tile
@@ -79,8 +77,7 @@ def same_action_pairs(classes: Sequence[str],
     """
     actions = np.asarray(optimal_action)
     assert len(classes) == len(actions)
-    return [(i, j) for i, j in combinations(range(len(actions)), 2)
-            if actions[i] >= 0 and actions[i] == actions[j]]
+    return [(i, j) for i, j in combinations(range(len(actions)), 2) if actions[i] >= 0 and actions[i] == actions[j]]
 
 
 def _pixel_histograms(images: np.ndarray, bins: int) -> np.ndarray:
@@ -90,8 +87,7 @@ def _pixel_histograms(images: np.ndarray, bins: int) -> np.ndarray:
     return np.eye(bins)[idx].mean(axis=0)
 
 
-def pairwise_mutual_information(images_by_class: Sequence[np.ndarray],
-                                bins: int = 2) -> np.ndarray:
+def pairwise_mutual_information(images_by_class: Sequence[np.ndarray], bins: int = 2) -> np.ndarray:
     """Average pixel–label mutual information for every pair of classes (Fig. 3.12).
 
     For classes C = {c1, c2} with equal prior P(C = c_j) = 1/2 and each pixel Z_i,
@@ -110,8 +106,8 @@ def pairwise_mutual_information(images_by_class: Sequence[np.ndarray],
     if bins < 2:
         raise ValueError(f"bins must be >= 2, got {bins}")
     p = np.stack([_pixel_histograms(imgs, bins) for imgs in images_by_class])  # (C, P, B)
-    h_given_c = entr(p).sum(axis=-1)                                            # (C, P)
-    mixture = 0.5 * (p[:, None] + p[None, :])                                   # (C, C, P, B)
+    h_given_c = entr(p).sum(axis=-1)  # (C, P)
+    mixture = 0.5 * (p[:, None] + p[None, :])  # (C, C, P, B)
     mi = entr(mixture).sum(axis=-1) - 0.5 * (h_given_c[:, None] + h_given_c[None, :])
     mi = mi.mean(axis=-1)
     np.fill_diagonal(mi, 0.0)
@@ -140,6 +136,7 @@ def nanmean(x: np.ndarray, axis=None) -> np.ndarray:
 
 # ---- PCA and the separation of labelled points (§4.3.2, §5.3) ----------------
 
+
 def silhouette_score(points: np.ndarray, labels: np.ndarray) -> float:
     """Mean silhouette coefficient (Rousseeuw, 1987) of a labelling, Euclidean distance.
 
@@ -152,9 +149,9 @@ def silhouette_score(points: np.ndarray, labels: np.ndarray) -> float:
     classes, idx = np.unique(np.asarray(labels), return_inverse=True)
     if len(classes) < 2:
         return float("nan")
-    member = np.eye(len(classes))[idx]                       # (n, k) one-hot
+    member = np.eye(len(classes))[idx]  # (n, k) one-hot
     counts = member.sum(axis=0)
-    sums = cdist(x, x) @ member                              # (n, k) distance to each cluster
+    sums = cdist(x, x) @ member  # (n, k) distance to each cluster
     rows = np.arange(len(x))
     own = counts[idx]
     a = sums[rows, idx] / np.maximum(own - 1, 1)
@@ -179,9 +176,9 @@ def pca(x: np.ndarray, n_components: int = 3) -> tuple[np.ndarray, np.ndarray]:
     scores = np.zeros((len(x), n_components))
     scores[:, :k] = u[:, :k] * s[:k]
     ratio = np.zeros(x.shape[1])
-    total = np.sum(s ** 2)
+    total = np.sum(s**2)
     if total > 0:
-        ratio[:len(s)] = s ** 2 / total
+        ratio[: len(s)] = s**2 / total
     return scores, ratio
 
 

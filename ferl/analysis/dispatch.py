@@ -44,18 +44,21 @@ SweepSection = Callable[["Sweep", Path, RunAnalysis], list[str]]
 
 class Pages(Protocol):
     """Writes a sweep's results into generated blocks of the repository's pages (--readme)."""
-    BLOCKS: Sequence[tuple[str, str]]   # (begin, end) marker lines of every kind of block
+
+    BLOCKS: Sequence[tuple[str, str]]  # (begin, end) marker lines of every kind of block
 
     def blocks_in(self, text: str) -> list[tuple[str, str]]: ...
 
-    def update_pages(self, pages: Sequence[Path], rows: Sequence[ReportRow], wall: dict[str, float],
-                     report: Path) -> None: ...
+    def update_pages(
+        self, pages: Sequence[Path], rows: Sequence[ReportRow], wall: dict[str, float], report: Path
+    ) -> None: ...
 
 
 @dataclass
 class Registry:
     """What plug-ins add to the generic analysis (see the module's docstring)."""
-    reference: str = ""                 # the work whose claims are judged, e.g. "dissertation"
+
+    reference: str = ""  # the work whose claims are judged, e.g. "dissertation"
     sweep_title: str = "Sweep report"
     environments: dict[str, EnvironmentAnalysis] = field(default_factory=dict)  # env.kind → analysis
     chapters: list[Chapter] = field(default_factory=list)
@@ -64,6 +67,11 @@ class Registry:
     sweep_sections: list[SweepSection] = field(default_factory=list)
     pages: Pages | None = None
     modules: list[str] = field(default_factory=list)  # what registered: imported by every worker
+
+    @property
+    def all_claims(self) -> list[Claim]:
+        """Every registered chapter's claims (a kept analysis finds its judged claims among them)."""
+        return [claim for chapter in self.chapters for claim in chapter.claims]
 
     def chapter_of(self, manifest: Manifest) -> Chapter | None:
         return next((c for c in self.chapters if c.applies(manifest)), None)

@@ -35,8 +35,7 @@ def fitted_suptitle(fig: Figure, title: str) -> None:
         text.set_text("\n".join(textwrap.fill(line, chars, break_long_words=False) for line in lines))
 
 
-def band(ax, x: np.ndarray, mean: np.ndarray, sem: np.ndarray, optimum: float | None,
-         color: str = "tab:blue") -> None:
+def band(ax, x: np.ndarray, mean: np.ndarray, sem: np.ndarray, optimum: float | None, color: str = "tab:blue") -> None:
     """A mean curve with its ± s.e.m. band (none where undefined), the optimum dotted."""
     ax.plot(x, mean, color=color, lw=1)
     ax.fill_between(x, mean - sem, mean + sem, color=color, alpha=0.3, lw=0)
@@ -45,8 +44,9 @@ def band(ax, x: np.ndarray, mean: np.ndarray, sem: np.ndarray, optimum: float | 
         ax.legend(loc="best", fontsize="small")
 
 
-def learning_curves(x: np.ndarray, panels: Sequence[tuple], each_run: tuple, window: int,
-                    n_runs: int, xlabel: str, title: str) -> Figure:
+def learning_curves(
+    x: np.ndarray, panels: Sequence[tuple], each_run: tuple, window: int, n_runs: int, xlabel: str, title: str
+) -> Figure:
     """Figs. 3.4, 4.6–4.7 / 4.11–4.12 / 5.3–5.5 / 5.18–5.19(a–b): moving averages, mean ±
     s.e.m. over runs, and one measure in every run (Figs. 4.6(b), 5.3(b), 5.18(b)).
 
@@ -75,14 +75,20 @@ def learning_curves(x: np.ndarray, panels: Sequence[tuple], each_run: tuple, win
         axes[k].set_axis_off()
         axes[k - ncols].xaxis.set_tick_params(labelbottom=True)
         axes[k - ncols].set_xlabel(xlabel)
-    fig.suptitle(f"{title}\n{window}-point moving average, mean ± s.e.m. over {n_runs} runs; "
-                 "dotted: optimum")
+    fig.suptitle(f"{title}\n{window}-point moving average, mean ± s.e.m. over {n_runs} runs; dotted: optimum")
     return fig
 
 
-def td_errors(x: np.ndarray, mean: np.ndarray, sem: np.ndarray, window: int, n_runs: int,
-              xlabel: str, title: str, sampled: tuple[np.ndarray, np.ndarray] | None = None
-              ) -> Figure:
+def td_errors(
+    x: np.ndarray,
+    mean: np.ndarray,
+    sem: np.ndarray,
+    window: int,
+    n_runs: int,
+    xlabel: str,
+    title: str,
+    sampled: tuple[np.ndarray, np.ndarray] | None = None,
+) -> Figure:
     """Figs. 4.8/4.13/5.6/5.19(c–d): (a) moving average of the mean |δ|; (b) where recorded,
     the per-step δ of sampled episodes of one run (the dissertation's 1st run, run 0 here):
     ``sampled`` = (δ (episodes, steps), episode numbers)."""
@@ -96,8 +102,9 @@ def td_errors(x: np.ndarray, mean: np.ndarray, sem: np.ndarray, window: int, n_r
         td_run0, episodes = sampled
         # A signed δ: a symmetric diverging scale keeps 0 white.
         vmax = float(np.nanmax(np.abs(td_run0))) if np.isfinite(td_run0).any() else 1.0
-        im = axes[1].pcolormesh(np.arange(td_run0.shape[1] + 1) - 0.5, edges(episodes), td_run0,
-                                cmap="RdBu_r", vmin=-vmax, vmax=vmax)
+        im = axes[1].pcolormesh(
+            np.arange(td_run0.shape[1] + 1) - 0.5, edges(episodes), td_run0, cmap="RdBu_r", vmin=-vmax, vmax=vmax
+        )
         axes[1].set_xlabel("step t of the episode (δ of the action at t)")
         axes[1].set_ylabel("episode")
         axes[1].set_title(f"(b) run 0, {len(episodes)} sampled episodes (blank: episode over)")
@@ -106,8 +113,15 @@ def td_errors(x: np.ndarray, mean: np.ndarray, sem: np.ndarray, window: int, n_r
     return fig
 
 
-def prediction_errors(train: np.ndarray, test: np.ndarray, lengths: np.ndarray,
-                      epochs: np.ndarray, trained_max: int, units: str, title: str) -> Figure:
+def prediction_errors(
+    train: np.ndarray,
+    test: np.ndarray,
+    lengths: np.ndarray,
+    epochs: np.ndarray,
+    trained_max: int,
+    units: str,
+    title: str,
+) -> Figure:
     """Figs. 4.5/4.10/5.2/5.17: run-mean error (E, nT, Tmax+1); rows train/test, one column
     per T; ``units`` names the error measure on the colour bar."""
     n_lengths = len(lengths)
@@ -122,11 +136,9 @@ def prediction_errors(train: np.ndarray, test: np.ndarray, lengths: np.ndarray,
     for row, (split, err) in enumerate((("train", train), ("test", test))):
         for k, T in enumerate(lengths):
             ax = axes[row, k]
-            im = ax.pcolormesh(np.arange(T + 2) - 0.5, y_edges, err[:, k, :T + 1],
-                               cmap="viridis", vmin=0, vmax=vmax)
+            im = ax.pcolormesh(np.arange(T + 2) - 0.5, y_edges, err[:, k, : T + 1], cmap="viridis", vmin=0, vmax=vmax)
             ax.set_xticks(range(0, T + 1, 2 if T > 6 else 1))
-            ax.set_title(f"{split}, T = {T}" + ("" if T <= trained_max else "\n(not trained)"),
-                         fontsize="small")
+            ax.set_title(f"{split}, T = {T}" + ("" if T <= trained_max else "\n(not trained)"), fontsize="small")
             if row == 1:
                 ax.set_xlabel("step t")
         axes[row, 0].set_ylabel("predictor epoch")

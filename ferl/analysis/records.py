@@ -45,6 +45,7 @@ def predictor_role(facts: dict) -> str | None:
 @dataclass(frozen=True)
 class Manifest:
     """``records/run.json`` (docs/records.md): what produced the run."""
+
     task: str
     experiment: str
     trainer: dict
@@ -65,9 +66,15 @@ class Manifest:
             raise ValueError(f"{MANIFEST} is damaged ({e})") from None
         if not isinstance(facts, dict):
             raise ValueError(f"{MANIFEST} is damaged (a JSON {type(facts).__name__}, not an object)")
-        return cls(str(facts.get("task")), str(facts.get("experiment")),
-                   facts.get("trainer") or {}, facts.get("env") or {}, facts.get("preprocessor"),
-                   facts.get("predictors") or {}, facts.get("actor") or {})
+        return cls(
+            str(facts.get("task")),
+            str(facts.get("experiment")),
+            facts.get("trainer") or {},
+            facts.get("env") or {},
+            facts.get("preprocessor"),
+            facts.get("predictors") or {},
+            facts.get("actor") or {},
+        )
 
     @property
     def env_kind(self) -> str:
@@ -100,13 +107,14 @@ def recorded_window(episodes: dict | None, manifest: Manifest) -> int:
 class PredictorErrors:
     """One predictor's records of ``predictor.npz``: Eq. (4.7)–(4.8) errors per epoch, step-length
     T and step t (Figs. 4.5/4.10, 5.2/5.17)."""
+
     name: str
     role: str | None
-    lengths: np.ndarray   # (nT,) step-lengths T with data
-    epochs: np.ndarray    # (E,) epochs at which the errors were measured, 0 = before training
-    train: np.ndarray     # (R, E, nT, Tmax+1), NaN for t > T
+    lengths: np.ndarray  # (nT,) step-lengths T with data
+    epochs: np.ndarray  # (E,) epochs at which the errors were measured, 0 = before training
+    train: np.ndarray  # (R, E, nT, Tmax+1), NaN for t > T
     test: np.ndarray
-    trained_max: int      # longest trained step-length
+    trained_max: int  # longest trained step-length
 
     @property
     def n_runs(self) -> int:
@@ -119,6 +127,7 @@ class PredictorErrors:
 @dataclass
 class Run:
     """One run directory: its manifest, summary and records, each records file read once."""
+
     run_dir: Path
     summary: dict
     manifest: Manifest
@@ -156,8 +165,9 @@ class Run:
         shapes = {k: arrays[k].shape if k in arrays else "missing" for k in arrays.pop("per_run", ())}
         wrong = [f"{k} {shape}" for k, shape in shapes.items() if shape == "missing" or shape[:1] != (runs,)]
         if wrong:
-            raise ValueError(f"{path.name} does not belong to this run: summary.json has {runs} runs, "
-                             f"but {', '.join(wrong)}")
+            raise ValueError(
+                f"{path.name} does not belong to this run: summary.json has {runs} runs, but {', '.join(wrong)}"
+            )
         return arrays
 
     @property
@@ -190,15 +200,20 @@ class Run:
                 continue
             lengths = found[f"{name}_lengths"].astype(np.int64)
             # Without L_training every recorded length counts as trained.
-            trained_max = (int(lengths.max()) if self.l_training is None
-                           else int(lengths.min()) + self.l_training - 1)
-            out.append(PredictorErrors(
-                name, role, lengths, found[f"{name}_epochs"].astype(np.int64),
-                found[f"{name}_error_train"].astype(np.float64),
-                found[f"{name}_error_test"].astype(np.float64), trained_max))
+            trained_max = int(lengths.max()) if self.l_training is None else int(lengths.min()) + self.l_training - 1
+            out.append(
+                PredictorErrors(
+                    name,
+                    role,
+                    lengths,
+                    found[f"{name}_epochs"].astype(np.int64),
+                    found[f"{name}_error_train"].astype(np.float64),
+                    found[f"{name}_error_test"].astype(np.float64),
+                    trained_max,
+                )
+            )
         return out
 
     def metric(self, name: str) -> np.ndarray:
         """A summary.json metric as float per run (null → NaN)."""
-        return np.asarray([np.nan if v is None else v for v in self.summary["metrics"][name]],
-                          dtype=np.float64)
+        return np.asarray([np.nan if v is None else v for v in self.summary["metrics"][name]], dtype=np.float64)

@@ -18,6 +18,7 @@ if TYPE_CHECKING:
 @dataclass
 class RunAnalysis:
     """What an analysis hands to the writer: header, tables, figures, data files, judged claims."""
+
     title: str
     header: list[tuple[str, str]] = field(default_factory=list)
     sections: list[tuple[str, list[str]]] = field(default_factory=list)  # (title, markdown lines)
@@ -38,13 +39,22 @@ def claims_table(results: Sequence[ClaimResult], reference: str = "") -> list[st
     """One row per claim; a criterion column where any claim states its rule. ``reference`` names
     the work the claims come from (``ferl.analysis.dispatch.Registry.reference``)."""
     if not results:
-        return [f"No {reference} claim applies to this run." if reference else
-                "No claim applies to this run."]
+        return [f"No {reference} claim applies to this run." if reference else "No claim applies to this run."]
     criteria = any(r.claim.criterion for r in results)
     header = ["claim", "source", "measured", *(["criterion"] if criteria else []), "verdict"]
-    return table_lines(header, [[r.claim.text, r.claim.source, r.measured.text,
-                                 *([r.claim.criterion or "—"] if criteria else []),
-                                 f"**{r.verdict}**"] for r in results])
+    return table_lines(
+        header,
+        [
+            [
+                r.claim.text,
+                r.claim.source,
+                r.measured.text,
+                *([r.claim.criterion or "—"] if criteria else []),
+                f"**{r.verdict}**",
+            ]
+            for r in results
+        ],
+    )
 
 
 def write_run_report(path: Path, analysis: RunAnalysis, reference: str = "") -> None:
@@ -56,8 +66,7 @@ def write_run_report(path: Path, analysis: RunAnalysis, reference: str = "") -> 
         lines += ["", f"## {title}", ""] + body
     lines += ["", "## Claims", ""] + claims_table(analysis.results, reference)
     lines += ["", "## Figures", ""]
-    lines += [f"- [{name}.png]({name}.png) — {caption}"
-              for name, (_, caption) in analysis.figures.items()]
+    lines += [f"- [{name}.png]({name}.png) — {caption}" for name, (_, caption) in analysis.figures.items()]
     lines += ["", "## Data", ""] + [f"- [{name}]({name})" for name in analysis.data_files]
     path.write_text("\n".join(lines) + "\n")
 
@@ -65,10 +74,11 @@ def write_run_report(path: Path, analysis: RunAnalysis, reference: str = "") -> 
 @dataclass
 class RunOutcome:
     """One line of a sweep report."""
+
     run_dir: Path
     experiment: str
     task: str
-    status: str                       # "analyzed", "skipped: …" or "failed: …"
+    status: str  # "analyzed", "skipped: …" or "failed: …"
     verdicts: dict[str, int] = field(default_factory=dict)
     results: list[ClaimResult] = field(default_factory=list)
     figures: list[tuple[str, str]] = field(default_factory=list)  # (name, caption)
@@ -81,6 +91,5 @@ def jobs_table(sweep_dir: Path, out: Path, outcomes: Sequence[RunOutcome]) -> li
         name = os.path.relpath(o.run_dir, sweep_dir)
         if o.status == "analyzed":
             name = f"[{name}]({os.path.relpath(o.run_dir / 'analysis' / 'report.md', out)})"
-        rows.append([name, o.experiment, o.task, o.status,
-                     *(str(o.verdicts.get(v, "")) for v in VERDICTS)])
+        rows.append([name, o.experiment, o.task, o.status, *(str(o.verdicts.get(v, "")) for v in VERDICTS)])
     return table_lines(["run", "experiment", "task", "status", *VERDICTS], rows)

@@ -2,7 +2,8 @@
 
 A directory holding ``summary.json`` is a run: its ``analysis/`` folder is rebuilt (PNG figures,
 CSV/JSON data, ``report.md``) and the figures are logged to its TensorBoard under
-``tb/analysis/`` (replaced on every analysis). What a run gets is decided on what it recorded
+``tb/analysis/`` (replaced on every analysis), unless nothing it is made from changed since its
+last analysis (``ferl.analysis.cache``: then it is kept; ``force`` rebuilds it). What a run gets is decided on what it recorded
 (``records/run.json``) and on what plug-ins registered (``ferl.analysis.dispatch.REGISTRY``); a run
 without run.json is skipped with a message. Any other directory is a sweep: every run below it
 is analyzed, and ``DIR/analysis/`` gets the sweep's aggregate tables and claims report
@@ -22,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ferl import runs
-from ferl.analysis import generic, members
+from ferl.analysis import cache, generic, members
 from ferl.analysis import sweep as sw
 from ferl.analysis.claims import VERDICTS, ClaimResult, Numbering, evaluate
 from ferl.analysis.dispatch import REGISTRY, import_plugins
@@ -58,8 +59,14 @@ def publish_figures(figures: dict, out: Path, tb_dir: Path) -> None:
 
 
 def _claim_json(r: ClaimResult, **where) -> dict:
-    return {"claim": r.claim.text, "source": r.claim.source, "measured": r.measured.text,
-            "criterion": r.claim.criterion, "verdict": r.verdict, **where}
+    return {
+        "claim": r.claim.text,
+        "source": r.claim.source,
+        "measured": r.measured.text,
+        "criterion": r.claim.criterion,
+        "verdict": r.verdict,
+        **where,
+    }
 
 
 def _fresh(out: Path) -> Path:
@@ -75,8 +82,12 @@ def run_analysis(run: Run, out: Path) -> RunAnalysis:
     num = chapter.numbering(run.manifest) if chapter else Numbering()
     analysis = generic.analyze(run, num, out)
     if REGISTRY.reference:
-        analysis.header.append((REGISTRY.reference, chapter.model if chapter else
-                                "no chapter's model matches this run: generic figures, no claims"))
+        analysis.header.append(
+            (
+                REGISTRY.reference,
+                chapter.model if chapter else "no chapter's model matches this run: generic figures, no claims",
+            )
+        )
     environment = REGISTRY.environments.get(run.manifest.env_kind)
     parts = environment(run, num, out) if environment is not None else None
     if parts is None:
@@ -89,8 +100,9 @@ def run_analysis(run: Run, out: Path) -> RunAnalysis:
     return analysis
 
 
-def analyze_run(run_dir: Path) -> RunOutcome:
-    """Rebuild ``run_dir/analysis/``; return the run's line of a sweep report."""
+def analyze_run(run_dir: Path, force: bool = False) -> RunOutcome:
+    """Rebuild ``run_dir/analysis/``, unless what it was made from is unchanged since and ``force``
+    is off (``ferl.analysis.cache``); return the run's line of a sweep report."""
     summary = runs.load_summary(run_dir)
     task, experiment = str(summary.get("task")), str(summary.get("experiment", "?"))
     manifest = Manifest.load(run_dir)
@@ -98,26 +110,46 @@ def analyze_run(run_dir: Path) -> RunOutcome:
         print(f"{run_dir}: skipped, no {MANIFEST}")
         return RunOutcome(run_dir, experiment, task, f"skipped: no {MANIFEST}")
 
-    out = _fresh(run_dir / "analysis")
-    analysis = run_analysis(Run.load(run_dir, manifest), out)
-    publish_figures(analysis.figures, out, run_dir / "tb" / "analysis")
-    write_json(out / "claims.json", [_claim_json(r) for r in analysis.results])
-    analysis.data_files.append("claims.json")
+    out, tb_dir = run_dir / "analysis", run_dir / "tb" / "analysis"
+    digest = cache.inputs_digest(run_dir, REGISTRY.modules)
+    kept = None if force else _kept(run_dir, digest)
+    if kept is not None:
+        return kept
+    analysis = run_analysis(Run.load(run_dir, manifest), _fresh(out))
+    publish_figures(analysis.figures, out, tb_dir)
+    write_json(out / cache.CLAIMS, [_claim_json(r) for r in analysis.results])
+    analysis.data_files.append(cache.CLAIMS)
     write_run_report(out / "report.md", analysis, REGISTRY.reference)
 
     verdicts = {v: sum(r.verdict == v for r in analysis.results) for v in VERDICTS}
-    print(f"{run_dir}: {len(analysis.figures)} figures, {len(analysis.results)} claims "
-          f"({', '.join(f'{n} {v}' for v, n in verdicts.items())}) -> {out / 'report.md'}")
-    return RunOutcome(run_dir, experiment, task, "analyzed", verdicts, analysis.results,
-                      [(name, caption) for name, (_, caption) in analysis.figures.items()])
+    print(
+        f"{run_dir}: {len(analysis.figures)} figures, {len(analysis.results)} claims "
+        f"({', '.join(f'{n} {v}' for v, n in verdicts.items())}) -> {out / 'report.md'}"
+    )
+    figures = [(name, caption) for name, (_, caption) in analysis.figures.items()]
+    outcome = RunOutcome(run_dir, experiment, task, "analyzed", verdicts, analysis.results, figures)
+    cache.save(out, outcome, digest, sorted(p.name for p in tb_dir.glob("*")))
+    return outcome
 
 
-def _safe_analyze_run(run_dir: Path, plugins: Sequence[str] = ()) -> RunOutcome:
+def _kept(run_dir: Path, digest: str | None = None) -> RunOutcome | None:
+    """The run's kept analysis (``ferl.analysis.cache``), said in one line; None: analyse it."""
+    out = run_dir / "analysis"
+    digest = digest or cache.inputs_digest(run_dir, REGISTRY.modules)
+    kept = cache.load(run_dir, out, digest, run_dir / "tb" / "analysis", REGISTRY.all_claims)
+    if kept is not None:
+        print(
+            f"{run_dir}: unchanged since its last analysis, kept ({len(kept.figures)} figures) -> {out / 'report.md'}"
+        )
+    return kept
+
+
+def _safe_analyze_run(run_dir: Path, plugins: Sequence[str] = (), force: bool = False) -> RunOutcome:
     """One failing run must not stop a sweep: report it in one line and go on. ``plugins``: the
     modules to import first (in a worker process, ``dispatch.import_plugins``)."""
     import_plugins(plugins)
     try:
-        return analyze_run(run_dir)
+        return analyze_run(run_dir, force)
     except Exception as exc:  # noqa: BLE001 — any failure is reported per run
         print(f"{PROG}: error: {run_dir}: {type(exc).__name__}: {exc}", file=sys.stderr)
         return RunOutcome(run_dir, "?", "?", f"failed: {type(exc).__name__}: {exc}")
@@ -132,34 +164,56 @@ def _read_summary(run_dir: Path) -> dict | None:
         return None
 
 
-def analyze_runs(found: list[Path]) -> list[RunOutcome]:
+def analyze_runs(found: list[Path], force: bool = False) -> list[RunOutcome]:
     """Every run's own analysis, on every CPU at once from POOL_MIN_RUNS runs on (the figures'
-    drawing is most of the time, and the runs are independent)."""
-    workers = min(os.cpu_count() or 1, len(found))
-    if workers < 2 or len(found) < POOL_MIN_RUNS:
-        return [_safe_analyze_run(r) for r in found]
-    from joblib import Parallel, delayed  # loky's workers return the claims' functions too (cloudpickle)
-    return Parallel(n_jobs=workers)(delayed(_safe_analyze_run)(r, REGISTRY.modules) for r in found)
+    drawing is most of the time, and the runs are independent); a run whose analysis is kept
+    (unchanged since, ``ferl.analysis.cache``; not with ``force``) is not handed to a worker."""
+    kept = {} if force else {r: o for r in found if (o := _safe_kept(r)) is not None}
+    stale = [r for r in found if r not in kept]
+    workers = min(os.cpu_count() or 1, len(stale))
+    if workers < 2 or len(stale) < POOL_MIN_RUNS:
+        done = [_safe_analyze_run(r, force=force) for r in stale]
+    else:
+        from joblib import Parallel, delayed  # loky's workers return the claims' functions too (cloudpickle)
+
+        done = Parallel(n_jobs=workers)(delayed(_safe_analyze_run)(r, REGISTRY.modules, force) for r in stale)
+    by_run = kept | dict(zip(stale, done))
+    return [by_run[r] for r in found]
 
 
-def analyze_sweep(sweep_dir: Path, pages: Sequence[Path] = ()) -> list[RunOutcome]:
+def _safe_kept(run_dir: Path) -> RunOutcome | None:
+    """``_kept``, where an unreadable run is left to its analysis to report."""
+    try:
+        return _kept(run_dir)
+    except (OSError, ValueError):
+        return None
+
+
+def analyze_sweep(sweep_dir: Path, pages: Sequence[Path] = (), force: bool = False) -> list[RunOutcome]:
     """Analyze every run below ``sweep_dir``, then the sweep as a whole (``ferl.analysis.sweep``,
     then the registered sweep sections)."""
     start = time.perf_counter()
     found = runs.find_runs(sweep_dir)
     skipped = report_unfinished(sweep_dir)
-    outcomes = analyze_runs(found)
-    jobs = [sw.Job(o, summary) for o in outcomes
-            if (summary := _read_summary(o.run_dir)) is not None]
+    outcomes = analyze_runs(found, force)
+    jobs = [sw.Job(o, summary) for o in outcomes if (summary := _read_summary(o.run_dir)) is not None]
     sweep = sw.Sweep(sweep_dir, jobs)
     out = _fresh(sweep_dir / "analysis")
     analysis = sw.analyze_sweep(sweep, out, REGISTRY.sweep_title)
     rows = sw.reproduction_rows(jobs, evaluate(REGISTRY.sweep_claims, sweep), REGISTRY.claim_order)
     findings = [line for section in REGISTRY.sweep_sections for line in section(sweep, out, analysis)]
     publish_figures(analysis.figures, out, out / "tb")
-    write_json(out / "claims.json",
-               [_claim_json(r.result, job=None if r.job is None else str(r.job.run_dir),
-                            variant=None if r.job is None else r.job.variant) for r in rows])
+    write_json(
+        out / "claims.json",
+        [
+            _claim_json(
+                r.result,
+                job=None if r.job is None else str(r.job.run_dir),
+                variant=None if r.job is None else r.job.variant,
+            )
+            for r in rows
+        ],
+    )
     analysis.data_files.append("claims.json")
 
     wall = {}
@@ -174,8 +228,10 @@ def analyze_sweep(sweep_dir: Path, pages: Sequence[Path] = ()) -> list[RunOutcom
     if pages and REGISTRY.pages is not None:
         REGISTRY.pages.update_pages(pages, rows, wall, out / "report.md")
         print(f"{', '.join(map(str, pages))}: reproduction results updated")
-    print(f"{sweep_dir}: sweep of {len(found)} runs{_skipped_note(sweep_dir, skipped)}, {len(rows)} claims "
-          f"({sw.verdict_counts(rows)}) -> {out / 'report.md'}")
+    print(
+        f"{sweep_dir}: sweep of {len(found)} runs{_skipped_note(sweep_dir, skipped)}, {len(rows)} claims "
+        f"({sw.verdict_counts(rows)}) -> {out / 'report.md'}"
+    )
     return outcomes
 
 
@@ -204,16 +260,18 @@ def _usage_error(dirs: list[Path], pages: Sequence[Path]) -> str | None:
     single = [str(d) for d in dirs if (d / "summary.json").is_file()]
     if pages and single:
         return f"--readme takes sweep directories only, not the run {', '.join(single)}"
-    if pages and REGISTRY.pages is None:
+    writer = REGISTRY.pages
+    if pages and writer is None:
         return "--readme: no plug-in that writes pages is registered"
     for page in pages:
-        if not (page.is_file() and REGISTRY.pages.blocks_in(page.read_text())):
-            markers = " or ".join(f"{b!r} … {e!r}" for b, e in REGISTRY.pages.BLOCKS)
+        assert writer is not None
+        if not (page.is_file() and writer.blocks_in(page.read_text())):
+            markers = " or ".join(f"{b!r} … {e!r}" for b, e in writer.BLOCKS)
             return f"--readme {page}: needs a file with the marker lines {markers}"
     return None
 
 
-def main(dirs: list[Path], pages: Sequence[Path] = ()) -> int:
+def main(dirs: list[Path], pages: Sequence[Path] = (), force: bool = False) -> int:
     """Analyze each directory (a run or a sweep); the exit status: 2 for a usage error or a
     directory without runs, 1 when a run's analysis failed (a damaged or missing file), else 0 —
     also when members of a sweep were skipped for having no summary.json yet (each is named in
@@ -225,15 +283,18 @@ def main(dirs: list[Path], pages: Sequence[Path] = ()) -> int:
     status = 0
     for d in dirs:
         if (d / "summary.json").is_file():
-            outcomes = [_safe_analyze_run(d)]
+            outcomes = [_safe_analyze_run(d, force=force)]
         elif not any(d.rglob("summary.json")):
             skipped = report_unfinished(d)
-            print(f"{PROG}: error: {d}: no run (summary.json) found below it"
-                  + (f" ({len(skipped)} unfinished)" if skipped else ""), file=sys.stderr)
+            print(
+                f"{PROG}: error: {d}: no run (summary.json) found below it"
+                + (f" ({len(skipped)} unfinished)" if skipped else ""),
+                file=sys.stderr,
+            )
             status = 2
             continue
         else:
-            outcomes = analyze_sweep(d, pages)
+            outcomes = analyze_sweep(d, pages, force)
         if any(o.status.startswith("failed") for o in outcomes):
             status = max(status, 1)
     return status

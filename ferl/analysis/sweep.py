@@ -28,20 +28,24 @@ from ferl.analysis.io import fmt, table_lines, write_csv
 from ferl.analysis.records import Manifest
 from ferl.analysis.report import RunAnalysis, RunOutcome
 
-SCALARS = ("wall_time_s", "agent_steps_per_s")   # summary.json figures besides ``metrics``
+SCALARS = ("wall_time_s", "agent_steps_per_s")  # summary.json figures besides ``metrics``
 DISSERTATION_SETTING = "as in the dissertation"  # the variant of a job without overrides
-TRAIN_WALL_TIME = "train_wall_time_s"            # written by ``make reproduce``
+TRAIN_WALL_TIME = "train_wall_time_s"  # written by ``make reproduce``
 
 
 def _job_overrides(run_dir: Path) -> tuple[str, ...]:
     """The job's command-line overrides besides the experiment and Hydra's own (launcher, dirs)."""
-    return tuple(o for o in runs.load_overrides(run_dir).split()
-                 if not o.lstrip("+~").startswith(("experiment=", "hydra.", "hydra/")))
+    return tuple(
+        o
+        for o in runs.load_overrides(run_dir).split()
+        if not o.lstrip("+~").startswith(("experiment=", "hydra.", "hydra/"))
+    )
 
 
 @dataclass
 class Job:
     """One analysed run directory of the sweep."""
+
     outcome: RunOutcome
     summary: dict
 
@@ -87,6 +91,7 @@ class Job:
 @dataclass
 class Sweep:
     """The analysed jobs of a sweep directory, for the report and the cross-job claims."""
+
     root: Path
     jobs: list[Job]
 
@@ -119,6 +124,7 @@ def metric_values(summary: dict) -> dict[str, list]:
 @dataclass(frozen=True)
 class Aggregate:
     """Mean ± s.e.m. over runs of one metric of one variant of an experiment."""
+
     experiment: str
     variant: str
     metric: str
@@ -129,8 +135,11 @@ class Aggregate:
 
 def aggregate(jobs: Sequence[Job]) -> list[Aggregate]:
     """Mean ± s.e.m. over runs of every metric of every job, in job order."""
-    return [Aggregate(job.experiment, job.variant, metric, *stats.mean_sem(values))
-            for job in jobs for metric, values in metric_values(job.summary).items()]
+    return [
+        Aggregate(job.experiment, job.variant, metric, *stats.mean_sem(values))
+        for job in jobs
+        for metric, values in metric_values(job.summary).items()
+    ]
 
 
 def _cell_text(a: Aggregate) -> str:
@@ -147,25 +156,29 @@ def experiment_tables(rows: Sequence[Aggregate]) -> dict[str, list[str]]:
         variants = list(dict.fromkeys(r.variant for r in mine))
         metrics = list(dict.fromkeys(r.metric for r in mine))
         by_key = {(r.metric, r.variant): r for r in mine}
-        lines = table_lines(["metric", *(f"`{v}`" for v in variants)],
-                            [[m, *(_cell_text(by_key[m, v]) if (m, v) in by_key else "—"
-                                   for v in variants)] for m in metrics])
+        lines = table_lines(
+            ["metric", *(f"`{v}`" for v in variants)],
+            [[m, *(_cell_text(by_key[m, v]) if (m, v) in by_key else "—" for v in variants)] for m in metrics],
+        )
         tables[experiment] = lines
     return tables
 
 
 # ---- the reproduction report ---------------------------------------------------
 
+
 @dataclass(frozen=True)
 class ReportRow:
     """A row of the claims report: the judged claim, the job that judged it, and the others."""
+
     result: ClaimResult
-    job: Job | None                              # None: a claim judged across jobs
+    job: Job | None  # None: a claim judged across jobs
     others: tuple[tuple[Job, ClaimResult], ...]  # other jobs that judged the same claim
 
 
-def reproduction_rows(jobs: Sequence[Job], sweep_results: Sequence[ClaimResult],
-                      order: Sequence[Claim]) -> list[ReportRow]:
+def reproduction_rows(
+    jobs: Sequence[Job], sweep_results: Sequence[ClaimResult], order: Sequence[Claim]
+) -> list[ReportRow]:
     """One row per claim, in the given order (the publication's): the job with the fewest
     overrides judges it (ties: sweep order)."""
     answered: dict[tuple[str, str], list[tuple[Job, ClaimResult]]] = {}
@@ -194,11 +207,9 @@ def claims_rows_markdown(rows: Sequence[ReportRow], out: Path, links: bool = Tru
             job = "across jobs"
         else:
             name = row.job.label
-            job = (f"[{name}]({_link(row.job.run_dir / 'analysis' / 'report.md', out)})"
-                   if links else name)
+            job = f"[{name}]({_link(row.job.run_dir / 'analysis' / 'report.md', out)})" if links else name
         others = "; ".join(f"{j.label}: {o.verdict}" for j, o in row.others) or "—"
-        cells.append([r.claim.text, r.claim.source, r.measured.text, f"**{r.verdict}**", job,
-                      others])
+        cells.append([r.claim.text, r.claim.source, r.measured.text, f"**{r.verdict}**", job, others])
     return table_lines(["claim", "source", "measured", "verdict", "job", "other jobs"], cells)
 
 
@@ -211,37 +222,56 @@ def analyze_sweep(sweep: Sweep, out: Path, title: str = "Sweep report") -> RunAn
     files to."""
     analysis = RunAnalysis(f"{title}: sweep `{sweep.root}`")
     rows_data = aggregate(sweep.jobs)
-    write_csv(out / "metrics.csv", ["experiment", "variant", "metric", "mean", "sem", "n_runs"],
-              [(a.experiment, a.variant, a.metric, fmt(a.mean), fmt(a.sem), a.n)
-               for a in rows_data])
+    write_csv(
+        out / "metrics.csv",
+        ["experiment", "variant", "metric", "mean", "sem", "n_runs"],
+        [(a.experiment, a.variant, a.metric, fmt(a.mean), fmt(a.sem), a.n) for a in rows_data],
+    )
     analysis.data_files.append("metrics.csv")
     return analysis
 
 
-def report_lines(sweep: Sweep, analysis: RunAnalysis, rows: Sequence[ReportRow],
-                 out: Path, wall: dict[str, float], claims_heading: str = "Claims") -> list[str]:
+def report_lines(
+    sweep: Sweep,
+    analysis: RunAnalysis,
+    rows: Sequence[ReportRow],
+    out: Path,
+    wall: dict[str, float],
+    claims_heading: str = "Claims",
+) -> list[str]:
     """``analysis/report.md`` of a sweep: timing, claims, per-experiment tables, every figure."""
     lines = [f"# {analysis.title}", ""]
     lines += [f"- **{k}**: {v:.0f} s" for k, v in wall.items()]
-    lines += [f"- **jobs**: {len(sweep.jobs)}; **claims**: {len(rows)} ({verdict_counts(rows)})",
-              "", f"## {claims_heading}", ""]
+    lines += [
+        f"- **jobs**: {len(sweep.jobs)}; **claims**: {len(rows)} ({verdict_counts(rows)})",
+        "",
+        f"## {claims_heading}",
+        "",
+    ]
     lines += claims_rows_markdown(rows, out)
     tables = experiment_tables(aggregate(sweep.jobs))
-    lines += ["", "## Experiments", "",
-              "Mean ± s.e.m. over runs of every `summary.json` metric (`name/level`: greedy "
-              "accuracy at that test noise), one column per variant; `metrics.csv` holds them "
-              "with the number of runs."]
+    lines += [
+        "",
+        "## Experiments",
+        "",
+        "Mean ± s.e.m. over runs of every `summary.json` metric (`name/level`: greedy "
+        "accuracy at that test noise), one column per variant; `metrics.csv` holds them "
+        "with the number of runs.",
+    ]
     for experiment, table in tables.items():
         lines += ["", f"### {experiment}", ""] + table + [""]
         for job in sweep.of(experiment):
-            lines.append(f"- `{job.variant}` — [{_link(job.run_dir, sweep.root)}]"
-                         f"({_link(job.run_dir / 'analysis' / 'report.md', out)})"
-                         + ("" if job.outcome.figures else f": {job.outcome.status}"))
-            lines += [f"  - [{name}]({_link(job.run_dir / 'analysis' / f'{name}.png', out)}) — "
-                      f"{caption}" for name, caption in job.outcome.figures]
+            lines.append(
+                f"- `{job.variant}` — [{_link(job.run_dir, sweep.root)}]"
+                f"({_link(job.run_dir / 'analysis' / 'report.md', out)})"
+                + ("" if job.outcome.figures else f": {job.outcome.status}")
+            )
+            lines += [
+                f"  - [{name}]({_link(job.run_dir / 'analysis' / f'{name}.png', out)}) — {caption}"
+                for name, caption in job.outcome.figures
+            ]
     if analysis.figures:
         lines += ["", "## Figures across jobs", ""]
-        lines += [f"![{caption}]({name}.png)\n\n{caption}\n"
-                  for name, (_, caption) in analysis.figures.items()]
+        lines += [f"![{caption}]({name}.png)\n\n{caption}\n" for name, (_, caption) in analysis.figures.items()]
     lines += ["", "## Data", ""] + [f"- [{name}]({name})" for name in analysis.data_files]
     return lines

@@ -5,6 +5,7 @@ sweeper, and the final summary table.
 Imported by train.py; joblib's worker processes import it too (main() refers to it), so the
 resolver and the warning filter below are in place wherever a job's config is composed.
 """
+
 import io
 import logging
 import os
@@ -67,9 +68,7 @@ def one_line_errors():
     except SystemExit as e:
         captured, sys.stderr = sys.stderr, real
         if e.code and isinstance(captured, io.StringIO):
-            report = captured.getvalue()
-            line = hydra_os_error(report) or null_group_choice(report, sys.argv[1:]) or condense_hydra_error(report)
-            print("ferl: error: " + line, file=sys.stderr)
+            print("ferl: error: " + hydra_report_line(captured.getvalue(), sys.argv[1:]), file=sys.stderr)
         raise
     except KeyboardInterrupt:
         sys.stderr = real
@@ -98,8 +97,11 @@ def reported_by_phase(run_path: Path, phase):
         raise
     except (KeyboardInterrupt, Stopped) as stop:  # a signal outside a phase's step loop (set-up, the summary)
         signum = getattr(stop, "signum", signal.SIGINT)
-        print(f"ferl: interrupted by {signal.Signals(signum).name} during {phase()} of {shown(run_path)}: "
-              f"{kept(run_path)}", file=sys.stderr)
+        print(
+            f"ferl: interrupted by {signal.Signals(signum).name} during {phase()} of {shown(run_path)}: "
+            f"{kept(run_path)}",
+            file=sys.stderr,
+        )
         sys.exit(128 + signum)
     except Exception as e:  # noqa: BLE001 — every failure of a run is reported this way
         logging.raiseExceptions = False  # a log handler on a full disk fails silently, not with a traceback
@@ -157,8 +159,11 @@ def report_failure(e: Exception, run_path: Path, name: str) -> None:
         traceback.print_exc()
     message = (str(e).strip().splitlines() or [""])[0]
     where = f"traceback in {shown(log)}" if log is not None else "its traceback could not be written to train.log"
-    print(f"ferl: error: phase {name!r} of {shown(run_path)}: {type(e).__name__}: {message} "
-          f"({where}; HYDRA_FULL_ERROR=1 shows it here)", file=sys.stderr)
+    print(
+        f"ferl: error: phase {name!r} of {shown(run_path)}: {type(e).__name__}: {message} "
+        f"({where}; HYDRA_FULL_ERROR=1 shows it here)",
+        file=sys.stderr,
+    )
 
 
 def kept(run_path: Path) -> str:
@@ -174,8 +179,7 @@ def log_traceback(run_path: Path, message: str) -> Path | None:
     where it could not be written (a full disk): that failure is swallowed, never a second traceback."""
     files = [h for h in logging.getLogger().handlers if isinstance(h, logging.FileHandler)]
     path = Path(files[0].baseFilename) if files else Path(run_path) / "train.log"
-    record = logging.getLogger(__name__).makeRecord(__name__, logging.ERROR, __file__, 0, message, None,
-                                                   sys.exc_info())
+    record = logging.getLogger(__name__).makeRecord(__name__, logging.ERROR, __file__, 0, message, (), sys.exc_info())
     text = (files[0].format(record) if files else f"{message}\n{traceback.format_exc()}").rstrip("\n") + "\n"
     try:
         for handler in files:
@@ -200,6 +204,12 @@ def release_stderr() -> None:
     sys.stderr = sys.__stderr__
 
 
+def hydra_report_line(report: str, arguments: list[str]) -> str:
+    """The one line of what Hydra printed on stderr before main() ran, given the command line's
+    ``arguments`` (tests/test_hydra_versions.py checks it for every Hydra release the pin allows)."""
+    return hydra_os_error(report) or null_group_choice(report, arguments) or condense_hydra_error(report)
+
+
 def null_group_choice(report: str, arguments: list[str]) -> str | None:
     """``experiment=null``: Hydra refuses a null group choice with a traceback; one line naming the
     override and what is allowed instead (None for any other report)."""
@@ -215,13 +225,17 @@ def condense_hydra_error(report: str) -> str:
     """Hydra's multi-line composition error as one line that starts with the full key when the
     error names one:
     ``env.noise: Value 'abc' of type 'str' could not be converted to Float | Error merging override env.noise=abc``."""
-    lines = [ln.strip() for ln in report.split("Config search path:")[0].splitlines()
-             if ln.strip() and "HYDRA_FULL_ERROR" not in ln]
+    lines = [
+        ln.strip()
+        for ln in report.split("Config search path:")[0].splitlines()
+        if ln.strip() and "HYDRA_FULL_ERROR" not in ln
+    ]
     key = next((ln.partition(":")[2].strip() for ln in lines if ln.startswith("full_key:")), "")
     rest = [ln for ln in lines if not ln.startswith(("full_key:", "object_type=", "reference_type="))]
     if key:  # the cause first, then which override or file it came from
-        rest = [ln for ln in rest if not ln.startswith(("Error merging", "In '"))] + \
-               [ln for ln in rest if ln.startswith(("Error merging", "In '"))]
+        rest = [ln for ln in rest if not ln.startswith(("Error merging", "In '"))] + [
+            ln for ln in rest if ln.startswith(("Error merging", "In '"))
+        ]
     return (f"{key}: " if key else "") + " | ".join(rest)
 
 
@@ -232,8 +246,9 @@ def optimized_value(summary: dict, metric: str | None) -> float | None:
         return None
     flat = flat_metrics(summary["metrics"])
     if metric not in flat:
-        raise ConfigError(f"optimized_metric={metric!r} is not allowed: this run's summary.json "
-                          f"metrics are {', '.join(flat)}")
+        raise ConfigError(
+            f"optimized_metric={metric!r} is not allowed: this run's summary.json metrics are {', '.join(flat)}"
+        )
     return mean_sd(flat[metric])[0]
 
 

@@ -10,6 +10,7 @@ allowed — and ``@checked`` applies the same checks when a component is built f
 class checks what involves several of its keys in a ``check_config(args)`` classmethod, raising
 ``ArgumentError`` for the key at fault. Nothing here is keyed by a config path.
 """
+
 import functools
 import inspect
 import types
@@ -55,6 +56,7 @@ class ConfigTarget(Protocol):
 @dataclass(frozen=True)
 class Allowed:
     """A range rule of an annotation: ``test(value)`` must hold; ``text`` says what is allowed."""
+
     test: Callable[[Any], bool]
     text: str
 
@@ -107,8 +109,11 @@ def conforms(value, annotation) -> bool:
     if annotation is type(None):
         return value is None
     if origin in (list, tuple):
-        return isinstance(value, (list, tuple)) and all(conforms(v, args[0]) for v in value) if args else \
-            isinstance(value, (list, tuple))
+        return (
+            isinstance(value, (list, tuple)) and all(conforms(v, args[0]) for v in value)
+            if args
+            else isinstance(value, (list, tuple))
+        )
     if origin is dict:
         return isinstance(value, dict) and all(conforms(v, args[1]) for v in value.values())
     if annotation is int:
@@ -140,8 +145,11 @@ def signature(fn) -> tuple[dict, dict, bool]:
     attribute ``kwargs_to = (class, (names, …))`` (``DBNPreprocessor`` → each layer's RBM)."""
     init = fn.__init__ if inspect.isclass(fn) else fn
     init = getattr(init, "__wrapped__", init)
-    params = {n: p for n, p in inspect.signature(init).parameters.items()
-              if n != "self" and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)}
+    params = {
+        n: p
+        for n, p in inspect.signature(init).parameters.items()
+        if n != "self" and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)
+    }
     hints = typing.get_type_hints(init, include_extras=True)
     takes_any = any(p.kind == p.VAR_KEYWORD for p in inspect.signature(init).parameters.values())
     base, fixed = getattr(fn, "kwargs_to", (fn.__mro__[1], ())) if inspect.isclass(fn) else (object, ())
@@ -170,6 +178,9 @@ def check_arguments(fn, values: dict, prefix: str = "") -> None:
             raise ConfigError(f"{prefix}{key} is not allowed: {getattr(fn, '__name__', fn)} takes {', '.join(params)}")
         if isinstance(value, dict) and "_target_" in value:
             check_node(value, f"{prefix}{key}.")
+        elif components(value):  # a map of components (a trainer's phases): each against its target
+            for name, part in value.items():
+                check_node(part, f"{prefix}{key}.{name}.")
         elif key in hints and not conforms(value, hints[key]):
             where, value, annotation = entry_at_fault(key, value, hints[key])
             raise ConfigError(f"{prefix}{where}={value!r} is not allowed: expected {describe(annotation)}")
@@ -182,6 +193,13 @@ def check_arguments(fn, values: dict, prefix: str = "") -> None:
         except ArgumentError as e:
             shown = f"={args[e.key]!r}" if e.key in args else ""
             raise ConfigError(f"{prefix}{e.key}{shown} is not allowed: {e.expected}") from None
+
+
+def components(value) -> bool:
+    """Whether ``value`` is a non-empty map of component nodes (each with a ``_target_``)."""
+    return (
+        isinstance(value, dict) and bool(value) and all(isinstance(v, dict) and "_target_" in v for v in value.values())
+    )
 
 
 def target(path: str):
@@ -217,11 +235,15 @@ def checked(init):
         # the class whose constructor this is; a subclass that inherits it is checked as itself
         # (its own check_config), one that calls it through super() already checked its values
         first = next(c for c in type(self).__mro__ if "__init__" in c.__dict__)
-        owner = type(self) if first.__dict__["__init__"] is wrapper else \
-            next(c for c in type(self).__mro__ if c.__dict__.get("__init__") is wrapper)
+        owner = (
+            type(self)
+            if first.__dict__["__init__"] is wrapper
+            else next(c for c in type(self).__mro__ if c.__dict__.get("__init__") is wrapper)
+        )
         try:
             check_arguments(owner, values)
         except ConfigError as e:
             raise ValueError(str(e)) from None
         init(self, *args, **kwargs)
+
     return wrapper

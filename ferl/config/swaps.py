@@ -6,7 +6,7 @@ user who swaps one of those groups on the command line (``experiment=ch3_coding_
 keeps every value of the experiment that the new option's constructor takes (``trainer.steps``
 here; ``actor.gamma`` of the card games holds for every actor) and loses those it does not take:
 Hydra merges the experiment's values into whatever option is chosen, so without this a swap fails on
-a key the user never typed (``trainer.n_sample is not allowed: OnlineAlgorithm takes …``).
+a key the user never typed (``trainer.n_sample is not allowed: no phase reads it``).
 
 The rule, applied before the config is checked: in a group the user swapped, a key that its node's
 constructor does not take is dropped unless the user typed it. Option files hold only keys their
@@ -16,11 +16,13 @@ under ``large_action``'s exponential one). A key the user typed is never dropped
 as it would without a swap. What still does not fit is refused in one line naming the pair
 (``pair``): the environment a trainer steps (``fits``), or a key the swapped option brings along.
 """
+
+import re
+
 from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig, open_dict
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from ferl.config.params import ArgumentError, ConfigError, plain, signature, target
-from ferl.interfaces import ContinuingEnvironment, EpisodicEnvironment
 
 GROUPS = ("env", "preprocessor", "predictor", "actor", "trainer", "data")
 
@@ -84,7 +86,7 @@ def prune(node: DictConfig, path: tuple, typed: set[tuple]) -> None:
     """One node: a component (``_target_``) keeps the keys its constructor takes; a map of components
     (``predictor``) keeps its entries that are components."""
     # typed, inside a typed node, or holding a typed key
-    user = lambda p: any(t[:len(p)] == p or p[:len(t)] == t for t in typed)  # noqa: E731
+    user = lambda p: any(t[: len(p)] == p or p[: len(t)] == t for t in typed)  # noqa: E731
     if "_target_" not in node:
         for key in list(node):
             child, where = node._get_node(key), (*path, key)  # unresolved: a ??? or ${…} is the check's to name
@@ -93,7 +95,7 @@ def prune(node: DictConfig, path: tuple, typed: set[tuple]) -> None:
             elif isinstance(child, DictConfig):
                 prune(child, where, typed)
         return
-    takes = taken(node)
+    takes = taken(node, ".".join(path))
     if takes is None:
         return  # no constructor to ask: the check names what is wrong
     for key in [k for k in node if k != "_target_"]:
@@ -105,9 +107,10 @@ def prune(node: DictConfig, path: tuple, typed: set[tuple]) -> None:
             prune(child, where, typed)
 
 
-def taken(node: DictConfig) -> set[str] | None:
-    """The keys a component node's constructor takes (every key, if it takes ``**kwargs``); None when the
-    target cannot be imported or does not say which class it builds."""
+def taken(node: DictConfig, path: str) -> set[str] | None:
+    """The keys a component node (at config path ``path``) takes: its constructor's, and if that takes
+    ``**settings``, the settings that its sub-nodes read (``settings_read``; every key where they read
+    none); None when the target cannot be imported or does not say which class it builds."""
     try:
         fn = target(node["_target_"])
         resolve = getattr(fn, "resolve", None)
@@ -116,7 +119,68 @@ def taken(node: DictConfig) -> set[str] | None:
     except (ConfigError, ArgumentError, Exception):  # noqa: BLE001 — left to the check, which names it
         return None
     params, _, takes_any = signature(fn)
-    return set(node) if takes_any else set(params)
+    if not takes_any:
+        return set(params)
+    return set(params) | settings_read(node, path) if settings_read(node, path) else set(node)
+
+
+SETTING = re.compile(r"\$\{([\w.]+)\}")
+
+
+def settings_read(node: DictConfig, path: str) -> set[str]:
+    """The keys of the component node at config path ``path`` that its sub-nodes read by
+    interpolation, ``${<path>.<key>}``: a trainer's settings (``${trainer.n_episodes}``), which a
+    constructor taking ``**settings`` takes, and the names users override (``trainer.n_episodes=…``)."""
+
+    def texts(value):
+        if isinstance(value, dict):
+            return [t for v in value.values() for t in texts(v)]
+        if isinstance(value, list):
+            return [t for v in value for t in texts(v)]
+        return [value] if isinstance(value, str) else []
+
+    container = OmegaConf.to_container(node, resolve=False)
+    assert isinstance(container, dict)  # a component's node
+    subtree = {k: v for k, v in container.items() if isinstance(v, (dict, list))}
+    refs = {ref for text in texts(subtree) for ref in SETTING.findall(text)}
+    return {ref[len(path) + 1 :] for ref in refs if ref.startswith(path + ".") and ref[len(path) + 1 :] in node}
+
+
+def setting_named(error: ConfigError, cfg: DictConfig) -> ConfigError:
+    """An error about a key whose value reads a setting (``trainer.phases.actor.n_episodes`` =
+    ``${trainer.n_episodes}``) names the setting, the key the user sets."""
+    match = re.match(r"[\w.]*", str(error))
+    key = match.group(0) if match else ""
+    parent, _, name = key.rpartition(".")
+    try:
+        node = OmegaConf.select(cfg, parent) if parent else None
+        child = node._get_node(name) if isinstance(node, DictConfig) and name in node else None
+        value = child._value() if child is not None else None
+    except Exception:  # noqa: BLE001 — the error stands as it is
+        return error
+    read = SETTING.fullmatch(value) if isinstance(value, str) else None
+    return ConfigError(read.group(1) + str(error)[len(key) :]) if read else error
+
+
+def check_settings(cfg: DictConfig, key: str) -> None:
+    """A component that takes ``**settings`` takes the keys its sub-nodes read (``settings_read``):
+    one that none reads is refused (a misspelt ``trainer.n_episode``), naming what is allowed."""
+    node = cfg.get(key)
+    if not isinstance(node, DictConfig) or "_target_" not in node:
+        return
+    try:
+        params, _, takes_any = signature(target(node["_target_"]))
+    except ConfigError:
+        return  # the check names the target
+    read = settings_read(node, key)
+    if not (takes_any and read):
+        return
+    for name in node:
+        if name != "_target_" and name not in params and name not in read:
+            raise ConfigError(
+                f"{key}.{name!s} is not allowed: no phase reads it; {key} takes "
+                f"{', '.join(sorted(read))} (its settings) and {', '.join(params)}"
+            )
 
 
 def continuing(env_class) -> bool:
@@ -125,19 +189,21 @@ def continuing(env_class) -> bool:
 
 
 def check_fit(values: dict, hydra) -> None:
-    """A trainer that declares the kind of task it steps (its ``environment`` protocol: episodic or
+    """A trainer that declares the kind of task it steps (its ``environment``: episodic or
     continuing) against the environment's class: one line naming the pair, before any work."""
     env, trainer = values.get("env"), values.get("trainer")
     if not (isinstance(env, dict) and isinstance(trainer, dict) and "_target_" in env and "_target_" in trainer):
         return
-    trainer_class, env_class = target(trainer["_target_"]), target(env["_target_"])
-    wants = {EpisodicEnvironment: True, ContinuingEnvironment: False}.get(getattr(trainer_class, "environment", None))
+    env_class = target(env["_target_"])
+    wants = {"episodic": True, "continuing": False}.get(str(trainer.get("environment")))
     if wants is None or wants != continuing(env_class):
         return
     steps = "episodes" if wants else "a continuing task"
     is_ = "a continuing task" if continuing(env_class) else "episodic"
-    env_name = f"env={hydra.runtime.choices.get('env')} ({env_class.__name__})" if hydra is not None else env_class.__name__
-    reason = f"{trainer_class.__name__} trains on {steps}, and {env_name} is {is_}"
+    env_name = (
+        f"env={hydra.runtime.choices.get('env')} ({env_class.__name__})" if hydra is not None else env_class.__name__
+    )
+    reason = f"its phases train on {steps}, and {env_name} is {is_}"
     if hydra is None:
         raise ConfigError(f"trainer does not fit env: {reason}")
     at_fault = [g for g in swapped_groups(hydra) if g in ("env", "trainer")] or ["trainer"]

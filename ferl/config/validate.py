@@ -10,9 +10,10 @@ built components (a preprocessor's input size against the environment's observat
 ``optimized_metric`` against what the trainer writes) is checked by the trainer's ``setup``, once
 the components exist and before anything is trained.
 """
+
 import re
 from dataclasses import dataclass, fields
-from typing import Annotated, Literal
+from typing import Annotated, Literal, cast
 
 import torch
 from omegaconf import DictConfig, OmegaConf
@@ -29,18 +30,28 @@ from ferl.config.params import (
     signature,
     target,
 )
-from ferl.config.swaps import check_fit, drop_foreign_keys, hydra_node, pair, swapped_groups, typed_values
+from ferl.config.swaps import (
+    check_fit,
+    check_settings,
+    drop_foreign_keys,
+    hydra_node,
+    pair,
+    setting_named,
+    swapped_groups,
+    typed_values,
+)
 
-DEVICES = ("auto", "cpu", "cuda")
+Device = Literal["auto", "cpu", "cuda"]
 
 
 @dataclass(frozen=True)
 class RunSettings:
     """The root keys of conf/config.yaml (what each means is commented there)."""
+
     name: str
     seed: NonNegativeInt
     n_runs: PositiveInt
-    device: Literal[DEVICES]
+    device: Device
     cpu_threads: PositiveInt
     resume: bool
     compile: bool
@@ -58,15 +69,17 @@ def validate(cfg: DictConfig) -> None:
     hydra = hydra_node(cfg)
     values = resolved(cfg)
     if values.get("name") is None and hydra is not None and hydra.runtime.choices.get("experiment") is None:
-        raise ConfigError("~experiment is not allowed: a run is named by its experiment; "
-                          "experiment=none runs without one")
+        raise ConfigError(
+            "~experiment is not allowed: a run is named by its experiment; experiment=none runs without one"
+        )
     check_arguments(RunSettings, {k: values[k] for k in ROOT_KEYS if k in values})
     try:
         for key, node in values.items():
             if key not in ROOT_KEYS:
+                check_settings(cfg, key)
                 check_tree(node, key)
     except ConfigError as e:
-        raise blamed_on_swap(e, hydra) from None
+        raise blamed_on_swap(setting_named(e, cfg), hydra) from None
     check_fit(values, hydra)
     if values.get("device") == "cuda" and not torch.cuda.is_available():
         raise ConfigError("device=cuda but no CUDA device is available: use device=auto or device=cpu")
@@ -76,7 +89,7 @@ def blamed_on_swap(error: ConfigError, hydra) -> ConfigError:
     """A key the user did not type that fails after a group swap came with the swapped option (or an
     experiment value it cannot take): the error names the pair first."""
     swapped = swapped_groups(hydra) if hydra is not None else []
-    key = tuple(re.match(r"[\w.]*", str(error)).group(0).split("."))
+    key = tuple(re.split(r"[^\w.]", str(error), maxsplit=1)[0].split("."))  # the leading dotted key
     typed = typed_values(hydra) if hydra is not None else set()
     if not swapped or any(key[:i] in typed for i in range(1, len(key) + 1)):
         return error
@@ -89,9 +102,9 @@ def resolved(cfg: DictConfig) -> dict:
     (``???``) is a ConfigError naming it and what it takes."""
     job = {k: cfg[k] for k in cfg if k != "hydra"}
     try:
-        return OmegaConf.to_container(OmegaConf.create(job), resolve=True, throw_on_missing=True)
+        return cast(dict, OmegaConf.to_container(OmegaConf.create(job), resolve=True, throw_on_missing=True))
     except MissingMandatoryValue as e:
-        key = e.full_key
+        key = cast(str, e.full_key)  # the missing value's dotted path
         parent, _, name = key.rpartition(".")
         node = OmegaConf.select(cfg, parent) if parent else None
         hints = signature(target(node["_target_"]))[1] if isinstance(node, DictConfig) and "_target_" in node else {}

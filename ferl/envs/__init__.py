@@ -2,6 +2,7 @@
 
 Importing the package registers their Gymnasium views (``ferl.envs.gym``, docs/usage.md).
 """
+
 from ferl.envs.gym import register_envs
 
 register_envs()

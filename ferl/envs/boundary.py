@@ -29,6 +29,7 @@ reward 0 — so the vector environment stays usable and a resumed run cannot rai
 ``ferl_state`` is the environment pickled (generators included: a resumed run steps the same
 episodes), or empty once it has failed (it is never stepped again).
 """
+
 import copy
 import math
 import pickle
@@ -49,21 +50,27 @@ def within(space: spaces.Space, x) -> bool:
     is checked for shape and bounds only (module docstring); Tuple and Dict part by part."""
     if isinstance(space, spaces.Box):
         a = np.asarray(x)
-        return (a.shape == space.shape and np.issubdtype(a.dtype, np.number)
-                and bool(np.all((a >= space.low) & (a <= space.high))))  # NaN compares False
+        return (
+            a.shape == space.shape
+            and np.issubdtype(a.dtype, np.number)
+            and bool(np.all((a >= space.low) & (a <= space.high)))
+        )  # NaN compares False
     if isinstance(space, spaces.Tuple):
         parts = tuple(x) if isinstance(x, (list, tuple, np.ndarray)) else None
         return parts is not None and len(parts) == len(space.spaces) and all(map(within, space.spaces, parts))
     if isinstance(space, spaces.Dict):
-        return isinstance(x, dict) and x.keys() == space.spaces.keys() and all(
-            within(s, x[key]) for key, s in space.spaces.items())
+        return (
+            isinstance(x, dict)
+            and x.keys() == space.spaces.keys()
+            and all(within(s, x[key]) for key, s in space.spaces.items())
+        )
     return bool(space.contains(x))
 
 
 def one_line(text: str, limit: int = 300) -> str:
     """``text`` on one line (the stderr report is one line), cut to ``limit`` characters."""
     text = " ".join(str(text).split())
-    return text if len(text) <= limit else text[:limit - 1] + "…"
+    return text if len(text) <= limit else text[: limit - 1] + "…"
 
 
 def raised(error: BaseException) -> tuple[str, str]:
@@ -79,7 +86,9 @@ def violation(space: spaces.Space, observation, reward=0.0) -> tuple[str, str] |
     except Exception:  # noqa: BLE001 — a value the space cannot even compare is outside it
         inside = False
     if not inside:
-        return f"returned an observation outside its space {one_line(space, 120)}", one_line(SHOWN.repr(observation))
+        return f"returned an observation outside its space {one_line(str(space), 120)}", one_line(
+            SHOWN.repr(observation)
+        )
     try:
         finite = math.isfinite(float(reward))
     except (TypeError, ValueError):

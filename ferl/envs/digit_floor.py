@@ -10,8 +10,9 @@ the goal the agent is moved to a uniformly random non-goal tile (P⁰ of §3.4).
 
 The dynamics are position tables over tiles (next tile, reward), so a step is a few gathers.
 """
+
 import copy
-from typing import Annotated, Literal
+from typing import Annotated, Literal, get_args
 
 import numpy as np
 import torch
@@ -25,7 +26,8 @@ from ferl.random_blocks import Blocks, steps_per_block
 MOVES = ((-1, 0), (0, 1), (1, 0), (0, -1))
 GOAL = 4  # the patch centre (Fig. 3.3)
 CW_CYCLE = (0, 1, 2, 5, 8, 7, 6, 3)
-REWARD_CONDITIONS = ("cw", "ccw", "none")
+RewardCondition = Literal["cw", "ccw", "none"]
+REWARD_CONDITIONS = get_args(RewardCondition)
 NOISE_CLASS = "N"
 
 
@@ -100,8 +102,9 @@ DIGITS = tuple(str(d) for d in range(10))
 def is_arrangement(rows) -> bool:
     """3 rows of 3 distinct digit classes."""
     labels = [str(c) for row in rows for c in row]
-    return len(rows) == 3 and all(len(r) == 3 for r in rows) and len(set(labels)) == 9 and \
-        all(c in DIGITS for c in labels)
+    return (
+        len(rows) == 3 and all(len(r) == 3 for r in rows) and len(set(labels)) == 9 and all(c in DIGITS for c in labels)
+    )
 
 
 class DigitFloor(EnvironmentBase):
@@ -115,14 +118,26 @@ class DigitFloor(EnvironmentBase):
     observation_size = pixels  # the tile's image (``true_state``: its in-patch position)
 
     @checked
-    def __init__(self, n_runs: PositiveInt, data: MnistSplit, generator: torch.Generator,
-                 arrangement: Annotated[list[list[str | int]], Allowed(is_arrangement, "(3 × 3 distinct classes 0–9)")] =
-                 (("0", "1", "2"), ("3", "4", "5"), ("6", "7", "8")),
-                 patches: PositiveInt = 4, noise: UnitInterval = 0.125,
-                 reward_condition: Literal[REWARD_CONDITIONS] = "cw", goal_reward: float = 10.0,
-                 boundary_reward: float = 4.0, other_reward: float = -2.0,
-                 noise_tile: Annotated[str | int, Allowed(lambda c: str(c) in DIGITS, "(a class 0–9)")] | None = None,
-                 true_state: bool = False, device="cpu"):
+    def __init__(
+        self,
+        n_runs: PositiveInt,
+        data: MnistSplit,
+        generator: torch.Generator,
+        arrangement: Annotated[list[list[str | int]], Allowed(is_arrangement, "(3 × 3 distinct classes 0–9)")] = (
+            ("0", "1", "2"),
+            ("3", "4", "5"),
+            ("6", "7", "8"),
+        ),  # type: ignore[assignment]  # immutable default
+        patches: PositiveInt = 4,
+        noise: UnitInterval = 0.125,
+        reward_condition: RewardCondition = "cw",
+        goal_reward: float = 10.0,
+        boundary_reward: float = 4.0,
+        other_reward: float = -2.0,
+        noise_tile: Annotated[str | int, Allowed(lambda c: str(c) in DIGITS, "(a class 0–9)")] | None = None,
+        true_state: bool = False,
+        device="cpu",
+    ):
         self.n_runs, self.noise, self.generator, self.device = n_runs, noise, generator, torch.device(device)
         self.reward_condition, self.patches = reward_condition, patches
         # true_state: the oracle's view (``actor=oracle``), the tile's in-patch position one-hot
@@ -167,11 +182,21 @@ class DigitFloor(EnvironmentBase):
             raise ArgumentError("noise_tile", "null or a class of the arrangement other than the goal (its centre)")
 
     def describe(self) -> dict:
-        return {"kind": "digit_floor", "task": self.task, "episodic": False,
-                "observation": "state" if self.true_state else "image", "true_state": self.true_state,
-                "observation_size": self.observation_size, "n_actions": self.n_actions, "action_names": list(self.action_names),
-                "noise": self.noise, "reward_condition": self.reward_condition, "patches": self.patches,
-                "classes": list(self.classes), "noise_class": NOISE_CLASS}
+        return {
+            "kind": "digit_floor",
+            "task": self.task,
+            "episodic": False,
+            "observation": "state" if self.true_state else "image",
+            "true_state": self.true_state,
+            "observation_size": self.observation_size,
+            "n_actions": self.n_actions,
+            "action_names": list(self.action_names),
+            "noise": self.noise,
+            "reward_condition": self.reward_condition,
+            "patches": self.patches,
+            "classes": list(self.classes),
+            "noise_class": NOISE_CLASS,
+        }
 
     def optimal(self, gamma: float) -> dict:
         """The long-run reward per step of the optimal policy (8 for the default floor)."""
@@ -186,8 +211,9 @@ class DigitFloor(EnvironmentBase):
         """Noisy-pixel positions and values plus transport targets for ``steps`` future steps."""
         idx, values = pixel_noise(steps * self.n_runs, self.pixels, self.noise, self.generator)
         shape = (steps, self.n_runs, self.n_noisy)
-        transport = self.non_goal_tiles[torch.randint(len(self.non_goal_tiles), (steps, self.n_runs),
-                                                      generator=self.generator, device=self.device)]
+        transport = self.non_goal_tiles[
+            torch.randint(len(self.non_goal_tiles), (steps, self.n_runs), generator=self.generator, device=self.device)
+        ]
         return idx.view(shape), values.view(shape), transport
 
     def _build_floor(self, data: MnistSplit, position: np.ndarray) -> None:
@@ -199,8 +225,9 @@ class DigitFloor(EnvironmentBase):
             tiles = torch.as_tensor(np.flatnonzero(np.array(self.layout)[position] == label), device=self.device)
             if label == NOISE_CLASS:
                 offset = sum(len(b) for b in bank)
-                bank.append(torch.rand(self.n_runs * len(tiles), self.pixels,
-                                       generator=self.generator, device=self.device))
+                bank.append(
+                    torch.rand(self.n_runs * len(tiles), self.pixels, generator=self.generator, device=self.device)
+                )
                 ids = offset + torch.arange(self.n_runs * len(tiles), device=self.device).view(self.n_runs, -1)
             else:
                 pool = torch.nonzero(data.train_labels.to(self.device) == int(label)).squeeze(1)
@@ -210,7 +237,9 @@ class DigitFloor(EnvironmentBase):
                     keys = torch.rand(self.n_runs, len(pool), generator=self.generator, device=self.device)
                     pick = keys.argsort(1)[:, : len(tiles)]
                 else:
-                    pick = torch.randint(len(pool), (self.n_runs, len(tiles)), generator=self.generator, device=self.device)
+                    pick = torch.randint(
+                        len(pool), (self.n_runs, len(tiles)), generator=self.generator, device=self.device
+                    )
                 ids = pool[pick]
             tile_image[:, tiles] = ids
         self.bank = torch.cat(bank)
@@ -232,7 +261,9 @@ class DigitFloor(EnvironmentBase):
         """The current tile's image with its noisy pixels replaced: (R, 784); its position one-hot
         with ``true_state``."""
         if self.true_state:
-            return torch.nn.functional.one_hot(self.tile_position.index_select(0, self.tile), self.observation_size).float()
+            return torch.nn.functional.one_hot(
+                self.tile_position.index_select(0, self.tile), self.observation_size
+            ).float()
         image = self.bank.index_select(0, self.tile_image.gather(1, self.tile.unsqueeze(1)).squeeze(1))
         return image.scatter_(1, idx, values) if self.n_noisy else image
 
@@ -262,8 +293,12 @@ class DigitFloor(EnvironmentBase):
         return self._observe(idx, values), reward
 
     def state_dict(self) -> dict:
-        return {"tile": self.tile, "tile_image": self.tile_image, "bank": self.bank,
-                "noise_blocks": self.noise_blocks.state_dict()}
+        return {
+            "tile": self.tile,
+            "tile_image": self.tile_image,
+            "bank": self.bank,
+            "noise_blocks": self.noise_blocks.state_dict(),
+        }
 
     def load_state_dict(self, state: dict) -> None:
         self.tile, self.tile_image, self.bank = (state[k].to(self.device) for k in ("tile", "tile_image", "bank"))

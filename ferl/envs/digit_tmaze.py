@@ -19,6 +19,7 @@ seeded from the maze generator's seed (``ferl.rng.IMAGE_NOISE``): every maze bui
 trainer builds more for its random episodes) has the same table, and the noise shifts no other
 random number. Observations of one digit class share their noisy copies, as they share images.
 """
+
 from typing import Annotated
 
 import torch
@@ -29,16 +30,19 @@ from ferl.data import MnistSplit
 from ferl.envs.tmaze import TMaze, observation_names
 
 
-def class_images(data: MnistSplit, digit_classes: dict, image_index: int, reservoir_size: int,
-                 threshold: float | None) -> dict:
+def class_images(
+    data: MnistSplit, digit_classes: dict, image_index: int, reservoir_size: int, threshold: float | None
+) -> dict:
     """Observation name → (reservoir_size, 784) images of its digit class."""
     images = {}
     for name, label in digit_classes.items():
         pool = data.train_images[data.train_labels == int(label)]
         if image_index + reservoir_size > len(pool):
-            raise ValueError(f"env.reservoir_size={reservoir_size} with env.image_index={image_index}: class {label} "
-                             f"has {len(pool)} training images")
-        reservoir = pool[image_index: image_index + reservoir_size]
+            raise ValueError(
+                f"env.reservoir_size={reservoir_size} with env.image_index={image_index}: class {label} "
+                f"has {len(pool)} training images"
+            )
+        reservoir = pool[image_index : image_index + reservoir_size]
         images[name] = reservoir if threshold is None else (reservoir > threshold).float()
     return images
 
@@ -61,11 +65,20 @@ class DigitTMaze(TMaze):
     (grey levels only; ignored without noise); every other argument is the T-maze's."""
 
     @checked
-    def __init__(self, n_runs: PositiveInt, generator: torch.Generator, data: MnistSplit,
-                 digit_classes: dict[str, Annotated[int, Allowed(lambda c: 0 <= c <= 9, "a digit class 0–9")]],
-                 image_index: NonNegativeInt = 0, reservoir_size: PositiveInt = 1,
-                 binarize_threshold: UnitInterval | None = 0.5, pixel_noise_std: NonNegative = 0.0,
-                 noise_copies: PositiveInt = 10, device="cpu", **maze):
+    def __init__(
+        self,
+        n_runs: PositiveInt,
+        generator: torch.Generator,
+        data: MnistSplit,
+        digit_classes: dict[str, Annotated[int, Allowed(lambda c: 0 <= c <= 9, "a digit class 0–9")]],
+        image_index: NonNegativeInt = 0,
+        reservoir_size: PositiveInt = 1,
+        binarize_threshold: UnitInterval | None = 0.5,
+        pixel_noise_std: NonNegative = 0.0,
+        noise_copies: PositiveInt = 10,
+        device="cpu",
+        **maze,
+    ):
         self.digit_classes = {name: int(label) for name, label in dict(digit_classes).items()}
         self.pixel_noise_std, self.noise_copies = pixel_noise_std, noise_copies
         images = class_images(data, self.digit_classes, image_index, reservoir_size, binarize_threshold)
@@ -75,8 +88,12 @@ class DigitTMaze(TMaze):
         super().__init__(n_runs, generator, images={k: v.to(device) for k, v in images.items()}, device=device, **maze)
 
     def describe(self) -> dict:
-        return {**super().describe(), "digit_classes": self.digit_classes, "pixel_noise_std": self.pixel_noise_std,
-                "noise_copies": self.noise_copies if self.pixel_noise_std > 0 else 1}
+        return {
+            **super().describe(),
+            "digit_classes": self.digit_classes,
+            "pixel_noise_std": self.pixel_noise_std,
+            "noise_copies": self.noise_copies if self.pixel_noise_std > 0 else 1,
+        }
 
     @classmethod
     def check_config(cls, args: dict) -> None:
@@ -90,5 +107,8 @@ class DigitTMaze(TMaze):
         if missing:
             raise ArgumentError(f"digit_classes.{missing[0]}", "a class (every observation of the maze needs one)")
         if args["pixel_noise_std"] > 0 and args["binarize_threshold"] is not None:
-            raise ArgumentError("pixel_noise_std", "0 unless binarize_threshold is null (the noise is added to "
-                                                   f"grey levels; binarize_threshold={args['binarize_threshold']})")
+            raise ArgumentError(
+                "pixel_noise_std",
+                "0 unless binarize_threshold is null (the noise is added to "
+                f"grey levels; binarize_threshold={args['binarize_threshold']})",
+            )

@@ -19,13 +19,16 @@ observation space needs a declared encoding into {0, 1}^O:
 An encoding is a ``gymnasium.ObservationWrapper`` (``BinaryObservation``), so the same code serves
 ferl's vector of environments and any outside learner given the wrapped environment.
 """
-from collections.abc import Callable
+
+from collections.abc import Callable, Iterable
+from typing import Literal, get_args
 
 import gymnasium
 import numpy as np
 from gymnasium import spaces
 
-ENCODINGS = ("auto", "onehot", "thresholds", "minigrid")
+Encoding = Literal["auto", "onehot", "thresholds", "minigrid"]
+ENCODINGS = get_args(Encoding)
 # MiniGrid's symbolic indices (minigrid.core.constants: OBJECT_TO_IDX, COLOR_TO_IDX, STATE_TO_IDX)
 MINIGRID_SIZES = (11, 6, 3)
 
@@ -52,15 +55,21 @@ def onehot_encoder(space) -> tuple[Encoder, int]:
             bits = np.zeros(total, np.uint8)
             bits[offsets + np.asarray(x).reshape(-1) - starts] = 1
             return bits
+
         return encode, total
     if isinstance(space, spaces.MultiBinary):
         return (lambda x: np.asarray(x, np.uint8).reshape(-1)), int(np.prod(space.shape))
     if isinstance(space, (spaces.Tuple, spaces.Dict)):
-        keys = list(space.spaces) if isinstance(space, spaces.Dict) else range(len(space.spaces))
-        parts = [onehot_encoder(space.spaces[k]) for k in keys]
+        named: Iterable[tuple[str | int, spaces.Space]] = (
+            space.spaces.items() if isinstance(space, spaces.Dict) else enumerate(space.spaces)
+        )
+        subspaces = dict(named)
+        keys = list(subspaces)
+        parts = [onehot_encoder(subspaces[k]) for k in keys]
         return (lambda x: np.concatenate([enc(x[k]) for k, (enc, _) in zip(keys, parts)])), sum(n for _, n in parts)
-    raise NoEncoding(f"{space} has no one-hot encoding (only Discrete, MultiDiscrete, MultiBinary and "
-                     f"Tuple/Dict of them)")
+    raise NoEncoding(
+        f"{space} has no one-hot encoding (only Discrete, MultiDiscrete, MultiBinary and Tuple/Dict of them)"
+    )
 
 
 def thresholds_encoder(space, thresholds) -> tuple[Encoder, int]:
@@ -70,8 +79,9 @@ def thresholds_encoder(space, thresholds) -> tuple[Encoder, int]:
     if not thresholds:
         raise NoEncoding(f"{space} needs env.thresholds (a list of numbers) for env.encoding=thresholds")
     theta = np.asarray(thresholds, np.float64)
-    return (lambda x: (np.asarray(x, np.float64).reshape(-1, 1) > theta).astype(np.uint8).reshape(-1)), \
-        int(np.prod(space.shape)) * len(theta)
+    return (lambda x: (np.asarray(x, np.float64).reshape(-1, 1) > theta).astype(np.uint8).reshape(-1)), int(
+        np.prod(space.shape)
+    ) * len(theta)
 
 
 def is_minigrid(space) -> bool:
@@ -91,6 +101,7 @@ def minigrid_encoder(space) -> tuple[Encoder, int]:
         bits = np.zeros((cells, width), np.uint8)
         bits[np.arange(cells)[:, None], offsets + x["image"].reshape(cells, 3)] = 1
         return bits.reshape(-1)
+
     return encode, cells * width
 
 
@@ -102,8 +113,10 @@ def encoder_for(space, encoding: str, thresholds=()) -> tuple[Encoder, int]:
         try:
             return onehot_encoder(space)
         except NoEncoding:
-            raise NoEncoding(f"{space} has no automatic encoding: a Box needs env.encoding=thresholds with "
-                             f"env.thresholds=[...]; other spaces are not supported") from None
+            raise NoEncoding(
+                f"{space} has no automatic encoding: a Box needs env.encoding=thresholds with "
+                f"env.thresholds=[...]; other spaces are not supported"
+            ) from None
     if encoding == "onehot":
         return onehot_encoder(space)
     if encoding == "thresholds":

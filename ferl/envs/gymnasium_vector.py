@@ -33,7 +33,8 @@ diverged run (``ferl.run.guard``) while the other runs go on — with the env id
 step; its environment is never stepped again, in this process or a resumed one. Without
 ``on_fault`` (the class used directly) the fault raises ``EnvironmentFault``.
 """
-from typing import Literal
+
+from typing import Literal, cast
 
 import gymnasium
 import numpy as np
@@ -43,7 +44,7 @@ from gymnasium import spaces
 from ferl import rng
 from ferl.config.params import ConfigError, Positive, PositiveInt, checked
 from ferl.envs.boundary import DETAIL, FAULT, Guarded
-from ferl.envs.encodings import ENCODINGS, BinaryObservation, NoEncoding
+from ferl.envs.encodings import BinaryObservation, Encoding, NoEncoding
 from ferl.interfaces import EpisodicEnvironmentBase
 
 
@@ -57,8 +58,10 @@ def make(env_id: str, kwargs: dict):
     try:
         return gymnasium.make(env_id, **kwargs)
     except gymnasium.error.Error as e:
-        raise ConfigError(f"env.id: {env_id!r} is not a registered Gymnasium id ({str(e).splitlines()[0]}); "
-                          f"use a registered id or 'module:Id' with a module that registers it") from None
+        raise ConfigError(
+            f"env.id: {env_id!r} is not a registered Gymnasium id ({str(e).splitlines()[0]}); "
+            f"use a registered id or 'module:Id' with a module that registers it"
+        ) from None
     except (ModuleNotFoundError, ImportError) as e:
         raise ConfigError(f"env.id: {env_id!r}: its module cannot be imported ({e})") from None
     except TypeError as e:
@@ -72,8 +75,10 @@ def action_sizes(space, env_id: str) -> np.ndarray:
         return np.array([int(space.n)])
     if isinstance(space, spaces.MultiDiscrete):
         return space.nvec.reshape(-1).astype(np.int64)
-    raise ConfigError(f"env.id: {env_id!r} has the action space {space}; ferl's agents choose among discrete "
-                      f"actions (Discrete or MultiDiscrete)")
+    raise ConfigError(
+        f"env.id: {env_id!r} has the action space {space}; ferl's agents choose among discrete "
+        f"actions (Discrete or MultiDiscrete)"
+    )
 
 
 def default_max_steps(env) -> int | None:
@@ -94,15 +99,27 @@ class GymnasiumEnv(EpisodicEnvironmentBase):
 
     task = "gymnasium"
     discovers_observations = True  # the observation table grows as observations are seen
-    optimal_steps = float("nan")   # unknown in general
-    reward_values = ()             # no reward bits: predictors take the scalar reward (reward_output=linear)
+    optimal_steps = float("nan")  # unknown in general
+    reward_values = ()  # no reward bits: predictors take the scalar reward (reward_output=linear)
 
     @checked
-    def __init__(self, n_runs: PositiveInt, generator: torch.Generator, seed: int, id: str, kwargs: dict | None = None,
-                 encoding: Literal[ENCODINGS] = "auto", thresholds: list | None = None,
-                 max_steps: PositiveInt | None = None, vectorization: Literal["sync", "async"] = "sync",
-                 max_observations: PositiveInt = 4096, success_threshold: float | None = None,
-                 optimal_return: float | None = None, reward_scale: Positive = 1.0, device="cpu"):
+    def __init__(
+        self,
+        n_runs: PositiveInt,
+        generator: torch.Generator,
+        seed: int,
+        id: str,
+        kwargs: dict | None = None,
+        encoding: Encoding = "auto",
+        thresholds: list | None = None,
+        max_steps: PositiveInt | None = None,
+        vectorization: Literal["sync", "async"] = "sync",
+        max_observations: PositiveInt = 4096,
+        success_threshold: float | None = None,
+        optimal_return: float | None = None,
+        reward_scale: Positive = 1.0,
+        device="cpu",
+    ):
         del generator  # the environments draw from their own seeded generators
         self.n_runs, self.id, self.kwargs, self.device = n_runs, id, dict(kwargs or {}), torch.device(device)
         self.encoding, self.thresholds = encoding, list(thresholds or ())
@@ -111,7 +128,10 @@ class GymnasiumEnv(EpisodicEnvironmentBase):
             self.sizes = action_sizes(probe.action_space, id)
             self.action_space = probe.action_space
             try:
-                observation_size = BinaryObservation(probe, encoding, self.thresholds).observation_space.n
+                encoded = cast(
+                    spaces.MultiBinary, BinaryObservation(probe, encoding, self.thresholds).observation_space
+                )
+                observation_size = cast(int, encoded.n)  # MultiBinary(size): an int
             except NoEncoding as e:
                 raise ConfigError(f"env.encoding: the observation space of {id!r}: {e}") from None
             limit = max_steps or default_max_steps(probe)
@@ -121,13 +141,22 @@ class GymnasiumEnv(EpisodicEnvironmentBase):
             raise ConfigError(f"env.max_steps: {id!r} states no episode limit; set env.max_steps (T_max)")
         self.max_steps, self.observation_size = limit, int(observation_size)
         self.n_actions = int(np.prod(self.sizes))
-        self.action_names = [str(i) for i in range(self.n_actions)] if len(self.sizes) == 1 else \
-            ["(" + ",".join(map(str, np.unravel_index(i, self.sizes))) + ")" for i in range(self.n_actions)]
-        self.success_threshold, self.optimal_return, self.vectorization = success_threshold, optimal_return, vectorization
+        self.action_names = (
+            [str(i) for i in range(self.n_actions)]
+            if len(self.sizes) == 1
+            else ["(" + ",".join(map(str, np.unravel_index(i, self.sizes))) + ")" for i in range(self.n_actions)]
+        )
+        self.success_threshold, self.optimal_return, self.vectorization = (
+            success_threshold,
+            optimal_return,
+            vectorization,
+        )
         self.reward_scale = reward_scale
-        self.seeds = rng.run_seeds(seed, n_runs)
+        self.seeds: list[int | None] = list(rng.run_seeds(seed, n_runs))  # as vector.reset takes them
         vector = gymnasium.vector.AsyncVectorEnv if vectorization == "async" else gymnasium.vector.SyncVectorEnv
-        self.vector = vector([self.env_fn() for _ in range(n_runs)], autoreset_mode=gymnasium.vector.AutoresetMode.NEXT_STEP)
+        self.vector = vector(
+            [self.env_fn() for _ in range(n_runs)], autoreset_mode=gymnasium.vector.AutoresetMode.NEXT_STEP
+        )
         self.observation_table = torch.zeros(max_observations, self.observation_size, device=self.device)
         self.ids: dict[bytes, int] = {}
         self.observation_names: list[str] = []
@@ -136,9 +165,9 @@ class GymnasiumEnv(EpisodicEnvironmentBase):
         self.done = torch.ones(n_runs, dtype=torch.bool, device=self.device)
         self.t = torch.zeros(n_runs, dtype=torch.long, device=self.device)
         self.episode_return = torch.zeros(n_runs, device=self.device)
-        self.episode = -1                    # episodes begun (the reset count − 1): the reports' episode
-        self.failed = [False] * n_runs       # runs whose environment failed (module docstring)
-        self.on_fault = None                 # on_fault(run, episode, reason, details), set by the training job
+        self.episode = -1  # episodes begun (the reset count − 1): the reports' episode
+        self.failed = [False] * n_runs  # runs whose environment failed (module docstring)
+        self.on_fault = None  # on_fault(run, episode, reason, details), set by the training job
 
     def env_fn(self):
         env_id, kwargs, encoding, thresholds = self.id, self.kwargs, self.encoding, self.thresholds
@@ -153,8 +182,10 @@ class GymnasiumEnv(EpisodicEnvironmentBase):
             if key not in self.ids:
                 i = len(self.ids)
                 if i == self.observation_table.shape[0]:
-                    raise RuntimeError(f"env.max_observations: {self.id!r} showed more than {i} distinct observations; "
-                                       f"raise env.max_observations")
+                    raise RuntimeError(
+                        f"env.max_observations: {self.id!r} showed more than {i} distinct observations; "
+                        f"raise env.max_observations"
+                    )
                 self.ids[key] = i
                 self.observation_names.append(f"obs{i}")
                 self.observation_table[i] = torch.from_numpy(row.astype(np.float32)).to(self.device)
@@ -188,14 +219,14 @@ class GymnasiumEnv(EpisodicEnvironmentBase):
 
     def advance(self, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """One step of every run that has not ended: (rewards, terminated, truncated), each (R,)."""
-        bits, reward, terminated, truncated, info = self.vector.step(self.env_actions(action))
+        bits, reward, terminated_np, truncated_np, info = self.vector.step(self.env_actions(action))
         active = ~self.done
         as_tensor = lambda x, dtype: torch.as_tensor(np.asarray(x), dtype=dtype, device=self.device)  # noqa: E731
         raw = torch.where(active, as_tensor(reward, torch.float32), 0.0)
         self.t = self.t + active.long()
         self.report_faults(info, active)  # before the learner sees the step (a failed run's reward is 0)
-        terminated = as_tensor(terminated, torch.bool) & active
-        truncated = (as_tensor(truncated, torch.bool) | (self.t >= self.max_steps)) & active & ~terminated
+        terminated = as_tensor(terminated_np, torch.bool) & active
+        truncated = (as_tensor(truncated_np, torch.bool) | (self.t >= self.max_steps)) & active & ~terminated
         self.obs_id = torch.where(active, self.identify(bits), self.obs_id)
         self.episode_return = self.episode_return + raw
         self.done = self.done | terminated | truncated
@@ -209,10 +240,17 @@ class GymnasiumEnv(EpisodicEnvironmentBase):
         for r in np.flatnonzero(info["_" + FAULT]).tolist():
             self.failed[r] = True
             step = int(self.t[r])
-            where = "its reset" if active is None else f"step {step}" if bool(active[r]) else \
-                f"step {step} (after its episode ended, while it waited for the other runs)"
+            where = (
+                "its reset"
+                if active is None
+                else f"step {step}"
+                if bool(active[r])
+                else f"step {step} (after its episode ended, while it waited for the other runs)"
+            )
             detail = info[DETAIL][r]
-            reason = f"env {self.id!r} {info[FAULT][r]} at episode {self.episode}, {where}" + (f": {detail}" if detail else "")
+            reason = f"env {self.id!r} {info[FAULT][r]} at episode {self.episode}, {where}" + (
+                f": {detail}" if detail else ""
+            )
             if self.on_fault is None:
                 raise EnvironmentFault(f"run {r} (seed {self.seeds[r]}): {reason}")
             self.on_fault(r, self.episode, reason, {"env_id": self.id, "step": step})
@@ -240,18 +278,39 @@ class GymnasiumEnv(EpisodicEnvironmentBase):
         return {} if self.optimal_return is None else {"return": self.optimal_return}
 
     def describe(self) -> dict:
-        return {"kind": "gymnasium", "task": self.task, "episodic": True, "observation": "bits", "id": self.id,
-                "kwargs": self.kwargs, "encoding": self.encoding, "vectorization": self.vectorization,
-                "observation_size": self.observation_size, "n_actions": self.n_actions,
-                "action_names": self.action_names, "max_steps": self.max_steps, "optimal_return": self.optimal_return,
-                "success_threshold": self.success_threshold, "reward_scale": self.reward_scale,
-                "labels": [], "outcomes": list(self.outcomes())}
+        return {
+            "kind": "gymnasium",
+            "task": self.task,
+            "episodic": True,
+            "observation": "bits",
+            "id": self.id,
+            "kwargs": self.kwargs,
+            "encoding": self.encoding,
+            "vectorization": self.vectorization,
+            "observation_size": self.observation_size,
+            "n_actions": self.n_actions,
+            "action_names": self.action_names,
+            "max_steps": self.max_steps,
+            "optimal_return": self.optimal_return,
+            "success_threshold": self.success_threshold,
+            "reward_scale": self.reward_scale,
+            "labels": [],
+            "outcomes": list(self.outcomes()),
+        }
 
     def state_dict(self) -> dict:
         n = len(self.ids)
-        return {"envs": self.vector.get_attr("ferl_state"), "seeded": self.seeded, "table": self.observation_table[:n].cpu(),
-                "obs_id": self.obs_id, "done": self.done, "t": self.t, "episode_return": self.episode_return,
-                "episode": self.episode, "failed": list(self.failed)}
+        return {
+            "envs": self.vector.get_attr("ferl_state"),
+            "seeded": self.seeded,
+            "table": self.observation_table[:n].cpu(),
+            "obs_id": self.obs_id,
+            "done": self.done,
+            "t": self.t,
+            "episode_return": self.episode_return,
+            "episode": self.episode,
+            "failed": list(self.failed),
+        }
 
     def load_state_dict(self, state: dict) -> None:
         self.vector.set_attr("ferl_state", list(state["envs"]))

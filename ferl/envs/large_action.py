@@ -12,6 +12,7 @@ Actions are indices whose bits are the action (``ferl.bits``), so the task takes
 every environment; a run's key states and key actions come from its own stream seeded from
 ``seed + r``, so run r's task does not depend on n_runs.
 """
+
 import copy
 from typing import Literal
 
@@ -32,16 +33,30 @@ class LargeActionTask(EnvironmentBase):
     task = "large_action"
 
     @checked
-    def __init__(self, n_runs: PositiveInt, generator: torch.Generator, state_bits: PositiveInt = 12,
-                 action_bits: PositiveInt = 40, key_states: PositiveInt = 13,
-                 states: Literal["uniform", "key_states"] = "uniform", seed: NonNegativeInt = 0, device="cpu"):
+    def __init__(
+        self,
+        n_runs: PositiveInt,
+        generator: torch.Generator,
+        state_bits: PositiveInt = 12,
+        action_bits: PositiveInt = 40,
+        key_states: PositiveInt = 13,
+        states: Literal["uniform", "key_states"] = "uniform",
+        seed: NonNegativeInt = 0,
+        device="cpu",
+    ):
         self.n_runs, self.generator, self.device = n_runs, generator, torch.device(device)
         self.observation_size, self.action_bits = state_bits, action_bits
-        self.n_actions, self.states = 2 ** action_bits, states
+        self.n_actions, self.states = 2**action_bits, states
         self.action_names = [f"bit{k}" for k in range(action_bits)]  # what each action node means
         gens = rng.run_generators(seed, n_runs)
-        self.keys = torch.stack([torch.randint(2, (key_states, state_bits), generator=g) for g in gens]).float().to(self.device)
-        self.key_actions = torch.stack([torch.randint(2, (key_states, action_bits), generator=g) for g in gens]).float().to(self.device)
+        self.keys = (
+            torch.stack([torch.randint(2, (key_states, state_bits), generator=g) for g in gens]).float().to(self.device)
+        )
+        self.key_actions = (
+            torch.stack([torch.randint(2, (key_states, action_bits), generator=g) for g in gens])
+            .float()
+            .to(self.device)
+        )
         self.blocks = Blocks(self._draw_states, steps_per_block(n_runs * state_bits))
         self.state = self.blocks.next()[0].clone()
 
@@ -54,9 +69,17 @@ class LargeActionTask(EnvironmentBase):
             raise ArgumentError("action_bits", "at most 62 (actions are 64-bit integer indices)")
 
     def describe(self) -> dict:
-        return {"kind": "large_action", "task": self.task, "episodic": False, "observation": "bits",
-                "observation_size": self.observation_size, "n_actions": self.n_actions,
-                "action_bits": self.action_bits, "key_states": self.keys.shape[1], "states": self.states}
+        return {
+            "kind": "large_action",
+            "task": self.task,
+            "episodic": False,
+            "observation": "bits",
+            "observation_size": self.observation_size,
+            "n_actions": self.n_actions,
+            "action_bits": self.action_bits,
+            "key_states": self.keys.shape[1],
+            "states": self.states,
+        }
 
     def optimal(self, gamma: float) -> dict:
         """Every key action matched bit for bit: ``action_bits`` a step; a random action half of it."""
@@ -66,10 +89,13 @@ class LargeActionTask(EnvironmentBase):
         """Random states (steps, R, state_bits), as ``Blocks`` takes them: uniform over all states,
         or (``key_states``) uniform over the key states only."""
         if self.states == "uniform":
-            return torch.randint(2, (steps, self.n_runs, self.observation_size), generator=self.generator,
-                                 device=self.device).float(),
+            return (
+                torch.randint(
+                    2, (steps, self.n_runs, self.observation_size), generator=self.generator, device=self.device
+                ).float(),
+            )
         pick = torch.randint(self.keys.shape[1], (steps, self.n_runs), generator=self.generator, device=self.device)
-        return self.keys[torch.arange(self.n_runs, device=self.device), pick],
+        return (self.keys[torch.arange(self.n_runs, device=self.device), pick],)
 
     def nearest_key(self, s: torch.Tensor) -> torch.Tensor:
         """Index (R,) of the key state nearest to s (R, state_bits) in Hamming distance."""
@@ -108,7 +134,12 @@ class LargeActionTask(EnvironmentBase):
         return part
 
     def state_dict(self) -> dict:
-        return {"state": self.state, "keys": self.keys, "key_actions": self.key_actions, "blocks": self.blocks.state_dict()}
+        return {
+            "state": self.state,
+            "keys": self.keys,
+            "key_actions": self.key_actions,
+            "blocks": self.blocks.state_dict(),
+        }
 
     def load_state_dict(self, state: dict) -> None:
         self.state, self.keys, self.key_actions = (state[k].to(self.device) for k in ("state", "keys", "key_actions"))

@@ -27,6 +27,7 @@ corridor, junction and goal_left / goal_right bits. The goal reward is ferl's ``
 and the penalty −goal_reward / L: ``goal_reward=1`` (``conf/experiment/passive_tmaze.yaml``) is
 their rewards exactly; ``wall_reward`` and ``step_reward`` take no part.
 """
+
 import numpy as np
 import torch
 
@@ -36,8 +37,9 @@ def passive_penalty(corridor_length: int, goal_reward: float) -> float:
     return -goal_reward / corridor_length
 
 
-def passive_reward(position: torch.Tensor, t: torch.Tensor, rewarded_goal: torch.Tensor, max_steps: int,
-                   values: torch.Tensor) -> torch.Tensor:
+def passive_reward(
+    position: torch.Tensor, t: torch.Tensor, rewarded_goal: torch.Tensor, max_steps: int, values: torch.Tensor
+) -> torch.Tensor:
     """Reward after the t-th action (R,) from the cell reached ``position`` (R,), the actions taken
     ``t`` (R,) and the cued goal's cell ``rewarded_goal`` (R,); ``values`` = (penalty, goal) (2,).
     The last action pays the goal, every other one the penalty when behind (cell < t)."""

@@ -15,6 +15,7 @@ fixed image per observation (the digit matching T-maze, §4.3.3), or a reservoir
 observation from which every visit draws one afresh (§5.3.2): observation n, image k has id
 n·K + k. The dynamics are (position, action) tables, so a step is a few gathers.
 """
+
 from typing import Annotated
 
 import numpy as np
@@ -62,8 +63,12 @@ def maze_tables(corridor_length: int, goal: float, wall: float, step: float):
     nxt = np.tile(np.arange(corridor_length + 2)[:, None], (1, 4))
     reward = np.full((corridor_length + 2, 4, 2), float(wall))
     for p in range(corridor_length):
-        moves = {N: p + 1 if p < junction else None, S: p - 1 if p > 0 else None,
-                 E: right if p == junction else None, W: left if p == junction else None}
+        moves = {
+            N: p + 1 if p < junction else None,
+            S: p - 1 if p > 0 else None,
+            E: right if p == junction else None,
+            W: left if p == junction else None,
+        }
         for a, q in moves.items():
             if q is None:
                 continue
@@ -72,8 +77,7 @@ def maze_tables(corridor_length: int, goal: float, wall: float, step: float):
     return nxt, reward
 
 
-def optimal_return(corridor_length: int, max_steps: int, gamma: float, goal: float, wall: float,
-                   step: float) -> float:
+def optimal_return(corridor_length: int, max_steps: int, gamma: float, goal: float, wall: float, step: float) -> float:
     """Optimal discounted return from the start with the state fully observed (the upper bound
     R_0 of Figs. 4.6, 4.11), by finite-horizon value iteration over the T_max actions."""
     nxt, reward = maze_tables(corridor_length, goal, wall, step)
@@ -94,18 +98,30 @@ class TMaze(EpisodicEnvironmentBase):
     n_actions = len(ACTIONS)
 
     @checked
-    def __init__(self, n_runs: PositiveInt, generator: torch.Generator,
-                 corridor_length: Annotated[int, at_least(2, "start, corridor cells, junction")] = 3,
-                 max_steps: PositiveInt | None = 10, matching: bool = False, goal_reward: float = 5.0,
-                 wall_reward: float = -1.0, step_reward: float = -0.1, true_state: bool = False, images=None,
-                 device="cpu", passive: bool = False):
+    def __init__(
+        self,
+        n_runs: PositiveInt,
+        generator: torch.Generator,
+        corridor_length: Annotated[int, at_least(2, "start, corridor cells, junction")] = 3,
+        max_steps: PositiveInt | None = 10,
+        matching: bool = False,
+        goal_reward: float = 5.0,
+        wall_reward: float = -1.0,
+        step_reward: float = -0.1,
+        true_state: bool = False,
+        images=None,
+        device="cpu",
+        passive: bool = False,
+    ):
         self.n_runs, self.generator, self.device = n_runs, generator, torch.device(device)
         # passive: corridor_length is Ni et al.'s L, the junction L cells up, so the maze has
         # L + 1 cells and its episode L + 1 actions (ferl.envs.passive); self.corridor_length is
         # the number of cells (T_min) in both modes
         self.passive, self.configured_length = passive, corridor_length
         if passive:
-            corridor_length, max_steps = corridor_length + 1, corridor_length + 1
+            corridor_length += 1
+            max_steps = corridor_length
+        assert max_steps is not None  # null only with passive (check_config)
         self.corridor_length, self.max_steps, self.matching = corridor_length, max_steps, matching
         self.optimal_steps = corridor_length
         self.rewards = (goal_reward, wall_reward, step_reward)
@@ -155,23 +171,36 @@ class TMaze(EpisodicEnvironmentBase):
             if args["matching"]:
                 raise ArgumentError("matching", "false with passive=true (Ni et al.'s passive T-maze has one cue)")
             if max_steps not in (None, length + 1):
-                raise ArgumentError("max_steps", f"null or corridor_length + 1 = {length + 1} with passive=true "
-                                                 "(the episode is the shortest path)")
+                raise ArgumentError(
+                    "max_steps",
+                    f"null or corridor_length + 1 = {length + 1} with passive=true (the episode is the shortest path)",
+                )
         elif max_steps is None:
             raise ArgumentError("max_steps", "a positive integer (null only with passive=true)")
         elif max_steps < length:
             raise ArgumentError("max_steps", f"T_max ≥ corridor_length={length} (T_min)")
 
     def describe(self) -> dict:
-        return {"kind": "tmaze", "task": self.task, "episodic": True,
-                "observation": self.observation_kind,
-                "observation_size": self.observation_size, "n_actions": self.n_actions, "action_names": list(self.action_names),
-                "true_state": self.true_state, "matching": self.matching, "corridor_length": self.configured_length,
-                **({"passive": True} if self.passive else {}),  # the other mazes' records stay as they were
-                "max_steps": self.max_steps,
-                "goal_reward": self.rewards[0], "reward_values": list(self.reward_values),
-                "observation_names": list(self.observation_names), "reservoir_size": self.reservoir_size,
-                "labels": list(self.labels()), "outcomes": list(self.outcomes())}
+        return {
+            "kind": "tmaze",
+            "task": self.task,
+            "episodic": True,
+            "observation": self.observation_kind,
+            "observation_size": self.observation_size,
+            "n_actions": self.n_actions,
+            "action_names": list(self.action_names),
+            "true_state": self.true_state,
+            "matching": self.matching,
+            "corridor_length": self.configured_length,
+            **({"passive": True} if self.passive else {}),  # the other mazes' records stay as they were
+            "max_steps": self.max_steps,
+            "goal_reward": self.rewards[0],
+            "reward_values": list(self.reward_values),
+            "observation_names": list(self.observation_names),
+            "reservoir_size": self.reservoir_size,
+            "labels": list(self.labels()),
+            "outcomes": list(self.outcomes()),
+        }
 
     def _observation_ids(self) -> np.ndarray:
         """Observation id of every (position, s0, s1), shape (P, 2, 2)."""
@@ -232,8 +261,11 @@ class TMaze(EpisodicEnvironmentBase):
 
     def labels(self) -> dict:
         """What a junction visit is labelled with: the condition and both signals (−1: none)."""
-        return {"condition": self.condition, "initial_signal": self.initial_signal,
-                "junction_signal": self.junction_signal}
+        return {
+            "condition": self.condition,
+            "initial_signal": self.initial_signal,
+            "junction_signal": self.junction_signal,
+        }
 
     def outcomes(self) -> dict:
         """Facts of an ended episode: whether it ended in the rewarded goal, and its condition."""
@@ -257,8 +289,9 @@ class TMaze(EpisodicEnvironmentBase):
             # the images of every step of the episode, drawn now: how many random numbers an
             # episode takes then does not depend on how long any run's episode lasts, so runs
             # of a batch never shift each other's random streams (a diverged run included)
-            self.reservoir_draws = torch.randint(self.reservoir_size, (self.max_steps + 1, self.n_runs),
-                                                 generator=self.generator, device=self.device)
+            self.reservoir_draws = torch.randint(
+                self.reservoir_size, (self.max_steps + 1, self.n_runs), generator=self.generator, device=self.device
+            )
         self.set_signals(*signals)
         return self.observe()
 
@@ -286,8 +319,8 @@ class TMaze(EpisodicEnvironmentBase):
         self.position = torch.where(live, self.next_position.index_select(0, move), self.position)
         self.t = self.t + live
         if self.passive:  # a finite horizon: the (L + 1)-th action ends every episode (ferl.envs.passive)
-            reward = torch.where(live, passive_reward(self.position, self.t, self.rewarded_goal, self.max_steps,
-                                                      self._reward_values), 0.0)
+            paid = passive_reward(self.position, self.t, self.rewarded_goal, self.max_steps, self._reward_values)
+            reward = torch.where(live, paid, 0.0)
             terminated = live & (self.t >= self.max_steps)
         else:
             terminated = live & (self.position >= self.corridor_length)
@@ -307,8 +340,8 @@ class TMaze(EpisodicEnvironmentBase):
 
     def optimal_discounted_return(self, gamma: float) -> float:
         if self.passive:
-            return passive_optimal_return(self.next_position.view(-1, 4).cpu().numpy(), self.configured_length,
-                                          gamma, self.rewards[0])
+            next_position = self.next_position.view(-1, 4).cpu().numpy()
+            return passive_optimal_return(next_position, self.configured_length, gamma, self.rewards[0])
         return optimal_return(self.corridor_length, self.max_steps, gamma, *self.rewards)
 
     def optimal(self, gamma: float) -> dict:

@@ -11,6 +11,7 @@ input echoes (the echo-state property needs ρ < 1 for λ = 1). The output heads
 the only trained part, by SGD on the loss of ``ferl.predictors.heads`` with their gradients
 written out; the actor sees the reservoir state x_t.
 """
+
 from typing import Annotated
 
 import torch
@@ -32,6 +33,8 @@ class EchoStatePredictor(RecurrentPredictor):
     W_res's nonzero entries; the other arguments are ``RecurrentPredictor``'s."""
 
     kind = "esn"
+    W_in: torch.Tensor  # (R, M, Y + A), fixed
+    W_res: torch.Tensor  # (R, M, M), fixed, spectral radius ρ
 
     @checked
     def __init__(self, spectral_radius: Positive = 0.95, leak_rate: Fraction = 0.5, density: Fraction = 0.2, **kwargs):
@@ -57,8 +60,12 @@ class EchoStatePredictor(RecurrentPredictor):
         return self.c_y, self.c_a, self.leak_rate
 
     def describe(self) -> dict:
-        return {**super().describe(), "spectral_radius": self.spectral_radius, "leak_rate": self.leak_rate,
-                "density": self.density}
+        return {
+            **super().describe(),
+            "spectral_radius": self.spectral_radius,
+            "leak_rate": self.leak_rate,
+            "density": self.density,
+        }
 
     def drive(self, W_in: torch.Tensor, y: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
         return linear(torch.cat([scaled(y, self.c_y), scaled(a, self.c_a)], -1), W_in)

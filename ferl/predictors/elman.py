@@ -17,6 +17,7 @@ All parameters carry the run dimension first, W_mm (R, M, M). Sequences are padd
 y (R, B, T+1, Y), a (R, B, T, A) one-hot, r (R, B, T+1, ·) with r[:, :, 0] unused, and lengths (R, B),
 the number of actions T of each sequence; steps beyond a sequence's length are masked.
 """
+
 import torch
 
 from ferl.predictors.heads import affine, baddbmm, linear, scaled
@@ -62,8 +63,13 @@ def backprop_memory(W_mm: torch.Tensor, gains: tuple, m, dm, y, a) -> list:
     d_init = back.pop().sum(1)  # δ^m_0: the gradient of b_init
     d_t = torch.stack(back[::-1], 2).view(R, B * T, M).transpose(1, 2)  # δ^m_1 … δ^m_T
     prev = lambda x: x[:, :, :T].reshape(R, B * T, x.shape[-1])  # noqa: E731  inputs at t − 1
-    return [scaled(torch.bmm(d_t, prev(y)), gains[0]), scaled(torch.bmm(d_t, a.reshape(R, B * T, -1)), gains[1]),
-            torch.bmm(d_t, prev(m)), d_t.sum(2), d_init]
+    return [
+        scaled(torch.bmm(d_t, prev(y)), gains[0]),
+        scaled(torch.bmm(d_t, a.reshape(R, B * T, -1)), gains[1]),
+        torch.bmm(d_t, prev(m)),
+        d_t.sum(2),
+        d_init,
+    ]
 
 
 def bptt(members: list, memory: list, y, a, rs: list, steps, reward_steps) -> list:
@@ -148,7 +154,10 @@ class ElmanPredictor(RecurrentPredictor):
         @torch.no_grad()
         def step(m_prev: torch.Tensor, obs_id: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
             rows = torch.add(action, obs_id, alpha=n_actions) + offsets  # (y_{t−1}, a_{t−1}) of run r
-            return recur(self.W_mm, self.beta_m, drives.index_select(0, rows).unsqueeze(1), m_prev.unsqueeze(1)).squeeze(1)
+            return recur(
+                self.W_mm, self.beta_m, drives.index_select(0, rows).unsqueeze(1), m_prev.unsqueeze(1)
+            ).squeeze(1)
+
         return step
 
     # ---- sequences ------------------------------------------------------------------------------

@@ -14,6 +14,7 @@ uniform in ±1/√N^m (the usual initialisation of gated cells: the unit-varianc
 saturates the gates), the LSTM's forget-gate bias at 1 (Gers et al. 2000) so that it remembers
 from the start; the heads start as the Elman predictor's do. Parameters (R, G·M, ·) for G gates.
 """
+
 import torch
 from torch import nn
 
@@ -49,13 +50,16 @@ class GatedPredictor(RecurrentPredictor):
     gates = 0
 
     def init_memory(self, gaussian, generators: list, n_obs: int, n_actions: int, n_memory: int) -> None:
-        M, k = n_memory, n_memory ** -0.5
+        M, k = n_memory, n_memory**-0.5
 
         def uniform(*shape):
             return nn.Parameter(torch.stack([torch.rand(*shape, generator=g) * 2 - 1 for g in generators]) * k)
 
-        self.W, self.U, self.b = uniform(self.gates * M, n_obs + n_actions), uniform(self.gates * M, M), \
-            uniform(self.gates * M)
+        self.W, self.U, self.b = (
+            uniform(self.gates * M, n_obs + n_actions),
+            uniform(self.gates * M, M),
+            uniform(self.gates * M),
+        )
 
     def memory_parameters(self) -> list:
         return [self.W, self.U, self.b]
@@ -115,7 +119,7 @@ class LSTMPredictor(GatedPredictor):
     def init_memory(self, gaussian, generators: list, n_obs: int, n_actions: int, n_memory: int) -> None:
         super().init_memory(gaussian, generators, n_obs, n_actions, n_memory)
         with torch.no_grad():
-            self.b[:, n_memory: 2 * n_memory] = 1.0  # forget gate open at first (Gers et al. 2000)
+            self.b[:, n_memory : 2 * n_memory] = 1.0  # forget gate open at first (Gers et al. 2000)
 
     def state_size(self) -> int:
         return 2 * self.memory_size

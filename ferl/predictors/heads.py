@@ -10,16 +10,19 @@ the heads' part of BPTT (§2.4.1, §4.2, §5.2). Batched over runs: parameters c
 σ_β(x) = 1/(1 + exp(−βx)). Sequences are padded batches y (R, B, T+1, Y), a (R, B, T, A) one-hot,
 r (R, B, T+1, ·) with r[:, :, 0] unused, and lengths (R, B), the number of actions T of each.
 """
+
 from itertools import repeat
+from typing import Literal, cast, get_args
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
 from ferl.interfaces import PredictorBase
-from ferl.predictors.popart import normalised, rescale_head
+from ferl.predictors.popart import RewardStatistics, normalised, rescale_head
 
-REWARD_OUTPUTS = ("bits", "linear", "none")
+RewardOutput = Literal["bits", "linear", "none"]
+REWARD_OUTPUTS = get_args(RewardOutput)
 ERROR_CHUNK = 1 << 20  # output values per chunk of sequences in prediction_errors
 
 
@@ -80,21 +83,50 @@ class OutputHeads(PredictorBase, nn.Module):
     ``init_heads`` with the same per-run generators. A linear reward head with ``reward_stats``
     (``ferl.predictors.popart``) learns every run's standardised reward; None: the raw reward."""
 
-    def init_heads(self, gaussian, n_obs: int, n_memory: int, n_reward: int, reward_output: str, predict_obs: bool,
-                   gains: tuple, weights: tuple) -> None:
+    # A head that is off (predict_obs false, reward_output "none") has None for its weights; the code
+    # reads them under those flags, never after a None check, so they are typed as the heads that exist.
+    W_ym: nn.Parameter  # (R, Y, M)
+    b_y: nn.Parameter  # (R, Y)
+    W_rm: nn.Parameter  # (R, N^r, M), N^r = 1 for a linear reward head
+    b_r: nn.Parameter  # (R, N^r)
+    reward_stats: RewardStatistics | None
+    predict_obs: bool
+    reward_output: str
+
+    def unroll(self, y: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+        """The memory m (R, B, T+1, M) of cleaned sequences: the subclass's."""
+        raise NotImplementedError
+
+    def memory(self, state) -> torch.Tensor:
+        """m_t of a memory state: the memory's own (``ferl.predictors.recurrent``)."""
+        raise NotImplementedError
+
+    def init_heads(
+        self,
+        gaussian,
+        n_obs: int,
+        n_memory: int,
+        n_reward: int | None,
+        reward_output: str,
+        predict_obs: bool,
+        gains: tuple,
+        weights: tuple,
+    ) -> None:
         """Head parameters from ``gaussian(*shape)`` (R, *shape); gains (β_y, β_r), error weights (ρ_y, ρ_r).
         ``n_reward``: the reward bits, one per reward value of the environment (None: it declares
         none, e.g. a third-party one, and the reward can only be predicted as a scalar)."""
         if reward_output == "bits" and n_reward is None:
-            raise ValueError("n_reward is required with reward_output=bits: one bit per reward value of the environment "
-                             "(its reward_values, which this one does not declare); use reward_output=linear "
-                             "(predictor=joint_scalar)")
+            raise ValueError(
+                "n_reward is required with reward_output=bits: one bit per reward value of the environment "
+                "(its reward_values, which this one does not declare); use reward_output=linear "
+                "(predictor=joint_scalar)"
+            )
         self.reward_output, self.predict_obs = reward_output, predict_obs
         self.reward_stats = None  # a RewardStatistics module where the reward is normalised (ferl.predictors.popart)
         (self.beta_y, self.beta_r), (self.rho_y, self.rho_r) = gains, weights
         n_r = 1 if reward_output == "linear" else n_reward
-        self.W_ym, self.b_y = (gaussian(n_obs, n_memory), gaussian(n_obs)) if predict_obs else (None, None)
-        self.W_rm, self.b_r = (gaussian(n_r, n_memory), gaussian(n_r)) if reward_output != "none" else (None, None)
+        self.W_ym, self.b_y = (gaussian(n_obs, n_memory), gaussian(n_obs)) if predict_obs else (None, None)  # type: ignore[assignment]  # off: None (class note)
+        self.W_rm, self.b_r = (gaussian(n_r, n_memory), gaussian(n_r)) if reward_output != "none" else (None, None)  # type: ignore[assignment]  # off: None (class note)
 
     def head_parameters(self) -> list:
         """The output heads' weights and biases that exist, in ``parameters()`` order."""
@@ -131,8 +163,11 @@ class OutputHeads(PredictorBase, nn.Module):
         E_y = F.binary_cross_entropy_with_logits(z_y, y, reduction="none").sum(-1) if self.predict_obs else None
         if self.reward_output == "none":
             return E_y, None
-        E_r = (F.binary_cross_entropy_with_logits(z_r, r, reduction="none") if self.reward_output == "bits"
-               else 0.5 * (r - z_r).square()).sum(-1)
+        E_r = (
+            F.binary_cross_entropy_with_logits(z_r, r, reduction="none")
+            if self.reward_output == "bits"
+            else 0.5 * (r - z_r).square()
+        ).sum(-1)
         return E_y, E_r
 
     def step_errors(self, m, y, r, lengths) -> torch.Tensor:
@@ -145,7 +180,7 @@ class OutputHeads(PredictorBase, nn.Module):
             E = self.rho_y * torch.where(valid, E_y, 0.0)
         if E_r is not None:
             E = E + self.rho_r * torch.where(reward_steps(valid), E_r, 0.0)
-        return E
+        return cast(torch.Tensor, E)  # a tensor: the config lets no predictor go without a head
 
     def weighted_errors(self, m, y, r, steps: torch.Tensor, reward_steps: torch.Tensor) -> torch.Tensor:
         """Σ_b Σ_t steps_{b,t} E_t(b) (``head_losses``), the loss whose gradients ``head_gradients``
@@ -156,7 +191,7 @@ class OutputHeads(PredictorBase, nn.Module):
             loss = self.rho_y * (E_y * steps).sum()
         if E_r is not None:
             loss = loss + self.rho_r * (E_r * reward_steps).sum()
-        return loss
+        return cast(torch.Tensor, loss)  # as step_errors
 
     def head_gradients(self, m, y, r, steps: torch.Tensor, reward_steps: torch.Tensor):
         """The output heads' part of BPTT: their gradients (``head_parameters()`` order) and
@@ -171,18 +206,22 @@ class OutputHeads(PredictorBase, nn.Module):
         flat = lambda x: x.reshape(R, B * T1, x.shape[-1])  # noqa: E731
         m_flat, heads = flat(m), []
         if self.predict_obs:
-            out = torch.sigmoid(scaled(torch.baddbmm(self.b_y.unsqueeze(1), m_flat, self.W_ym.transpose(1, 2)), self.beta_y))
+            out = torch.sigmoid(
+                scaled(torch.baddbmm(self.b_y.unsqueeze(1), m_flat, self.W_ym.transpose(1, 2)), self.beta_y)
+            )
             heads.append((out, flat(y), steps * (self.rho_y * self.beta_y), self.W_ym))
         if self.reward_output != "none":
             z = torch.baddbmm(self.b_r.unsqueeze(1), m_flat, self.W_rm.transpose(1, 2))
-            out, gain = (torch.sigmoid(scaled(z, self.beta_r)), self.beta_r) if self.reward_output == "bits" else (z, 1.0)
+            out, gain = (
+                (torch.sigmoid(scaled(z, self.beta_r)), self.beta_r) if self.reward_output == "bits" else (z, 1.0)
+            )
             heads.append((out, flat(r), reward_steps * (self.rho_r * gain), self.W_rm))
         grads, dm = [], None
         for out, target, w, W in heads:
             delta = (out - target).mul_(w.view(R, -1, 1))  # δ^x_t (R, B(T+1), ·)
             grads += [torch.bmm(delta.transpose(1, 2), m_flat), delta.sum(1)]
             dm = torch.bmm(delta, W) if dm is None else torch.baddbmm(dm, delta, W)
-        return grads, dm.view(R, B, T1, -1)
+        return grads, cast(torch.Tensor, dm).view(R, B, T1, -1)  # a head exists (checked by the config)
 
     @torch.no_grad()
     def prediction_errors(self, y, a, r, lengths) -> torch.Tensor:
@@ -192,7 +231,9 @@ class OutputHeads(PredictorBase, nn.Module):
         NaN at padded steps, and at t = 0 for a predictor without an observation head.
         Computed in chunks of sequences, so that the temporaries of 784-pixel outputs stay in cache."""
         n = max(1, ERROR_CHUNK // (y.shape[0] * y.shape[2] * y.shape[3]))
-        chunks = zip(y.split(n, 1), a.split(n, 1), r.split(n, 1) if r is not None else repeat(None), lengths.split(n, 1))
+        chunks = zip(
+            y.split(n, 1), a.split(n, 1), r.split(n, 1) if r is not None else repeat(None), lengths.split(n, 1)
+        )
         return torch.cat([self.chunk_errors(*chunk) for chunk in chunks], 1)
 
     def chunk_errors(self, y, a, r, lengths) -> torch.Tensor:
@@ -239,10 +280,12 @@ class OutputHeads(PredictorBase, nn.Module):
         if self.reward_stats is None:
             return
         before = self.reward_stats.moments()
-        self.reward_stats.update(rewards, torch.arange(rewards.shape[-1], device=rewards.device) < lengths.unsqueeze(-1))
+        self.reward_stats.update(
+            rewards, torch.arange(rewards.shape[-1], device=rewards.device) < lengths.unsqueeze(-1)
+        )
         rescale_head(self.W_rm, self.b_r, before, self.reward_stats.moments())
 
     def describe_heads(self) -> dict:
-        norm = {} if self.reward_stats is None else {"reward_norm": "popart"}
+        norm: dict[str, str] = {} if self.reward_stats is None else {"reward_norm": "popart"}
         bits = {"reward_bits": self.W_rm.shape[-2]} if self.reward_output == "bits" else {}  # N^r, the environment's
         return {"predicts_observation": self.predict_obs, "reward_output": self.reward_output, **norm, **bits}

@@ -19,6 +19,7 @@ rescaled so that its prediction in the environment's units, σ ẑ + μ, is unch
 
 Off (``reward_norm=none``, the default) the head learns the raw reward, as the dissertation's.
 """
+
 import torch
 from torch import nn
 
@@ -28,6 +29,10 @@ SIGMA_FLOOR = 1e-4  # σ of a run whose rewards have all been equal so far is no
 class RewardStatistics(nn.Module):
     """Per-run count, mean and sum of squared deviations of the rewards seen (Chan et al.'s
     parallel update of Welford's running variance), as buffers so that checkpoints carry them."""
+
+    count: torch.Tensor  # (R,) float64, as the other two
+    mean: torch.Tensor
+    m2: torch.Tensor
 
     def __init__(self, n_runs: int):
         super().__init__()

@@ -11,6 +11,7 @@ All parameters carry the run dimension first. A subclass draws its memory's para
 (the memories of padded sequences), ``step`` (one online step), ``initial_state``, ``memory``
 and the staticmethod ``bptt`` that ``PredictorBatch`` calls for the gradients of a batch.
 """
+
 import importlib
 import pkgutil
 from typing import Literal
@@ -20,7 +21,7 @@ from torch import nn
 
 from ferl import rng
 from ferl.config.params import ArgumentError, NonNegative, NonNegativeInt, Positive, PositiveInt, checked
-from ferl.predictors.heads import REWARD_OUTPUTS, OutputHeads, clean, valid_steps
+from ferl.predictors.heads import OutputHeads, RewardOutput, clean, valid_steps
 from ferl.predictors.popart import RewardStatistics
 from ferl.predictors.training import PredictorBatch
 
@@ -34,6 +35,7 @@ def lookup_step(predictor, table: torch.Tensor, n_actions: int):
     @torch.no_grad()
     def step(state, obs_id: torch.Tensor, action: torch.Tensor):
         return predictor.step(state, table[obs_id] if runs is None else table[runs, obs_id], eye[action])
+
     return step
 
 
@@ -50,13 +52,36 @@ class RecurrentPredictor(OutputHeads):
     uses_beta_m = False  # β_m is the gain of the Elman memory's sigmoid (Eq. 4.3); others keep it 1
     traceable_bptt = False  # True where ``bptt`` is tensor operations only: PredictorBatch.fuse compiles it
 
+    @staticmethod
+    def bptt(members: list, memory: list, y, a, rs: list, steps, reward_steps) -> list:
+        """The gradients of a batch of predictors of this class (``PredictorBatch``): the memory's
+        parameters of every member, then their heads'; the subclass's."""
+        raise NotImplementedError
+
     @checked
-    def __init__(self, n_runs: PositiveInt, n_obs: PositiveInt, n_actions: PositiveInt, n_memory: PositiveInt = 20,
-                 n_reward: PositiveInt | None = None, reward_output: Literal[REWARD_OUTPUTS] = "bits", c_y: NonNegative = 1.0,
-                 c_a: NonNegative = 1.0, beta_m: Positive = 1.0, beta_y: Positive = 1.0, beta_r: Positive = 1.0,
-                 rho_y: NonNegative = 1.0, rho_r: NonNegative = 1.0, lr: Positive = 0.05, init_std: NonNegative = 1.0,
-                 predict_obs: bool = True, time_average: bool = False, batch_size: PositiveInt = 1,
-                 seed: NonNegativeInt = 0, reward_norm: Literal["none", "popart"] = "none"):
+    def __init__(
+        self,
+        n_runs: PositiveInt,
+        n_obs: PositiveInt,
+        n_actions: PositiveInt,
+        n_memory: PositiveInt = 20,
+        n_reward: PositiveInt | None = None,
+        reward_output: RewardOutput = "bits",
+        c_y: NonNegative = 1.0,
+        c_a: NonNegative = 1.0,
+        beta_m: Positive = 1.0,
+        beta_y: Positive = 1.0,
+        beta_r: Positive = 1.0,
+        rho_y: NonNegative = 1.0,
+        rho_r: NonNegative = 1.0,
+        lr: Positive = 0.05,
+        init_std: NonNegative = 1.0,
+        predict_obs: bool = True,
+        time_average: bool = False,
+        batch_size: PositiveInt = 1,
+        seed: NonNegativeInt = 0,
+        reward_norm: Literal["none", "popart"] = "none",
+    ):
         super().__init__()
         self.c_y, self.c_a, self.beta_m = c_y, c_a, beta_m
         self.lr, self.time_average, self.batch_size = lr, time_average, batch_size
@@ -69,14 +94,18 @@ class RecurrentPredictor(OutputHeads):
             return nn.Parameter(torch.stack([torch.randn(*shape, generator=g) for g in gens]) * std)
 
         self.init_memory(gaussian, gens, n_obs, n_actions, n_memory)
-        self.init_heads(gaussian, n_obs, n_memory, n_reward, reward_output, predict_obs, (beta_y, beta_r), (rho_y, rho_r))
+        self.init_heads(
+            gaussian, n_obs, n_memory, n_reward, reward_output, predict_obs, (beta_y, beta_r), (rho_y, rho_r)
+        )
         if reward_norm == "popart":
             self.reward_stats = RewardStatistics(n_runs)
 
     @classmethod
     def check_config(cls, args: dict) -> None:
         if not args["predict_obs"] and args["reward_output"] == "none":
-            raise ArgumentError("reward_output", "bits or linear when predict_obs is false (a predictor needs an output)")
+            raise ArgumentError(
+                "reward_output", "bits or linear when predict_obs is false (a predictor needs an output)"
+            )
         if not cls.uses_beta_m and args["beta_m"] != 1:
             raise ArgumentError("beta_m", f"1 with memory={cls.kind} (β_m is the gain of the Elman memory's sigmoid)")
         if args["reward_norm"] != "none" and args["reward_output"] != "linear":
@@ -102,12 +131,20 @@ class RecurrentPredictor(OutputHeads):
     def batch_key(self) -> tuple:
         """Predictors with equal keys train as one ``PredictorBatch``: one kind and form of
         memory (sizes, gains) and the same α, objective and batch size."""
-        return (self.kind, self.memory_size, tuple(q.shape for q in self.memory_parameters()), self.gains, self.lr, self.time_average,
-                self.batch_size)
+        return (
+            self.kind,
+            self.memory_size,
+            tuple(q.shape for q in self.memory_parameters()),
+            self.gains,
+            self.lr,
+            self.time_average,
+            self.batch_size,
+        )
 
     @classmethod
-    def training_batch(cls, members: list, y, a, rs: list, lengths, batch_size: int | None = None,
-                       summed: bool = False) -> PredictorBatch:
+    def training_batch(
+        cls, members: list, y, a, rs: list, lengths, batch_size: int | None = None, summed: bool = False
+    ) -> PredictorBatch:
         return PredictorBatch(members, y, a, rs, lengths, batch_size, summed)
 
     def frozen_step(self, table: torch.Tensor, n_actions: int):
@@ -125,8 +162,9 @@ class RecurrentPredictor(OutputHeads):
         """∂/∂θ of Σ_b weight_b · Σ_t E_t(b) for every trained parameter (``parameters()`` order),
         as training computes them (the class's ``bptt``). Inputs cleaned; weight (R, B)."""
         steps = valid_steps(lengths, y.shape[2]) * weight.unsqueeze(-1)
-        return type(self).bptt([self], self.memory_parameters(), y, a, [r], steps,
-                               steps * (torch.arange(y.shape[2], device=y.device) > 0))
+        return type(self).bptt(
+            [self], self.memory_parameters(), y, a, [r], steps, steps * (torch.arange(y.shape[2], device=y.device) > 0)
+        )
 
     def train_epoch(self, y, a, r, lengths, order: torch.Tensor) -> None:
         """One epoch of pattern-mode SGD (§4.3.1) on this predictor alone (``PredictorBatch``)."""
@@ -143,9 +181,16 @@ def autograd_bptt(members: list, memory: list, y, a, rs: list, steps, reward_ste
         leaves = [q.detach().requires_grad_() for q in memory]
         heads = [q for member in members for q in member.head_parameters()]
         m = lead.unroll_with(leaves, y, a)
-        total = sum(member.weighted_errors(m[k * R:(k + 1) * R], y[k * R:(k + 1) * R], rs[k],
-                                           steps[k * R:(k + 1) * R], reward_steps[k * R:(k + 1) * R])
-                    for k, member in enumerate(members))
+        total = sum(
+            member.weighted_errors(
+                m[k * R : (k + 1) * R],
+                y[k * R : (k + 1) * R],
+                rs[k],
+                steps[k * R : (k + 1) * R],
+                reward_steps[k * R : (k + 1) * R],
+            )
+            for k, member in enumerate(members)
+        )
         return list(torch.autograd.grad(total, leaves + heads))
 
 
@@ -155,8 +200,10 @@ def memory_class(name: str):
     path names (a user's own memory)."""
     if "." in name:
         from ferl.config.params import target
+
         return target(name)
     import ferl.predictors as package
+
     for module in pkgutil.iter_modules(package.__path__):
         importlib.import_module(f"{package.__name__}.{module.name}")
     kinds = {}
@@ -175,6 +222,9 @@ def predictor(memory: str = "elman", **kwargs) -> RecurrentPredictor:
     return memory_class(memory)(**kwargs)
 
 
-# ``check_arguments`` checks the other keys against the chosen class's signature
-predictor.resolve = lambda values: (memory_class(values.get("memory", "elman")),
-                                    {k: v for k, v in values.items() if k != "memory"})
+# ``check_arguments`` checks the other keys against the chosen class's signature (a function's
+# attribute, which ferl.config.params reads)
+predictor.resolve = lambda values: (  # type: ignore[attr-defined]
+    memory_class(values.get("memory", "elman")),
+    {k: v for k, v in values.items() if k != "memory"},
+)

@@ -8,6 +8,9 @@ batched products (the predictor class's ``bptt``), only the output heads apart. 
 still takes its own order and its own plain SGD steps, so each one's training equals training it
 alone (tested).
 """
+
+from collections.abc import Callable
+
 import torch
 import torch.nn.functional as F
 
@@ -20,15 +23,24 @@ from ferl.predictors.heads import clean, valid_steps
 CHUNK_STEPS = 8
 
 
-def sgd_steps(members: list, memory: list, params: list, y, a, rs: list, steps, reward_steps, lr: float, B: int) -> None:
+def sgd_steps(
+    members: list, memory: list, params: list, y, a, rs: list, steps, reward_steps, lr: float, B: int
+) -> None:
     """Plain SGD steps θ ← θ − α ∇_θ J, one on every B consecutive sequences of y (R', K·B, T+1, Y),
     a, rs[k], steps and reward_steps (the weight of every step in its update's loss), for the
     members stacked along the run axis (``PredictorBatch``); ``memory`` their memory parameters,
     ``params`` everything trained (memory first), updated in place."""
     for i in range(0, y.shape[1], B):
         s = slice(i, i + B)
-        grads = type(members[0]).bptt(members, memory, y[:, s], a[:, s], [r[:, s] if r is not None else None for r in rs],
-                                      steps[:, s], reward_steps[:, s])
+        grads = type(members[0]).bptt(
+            members,
+            memory,
+            y[:, s],
+            a[:, s],
+            [r[:, s] if r is not None else None for r in rs],
+            steps[:, s],
+            reward_steps[:, s],
+        )
         torch._foreach_add_(params, grads, alpha=-lr)
 
 
@@ -42,7 +54,9 @@ class PredictorBatch(TrainingBatchBase):
         ``summed``: a step on their summed loss (the first-order sum of as many pattern-mode
         steps) instead of their mean."""
         if len({p.batch_key for p in predictors}) != 1:
-            raise ValueError("a PredictorBatch needs predictors with the same memory, gains, lr, objective and batch size")
+            raise ValueError(
+                "a PredictorBatch needs predictors with the same memory, gains, lr, objective and batch size"
+            )
         self.members = list(predictors)
         self.lead = predictors[0]
         self.batch_size, self.summed = batch_size or self.lead.batch_size, summed
@@ -50,7 +64,7 @@ class PredictorBatch(TrainingBatchBase):
         valid = valid_steps(lengths, y.shape[2]).unsqueeze(-1)
         self.y, self.a, self.lengths = y, a, lengths
         self.rs = [torch.where(valid, r, 0.0) if r is not None else None for r in rs]
-        self.chunk = None  # sgd_steps compiled for chunks of CHUNK_STEPS steps (``fuse``)
+        self.chunk: Callable[..., None] | None = None  # sgd_steps compiled for chunks of CHUNK_STEPS steps (``fuse``)
 
     def fuse(self, device: torch.device) -> None:
         """Train in compiled chunks of CHUNK_STEPS SGD steps (``ferl.compiled``) where the class's
@@ -75,7 +89,11 @@ class PredictorBatch(TrainingBatchBase):
         y, a = cat([self.y[runs, o] for o in orders]), cat([self.a[runs, o] for o in orders])
         rs = [r[runs, o] if r is not None else None for r, o in zip(self.rs, orders)]
         # the memories' parameters of all members in one (P·R, …) tensor each while training
-        memory = p.memory_parameters() if P == 1 else [torch.cat(qs) for qs in zip(*(q.memory_parameters() for q in self.members))]
+        memory = (
+            p.memory_parameters()
+            if P == 1
+            else [torch.cat(qs) for qs in zip(*(q.memory_parameters() for q in self.members))]
+        )
         params = memory + [q for member in self.members for q in member.head_parameters()]
         B, n = self.batch_size, L.shape[1]
         # the weight of every step in its update's loss: 1/(T+1) under J(T), over the sequences
@@ -94,17 +112,27 @@ class PredictorBatch(TrainingBatchBase):
             longest = F.pad(L.max(0).values, (0, -n % B)).view(-1, B).max(1).values.tolist()
             for i, T in zip(range(0, n, B), longest):
                 s = slice(i, i + B)
-                sgd_steps(self.members, memory, params, y[:, s, : T + 1], a[:, s, :T],
-                          [r[:, s, : T + 1] if r is not None else None for r in rs],
-                          steps[:, s, : T + 1], reward_steps[:, s, : T + 1], p.lr, B)
+                sgd_steps(
+                    self.members,
+                    memory,
+                    params,
+                    y[:, s, : T + 1],
+                    a[:, s, :T],
+                    [r[:, s, : T + 1] if r is not None else None for r in rs],
+                    steps[:, s, : T + 1],
+                    reward_steps[:, s, : T + 1],
+                    p.lr,
+                    B,
+                )
         if P > 1:
             for k, member in enumerate(self.members):
                 for q, merged in zip(member.memory_parameters(), memory):
-                    q.copy_(merged[k * R:(k + 1) * R])
+                    q.copy_(merged[k * R : (k + 1) * R])
 
     def train_chunks(self, memory: list, params: list, y, a, rs: list, steps, reward_steps, T: int) -> None:
         """The epoch's steps in compiled chunks of CHUNK_STEPS, every sequence unrolled to T actions;
         the sequences padded with zero-weight ones to whole chunks."""
+        assert self.chunk is not None  # train_epoch calls this only once fused
         B = self.batch_size
         size = CHUNK_STEPS * B
         pad = -y.shape[1] % size
@@ -113,5 +141,15 @@ class PredictorBatch(TrainingBatchBase):
         rs = [fill(r, T + 1) for r in rs]
         for i in range(0, y.shape[1], size):
             s = slice(i, i + size)
-            self.chunk(self.members, memory, params, y[:, s], a[:, s], [r[:, s] if r is not None else None for r in rs],
-                       steps[:, s], reward_steps[:, s], self.lead.lr, B)
+            self.chunk(
+                self.members,
+                memory,
+                params,
+                y[:, s],
+                a[:, s],
+                [r[:, s] if r is not None else None for r in rs],
+                steps[:, s],
+                reward_steps[:, s],
+                self.lead.lr,
+                B,
+            )

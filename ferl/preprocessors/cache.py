@@ -17,6 +17,7 @@ length and sha256, and the shapes are those of the preprocessor and its errors; 
 of other settings, one written before this format, one that cannot be read) is reported in one
 warning line, removed, and the fit is computed again.
 """
+
 import hashlib
 import io
 import json
@@ -88,12 +89,19 @@ def load_or_fit(preprocessor, images: torch.Tensor, cache_dir, writer=None, **tr
 def write_entry(path: Path, key: str, state_dict: dict, errors: np.ndarray) -> None:
     """The entry (module docstring), atomically: readers never see a half-written file."""
     buffer = io.BytesIO()
-    torch.save({"state_dict": {k: v.detach().cpu() for k, v in state_dict.items()},
-                "errors": torch.from_numpy(np.ascontiguousarray(errors))}, buffer)
+    torch.save(
+        {
+            "state_dict": {k: v.detach().cpu() for k, v in state_dict.items()},
+            "errors": torch.from_numpy(np.ascontiguousarray(errors)),
+        },
+        buffer,
+    )
     payload = buffer.getvalue()
     shapes = {**{name: list(x.shape) for name, x in state_dict.items()}, "errors": list(errors.shape)}
-    header = strict_dumps({"key": key, "sha256": hashlib.sha256(payload).hexdigest(), "bytes": len(payload),
-                         "shapes": shapes}, sort_keys=True)
+    header = strict_dumps(
+        {"key": key, "sha256": hashlib.sha256(payload).hexdigest(), "bytes": len(payload), "shapes": shapes},
+        sort_keys=True,
+    )
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
@@ -130,13 +138,16 @@ def read_entry(path: Path, key: str, expected: dict) -> tuple[dict, torch.Tensor
     identity = (opened.st_dev, opened.st_ino)
     if not raw.startswith(MAGIC):
         raise DamagedEntry("not a ferl cache entry, or one written before entries carried a checksum", identity)
-    line, newline, payload = raw[len(MAGIC):].partition(b"\n")
+    line, newline, payload = raw[len(MAGIC) :].partition(b"\n")
     try:
         header = json.loads(line) if newline else None
     except ValueError:
         header = None
-    if not isinstance(header, dict) or not {"key", "sha256", "bytes", "shapes"} <= header.keys() \
-            or not isinstance(header["shapes"], dict):
+    if (
+        not isinstance(header, dict)
+        or not {"key", "sha256", "bytes", "shapes"} <= header.keys()
+        or not isinstance(header["shapes"], dict)
+    ):
         raise DamagedEntry("its header is cut short or unreadable", identity)
     if header["key"] != key:
         raise DamagedEntry("it holds the fit of other settings or images", identity)
@@ -145,16 +156,19 @@ def read_entry(path: Path, key: str, expected: dict) -> tuple[dict, torch.Tensor
     if hashlib.sha256(payload).hexdigest() != header["sha256"]:
         raise DamagedEntry("its payload does not match its sha256", identity)
     shapes = header["shapes"]
-    if (differ := [k for k in {*shapes, *expected} - {"errors"} if shapes.get(k) != expected.get(k)]):
-        raise DamagedEntry(", ".join(f"{k} of shape {shapes.get(k)}, the preprocessor's {expected.get(k)}"
-                                     for k in sorted(differ)), identity)
+    if differ := [k for k in {*shapes, *expected} - {"errors"} if shapes.get(k) != expected.get(k)]:
+        raise DamagedEntry(
+            ", ".join(f"{k} of shape {shapes.get(k)}, the preprocessor's {expected.get(k)}" for k in sorted(differ)),
+            identity,
+        )
     try:
         saved = torch.load(io.BytesIO(payload), map_location="cpu", weights_only=True)
         state, errors = saved["state_dict"], saved["errors"]
         loaded = {k: list(v.shape) for k, v in state.items()}, list(errors.shape)
     except Exception as e:  # noqa: BLE001 — a payload that hashes right but does not load: still damaged
-        raise DamagedEntry(f"its payload does not load: {str(e).splitlines()[0] if str(e) else type(e).__name__}",
-                           identity) from None
+        raise DamagedEntry(
+            f"its payload does not load: {str(e).splitlines()[0] if str(e) else type(e).__name__}", identity
+        ) from None
     if loaded != (expected, shapes.get("errors")):
         raise DamagedEntry("its payload's shapes differ from its header's", identity)
     return state, errors

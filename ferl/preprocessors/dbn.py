@@ -25,6 +25,9 @@ sees the recognition pass only.
   ĥ_{l−1}, which is itself a function of every setting and the images below (a DBN whose first
   layer is an RBM fitted before loads it).
 """
+
+from typing import cast
+
 import numpy as np
 import torch
 from torch import nn
@@ -34,7 +37,7 @@ from ferl.interfaces import PreprocessorBase
 from ferl.preprocessors.cache import load_or_fit
 from ferl.preprocessors.rbm import RBMPreprocessor, fit_records, log_training
 
-LAYER_SEED_STRIDE = 2 ** 32  # layer l's runs: seed + l · this + r (no overlap below 2³² runs)
+LAYER_SEED_STRIDE = 2**32  # layer l's runs: seed + l · this + r (no overlap below 2³² runs)
 
 
 class DBNPreprocessor(PreprocessorBase, nn.Module):
@@ -48,33 +51,54 @@ class DBNPreprocessor(PreprocessorBase, nn.Module):
     kwargs_to = (RBMPreprocessor, ("n_visible", "n_hidden"))  # what the config check sees (params.signature)
 
     @checked
-    def __init__(self, n_runs: PositiveInt, layers: list[int] = (784, 100, 20), seed: NonNegativeInt = 0,
-                 cache_dir: str | None = None, **rbm_args):
+    def __init__(
+        self,
+        n_runs: PositiveInt,
+        layers: list[int] = (784, 100, 20),  # type: ignore[assignment]  # immutable default
+        seed: NonNegativeInt = 0,
+        cache_dir: str | None = None,
+        **rbm_args,
+    ):
         super().__init__()
         self.sizes, self.cache_dir = [int(n) for n in layers], cache_dir
         self.input_size, self.output_size = self.sizes[0], self.sizes[-1]
         self.rbms = nn.ModuleList(
-            RBMPreprocessor(n_runs, n_visible=n_in, n_hidden=n_out, seed=seed + k * LAYER_SEED_STRIDE, **rbm_args)
-            for k, (n_in, n_out) in enumerate(zip(self.sizes, self.sizes[1:])))
+            RBMPreprocessor(n_runs, n_visible=n_in, n_hidden=n_out, seed=seed + layer * LAYER_SEED_STRIDE, **rbm_args)
+            for layer, (n_in, n_out) in enumerate(zip(self.sizes, self.sizes[1:]))
+        )
+
+    @property
+    def stack(self) -> list[RBMPreprocessor]:
+        """The RBMs bottom-up: ``rbms`` as what it holds (indexed, iterated, reversed)."""
+        return cast(list[RBMPreprocessor], self.rbms)
 
     @classmethod
     def check_config(cls, args: dict) -> None:
         """The sizes chain: an input and at least one hidden layer, every one of them positive."""
         sizes = list(args["layers"])
         if len(sizes) < 2 or any(n < 1 for n in sizes):
-            raise ArgumentError("layers", "a list of ≥ 2 positive sizes [input, hidden …] that chain "
-                                          "(input = the observation size, e.g. [784, 100, 20])")
+            raise ArgumentError(
+                "layers",
+                "a list of ≥ 2 positive sizes [input, hidden …] that chain "
+                "(input = the observation size, e.g. [784, 100, 20])",
+            )
 
     def describe(self) -> dict:
-        first = self.rbms[0]
-        return {"kind": "dbn", "layers": self.sizes, "n_visible": self.input_size, "n_hidden": self.output_size,
-                "cd_k": first.cd_k, "sweeps": first.sweeps}
+        first = self.stack[0]
+        return {
+            "kind": "dbn",
+            "layers": self.sizes,
+            "n_visible": self.input_size,
+            "n_hidden": self.output_size,
+            "cd_k": first.cd_k,
+            "sweeps": first.sweeps,
+        }
 
     # ---- the model -----------------------------------------------------------------------------
     @torch.no_grad()
     def transform(self, v: torch.Tensor) -> torch.Tensor:
         """ĥ_L, the upward mean-field pass: v (B, V) shared or (R, B, V) → (R, B, H_L)."""
-        for layer in self.rbms:
+        for layer in self.stack:
             v = layer.transform(v)
         return v
 
@@ -82,14 +106,14 @@ class DBNPreprocessor(PreprocessorBase, nn.Module):
     def reconstruct(self, v: torch.Tensor) -> torch.Tensor:
         """Up the stack and back down by mean-field passes: v (B, V) or (R, B, V) → v̂ (R, B, V)."""
         h = self.transform(v)
-        for layer in reversed(self.rbms):
+        for layer in reversed(self.stack):
             h = layer.visible_given(h)
         return h
 
     @torch.no_grad()
     def reconstruction_error(self, v: torch.Tensor) -> torch.Tensor:
         """Mean squared error per run (R,) of the whole stack's reconstruction of v against v."""
-        v = v.to(self.rbms[0].W)
+        v = v.to(self.stack[0].W)
         return (self.reconstruct(v) - v).pow(2).mean((1, 2))
 
     # ---- greedy layer-wise training ------------------------------------------------------------
@@ -99,8 +123,8 @@ class DBNPreprocessor(PreprocessorBase, nn.Module):
         expectations of images (N, V) under the trained RBMs below it, (R, N, H_{l−1}).
         Returns every layer's errors (R, sweeps) and whether each came from the cache."""
         histories, cached = [], []
-        x = images.to(self.rbms[0].W)
-        for layer in self.rbms:
+        x = images.to(self.stack[0].W)
+        for layer in self.stack:
             history, hit = load_or_fit(layer, x, self.cache_dir)
             histories.append(history)
             cached.append(hit)
@@ -118,7 +142,8 @@ class DBNPreprocessor(PreprocessorBase, nn.Module):
         before = self.reconstruction_error(test)
         histories, cached = self.train_layers(data.train_images)
         history = np.concatenate(histories, axis=1)
-        log_training(writer, history, self.rbms[0].W)
-        records = fit_records(writer, data, history, before, self.reconstruction_error(test), all(cached),
-                              self.reconstruct)
+        log_training(writer, history, self.stack[0].W)
+        records = fit_records(
+            writer, data, history, before, self.reconstruction_error(test), all(cached), self.reconstruct
+        )
         return {**records, "layer_sweeps": np.array([h.shape[1] for h in histories])}

@@ -33,6 +33,7 @@ following Hinton (2010), "A practical guide to training restricted Boltzmann mac
 Reconstruction errors (training curve and held-out) are mean squared errors in standardised
 units (a pixel's variance over the training images is 1), the units the model sees.
 """
+
 from typing import Literal
 
 import numpy as np
@@ -42,7 +43,7 @@ from ferl import rbm
 from ferl.config.params import Positive, PositiveInt, checked
 from ferl.preprocessors.rbm import Generators, RBMPreprocessor, uniform
 
-GAUSSIAN_VISIBLE_MODES = ("mean", "sampled")
+GaussianVisibleMode = Literal["mean", "sampled"]
 
 
 def free_energy(v: torch.Tensor, W: torch.Tensor, b_v: torch.Tensor, b_h: torch.Tensor) -> torch.Tensor:
@@ -61,13 +62,22 @@ class GaussianRBMPreprocessor(RBMPreprocessor):
     smallest per-pixel scale of the standardisation.
     """
 
+    shift: torch.Tensor  # (V,)
+    scale: torch.Tensor  # (V,)
+
     @checked
-    def __init__(self, n_runs: PositiveInt, lr: Positive = 0.01,
-                 visible: Literal[GAUSSIAN_VISIBLE_MODES] = "mean", min_std: Positive = 0.1, **rbm_args):
+    def __init__(
+        self,
+        n_runs: PositiveInt,
+        lr: Positive = 0.01,
+        visible: GaussianVisibleMode = "mean",
+        min_std: Positive = 0.1,
+        **rbm_args,
+    ):
         super().__init__(n_runs, lr=lr, **rbm_args)
         self.visible, self.min_std = visible, min_std
         self.hparams.update(visible=visible, min_std=min_std)  # the cache key: every setting of the fit
-        # standardisation v_std = (v − shift) / scale, per pixel, fitted on the training images
+        # standardisation v_std = (v − shift) / scale, per pixel (V,), fitted on the training images
         self.register_buffer("shift", torch.zeros(self.input_size))
         self.register_buffer("scale", torch.ones(self.input_size))
 
@@ -116,8 +126,15 @@ class GaussianRBMPreprocessor(RBMPreprocessor):
 
     # ---- training ------------------------------------------------------------------------------
     @torch.no_grad()
-    def train(self, images: torch.Tensor, generator: Generators = None, writer=None,
-              progress: bool = True, stop=None, resume: dict | None = None) -> np.ndarray:
+    def train(  # type: ignore[override]  # as RBMPreprocessor.train
+        self,
+        images: torch.Tensor,
+        generator: Generators | None = None,
+        writer=None,
+        progress: bool = True,
+        stop=None,
+        resume: dict | None = None,
+    ) -> np.ndarray:
         """The binary RBM's training (CD-k, its streams, logging, stop and resume) on the images
         standardised by their own per-pixel statistics (N, V) or (R, N, V); returns the error (R, sweeps)."""
         self.fit_standardisation(images)

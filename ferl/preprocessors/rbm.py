@@ -34,6 +34,7 @@ training restricted Boltzmann machines", UTML TR 2010-003, cited by section):
 * the reconstruction error is the mean squared error of the one-step mean-field reconstruction
   σ(W σ(Wᵀv + b_h) + b_v) against v (the guide's §5 monitor, without sampling noise).
 """
+
 from collections.abc import Sequence
 from typing import Literal, NamedTuple
 
@@ -48,13 +49,14 @@ from ferl.images import IMAGE_SIDE, as_images, tile, weight_images
 from ferl.interfaces import FitStopped, PreprocessorBase
 from ferl.preprocessors.cache import load_or_fit
 
-VISIBLE_MODES = ("mean_field", "binary")
+VisibleMode = Literal["mean_field", "binary"]
 Generators = torch.Generator | Sequence[torch.Generator]
 
 
 class Gradient(NamedTuple):
     """Log-likelihood ascent direction (or its data / model term), batched over runs."""
-    W: torch.Tensor    # (R, V, H)
+
+    W: torch.Tensor  # (R, V, H)
     b_v: torch.Tensor  # (R, V)
     b_h: torch.Tensor  # (R, H)
 
@@ -101,14 +103,32 @@ class RBMPreprocessor(PreprocessorBase, nn.Module):
     """
 
     stoppable_fit = True  # a stop request ends the fit between sweeps (``train``'s ``stop``)
+    W: torch.Tensor  # (R, V, H)
+    b_v: torch.Tensor  # (R, V)
+    b_h: torch.Tensor  # (R, H)
+    chains: torch.Tensor | None  # PCD's persistent chains
+    visible: str  # VisibleMode here, a subclass's own modes there
 
     @checked
-    def __init__(self, n_runs: PositiveInt, n_visible: PositiveInt = 784, n_hidden: PositiveInt = 20,
-                 cd_k: PositiveInt = 3, persistent: bool = False, lr: Positive = 0.1, momentum: Momentum = 0.9,
-                 initial_momentum: Momentum = 0.5, initial_momentum_sweeps: NonNegativeInt = 5,
-                 weight_decay: NonNegative = 2e-4, batch_size: PositiveInt = 100, sweeps: PositiveInt = 600,
-                 init_std: NonNegative = 0.01, visible: Literal[VISIBLE_MODES] = "mean_field", seed: NonNegativeInt = 0,
-                 cache_dir: str | None = None):
+    def __init__(
+        self,
+        n_runs: PositiveInt,
+        n_visible: PositiveInt = 784,
+        n_hidden: PositiveInt = 20,
+        cd_k: PositiveInt = 3,
+        persistent: bool = False,
+        lr: Positive = 0.1,
+        momentum: Momentum = 0.9,
+        initial_momentum: Momentum = 0.5,
+        initial_momentum_sweeps: NonNegativeInt = 5,
+        weight_decay: NonNegative = 2e-4,
+        batch_size: PositiveInt = 100,
+        sweeps: PositiveInt = 600,
+        init_std: NonNegative = 0.01,
+        visible: VisibleMode = "mean_field",
+        seed: NonNegativeInt = 0,
+        cache_dir: str | None = None,
+    ):
         super().__init__()
         # Every constructor argument that the fit depends on: the cache key of load_or_fit.
         self.hparams = {k: v for k, v in locals().items() if k not in ("self", "__class__", "cache_dir")}
@@ -116,7 +136,11 @@ class RBMPreprocessor(PreprocessorBase, nn.Module):
         self.input_size, self.output_size = n_visible, n_hidden
         self.cd_k, self.persistent, self.visible = cd_k, persistent, visible
         self.lr, self.weight_decay, self.batch_size, self.sweeps = lr, weight_decay, batch_size, sweeps
-        self.momentum, self.initial_momentum, self.initial_momentum_sweeps = momentum, initial_momentum, initial_momentum_sweeps
+        self.momentum, self.initial_momentum, self.initial_momentum_sweeps = (
+            momentum,
+            initial_momentum,
+            initial_momentum_sweeps,
+        )
         gens = rng.run_generators(seed, n_runs)
         self.register_buffer("W", torch.stack([torch.randn(n_visible, n_hidden, generator=g) for g in gens]) * init_std)
         self.register_buffer("b_v", torch.zeros(n_runs, n_visible))
@@ -131,8 +155,13 @@ class RBMPreprocessor(PreprocessorBase, nn.Module):
         return self.W.shape[0]
 
     def describe(self) -> dict:
-        return {"kind": "rbm", "n_visible": self.input_size, "n_hidden": self.output_size, "cd_k": self.cd_k,
-                "sweeps": self.sweeps}
+        return {
+            "kind": "rbm",
+            "n_visible": self.input_size,
+            "n_hidden": self.output_size,
+            "cd_k": self.cd_k,
+            "sweeps": self.sweeps,
+        }
 
     def run_generators(self) -> list:
         """Run r's training stream (shuffles and Gibbs samples) on the weights' device."""
@@ -185,8 +214,11 @@ class RBMPreprocessor(PreprocessorBase, nn.Module):
     def negative_phase(self, h_data: torch.Tensor, gens: list):
         """The chain's end (v, p(h | v)): started from h sampled given the data (CD) or from the
         persistent chains (PCD, which are first drawn from the data they meet)."""
-        start = self.chains if self.persistent and self.chains is not None else \
-            bernoulli(h_data, uniform(h_data.shape[1:], gens, h_data))
+        start = (
+            self.chains
+            if self.persistent and self.chains is not None
+            else bernoulli(h_data, uniform(h_data.shape[1:], gens, h_data))
+        )
         v, p = self.gibbs(start, gens)
         if self.persistent:
             self.chains = bernoulli(p, uniform(p.shape[1:], gens, p))
@@ -194,7 +226,7 @@ class RBMPreprocessor(PreprocessorBase, nn.Module):
 
     def contrast(self, v: torch.Tensor, gens: list):
         """CD-k estimate of the gradient and the data's hidden expectations (R, B, H)."""
-        h_data = rbm.hidden_expectation(v, self.W, self.b_h)   # positive phase, Eq. (2.25)
+        h_data = rbm.hidden_expectation(v, self.W, self.b_h)  # positive phase, Eq. (2.25)
         data, model = statistics(v, h_data), statistics(*self.negative_phase(h_data, gens))
         return Gradient(*(d - m for d, m in zip(data, model))), h_data
 
@@ -229,8 +261,15 @@ class RBMPreprocessor(PreprocessorBase, nn.Module):
         return squared / (n * V)
 
     @torch.no_grad()
-    def train(self, images: torch.Tensor, generator: Generators = None, writer=None, progress: bool = True,
-              stop=None, resume: dict | None = None) -> np.ndarray:
+    def train(  # type: ignore[override]  # the fit, not Module.train(mode): never put in eval mode
+        self,
+        images: torch.Tensor,
+        generator: Generators | None = None,
+        writer=None,
+        progress: bool = True,
+        stop=None,
+        resume: dict | None = None,
+    ) -> np.ndarray:
         """Train for ``sweeps`` passes over images (N, V) shared by every run, or (R, N, V).
 
         ``generator``: None = each run's own stream from seed + r (runs independent of n_runs),
@@ -245,19 +284,38 @@ class RBMPreprocessor(PreprocessorBase, nn.Module):
         self.chains, start = None, 0
         errors = np.zeros((self.n_runs, self.sweeps), dtype=np.float32)
         if resume is not None:
-            start, errors, velocity, self.chains = resume["sweep"], resume["errors"], resume["velocity"], resume["chains"]
+            start, errors, velocity, self.chains = (
+                resume["sweep"],
+                resume["errors"],
+                resume["velocity"],
+                resume["chains"],
+            )
             for g, state in zip(gens, resume["generators"]):
                 g.set_state(state)
-        for s in tqdm(range(start, self.sweeps), desc="preprocessor", unit="sweep", disable=not progress,
-                      mininterval=1.0, initial=start, total=self.sweeps):
+        for s in tqdm(
+            range(start, self.sweeps),
+            desc="preprocessor",
+            unit="sweep",
+            disable=not progress,
+            mininterval=1.0,
+            initial=start,
+            total=self.sweeps,
+        ):
             momentum = self.initial_momentum if s < self.initial_momentum_sweeps else self.momentum
             errors[:, s] = self.sweep(images, gens, velocity, momentum).cpu().numpy()
             if writer is not None:
                 writer.add_scalar("preprocessor/reconstruction_error", float(errors[:, s].mean()), s + 1)
             if stop is not None and s + 1 < self.sweeps and stop():
-                raise FitStopped({"sweep": s + 1, "errors": errors, "velocity": velocity, "chains": self.chains,
-                                  "generators": [g.get_state() for g in gens]})
-        if writer is not None and self.W.shape[1] == IMAGE_SIDE ** 2:
+                raise FitStopped(
+                    {
+                        "sweep": s + 1,
+                        "errors": errors,
+                        "velocity": velocity,
+                        "chains": self.chains,
+                        "generators": [g.get_state() for g in gens],
+                    }
+                )
+        if writer is not None and self.W.shape[1] == IMAGE_SIDE**2:
             writer.add_images("preprocessor/filters", weight_images(self.W), self.sweeps)
         return errors
 
@@ -273,8 +331,9 @@ class RBMPreprocessor(PreprocessorBase, nn.Module):
         before = self.reconstruction_error(test) if resume is None else resume["before"]
         try:
             # no generator: every run trains on its own stream (seed + r), so the cache key is complete
-            history, cached = load_or_fit(self, data.train_images.to(self.W), self.cache_dir, writer,
-                                          stop=stop, resume=resume)
+            history, cached = load_or_fit(
+                self, data.train_images.to(self.W), self.cache_dir, writer, stop=stop, resume=resume
+            )
         except FitStopped as e:
             e.state["before"] = before
             raise
@@ -288,12 +347,13 @@ def log_training(writer, history: np.ndarray, W: torch.Tensor) -> None:
     run 0's filters W (R, 784, H)."""
     for sweep, value in enumerate(history.mean(0), 1):
         writer.add_scalar("preprocessor/reconstruction_error", float(value), sweep)
-    if W.shape[1] == IMAGE_SIDE ** 2:
+    if W.shape[1] == IMAGE_SIDE**2:
         writer.add_images("preprocessor/filters", weight_images(W), history.shape[1])
 
 
-def fit_records(writer, data, history: np.ndarray, before: torch.Tensor, after: torch.Tensor, cached: bool,
-                reconstruct) -> dict:
+def fit_records(
+    writer, data, history: np.ndarray, before: torch.Tensor, after: torch.Tensor, cached: bool, reconstruct
+) -> dict:
     """The end of a fit: logs the held-out errors before / after (R,) at sweeps 0 and S (history
     (R, S)) and run 0's ``reconstruct`` (images (B, V) → (R, B, V)) of one test image per digit
     class under the images; returns the records of ``preprocessor.npz``."""
@@ -301,10 +361,16 @@ def fit_records(writer, data, history: np.ndarray, before: torch.Tensor, after: 
     writer.add_scalar("preprocessor/test_reconstruction_error", float(before.mean()), 0)
     writer.add_scalar("preprocessor/test_reconstruction_error", float(after.mean()), sweeps)
     test = data.test_images
-    if test.shape[1] == IMAGE_SIDE ** 2:
+    if test.shape[1] == IMAGE_SIDE**2:
         labels = data.test_labels.cpu()
         shown = test[[int(torch.nonzero(labels == c)[0]) for c in labels.unique().tolist()][:10]]
         recon = reconstruct(shown)[0]
-        writer.add_image("preprocessor/reconstructions", tile(torch.stack([as_images(shown), as_images(recon)])), sweeps)
-    return {"reconstruction_error": history, "test_error_before": before.cpu().numpy(),
-            "test_error_after": after.cpu().numpy(), "cached": np.bool_(cached)}
+        writer.add_image(
+            "preprocessor/reconstructions", tile(torch.stack([as_images(shown), as_images(recon)])), sweeps
+        )
+    return {
+        "reconstruction_error": history,
+        "test_error_before": before.cpu().numpy(),
+        "test_error_after": after.cpu().numpy(),
+        "cached": np.bool_(cached),
+    }

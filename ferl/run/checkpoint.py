@@ -19,6 +19,7 @@ The run keeps two: ``last.pt`` and the one before it, ``previous.pt`` (a hard li
 ``last.pt`` is made ``previous.pt`` before the new one replaces ``last.pt``: at every moment both
 names hold a complete checkpoint). Resuming takes the newest good one (``newest_good``).
 """
+
 import hashlib
 import io
 import json
@@ -50,6 +51,7 @@ class CheckpointError(Exception):
 class RunIdentity:
     """What a checkpoint was written under: the resolved job config, the config-group choices
     (``hydra.runtime.choices``) and the device the run ran on (``cpu``, ``cuda``)."""
+
     config: dict
     choices: dict = field(default_factory=dict)
     device: str = "cpu"
@@ -58,6 +60,7 @@ class RunIdentity:
 @dataclass
 class Checkpoint:
     """A checkpoint whose length and checksum were checked: its header and its payload's bytes."""
+
     path: Path
     identity: RunIdentity
     payload: bytes
@@ -71,9 +74,14 @@ def encode(state: dict, identity: RunIdentity | None) -> bytes:
     buffer = io.BytesIO()
     torch.save(state, buffer)
     payload = buffer.getvalue()
-    header = strict_dumps({"format": FORMAT, "config": identity.config if identity else None,
-                         "choices": identity.choices if identity else {},
-                         "device": identity.device if identity else None}).encode()
+    header = strict_dumps(
+        {
+            "format": FORMAT,
+            "config": identity.config if identity else None,
+            "choices": identity.choices if identity else {},
+            "device": identity.device if identity else None,
+        }
+    ).encode()
     digest = hashlib.sha256(header + payload).digest()
     return FIXED.pack(MAGIC, FORMAT, len(header), len(payload), digest) + header + payload
 
@@ -85,27 +93,32 @@ def decode(path: Path, data: bytes, name: str | None = None) -> Checkpoint:
     if not data:
         raise CheckpointError(f"{name} is empty (0 bytes)")
     if data.startswith(OLD_FORMAT):
-        raise CheckpointError(f"{name} is in ferl's checkpoint format from before format {FORMAT} (a plain torch.save "
-                              f"file, without checksum or config), which cannot be checked and is not read")
+        raise CheckpointError(
+            f"{name} is in ferl's checkpoint format from before format {FORMAT} (a plain torch.save "
+            f"file, without checksum or config), which cannot be checked and is not read"
+        )
     if not (data.startswith(MAGIC) or MAGIC.startswith(data)):
         raise CheckpointError(f"{name} is not a ferl checkpoint (it does not start with {MAGIC.decode()})")
     if len(data) < FIXED.size:
         raise CheckpointError(f"{name} is truncated ({len(data)} bytes, shorter than its {FIXED.size}-byte header)")
     _, version, h, p, digest = FIXED.unpack_from(data)
     if version != FORMAT:
-        raise CheckpointError(f"{name} has checkpoint format {version}; this ferl reads format {FORMAT}"
-                              + (" (written by a newer ferl)" if version > FORMAT else ""))
+        raise CheckpointError(
+            f"{name} has checkpoint format {version}; this ferl reads format {FORMAT}"
+            + (" (written by a newer ferl)" if version > FORMAT else "")
+        )
     expected = FIXED.size + h + p
     if len(data) < expected:
         raise CheckpointError(f"{name} is truncated ({len(data)} of {expected} bytes)")
     if len(data) > expected:
-        raise CheckpointError(f"{name} is damaged: {len(data) - expected} bytes beyond its recorded length "
-                              f"of {expected}")
-    if hashlib.sha256(data[FIXED.size:]).digest() != digest:
+        raise CheckpointError(
+            f"{name} is damaged: {len(data) - expected} bytes beyond its recorded length of {expected}"
+        )
+    if hashlib.sha256(data[FIXED.size :]).digest() != digest:
         raise CheckpointError(f"{name} is damaged: checksum mismatch (its bytes changed after it was written)")
-    header = json.loads(data[FIXED.size:FIXED.size + h])
+    header = json.loads(data[FIXED.size : FIXED.size + h])
     identity = RunIdentity(header["config"], header.get("choices") or {}, header.get("device"))
-    return Checkpoint(path, identity, data[FIXED.size + h:])
+    return Checkpoint(path, identity, data[FIXED.size + h :])
 
 
 def read(path: Path, name: str | None = None) -> Checkpoint:
@@ -140,8 +153,10 @@ def newest_good(directory: Path, warn=None) -> Checkpoint | None:
             problems.append(str(e))
             continue
         if problems:
-            (warn or messages.warn)(f"{directory.parent}: {problems[0]}; resuming from the checkpoint before it, "
-                              f"{directory.name}/{PREVIOUS}")
+            (warn or messages.warn)(
+                f"{directory.parent}: {problems[0]}; resuming from the checkpoint before it, "
+                f"{directory.name}/{PREVIOUS}"
+            )
         return found
     raise CheckpointError("no good checkpoint: " + "; ".join(problems))
 

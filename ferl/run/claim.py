@@ -16,9 +16,11 @@ Order: a cheap check that writes nothing (a finished run, a resume without check
 (``ferl.run.lock``), the same check again (the process that held the lock may have finished the
 run meanwhile), then the leftovers of killed writes are removed and ``.hydra/`` is written.
 """
+
 import copy
 from contextlib import contextmanager
 from pathlib import Path
+from typing import cast
 
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf, open_dict, read_write
@@ -65,9 +67,11 @@ def refuse_if_unfit(run_path: Path, resume: bool) -> None:
 
 
 def busy(run_path: Path, who: str | None) -> str:
-    return (f"hydra.run.dir={run_path} is in use by {who or 'another process (it has just let go)'} "
-            f"(lock {run_path / LOCK_FILE}): one process per run directory; wait for it to end, "
-            f"or pass another directory")
+    return (
+        f"hydra.run.dir={run_path} is in use by {who or 'another process (it has just let go)'} "
+        f"(lock {run_path / LOCK_FILE}): one process per run directory; wait for it to end, "
+        f"or pass another directory"
+    )
 
 
 def write_hydra_files(run_path: Path, cfg: DictConfig) -> None:
@@ -83,9 +87,11 @@ def write_hydra_files(run_path: Path, cfg: DictConfig) -> None:
 def hydra_files(cfg: DictConfig) -> dict[str, str]:
     """The three files of ``.hydra/`` (hydra/core/utils.py: ``run_job``, ``_save_config``): the
     job's config, Hydra's (with its default ``output_subdir``, ``.hydra``), the task overrides."""
-    hydra_cfg = copy.deepcopy(HydraConfig.instance().cfg)
+    hydra_cfg = cast(DictConfig, copy.deepcopy(HydraConfig.instance().cfg))  # set: a Hydra job runs
     with read_write(hydra_cfg.hydra), open_dict(hydra_cfg.hydra):
         hydra_cfg.hydra.output_subdir = HYDRA_DIR
-    return {"config.yaml": OmegaConf.to_yaml(cfg), "hydra.yaml": OmegaConf.to_yaml(hydra_cfg),
-            "overrides.yaml": OmegaConf.to_yaml(HydraConfig.get().overrides.task)}
-
+    return {
+        "config.yaml": OmegaConf.to_yaml(cfg),
+        "hydra.yaml": OmegaConf.to_yaml(hydra_cfg),
+        "overrides.yaml": OmegaConf.to_yaml(HydraConfig.get().overrides.task),
+    }

@@ -6,6 +6,7 @@ used and the last two are kept (``ferl.run.checkpoint``). A checkpoint also reme
 TensorBoard event file was when it was written; resuming cuts the files back to that, so the
 points a resumed run logs again appear once, not twice.
 """
+
 import os
 import shutil
 import signal
@@ -103,8 +104,13 @@ def remove_leftovers(path: Path) -> list[Path]:
     """Remove what ``atomic_path`` and ``atomic_dir`` left in the run directory ``path`` when a
     process was killed mid-write (``.<name>.*.tmp``): called once its owner holds the run's lock,
     so none of them is being written. The checkpoints' own leftovers are ``RunDir.resume``'s."""
-    found = [p for folder in (path, path / "records", path / ".hydra", path / HYDRA_COPY) if folder.is_dir()
-             for p in folder.glob(".*.tmp") if p.is_file()]
+    found = [
+        p
+        for folder in (path, path / "records", path / ".hydra", path / HYDRA_COPY)
+        if folder.is_dir()
+        for p in folder.glob(".*.tmp")
+        if p.is_file()
+    ]
     found += [p for folder in (path, path / "checkpoints") for p in folder.glob(".*hydra.*.tmp") if p.is_dir()]
     for p in found:
         shutil.rmtree(p) if p.is_dir() else p.unlink()
@@ -182,8 +188,9 @@ class RunDir:
         chosen = self.resume_from or checkpoint.newest_good(self.checkpoints)
         saved = chosen.state() if chosen is not None else None
         if chosen is not None and chosen.path.name != checkpoint.LAST and (self.checkpoints / checkpoint.LAST).exists():
-            os.replace(self.checkpoints / checkpoint.LAST,
-                       self.checkpoints / (checkpoint.LAST + checkpoint.DAMAGED_SUFFIX))
+            os.replace(
+                self.checkpoints / checkpoint.LAST, self.checkpoints / (checkpoint.LAST + checkpoint.DAMAGED_SUFFIX)
+            )
         for stale in checkpoint.stale_temporary_files(self.checkpoints):
             stale.unlink()
         sizes = (saved or {}).pop("tb_sizes", {})
@@ -215,7 +222,12 @@ class CheckpointTimer:
         return True
 
 
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGUSR2, signal.SIGHUP)  # USR2: submitit's time-limit / pre-emption signal; HUP: a closed terminal (an ssh drop)
+STOP_SIGNALS = (
+    signal.SIGINT,
+    signal.SIGTERM,
+    signal.SIGUSR2,
+    signal.SIGHUP,
+)  # USR2: submitit's time-limit / pre-emption signal; HUP: a closed terminal (an ssh drop)
 
 
 class StopRequest:

@@ -7,17 +7,21 @@ on. It is printed before anything else is tried (the run's own log may be on the
 docs/reliability.md). A signal that stopped a run (``ferl.run.directory.StopRequest``) after its
 checkpoint is written ends it with ``Interrupted`` and a line that says where it stopped.
 """
+
 import errno
 import os
 import re
 import signal
 from contextlib import contextmanager
 from pathlib import Path
+from typing import cast
 
-DISK = {errno.ENOSPC: ("no space left on device", "free space"),
-        errno.EDQUOT: ("disk quota exceeded", "free space"),
-        errno.EROFS: ("read-only file system", "make it writable"),
-        errno.EFBIG: ("file larger than the file-size limit (ulimit -f)", "raise the limit")}
+DISK = {
+    errno.ENOSPC: ("no space left on device", "free space"),
+    errno.EDQUOT: ("disk quota exceeded", "free space"),
+    errno.EROFS: ("read-only file system", "make it writable"),
+    errno.EFBIG: ("file larger than the file-size limit (ulimit -f)", "raise the limit"),
+}
 NOT_A_DIRECTORY = (errno.ENOTDIR, errno.EEXIST)  # a file stands where a directory should be
 TEMPORARY = re.compile(r"^\.(?P<name>.+)\.[^.]+\.tmp$")  # atomic writes' ``.<name>.<random>.tmp``
 UNITS = ("step", "episode", "epoch")  # what a phase's checkpoint state counts its progress in
@@ -48,14 +52,16 @@ def disk_error(e: BaseException) -> OSError | None:
     """The first OSError of a full disk, a read-only file system or the file-size limit behind
     ``e`` (itself, its cause or its context: the write that failed first, not the writer
     flushed on the way out that failed after it; the first that names its file), else None."""
-    seen, found = set(), []
-    while e is not None and id(e) not in seen:
-        if isinstance(e, OSError) and e.errno in DISK:
-            found.append(e)
-        seen.add(id(e))
-        e = e.__cause__ or e.__context__
+    seen: set[int] = set()
+    found: list[OSError] = []
+    link: BaseException | None = e
+    while link is not None and id(link) not in seen:
+        if isinstance(link, OSError) and link.errno in DISK:
+            found.append(link)
+        seen.add(id(link))
+        link = link.__cause__ or link.__context__
     named = [f for f in found if f.filename is not None]  # a library's own first try may name none
-    return (named or found or [None])[-1]
+    return (named or found)[-1] if found else None
 
 
 def written_file(e: OSError, shown=str) -> str:
@@ -90,8 +96,9 @@ FILE_LOCALS = ("filename", "file_name", "tmp", "path")
 def disk_line(e: OSError, run_path: Path, shown=str) -> str:
     """``no space left on device writing runs/x/checkpoints/last.pt (errno ENOSPC); the last good
     checkpoint is kept: free space, then resume=true hydra.run.dir=runs/x``."""
-    what, remedy = DISK[e.errno]
-    head = f"{what} writing {written_file(e, shown)} (errno {errno.errorcode[e.errno]})"
+    code = cast(int, e.errno)  # disk_error's: one of DISK
+    what, remedy = DISK[code]
+    head = f"{what} writing {written_file(e, shown)} (errno {errno.errorcode[code]})"
     if (Path(run_path) / "checkpoints" / "last.pt").is_file():
         return f"{head}; the last good checkpoint is kept: {remedy}, then resume=true hydra.run.dir={shown(run_path)}"
     return f"{head}; no checkpoint was written yet: {remedy}, then run the command again"
@@ -115,8 +122,10 @@ def hydra_os_error(report: str) -> str | None:
         what, remedy = DISK[no]
         return f"{what} writing {path} (errno {name}); nothing of the run was written: {remedy}, then run it again"
     if no in NOT_A_DIRECTORY:
-        return (f"cannot create the run directory {path}: a file stands where a directory should be "
-                f"(errno {name}); choose another hydra.run.dir / hydra.sweep.dir")
+        return (
+            f"cannot create the run directory {path}: a file stands where a directory should be "
+            f"(errno {name}); choose another hydra.run.dir / hydra.sweep.dir"
+        )
     return f"cannot create the run directory {path}: {match['why']} (errno {name}); choose another hydra.run.dir"
 
 
@@ -141,14 +150,17 @@ def _count(state: dict):
 def interrupted_line(signum: int, at: str, run_path: Path, shown=str) -> str:
     """``interrupted by SIGINT at phase 'actor', episode 200: checkpoint written to runs/x/checkpoints;
     resume=true hydra.run.dir=runs/x continues``."""
-    return (f"interrupted by {signal.Signals(signum).name} at {at}: checkpoint written to "
-            f"{shown(Path(run_path) / 'checkpoints')}; resume=true hydra.run.dir={shown(run_path)} continues")
+    return (
+        f"interrupted by {signal.Signals(signum).name} at {at}: checkpoint written to "
+        f"{shown(Path(run_path) / 'checkpoints')}; resume=true hydra.run.dir={shown(run_path)} continues"
+    )
 
 
 def quiet_disk_errors_in_threads() -> None:
     """A disk error in a writer thread (TensorBoard's) prints no traceback: the thread hands it
     to the run's thread, whose line reports it. Other thread errors are printed as before."""
     import threading
+
     previous = threading.excepthook
 
     def hook(args):

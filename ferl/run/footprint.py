@@ -18,6 +18,7 @@ refused with one line naming n_runs, the estimate and the limit; ``memory_check=
 The probes draw only from their own generators; the global random states (torch, NumPy, random)
 are saved and restored around them, so the run's numbers do not change.
 """
+
 import random
 from collections import deque
 from contextlib import contextmanager, redirect_stderr, redirect_stdout
@@ -36,13 +37,29 @@ from ferl.config.params import ConfigError
 from ferl.config.validate import resolved
 
 PROBES = (1, 2)  # n_runs of the two set-ups the estimate extrapolates from
-SKIP = (str, bytes, int, float, bool, complex, type(None), type, ModuleType, BuiltinFunctionType, Container,
-        torch.device, torch.dtype, torch.Generator, range)
+SKIP = (
+    str,
+    bytes,
+    int,
+    float,
+    bool,
+    complex,
+    type(None),
+    type,
+    ModuleType,
+    BuiltinFunctionType,
+    Container,
+    torch.device,
+    torch.dtype,
+    torch.Generator,
+    range,
+)
 
 
 @dataclass(frozen=True)
 class Footprint:
     """Bytes a run needs: fixed + n_runs × per_run, on the host and on a CUDA device."""
+
     host_fixed: int
     host_per_run: int
     device_fixed: int = 0
@@ -66,8 +83,14 @@ def check_memory(cfg) -> None:
         return
     needs = [("", footprint.host_fixed, footprint.host_per_run, host_free())]
     if device.type == "cuda":
-        needs.append((f" on {device}", footprint.device_fixed, footprint.device_per_run,
-                      (torch.cuda.mem_get_info(device)[0], "torch.cuda.mem_get_info")))
+        needs.append(
+            (
+                f" on {device}",
+                footprint.device_fixed,
+                footprint.device_per_run,
+                (torch.cuda.mem_get_info(device)[0], "torch.cuda.mem_get_info"),
+            )
+        )
     for where, fixed, per_run, (free, source) in needs:
         if fixed + n_runs * per_run > free:
             raise ConfigError(refusal(n_runs, where, fixed, per_run, free, source))
@@ -77,11 +100,16 @@ def refusal(n_runs: int, where: str, fixed: int, per_run: int, free: int, source
     """The one line that refuses the run."""
     total = fixed + n_runs * per_run
     most = (free - fixed) // per_run if per_run else 0
-    advice = (f"by this estimate at most n_runs={most} fit" if most >= 1 else
-              "not even n_runs=1 fits: the config's other sizes (data, steps, episodes, layers) are too large")
-    return (f"n_runs={n_runs} needs about {size(total)} of memory{where} ({size(per_run)} a run + {size(fixed)} "
-            f"fixed, estimated from set-ups with n_runs=1 and 2), more than the {size(free)} free ({source}): "
-            f"{advice}; memory_check=false skips this check")
+    advice = (
+        f"by this estimate at most n_runs={most} fit"
+        if most >= 1
+        else "not even n_runs=1 fits: the config's other sizes (data, steps, episodes, layers) are too large"
+    )
+    return (
+        f"n_runs={n_runs} needs about {size(total)} of memory{where} ({size(per_run)} a run + {size(fixed)} "
+        f"fixed, estimated from set-ups with n_runs=1 and 2), more than the {size(free)} free ({source}): "
+        f"{advice}; memory_check=false skips this check"
+    )
 
 
 def size(n: float) -> str:
@@ -127,10 +155,10 @@ def probe(values: dict, n_runs: int, device: torch.device) -> tuple[int, int]:
 class Storages:
     """The memory behind every tensor and array reachable from the objects added, each once."""
 
-    def __init__(self):
+    def __init__(self) -> None:
         self.seen: dict[tuple[bool, int], int] = {}  # (on a CUDA device, start address) → bytes
         self.visited: set[int] = set()  # ids of the objects walked, kept alive by the roots
-        self.roots = []
+        self.roots: list = []
 
     @property
     def host(self) -> int:
@@ -220,8 +248,12 @@ def probing(device: torch.device):
     """Around the probes: their data shared, nothing printed, and torch's (the CUDA device's
     too), NumPy's and Python's global random states as they were before."""
     devices = [device] if device.type == "cuda" else []
-    states = (torch.get_rng_state(), [torch.cuda.get_rng_state(d) for d in devices], np.random.get_state(),
-              random.getstate())
+    states = (
+        torch.get_rng_state(),
+        [torch.cuda.get_rng_state(d) for d in devices],
+        np.random.get_state(),
+        random.getstate(),
+    )
     LoadedOnce.shared = {}
     try:
         with redirect_stdout(StringIO()), redirect_stderr(StringIO()):
@@ -251,6 +283,7 @@ def host_free(meminfo: Path = Path("/proc/meminfo"), cgroup: Path = Path("/sys/f
     if free is None:
         try:
             import psutil
+
             free, source = psutil.virtual_memory().available, "psutil"
         except ImportError:
             return 1 << 62, "unknown"

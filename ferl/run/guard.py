@@ -7,6 +7,7 @@ a run diverged is exact: the first recorded error of the interval that is non-fi
 the limit. From then on its TD errors are replaced by 0, so its parameters stop changing (and a
 run that exploded keeps finite ones).
 """
+
 import sys
 
 import torch
@@ -20,9 +21,9 @@ class DivergenceGuard:
     def __init__(self, n_runs: int, limit: float, seeds: list[int], device):
         self.limit, self.seeds = float(limit), list(seeds)
         self.alive = torch.ones(n_runs, 1, dtype=torch.bool, device=device)
-        self.diverged_at = [None] * n_runs   # step (or episode) per run, None while healthy
-        self.reasons = [None] * n_runs
-        self.details = [None] * n_runs       # what else the report says of a run frozen by ``freeze``
+        self.diverged_at: list[int | None] = [None] * n_runs  # step (or episode) per run, None while healthy
+        self.reasons: list[str | None] = [None] * n_runs
+        self.details: list[dict | None] = [None] * n_runs  # what else the report says of a run frozen by ``freeze``
 
     def mask(self, delta: torch.Tensor) -> torch.Tensor:
         """TD errors (R, B) with those of frozen runs set to 0."""
@@ -38,11 +39,17 @@ class DivergenceGuard:
         first = bad.float().argmax(0)
         for r in new.nonzero().squeeze(1).tolist():
             value = float(errors[first[r], r])
-            self.reasons[r] = ("non-finite TD error" if not torch.isfinite(errors[first[r], r])
-                               else f"|TD error| {abs(value):.3g} > limit {self.limit:g}")
+            self.reasons[r] = (
+                "non-finite TD error"
+                if not torch.isfinite(errors[first[r], r])
+                else f"|TD error| {abs(value):.3g} > limit {self.limit:g}"
+            )
             self.diverged_at[r] = first_step + int(first[r])
-            print(f"ferl: run {r} (seed {self.seeds[r]}) diverged at {unit} {self.diverged_at[r]}: "
-                  f"{self.reasons[r]}; frozen, the other runs go on", file=sys.stderr)
+            print(
+                f"ferl: run {r} (seed {self.seeds[r]}) diverged at {unit} {self.diverged_at[r]}: "
+                f"{self.reasons[r]}; frozen, the other runs go on",
+                file=sys.stderr,
+            )
         self.alive &= ~new.unsqueeze(1)
 
     def freeze(self, run: int, at: int, reason: str, details: dict) -> None:
@@ -69,17 +76,30 @@ class DivergenceGuard:
             if isinstance(value, list) and len(value) == len(self.seeds):
                 return [None if r in failed else v for r, v in enumerate(value)]
             return value
+
         return void(metrics)
 
     def report(self, unit: str = "step") -> list[dict]:
         """summary.json's `diverged`: one entry per diverged run."""
-        return [{"run": r, "seed": self.seeds[r], unit: self.diverged_at[r], "reason": self.reasons[r],
-                 **{k: v for k, v in (self.details[r] or {}).items() if k != unit}}
-                for r in range(len(self.seeds)) if self.diverged_at[r] is not None]
+        return [
+            {
+                "run": r,
+                "seed": self.seeds[r],
+                unit: self.diverged_at[r],
+                "reason": self.reasons[r],
+                **{k: v for k, v in (self.details[r] or {}).items() if k != unit},
+            }
+            for r in range(len(self.seeds))
+            if self.diverged_at[r] is not None
+        ]
 
     def state_dict(self) -> dict:
-        return {"alive": self.alive.cpu(), "diverged_at": self.diverged_at, "reasons": self.reasons,
-                "details": self.details}
+        return {
+            "alive": self.alive.cpu(),
+            "diverged_at": self.diverged_at,
+            "reasons": self.reasons,
+            "details": self.details,
+        }
 
     def load_state_dict(self, state: dict) -> None:
         self.alive = state["alive"].to(self.alive.device)

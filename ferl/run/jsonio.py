@@ -5,6 +5,7 @@ Python's accepts. ``strict_dumps`` maps each non-finite float (NumPy's included)
 summary.json's value of a run without one (docs/records.md); ``ferl.stats`` treats null and NaN alike — and dumps
 with ``allow_nan=False``, so a value that escapes the mapping raises instead of being written.
 """
+
 import json
 import math
 

@@ -11,6 +11,7 @@ that opened the file just before it was removed may win the flock of that remove
 sees that the name no longer leads to the file it locked and starts again on the name (the lock is
 the file the name leads to, never an inode someone still holds open).
 """
+
 import fcntl
 import json
 import os
@@ -25,7 +26,7 @@ _HELD: dict[str, "RunLock"] = {}  # run directory (absolute) → the lock this p
 class RunLock:
     """The lock of one run directory; ``acquire`` never waits, ``release`` is safe to repeat."""
 
-    def __init__(self, run_path):
+    def __init__(self, run_path: str | Path) -> None:
         self.file = Path(os.path.abspath(run_path)) / LOCK_FILE
         self.fd: int | None = None
         self.left_by: str | None = None  # the holder a stale lock file named, when it was taken over
@@ -106,7 +107,7 @@ def read_text(fd: int) -> str:
 
 
 def describe(text: str) -> str | None:
-    """"pid N on host H" from a lock file's content (None when it names nobody)."""
+    """ "pid N on host H" from a lock file's content (None when it names nobody)."""
     try:
         owner = json.loads(text)
         return f"pid {owner['pid']} on host {owner['host']}"

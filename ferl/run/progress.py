@@ -9,6 +9,7 @@ its launcher: ``on_multirun_start`` (the launching process) counts the jobs and 
 a joblib worker, a SLURM task) append to it under a file lock; ``on_job_end`` prints the line.
 A single run prints nothing extra. A job whose main() raises counts as done and says so ("failed").
 """
+
 import fcntl
 import heapq
 import json
@@ -16,6 +17,7 @@ import math
 import sys
 import time
 from pathlib import Path
+from typing import cast
 
 from hydra.core.global_hydra import GlobalHydra
 from hydra.core.override_parser.overrides_parser import OverridesParser
@@ -39,8 +41,9 @@ def sweep_size(arguments: list[str], config_loader=None) -> int | None:
     for override in OverridesParser.create(config_loader=config_loader).parse_overrides(arguments):
         if override.is_sweep_override() and not override.is_discrete_sweep():
             return None
-        sizes[override.get_key_element()] = (len(list(override.sweep_string_iterator()))
-                                             if override.is_sweep_override() else 1)
+        sizes[override.get_key_element()] = (
+            len(list(override.sweep_string_iterator())) if override.is_sweep_override() else 1
+        )
     return math.prod(sizes.values())
 
 
@@ -52,7 +55,7 @@ def planned_jobs(config: DictConfig) -> int | None:
     if OmegaConf.select(sweeper, "_target_") == BASIC_SWEEPER:
         params = OmegaConf.select(sweeper, "params") or {}
         arguments = [f"{k}={v}" for k, v in params.items()]
-        arguments += OmegaConf.to_container(config.hydra.overrides.task, resolve=False)
+        arguments += cast(list, OmegaConf.to_container(config.hydra.overrides.task, resolve=False))
         loader = GlobalHydra.instance().config_loader() if GlobalHydra.instance().is_initialized() else None
         try:
             return sweep_size(arguments, loader)
@@ -75,7 +78,13 @@ def time_left(durations: list[float], running: list[float], queued: int, lanes: 
 
 
 def duration(seconds: float) -> str:
-    return f"{seconds:.0f} s" if seconds < 60 else f"{seconds / 60:.0f} min" if seconds < 5400 else f"{seconds / 3600:.1f} h"
+    return (
+        f"{seconds:.0f} s"
+        if seconds < 60
+        else f"{seconds / 60:.0f} min"
+        if seconds < 5400
+        else f"{seconds / 3600:.1f} h"
+    )
 
 
 def progress_line(events: list[dict], now: float) -> str:
@@ -93,8 +102,11 @@ def progress_line(events: list[dict], now: float) -> str:
     last, n_failed = ends[-1], sum(e["failed"] for e in ends)
     done = f"{len(ends)}/{total}" if total else f"{len(ends)}"
     failed = f", {n_failed} failed" if n_failed else ""
-    job = f"{last['job']} failed after {duration(last['seconds'])}" if last["failed"] else \
-        f"{last['job']}, {duration(last['seconds'])}"
+    job = (
+        f"{last['job']} failed after {duration(last['seconds'])}"
+        if last["failed"]
+        else f"{last['job']}, {duration(last['seconds'])}"
+    )
     line = f"ferl: {done} jobs done{failed} ({job})"
     if total is None:
         return line
@@ -152,8 +164,13 @@ class SweepProgress(Callback):
 
         def end(events):
             began = max((e["time"] for e in events if e["event"] == "start" and e["job"] == name), default=now)
-            return {"event": "end", "job": name, "time": now, "seconds": round(now - began, 3),
-                    "failed": job_return.status == JobStatus.FAILED}
+            return {
+                "event": "end",
+                "job": name,
+                "time": now,
+                "seconds": round(now - began, 3),
+                "failed": job_return.status == JobStatus.FAILED,
+            }
 
         line = progress_line(record(sweep_file(config), end), now)
         # on a terminal, first clear a progress bar that another job has left half-drawn on the line

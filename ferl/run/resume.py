@@ -9,8 +9,10 @@ experiment's defaults are now. An override that changes the value of a key (or a
 choice, ``experiment=…``) is refused, in one line listing every such key, old → new, unless the
 key is in ``ALLOWED``: keys that cannot change what the run computes.
 """
+
 from dataclasses import dataclass
 from pathlib import Path
+from typing import cast
 
 import torch
 from hydra.core.hydra_config import HydraConfig
@@ -32,14 +34,14 @@ from ferl.run.checkpoint import Checkpoint, CheckpointError, RunIdentity, newest
 ALLOWED = {
     "resume": "the flag itself",
     "device": "auto or the device's own name, as long as it is the device the run ran on (checked apart: "
-              "a generator's state and the kernels' rounding are the device's)",
+    "a generator's state and the kernels' rounding are the device's)",
     "cpu_threads": "torch's intra-op threads: the training step's reductions run within one thread "
-                   "(tested: a resume on 2 threads ends as the 1-thread run)",
+    "(tested: a resume on 2 threads ends as the 1-thread run)",
     "memory_check": "whether the memory estimate is checked before the run starts",
     "optimized_metric": "which summary.json metric main() returns to a sweeper",
-    "trainer.checkpoint_minutes": "checkpoints by the clock: a checkpoint at any step or episode leaves the numbers "
-                                  "as they are (tests/test_train_cli.py, tests/test_tmaze_resume.py)",
-    "trainer.checkpoint_every_epochs": "the predictor phase's checkpoint interval, likewise",
+    "trainer.run.checkpoint_minutes": "checkpoints by the clock: a checkpoint at any step or episode leaves the numbers "
+    "as they are (tests/test_train_cli.py, tests/test_tmaze_resume.py)",
+    "trainer.phases.predictors.checkpoint_every_epochs": "the predictor phase's checkpoint interval, likewise",
     "preprocessor.cache_dir": "where fitted preprocessors are cached: a hit gives the weights a fit gives",
 }
 ABSENT = "(absent)"
@@ -49,6 +51,7 @@ ABSENT = "(absent)"
 class Resumed:
     """The config a resume runs under, the checked checkpoint it continues, and what its own
     checkpoints will be written under."""
+
     config: DictConfig
     checkpoint: Checkpoint
     identity: RunIdentity
@@ -57,7 +60,7 @@ class Resumed:
 def current_choices() -> dict:
     """The config-group choices of this launch (``experiment``, ``actor``, …), Hydra's own left out."""
     try:
-        choices = OmegaConf.to_container(HydraConfig.get().runtime.choices)
+        choices = cast(dict, OmegaConf.to_container(HydraConfig.get().runtime.choices))
     except ValueError:  # no Hydra job (a trainer driven in process)
         return {}
     return {k: v for k, v in choices.items() if not k.startswith("hydra")}
@@ -90,9 +93,11 @@ def resumed_run(run_path: Path, given: list[str], device_type) -> Resumed | None
         refused.append(("device", saved.device, f"{now} (a run continues on the device it ran on)"))
     if refused:
         listed = ", ".join(f"{key}: {show(old)} → {show(new)}" for key, old, new in refused)
-        raise ConfigError(f"resume=true continues the run in {run_path} under its own config, and these overrides "
-                          f"would change what it computes: {listed} (a resume may change only "
-                          f"{', '.join(ALLOWED)}; start a new run for other values)")
+        raise ConfigError(
+            f"resume=true continues the run in {run_path} under its own config, and these overrides "
+            f"would change what it computes: {listed} (a resume may change only "
+            f"{', '.join(ALLOWED)}; start a new run for other values)"
+        )
     cfg = OmegaConf.create(config)
     OmegaConf.set_struct(cfg, True)
     return Resumed(cfg, chosen, RunIdentity(config, saved.choices, saved.device))
@@ -104,7 +109,8 @@ def apply_overrides(saved: RunIdentity, given: list[str]) -> tuple[dict, list]:
     A config-group override (``experiment=…``) differs when it chooses another option than the
     run did; its keys are the run's, so it is not applied."""
     config = OmegaConf.create(saved.config)
-    before, groups = {}, {}
+    before: dict[str, object] = {}
+    groups: dict[str, object] = {}
     for override in OverridesParser.create().parse_overrides(list(given)):
         key = override.key_or_group
         if key in saved.choices or "/" in key:  # a config group
@@ -118,10 +124,13 @@ def apply_overrides(saved: RunIdentity, given: list[str]) -> tuple[dict, list]:
                 del node[leaf]
         else:
             OmegaConf.update(config, key, override.value(), merge=False, force_add=True)
-    changes = [(key, saved.choices.get(key, ABSENT), new) for key, new in groups.items()
-               if saved.choices.get(key, ABSENT) != new]
+    changes = [
+        (key, saved.choices.get(key, ABSENT), new)
+        for key, new in groups.items()
+        if saved.choices.get(key, ABSENT) != new
+    ]
     changes += [(key, old, new) for key, old in before.items() if old != (new := value_at(config, key))]
-    return OmegaConf.to_container(config, resolve=True), changes
+    return cast(dict, OmegaConf.to_container(config, resolve=True)), changes
 
 
 def value_at(config: DictConfig, key: str):

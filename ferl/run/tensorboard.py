@@ -6,6 +6,7 @@ histograms are ``<phase>/weights/<parameter>``. Nothing here draws a random numb
 tensor it is given, so logging never changes what a run computes; weights, images and
 embeddings are run 0's, logged once per phase.
 """
+
 import time
 
 import numpy as np
@@ -73,8 +74,9 @@ def log_hparams(writer, cfg, summary: dict, step: int) -> None:
     metrics = summary_metrics(summary)
     file_writer = writer._get_file_writer()
     start = hparams_pb(flat_config(cfg), start_time_secs=time.time() - summary["wall_time_s"])
-    end = plugin_data_pb2.HParamsPluginData(session_end_info=plugin_data_pb2.SessionEndInfo(
-        status=api_pb2.STATUS_SUCCESS, end_time_secs=time.time()))
+    end = plugin_data_pb2.HParamsPluginData(
+        session_end_info=plugin_data_pb2.SessionEndInfo(status=api_pb2.STATUS_SUCCESS, end_time_secs=time.time())
+    )
     file_writer.add_summary(start, step)
     for tag, value in metrics.items():
         writer.add_scalar(tag, value, step)
@@ -101,5 +103,4 @@ def log_embedding(writer, tag: str, points, columns: dict, step: int, images=Non
     header = list(columns)
     rows = [[str(columns[h][i]) for h in header] for i in range(len(points))]
     label_img = None if images is None else as_images(np.asarray(images).reshape(len(points), -1)).unsqueeze(1)
-    writer.add_embedding(points, metadata=rows, metadata_header=header, label_img=label_img,
-                         global_step=step, tag=tag)
+    writer.add_embedding(points, metadata=rows, metadata_header=header, label_img=label_img, global_step=step, tag=tag)

@@ -13,80 +13,121 @@ count towards ``solved``) and the activations at its ``probe`` states with its `
 (``probe.npz``: the T-junction in the T-mazes, Figs. 4.14–4.19; named for what every episodic
 environment may declare, docs/records.md).
 """
+
+from typing import NamedTuple
+
 import numpy as np
 import torch
 from tqdm import tqdm
 
 from ferl.actors.td import first_action, td_step
 from ferl.compiled import compiled, run_clock
-from ferl.images import IMAGE_SIDE, matrix_image, tile, weight_images
+from ferl.config.params import Positive, PositiveInt
 from ferl.interfaces import ActorViews, EndedEpisode
 from ferl.predictors.heads import scaled
 from ferl.random_blocks import Blocks, steps_per_block
 from ferl.run.directory import CheckpointTimer
-from ferl.run.tensorboard import log_embedding, log_weights
-from ferl.stats import final_metrics, sample_efficiency
+from ferl.stats import final_metrics, sample_efficiency, solved_against
+from ferl.trainers.actor_logs import concat_records, log_actor, log_episodes, log_probes
 from ferl.trainers.episodes import discount_factors, discounted_return, observation_table
+from ferl.trainers.observations import log_observations
 from ferl.trainers.phased import Phase
-
-EMBEDDED_PROBES = 2000  # run 0's last probe visits in the projector (docs/records.md)
 
 
 class ActorEpisodes(Phase):
     """``n_episodes`` SARSA(0) episodes (α, β by the actor's schedules over the episodes), logged
-    every ``log_every`` episodes, checkpointed every ``checkpoint_every`` (and by the clock);
-    every ``td_sample_every``-th episode keeps its per-step TD errors; the metrics are taken over
-    the last ``final_window`` episodes."""
+    every ``log_every`` episodes, checkpointed every ``checkpoint_every`` (and by the clock, every
+    ``checkpoint_minutes``; these three from the trainer's run node, ``job.control``); every
+    ``td_sample_every``-th episode keeps its per-step TD errors; the metrics are taken over the
+    last ``final_window`` episodes. The actor's observation is scaled by ``actor_obs_scale``."""
 
-    name = "actor"
-
-    def __init__(self, n_episodes: int, actor_obs_scale: float, log_every: int, td_sample_every: int,
-                 final_window: int, checkpoint_every: int, checkpoint_minutes: float):
-        self.N, self.obs_scale, self.log_every = n_episodes, actor_obs_scale, log_every
+    def __init__(
+        self,
+        n_episodes: PositiveInt,
+        actor_obs_scale: Positive,
+        td_sample_every: PositiveInt,
+        final_window: PositiveInt,
+    ):
+        self.N, self.obs_scale, self.last_step = n_episodes, actor_obs_scale, n_episodes
         self.td_sample_every, self.final_window = td_sample_every, final_window
-        self.checkpoint_every, self.checkpoint_minutes = checkpoint_every, checkpoint_minutes
+
+    def start(self, job) -> None:
+        log_observations(job)
 
     def prepare(self, job) -> None:
+        control = job.control
+        self.log_every, self.checkpoint_every, self.checkpoint_minutes = (
+            control.log_every,
+            control.checkpoint_every,
+            control.checkpoint_minutes,
+        )
         steps = job.env.max_steps + 1  # an episode's action draws: a_0 … a_{T_max}
         self.uniforms = Blocks(
             lambda n: (torch.rand(n, steps, job.R, 1, 1, generator=job.generator, device=job.device),),
-            steps_per_block(steps * job.R))
+            steps_per_block(steps * job.R),
+        )
         job.unit = "episode"
         outcomes = job.env.outcomes()
         self.outcome_names = ("discounted_return", "steps", "terminal_reward", "td_abs_mean", *outcomes)
         self.rates = [name for name, v in outcomes.items() if v.dtype == torch.bool]  # e.g. correct_goal
         self.averages = [name for name, v in outcomes.items() if v.is_floating_point()]  # e.g. a return
         self.optimum = solved_against(job.env.optimal(job.actor.gamma))
-        kinds = {**{k: np.int64 for k in outcomes}, **{k: bool for k in self.rates}, **{k: np.float32 for k in self.averages}}
-        self.dtypes = {"discounted_return": np.float32, "steps": np.int64, "terminal_reward": np.float32,
-                       "td_abs_mean": np.float32, **kinds}
+        kinds = {
+            **{k: np.int64 for k in outcomes},
+            **{k: bool for k in self.rates},
+            **{k: np.float32 for k in self.averages},
+        }
+        self.dtypes = {
+            "discounted_return": np.float32,
+            "steps": np.int64,
+            "terminal_reward": np.float32,
+            "td_abs_mean": np.float32,
+            **kinds,
+        }
 
     def metric_names(self, job) -> list[str]:
         solved = ["solved"] if self.optimum else []
-        return ["final_discounted_return", "final_steps_to_goal", *(f"final_{name}_rate" for name in self.rates),
-                *(f"{when}_{name}" for name in self.averages for when in ("final", "best")), *solved, "env_steps_total",
-                *(["env_steps_to_solve", "episodes_to_solve"] if self.optimum else [])]
+        return [
+            "final_discounted_return",
+            "final_steps_to_goal",
+            *(f"final_{name}_rate" for name in self.rates),
+            *(f"{when}_{name}" for name in self.averages for when in ("final", "best")),
+            *solved,
+            "env_steps_total",
+            *(["env_steps_to_solve", "episodes_to_solve"] if self.optimum else []),
+        ]
 
     def fresh_state(self, job) -> dict:
         """Records of the phase before its first episode: one value per run and episode."""
         R, N, T_max = job.R, self.N, job.env.max_steps
         n_sampled = len(range(0, N, self.td_sample_every))
-        return {"episode": 0, "records": {k: np.zeros((R, N), dtype=self.dtypes[k]) for k in self.outcome_names},
-                "probes": [], "active_time": 0.0, "agent_steps": 0,
-                "td_sampled": np.full((R, n_sampled, T_max), np.nan, dtype=np.float32)}
+        return {
+            "episode": 0,
+            "records": {k: np.zeros((R, N), dtype=self.dtypes[k]) for k in self.outcome_names},
+            "probes": [],
+            "active_time": 0.0,
+            "agent_steps": 0,
+            "td_sampled": np.full((R, n_sampled, T_max), np.nan, dtype=np.float32),
+        }
 
     def run(self, job, state) -> None:
         """Episodes from where a checkpoint left them."""
         if state is None:
-            self.log_actor(job, 0)
+            log_actor(job, 0)
             state = self.fresh_state(job)
         else:
             self.uniforms.load_state_dict(state.pop("uniforms"), job.device)
         records, td_sampled, probes = state["records"], state["td_sampled"], state["probes"]
         self.freeze(job)
         clock = CheckpointTimer(self.checkpoint_minutes)
-        bar = tqdm(range(state["episode"], self.N), desc="actor", unit="episode", initial=state["episode"],
-                   total=self.N, mininterval=1.0)
+        bar = tqdm(
+            range(state["episode"], self.N),
+            desc="actor",
+            unit="episode",
+            initial=state["episode"],
+            total=self.N,
+            mininterval=1.0,
+        )
         for k in bar:
             started = run_clock()
             lr, beta = job.actor.learning_rate(k / self.N), self.begin_episode(job, k, state)
@@ -96,7 +137,7 @@ class ActorEpisodes(Phase):
             outcome = episode["outcome"].cpu().numpy()  # one host copy per episode
             for i, key in enumerate(self.outcome_names):
                 records[key][:, k] = outcome[i]
-            state["agent_steps"] += int(outcome[1].sum())
+            state["agent_steps"] += int(records["steps"][:, k].sum())
             if episode["probes"] is not None:
                 probes.append(episode["probes"])
             if k % self.td_sample_every == 0:
@@ -104,13 +145,16 @@ class ActorEpisodes(Phase):
                 td_sampled[:, k // self.td_sample_every, : td.shape[1]] = td
             if (k + 1) % self.log_every == 0 or k + 1 == self.N:
                 checked = k + 1 - (k % self.log_every + 1)  # first episode not yet checked
-                job.guard.check(torch.as_tensor(records["td_abs_mean"][:, checked:k + 1].T), checked, "episode")
+                job.guard.check(torch.as_tensor(records["td_abs_mean"][:, checked : k + 1].T), checked, "episode")
             if (k + 1) % self.log_every == 0:
-                self.log_episodes(job.writer, records, k + 1, lr, float(torch.as_tensor(beta).mean()))
+                log_episodes(
+                    job.writer, self.final_window, self.rates, records, k + 1, lr, float(torch.as_tensor(beta).mean())
+                )
                 recent, ma = slice(max(0, k + 1 - self.final_window), k + 1), f"ma{self.final_window}"
                 postfix = {f"{n}_{ma}": f"{records[n][:, recent].mean():.2f}" for n in self.rates}
-                bar.set_postfix({f"return_{ma}": f"{records['discounted_return'][:, recent].mean():.3f}", **postfix},
-                                refresh=False)
+                bar.set_postfix(
+                    {f"return_{ma}": f"{records['discounted_return'][:, recent].mean():.3f}", **postfix}, refresh=False
+                )
             if ((k + 1) % self.checkpoint_every == 0 or job.stop.requested or clock.due()) and k + 1 < self.N:
                 state["probes"] = probes = [concat_records(probes)] if probes else []
                 state["episode"] = k + 1
@@ -156,8 +200,12 @@ class ActorEpisodes(Phase):
         """Whether episodes run as one compiled graph (``ferl.compiled``): on the fast path, with an
         environment whose steps are tensor operations (``traceable_steps``) and an actor that
         neither draws inside a step (Gibbs) nor steps a memory in place (``learns_from_episodes``)."""
-        return (job.fast and job.env.traceable_steps and not job.actor.samples_with_generator
-                and not job.actor.learns_from_episodes)
+        return (
+            job.fast
+            and job.env.traceable_steps
+            and not job.actor.samples_with_generator
+            and not job.actor.learns_from_episodes
+        )
 
     def state(self, job, obs_id: torch.Tensor, memories: list) -> torch.Tensor:
         """The actor's state (R, 1, S): the (processed) observation, then every predictor's memory."""
@@ -174,11 +222,21 @@ class ActorEpisodes(Phase):
         if self.fused is None:
             ep = self.episode(job, lr, beta, uniform, True)
         else:  # α and β as tensors, so that one graph serves every episode
-            ep = self.fused(job, torch.tensor(lr, device=job.device),
-                            torch.as_tensor(beta, dtype=torch.float32, device=job.device), uniform, False)
+            ep = self.fused(
+                job,
+                torch.tensor(lr, device=job.device),
+                torch.as_tensor(beta, dtype=torch.float32, device=job.device),
+                uniform,
+                False,
+            )
         job.actor.end_episode(self.ended_episode(job, ep), lr)
-        return {"outcome": ep["outcome"], "td": torch.where(ep["actives"], ep["deltas"], torch.nan),
-                "probes": self.probe_visits(job, k, ep), "trajectory": (ep["obs"], ep["actions"], ep["rewards"])}
+        return {
+            "outcome": ep["outcome"],
+            "lengths": ep["lengths"].clone(),
+            "td": torch.where(ep["actives"], ep["deltas"], torch.nan),
+            "probes": self.probe_visits(job, k, ep),
+            "trajectory": (ep["obs"], ep["actions"], ep["rewards"]),
+        }
 
     def episode(self, job, lr, beta, uniform, until_done: bool) -> dict:
         """An episode of every run from the reset environment, with SARSA(0) updates at every step
@@ -195,11 +253,11 @@ class ActorEpisodes(Phase):
         memories = [p.memory(x) for p, x in zip(predictors, m)]
         s = self.state(job, env.obs_id, memories)
         a, F_sa, x_sa = first_action(actor, s, beta, job.generator, uniform[0])
-        visits, out, obs = [], [], [env.obs_id]
+        record, obs = [], [env.obs_id]
         terminated_any = torch.zeros_like(env.done)
         for t in range(env.max_steps):
             active = ~env.done
-            visits.append((env.probe & active, active, *memories, s[:, 0], x_sa[:, 0]))
+            visit = (env.probe & active, active, tuple(memories), s[:, 0], x_sa[:, 0])  # before the step
             obs_prev, action = env.obs_id, a.squeeze(1)
             r, terminated, _ = env.advance(action)
             terminated_any = terminated_any | terminated
@@ -208,29 +266,64 @@ class ActorEpisodes(Phase):
             memories = [p.memory(x) for p, x in zip(predictors, m)]
             s_next = self.state(job, env.obs_id, memories)
             bonus = self.reward_bonus(job, m, env.obs_id)
-            a, F_sa, x_sa, delta = td_step(actor, s, a, F_sa, x_sa, r if bonus is None else r + bonus, s_next,
-                                           lr, beta, job.generator, uniform[t + 1],
-                                           job.guard.alive, (terminated | ~active).unsqueeze(1), active.unsqueeze(1))
-            out.append((action, r, delta.squeeze(1)))
+            a, F_sa, x_sa, delta = td_step(
+                actor,
+                s,
+                a,
+                F_sa,
+                x_sa,
+                r if bonus is None else r + bonus,
+                s_next,
+                lr,
+                beta,
+                job.generator,
+                uniform[t + 1],
+                job.guard.alive,
+                (terminated | ~active).unsqueeze(1),
+                active.unsqueeze(1),
+            )
+            record.append(Step(*visit, action, r, delta.squeeze(1)))
             s = s_next
             if until_done and bool(env.done.all()):
                 break
-        visits = [torch.stack(v) for v in zip(*visits)]
-        actions, rewards, deltas = (torch.stack(v) for v in zip(*out))
-        steps = env.t
-        outcome = torch.stack([
-            discounted_return(self.discounts, rewards),  # done runs got r = 0
-            steps.float(), rewards.gather(0, (steps - 1).unsqueeze(0)).squeeze(0),  # terminal reward
-            deltas.abs().sum(0) / steps.clamp(min=1), *(v.float() for v in env.outcomes().values())])
-        return {"probes": visits[0], "actives": visits[1], "memories": visits[2:-2], "states": visits[-2],
-                "caches": visits[-1], "actions": actions, "rewards": rewards, "deltas": deltas,
-                "obs": torch.stack(obs), "last_state": s, "terminated": terminated_any, "outcome": outcome}
+        ep, steps = stacked(record), env.t
+        outcome = torch.stack(
+            [  # in the order of outcome_names
+                discounted_return(self.discounts, ep.reward),  # done runs got r = 0
+                steps.float(),
+                ep.reward.gather(0, (steps - 1).unsqueeze(0)).squeeze(0),  # terminal reward
+                ep.delta.abs().sum(0) / steps.clamp(min=1),
+                *(v.float() for v in env.outcomes().values()),
+            ]
+        )
+        return {
+            "probes": ep.probe,
+            "actives": ep.active,
+            "memories": ep.memories,
+            "states": ep.state,
+            "caches": ep.cache,
+            "actions": ep.action,
+            "rewards": ep.reward,
+            "deltas": ep.delta,
+            "obs": torch.stack(obs),
+            "last_state": s,
+            "terminated": terminated_any,
+            "outcome": outcome,
+            "lengths": steps,
+        }
 
     def ended_episode(self, job, ep: dict) -> EndedEpisode:
         """The episode that ``episode`` played, as the actor's ``end_episode`` takes it (laid out
         per run only where the actor asks, ``EndedEpisode.padded``: most actors learn per step)."""
-        return EndedEpisode(ep["states"], ep["last_state"], ep["actions"], ep["rewards"], job.env.t, ep["terminated"],
-                            job.env.max_steps)
+        return EndedEpisode(
+            ep["states"],
+            ep["last_state"],
+            ep["actions"],
+            ep["rewards"],
+            ep["lengths"],
+            ep["terminated"],
+            job.env.max_steps,
+        )
 
     def probe_visits(self, job, k: int, ep: dict) -> dict | None:
         """Activations at every probe visit of episode k after the action there was selected
@@ -240,76 +333,66 @@ class ActorEpisodes(Phase):
         if len(run) == 0:
             return None
         views = isinstance(job.actor, ActorViews)
-        return {"run": run.cpu(), "episode": torch.full_like(run, k).cpu(), "step": step.cpu(),
-                **{key: v[run].cpu() for key, v in job.env.labels().items()},
-                **{f"memory_{name}": memory[step, run].half().cpu() for name, memory in zip(job.predictors, ep["memories"])},
-                "state": ep["states"][step, run].half().cpu(),
-                **({"hidden": job.actor.hidden(ep["caches"][step, run]).half().cpu()} if views else {})}
+        return {
+            "run": run.cpu(),
+            "episode": torch.full_like(run, k).cpu(),
+            "step": step.cpu(),
+            **{key: v[run].cpu() for key, v in job.env.labels().items()},
+            **{
+                f"memory_{name}": memory[step, run].half().cpu() for name, memory in zip(job.predictors, ep["memories"])
+            },
+            "state": ep["states"][step, run].half().cpu(),
+            **({"hidden": job.actor.hidden(ep["caches"][step, run]).half().cpu()} if views else {}),
+        }
 
     def finish(self, job, state: dict) -> None:
         """Records, metrics, the final TensorBoard points; the phase's steps for the speed."""
         records = state["records"]
-        self.log_actor(job, self.N)
+        log_actor(job, self.N)
         probes = {key: v.numpy() for key, v in concat_records(state["probes"]).items()} if state["probes"] else {}
         if probes:
             probes["steps_to_goal"] = records["steps"][probes["run"], probes["episode"]]
         sampled = np.asarray(list(range(0, self.N, self.td_sample_every)))
         optimal = job.env.optimal(job.actor.gamma)
-        job.run.save_records("episodes", job.R, **records, td_sampled=state["td_sampled"], td_sampled_episodes=sampled,
-                             gamma=np.float64(job.actor.gamma),
-                             optimal_return=np.float64(optimal.get("discounted_return", np.nan)),
-                             optimal_steps=np.float64(job.env.optimal_steps), final_window=np.int64(self.final_window))
+        job.run.save_records(
+            "episodes",
+            job.R,
+            **records,
+            td_sampled=state["td_sampled"],
+            td_sampled_episodes=sampled,
+            gamma=np.float64(job.actor.gamma),
+            optimal_return=np.float64(optimal.get("discounted_return", np.nan)),
+            optimal_steps=np.float64(job.env.optimal_steps),
+            final_window=np.int64(self.final_window),
+        )
         job.run.save_records("probe", job.R, **probes)
-        self.log_probes(job, probes, records)
+        log_probes(job, probes, records, self.rates, self.N)
         job.metrics.update(final_metrics(records, self.optimum, self.final_window, self.rates, self.averages))
-        job.metrics.update(sample_efficiency(records, job.shared.get("random_steps", np.zeros(job.R, np.int64)),
-                                             self.optimum, self.final_window, self.rates))
+        random_steps = job.outputs.random_steps  # None: no random collection before
+        if random_steps is None:
+            random_steps = np.zeros(job.R, np.int64)
+        job.metrics.update(sample_efficiency(records, random_steps, self.optimum, self.final_window, self.rates))
         job.count_agent_steps(state["agent_steps"], state["active_time"])
 
-    def log_actor(self, job, step: int) -> None:
-        """Run 0's weights: histograms, the state weights as a (state nodes × hidden) image and,
-        where the observation is an unprocessed image, its rows as 28 × 28 tiles (the last two
-        where the actor shows them, ``ActorViews``)."""
-        log_weights(job.writer, "actor", job.actor, step)
-        if not isinstance(job.actor, ActorViews):
-            return
-        W = job.actor.state_weights()
-        job.writer.add_image("actor/W_sh_matrix", matrix_image(W[0]), step)
-        if job.preprocessor is None and job.env.observation_size == IMAGE_SIDE ** 2:
-            job.writer.add_image("actor/W_sh_images", tile(weight_images(W[:, :IMAGE_SIDE ** 2])[:, 0]), step)
 
-    def log_probes(self, job, probes: dict, records: dict) -> None:
-        """Run 0's actor hidden activations at its last probe visits in the projector, labelled
-        with the episode's labels and outcome (Figs. 4.14–4.19)."""
-        visits = np.flatnonzero(probes["run"] == 0)[-EMBEDDED_PROBES:] if "hidden" in probes else []
-        if len(visits) == 0:
-            return
-        episode = probes["episode"][visits]
-        log_embedding(job.writer, "actor/hidden_at_probe", probes["hidden"][visits], {
-            **{key: probes[key][visits] for key in job.env.labels()},
-            "episode": episode, "steps_to_goal": probes["steps_to_goal"][visits],
-            **{key: records[key][0, episode].astype(int) for key in self.rates}}, self.N)
+class Step(NamedTuple):
+    """One step of an episode of every run, as ``ActorEpisodes.episode`` keeps it (a NamedTuple, so
+    that it traces under torch.compile in the fused episode); ``stacked`` over the steps, each field
+    gains a leading step axis."""
 
-    def log_episodes(self, writer, records, done: int, lr: float, beta: float) -> None:
-        """Moving averages over the last ``final_window`` episodes (200: Figs. 4.6–4.8, 4.11–4.13),
-        mean over runs, tagged ``actor/<name>_ma<final_window>``."""
-        window = slice(max(0, done - self.final_window), done)
-        for name in ("discounted_return", "steps", "terminal_reward", "td_abs_mean", *self.rates):
-            writer.add_scalar(f"actor/{name}_ma{self.final_window}", float(records[name][:, window].mean()), done)
-        writer.add_scalar("schedule/learning_rate", lr, done)
-        writer.add_scalar("schedule/beta", beta, done)
+    probe: torch.Tensor  # (R,) bool: at a probe state, the run's episode on
+    active: torch.Tensor  # (R,) bool: the run's episode on
+    memories: tuple  # every predictor's memory m_t, (R, M) each
+    state: torch.Tensor  # (R, S) the actor's state s_t
+    cache: torch.Tensor  # (R, ·) the actor's cache of (s_t, a_t)
+    action: torch.Tensor  # (R,) a_t
+    reward: torch.Tensor  # (R,) the raw reward r_(t+1)
+    delta: torch.Tensor  # (R,) the TD error δ_t
 
 
-def concat_records(parts: list) -> dict:
-    """Probe records gathered episode by episode (a list of dicts of tensors) → one dict."""
-    return {key: torch.cat([p[key] for p in parts]) for key in parts[0]}
-
-
-def solved_against(optimal: dict) -> tuple[str, float] | None:
-    """(record, optimum) that ``solved`` compares a run's final return with: the discounted return
-    where the environment states its optimum (the T-mazes), else the undiscounted ``return`` where
-    it states that (a Gymnasium id with ``optimal_return``), else None: no ``solved`` metric."""
-    for key in ("discounted_return", "return"):
-        if optimal.get(key) is not None:
-            return key, float(optimal[key])
-    return None
+def stacked(steps: list[Step]) -> Step:
+    """The steps of an episode as one ``Step`` whose fields are stacked over the steps (steps, R, …)."""
+    return Step._make(
+        tuple(torch.stack(m) for m in zip(*field)) if isinstance(field[0], tuple) else torch.stack(field)
+        for field in zip(*steps)
+    )

@@ -7,10 +7,12 @@ group of runs after another (``td_steps_by_groups``). With prefetching the rando
 next chunks are drawn on a second thread while a chunk runs: the same draws from the same
 generator in the same order, so the results do not change.
 """
+
 import math
 import sys
 from concurrent.futures import Future
 from contextlib import contextmanager
+from typing import NamedTuple
 
 import torch
 
@@ -20,25 +22,41 @@ from ferl.compiled import compiled
 MAX_CHUNK = 16  # steps per call of td_steps (a divisor of the logging and checkpoint intervals)
 
 
+class TDChunk(NamedTuple):
+    """What a chunk of K TD steps hands back (a NamedTuple, so it traces under torch.compile): the
+    state, action, its free energy and cache after the chunk, and every step's rewards and TD errors."""
+
+    s: torch.Tensor  # (R, 1, S)
+    a: torch.Tensor  # (R, 1)
+    F_sa: torch.Tensor  # (R, 1)
+    x_sa: torch.Tensor  # (R, 1, ·)
+    rewards: torch.Tensor  # (K, R)
+    deltas: torch.Tensor  # (K, R)
+
+
+RUN_AXIS = {"s": 0, "a": 0, "F_sa": 0, "x_sa": 0, "rewards": 1, "deltas": 1}  # where each TDChunk field holds the runs
+
+
 def td_steps(actor, env, generator, s, a, F_sa, x_sa, alive, lrs, betas, uniforms, *inputs):
     """len(lrs) online TD steps of every run (``td_step``, §3.2); step k uses α = lrs[k],
     β = betas[k], the action uniforms (R, 1, 1) and the environment's random inputs of index k
     (``env.step_inputs``; Gibbs action selection draws from ``generator`` instead, and is not compiled).
 
     s (R, 1, S), a (R, 1), F_sa (R, 1), x_sa (R, 1, ·): the state, action, its free energy and
-    cache before the chunk; returns them after it, with rewards and TD errors (K, R).
+    cache before the chunk; returns them after it, with rewards and TD errors (K, R): a ``TDChunk``.
     Runs with ``alive`` False (R, 1) keep their parameters (the divergence guard).
     """
     rewards, deltas = [], []
     for k in range(lrs.shape[0]):
         obs, r = env.step_with(a.squeeze(1), *(x[k] for x in inputs))
         s_next = obs.unsqueeze(1)
-        a, F_sa, x_sa, delta = td_step(actor, s, a, F_sa, x_sa, r, s_next, lrs[k], betas[k], generator,
-                                       uniforms[k], alive)
+        a, F_sa, x_sa, delta = td_step(
+            actor, s, a, F_sa, x_sa, r, s_next, lrs[k], betas[k], generator, uniforms[k], alive
+        )
         rewards.append(r)
         deltas.append(delta.squeeze(1))
         s = s_next
-    return s, a, F_sa, x_sa, torch.stack(rewards), torch.stack(deltas)
+    return TDChunk(s, a, F_sa, x_sa, torch.stack(rewards), torch.stack(deltas))
 
 
 def td_steps_by_groups(steps, groups: list[slice]):
@@ -47,11 +65,27 @@ def td_steps_by_groups(steps, groups: list[slice]):
     step streaming all runs' weights from L3. Each group gets views of its runs (actor.slice_runs,
     env.slice_runs, slices of the per-run arguments), so its updates land in the whole batch; runs are
     independent, so the grouping does not change what a run computes."""
+
     def by_groups(actor, env, generator, s, a, F_sa, x_sa, alive, lrs, betas, uniforms, *inputs):
-        parts = [steps(actor.slice_runs(g), env.slice_runs(g), generator, s[g], a[g], F_sa[g], x_sa[g], alive[g],
-                       lrs, betas, uniforms[:, g], *(x[:, g] for x in inputs)) for g in groups]
-        # s, a, F_sa, x_sa carry the runs first, rewards and TD errors (K, R) second
-        return tuple(torch.cat(outs, 0 if i < 4 else 1) for i, outs in enumerate(zip(*parts)))
+        parts = [
+            steps(
+                actor.slice_runs(g),
+                env.slice_runs(g),
+                generator,
+                s[g],
+                a[g],
+                F_sa[g],
+                x_sa[g],
+                alive[g],
+                lrs,
+                betas,
+                uniforms[:, g],
+                *(x[:, g] for x in inputs),
+            )
+            for g in groups
+        ]
+        return TDChunk(*(torch.cat(outs, RUN_AXIS[field]) for field, outs in zip(TDChunk._fields, zip(*parts))))
+
     return by_groups
 
 
@@ -83,6 +117,6 @@ def switch_interval(seconds: float):
 
 def done_future(value) -> Future:
     """A future that already holds ``value``."""
-    future = Future()
+    future: Future = Future()
     future.set_result(value)
     return future

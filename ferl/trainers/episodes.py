@@ -9,12 +9,15 @@ Episodes are stored padded: obs (R, N, T_max+1) observation ids, actions (R, N, 
 rewards (R, N, T_max), lengths (R, N) — the same N for every run, so training batches over runs.
 An id stands for the (processed) observation in ``ObservationTable``.
 """
+
 from dataclasses import dataclass
+from typing import Annotated
 
 import torch
 import torch.nn.functional as F
 
-from ferl.config.params import ConfigError
+from ferl.config.params import Allowed, ConfigError, PositiveInt
+from ferl.trainers.handoffs import SplitEpisodes
 from ferl.trainers.phased import Phase
 
 
@@ -22,16 +25,19 @@ from ferl.trainers.phased import Phase
 class Episodes:
     """Whole episodes per run, padded to T_max: what the random collection of Algorithms 1–2 gives
     the predictors (§4.2) and what replay stores."""
-    obs: torch.Tensor       # (R, N, Tmax+1) observation ids y_0 … y_T
-    actions: torch.Tensor   # (R, N, Tmax) action indices a_0 … a_{T−1}
-    rewards: torch.Tensor   # (R, N, Tmax) rewards r_1 … r_T
-    lengths: torch.Tensor   # (R, N) T, number of actions
+
+    obs: torch.Tensor  # (R, N, Tmax+1) observation ids y_0 … y_T
+    actions: torch.Tensor  # (R, N, Tmax) action indices a_0 … a_{T−1}
+    rewards: torch.Tensor  # (R, N, Tmax) rewards r_1 … r_T
+    lengths: torch.Tensor  # (R, N) T, number of actions
 
     def select(self, index: torch.Tensor) -> "Episodes":
         """Per-run subset: index (R, n) into the episode axis."""
+
         def take(x):
             shape = index.shape + x.shape[2:]
             return x.gather(1, index.view(*index.shape, *([1] * (x.dim() - 2))).expand(shape))
+
         return Episodes(take(self.obs), take(self.actions), take(self.rewards), take(self.lengths))
 
 
@@ -57,8 +63,9 @@ def collect_random_episodes(env, n_episodes_per_run: int, n_runs: int, generator
             rewards[:, t] = r
             obs[:, t + 1] = torch.where(active, env.obs_id, -1)
         chunks.append((obs, actions, rewards, env.t.clone()))
-    stack = [torch.stack([c[i] for c in chunks], 1).view(n_runs, copies * rounds, *chunks[0][i].shape[1:])
-             for i in range(4)]
+    stack = [
+        torch.stack([c[i] for c in chunks], 1).view(n_runs, copies * rounds, *chunks[0][i].shape[1:]) for i in range(4)
+    ]
     episodes = Episodes(*stack)
     keep = torch.arange(n_episodes_per_run, device=env.device).expand(n_runs, -1)
     return episodes.select(keep)
@@ -76,8 +83,10 @@ def balance_and_split(episodes: Episodes, t_min: int, t_max: int, train_fraction
     counts = torch.stack([(lengths == T).sum(1) for T in range(t_min, t_max + 1)])  # (nT, R)
     n = int(counts.min())
     if n < 2:
-        raise ConfigError(f"trainer.n_sample: too few random episodes of some length in [{t_min}, {t_max}] "
-                         f"to balance (smallest count {n}); collect more")
+        raise ConfigError(
+            f"trainer.n_sample: too few random episodes of some length in [{t_min}, {t_max}] "
+            f"to balance (smallest count {n}); collect more"
+        )
     n_train = max(1, round(train_fraction * n))
     train_idx, test_idx = [], []
     for T in range(t_min, t_max + 1):
@@ -86,8 +95,7 @@ def balance_and_split(episodes: Episodes, t_min: int, t_max: int, train_fraction
         pick = keys.topk(n, dim=1).indices
         train_idx.append(pick[:, :n_train])
         test_idx.append(pick[:, n_train:])
-    return (episodes.select(torch.cat(train_idx, 1)), episodes.select(torch.cat(test_idx, 1)),
-            (n_train, n - n_train))
+    return (episodes.select(torch.cat(train_idx, 1)), episodes.select(torch.cat(test_idx, 1)), (n_train, n - n_train))
 
 
 class ObservationTable:
@@ -116,12 +124,17 @@ class ObservationTable:
 class CollectEpisodes(Phase):
     """Algorithm 1's data (§4.3.1): ``n_sample`` random-policy episodes per run, balanced over the
     lengths T_min … T_max and split ``train_fraction`` / rest into training and test data (handed
-    to the next phases as ``job.shared["episodes"]``, with the steps they took, ``"random_steps"``). ``collect_batch`` episodes are stepped at
+    to the next phases as ``job.outputs.episodes``, with the steps they took, ``random_steps``). ``collect_batch`` episodes are stepped at
     once (speed only: the draws do not depend on it)."""
 
     name = "collect"
 
-    def __init__(self, n_sample: int, collect_batch: int, train_fraction: float):
+    def __init__(
+        self,
+        n_sample: PositiveInt,
+        collect_batch: PositiveInt,
+        train_fraction: Annotated[float, Allowed(lambda x: 0 < x < 1, "in (0, 1)")],
+    ):
         self.n_sample, self.collect_batch, self.train_fraction = n_sample, collect_batch, train_fraction
 
     def applies(self, job) -> bool:
@@ -129,11 +142,13 @@ class CollectEpisodes(Phase):
         return bool(job.predictors)
 
     def prepare(self, job) -> None:
-        job.resources["episodes_per_run"] = self.n_sample  # the size of the next phases' data
+        job.prepared.episodes_per_run = self.n_sample  # the size of the next phases' data
         if job.env.discovers_observations:
-            raise ConfigError(f"trainer: Algorithm 1's predictors learn from episodes collected beforehand, on ids of a fixed "
-                              f"observation table, and {job.env.task} environments discover their observations as they "
-                              f"run: use trainer=online, or predictor=none")
+            raise ConfigError(
+                f"trainer: Algorithm 1's predictors learn from episodes collected beforehand, on ids of a fixed "
+                f"observation table, and {job.env.task} environments discover their observations as they "
+                f"run: use trainer=online, or predictor=none"
+            )
 
     def copies(self, job) -> int:
         """Environment copies per run stepped at once (``collect_batch`` episodes in all)."""
@@ -150,10 +165,11 @@ class CollectEpisodes(Phase):
     def run(self, job, state) -> None:
         env = job.make_env(job.R * self.copies(job))
         episodes = collect_random_episodes(env, self.n_sample, job.R, job.generator)
-        job.shared["random_steps"] = episodes.lengths.sum(1).cpu().numpy()  # env steps the data cost each run
+        job.outputs.random_steps = episodes.lengths.sum(1).cpu().numpy()  # env steps the data cost each run
         train, test, (n_train, n_test) = balance_and_split(
-            episodes, job.env.optimal_steps, job.env.max_steps, self.train_fraction, job.generator)
-        job.shared["episodes"] = {"train": train, "test": test, "n_train": n_train, "n_test": n_test}
+            episodes, job.env.optimal_steps, job.env.max_steps, self.train_fraction, job.generator
+        )
+        job.outputs.episodes = SplitEpisodes(train, test, n_train, n_test)
         job.writer.add_scalar("collect/train_sequences", train.lengths.shape[1], 0)
         job.writer.add_scalar("collect/test_sequences", test.lengths.shape[1], 0)
         job.writer.add_scalar("collect/train_per_length", n_train, 0)
@@ -166,7 +182,8 @@ def episode_bytes(t_max: int) -> int:
 
 def observation_table(job) -> ObservationTable:
     """The observations the predictors and the actor see: processed where a phase stored them."""
-    return ObservationTable(job.shared.get("observations", job.env.observation_table))
+    processed = job.outputs.observations
+    return ObservationTable(processed if processed is not None else job.env.observation_table)
 
 
 def episode_tensors(job, ep: Episodes, predictor):

@@ -13,11 +13,14 @@ A user's component that lacks an attribute or method of its protocol (``ferl.int
 otherwise fail with an AttributeError somewhere in the first phase, after the run directory
 exists; ``check_conforms`` names everything it lacks at once, with the recipe that lists them.
 """
+
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 from ferl import interfaces
 from ferl.config.params import ConfigError, plain, signature, target
+from ferl.conformance import missing_members
 
 
 @dataclass(frozen=True)
@@ -25,9 +28,10 @@ class Fact:
     """A constructor argument (``argument``) that the environment decides: its ``value`` (None:
     the environment does not say, the constructor's default stands) and the fact in words, for
     the line that refuses a config disagreeing with it."""
+
     argument: str
-    value: Callable[[object], int | None]
-    words: Callable[[object], str]
+    value: Callable[[Any], int | None]  # of the environment
+    words: Callable[[Any], str]
 
 
 def _reward_values(env) -> tuple:
@@ -38,24 +42,40 @@ def _reward_values(env) -> tuple:
 FACTS = (
     # one reward bit per reward value (§4.2 fn. 1); an environment without a few known reward
     # values (a third-party one: reward_values = ()) gives none, and its predictors take the scalar
-    Fact("n_reward", lambda env: len(_reward_values(env)) or None,
-         lambda env: f"has {len(_reward_values(env))} reward values {_reward_values(env)}"),
-    Fact("n_visible", lambda env: env.observation_size,
-         lambda env: f"has observations of {env.observation_size} values"),
+    Fact(
+        "n_reward",
+        lambda env: len(_reward_values(env)) or None,
+        lambda env: f"has {len(_reward_values(env))} reward values {_reward_values(env)}",
+    ),
+    Fact(
+        "n_visible", lambda env: env.observation_size, lambda env: f"has observations of {env.observation_size} values"
+    ),
 )
 
 # what each protocol is called in an error line, where its members are listed, and the base class
 # that gives its hooks' defaults
-NEEDS = {
-    interfaces.EpisodicEnvironment: ("an episodic environment", 'docs/architecture.md, "Add an environment"',
-                                     interfaces.EpisodicEnvironmentBase),
-    interfaces.ContinuingEnvironment: ("a continuing environment", 'docs/architecture.md, "Add an environment"',
-                                       interfaces.EnvironmentBase),
-    interfaces.Environment: ("an environment", 'docs/architecture.md, "Add an environment"',
-                             interfaces.EnvironmentBase),
+NEEDS: dict[type, tuple[str, str, type]] = {
+    interfaces.EpisodicEnvironment: (
+        "an episodic environment",
+        'docs/architecture.md, "Add an environment"',
+        interfaces.EpisodicEnvironmentBase,
+    ),
+    interfaces.ContinuingEnvironment: (
+        "a continuing environment",
+        'docs/architecture.md, "Add an environment"',
+        interfaces.EnvironmentBase,
+    ),
+    interfaces.Environment: (
+        "an environment",
+        'docs/architecture.md, "Add an environment"',
+        interfaces.EnvironmentBase,
+    ),
     interfaces.Preprocessor: ("a preprocessor", "ferl/interfaces.py, Preprocessor", interfaces.PreprocessorBase),
-    interfaces.Predictor: ("a predictor", 'docs/architecture.md, "Add a predictor (a memory)"',
-                           interfaces.PredictorBase),
+    interfaces.Predictor: (
+        "a predictor",
+        'docs/architecture.md, "Add a predictor (a memory)"',
+        interfaces.PredictorBase,
+    ),
     interfaces.Actor: ("an actor", 'docs/architecture.md, "Add an actor"', interfaces.ActorBase),
 }
 
@@ -85,8 +105,10 @@ def facts_for(node, key: str, env) -> dict:
             continue
         stated = node.get(fact.argument)
         if stated is not None and stated != value:
-            raise ConfigError(f"{key}.{fact.argument}={stated} disagrees with the environment: env={class_name(env)} "
-                              f"{fact.words(env)}; leave it out")
+            raise ConfigError(
+                f"{key}.{fact.argument}={stated} disagrees with the environment: env={class_name(env)} "
+                f"{fact.words(env)}; leave it out"
+            )
         given[fact.argument] = value
     return given
 
@@ -94,10 +116,11 @@ def facts_for(node, key: str, env) -> dict:
 def check_conforms(part, protocol: type, key: str) -> None:
     """ConfigError naming everything ``part`` (config key ``key``) lacks of ``protocol``, and where
     the members are listed; nothing when it conforms."""
-    missing = interfaces.missing_members(part, protocol)
+    missing = missing_members(part, protocol)
     if missing:
         what, where, base = NEEDS[protocol]
         hooks = [name for name in missing if name in dir(base)]
         defaults = f"; ferl.interfaces.{base.__name__} gives the defaults of {', '.join(hooks)}" if hooks else ""
-        raise ConfigError(f"{key}: {class_name(part)} lacks {', '.join(missing)} "
-                          f"({what} needs them: {where}{defaults})")
+        raise ConfigError(
+            f"{key}: {class_name(part)} lacks {', '.join(missing)} ({what} needs them: {where}{defaults})"
+        )

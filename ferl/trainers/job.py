@@ -12,23 +12,29 @@ component's weights are drawn from seed + its offset + r (``ferl.rng``), so that
 
 The job also holds what every phase of a trainer shares: the generator of the batch's random
 stream, the divergence guard, the run directory and its TensorBoard writer, the progress that a
-checkpoint saves (finished phases, the state of an unfinished one, data passed between phases)
+checkpoint saves (finished phases, the state of an unfinished one, what phases hand on:
+``ferl.trainers.handoffs``)
 and the summary's metrics.
 """
+
 import time
+from typing import Any
 
 import torch
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
+from torch.utils.tensorboard import SummaryWriter
 
 from ferl import rng
 from ferl.compiled import compile_seconds, fast_path
 from ferl.config.params import ConfigError, signature, target
 from ferl.interfaces import Actor, Environment, Predictor, Preprocessor
 from ferl.rng import SeedOffsets
+from ferl.run.directory import RunDir, StopRequest
 from ferl.run.failures import Interrupted, where
 from ferl.run.guard import DivergenceGuard
 from ferl.trainers.facts import check_conforms, facts_for
+from ferl.trainers.handoffs import PhaseOutputs, Prepared
 
 
 def takes(node, name: str) -> bool:
@@ -52,11 +58,18 @@ def build(node, prefix: str = "", **runtime):
 class Job:
     """The components of one batch of runs and the run it writes (see the module docstring)."""
 
-    def __init__(self, cfg, device: torch.device, seeds: SeedOffsets, divergence_limit: float,
-                 env_protocol: type = Environment):
-        """``env_protocol``: what the trainer's phases need of the environment (an episodic one for
-        Algorithms 1–2, a continuing one for online TD), checked as soon as it is built."""
-        self.cfg, self.device, self.R = cfg, device, cfg.n_runs
+    # set by the trainer's fit, before any phase runs: the run directory, its TensorBoard writer
+    # and the stop request (a signal) that checkpoints heed
+    run: RunDir
+    writer: SummaryWriter
+    stop: StopRequest
+
+    def __init__(self, cfg, device: torch.device, seeds: SeedOffsets, control, env_protocol: type = Environment):
+        """``control``: the trainer's ``run`` node (``ferl.trainers.phased.RunControl``: logging,
+        checkpoint intervals, divergence limit), which every phase reads; ``env_protocol``: what the
+        trainer's phases need of the environment (an episodic one for Algorithms 1–2, a continuing
+        one for online TD), checked as soon as it is built."""
+        self.cfg, self.device, self.R, self.control = cfg, device, cfg.n_runs, control
         self.seeds = rng.run_seeds(cfg.seed, self.R)
         self.generator = rng.generator(cfg.seed, device)  # the batch's stream
         needs_data = takes(cfg.env, "data") or cfg.get("preprocessor") is not None
@@ -65,28 +78,46 @@ class Job:
         self.env = self.make_env(self.R)
         check_conforms(self.env, env_protocol, "env")
         self.preprocessor = self.make_preprocessor(cfg.seed + seeds.preprocessor)
-        self.n_obs = n_obs = self.preprocessor.output_size if self.preprocessor is not None else self.env.observation_size
-        self.predictors = {name: self.make_part(p, f"predictor.{name}", Predictor, n_obs=n_obs,
-                                                n_actions=self.env.n_actions, seed=cfg.seed + seeds.predictors * i)
-                           for i, (name, p) in enumerate((cfg.get("predictor") or {}).items())}
+        self.n_obs = n_obs = (
+            self.preprocessor.output_size if self.preprocessor is not None else self.env.observation_size
+        )
+        self.predictors = {
+            name: self.make_part(
+                p,
+                f"predictor.{name}",
+                Predictor,
+                n_obs=n_obs,
+                n_actions=self.env.n_actions,
+                seed=cfg.seed + seeds.predictors * i,
+            )
+            for i, (name, p) in enumerate((cfg.get("predictor") or {}).items())
+        }
         n_state = n_obs + sum(p.memory_size for p in self.predictors.values())
-        self.actor = self.make_part(cfg.actor, "actor", Actor, n_state=n_state, n_actions=self.env.n_actions,
-                                    seed=cfg.seed + seeds.actor)
-        self.guard = DivergenceGuard(self.R, divergence_limit, self.seeds, device)
+        self.actor = self.make_part(
+            cfg.actor, "actor", Actor, n_state=n_state, n_actions=self.env.n_actions, seed=cfg.seed + seeds.actor
+        )
+        self.guard = DivergenceGuard(self.R, control.divergence_limit, self.seeds, device)
         self.env.on_fault = self.guard.freeze  # an outside environment's failed run is frozen (ferl.envs.boundary)
-        self.run = self.writer = self.stop = None
         # what a checkpoint saves of the run's course: finished phases, an unfinished one's state,
         # data one phase hands the next, the summary's metrics so far, the acting phases' steps and time
-        self.progress = {"done": [], "partial": {}, "shared": {}, "metrics": {}, "agent_steps": 0, "actor_time": 0.0}
-        self.resources = {}  # what phases prepare at every start (not saved: drawn again alike)
-        self.unit = "step"   # what the guard reports a divergence in (a T-maze: "episode")
+        self.progress: dict[str, Any] = {
+            "done": [],
+            "partial": {},
+            "shared": PhaseOutputs(),
+            "metrics": {},
+            "agent_steps": 0,
+            "actor_time": 0.0,
+        }
+        self.prepared = Prepared()  # what phases prepare at every start (not saved: drawn again alike)
+        self.unit = "step"  # what the guard reports a divergence in (a T-maze: "episode")
         self.fast = fast_path(cfg.compile, device)  # compile the phases' chunks of steps (ferl.compiled)
         self.compile_started = compile_seconds()  # a process may train several jobs (Hydra's joblib workers)
         self.started = time.perf_counter()  # this process's share of wall_time_s (the trainer may start it earlier)
         self.earlier_time = 0.0  # wall_time_s that earlier processes of the run spent, up to its checkpoint
 
     @property
-    def shared(self) -> dict:
+    def outputs(self) -> PhaseOutputs:
+        """What earlier phases handed on (``ferl.trainers.handoffs``)."""
         return self.progress["shared"]
 
     @property
@@ -114,31 +145,44 @@ class Job:
         if node is None:
             return None
         part = self.make_part(node, "preprocessor", Preprocessor, seed=seed)
+        assert self.data is not None  # loaded whenever the config has a preprocessor
         pixels = self.data.train_images.shape[-1]
         if part.input_size != self.env.observation_size or pixels != self.env.observation_size:
-            raise ConfigError(f"preprocessor takes {part.input_size} inputs and fits on images of {pixels} pixels, "
-                              f"but the environment's observations have {self.env.observation_size} values")
+            raise ConfigError(
+                f"preprocessor takes {part.input_size} inputs and fits on images of {pixels} pixels, "
+                f"but the environment's observations have {self.env.observation_size} values"
+            )
         return part
 
     def make_env(self, n_runs: int):
         """A batch of ``n_runs`` environments of the config on the job's generator."""
-        extra = {"data": self.data} if takes(self.cfg.env, "data") else {}
+        extra: dict[str, Any] = {"data": self.data} if takes(self.cfg.env, "data") else {}
         if takes(self.cfg.env, "seed"):
             extra["seed"] = self.env_seed
         return build(self.cfg.env, n_runs=n_runs, generator=self.generator, device=self.device, **extra)
 
     def components(self) -> dict:
         """Every component (each has state, ``Checkpointed``), by the name its checkpoint entry has."""
-        parts = {"env": self.env, "preprocessor": self.preprocessor, "actor": self.actor,
-                 **{f"predictor_{name}": p for name, p in self.predictors.items()}}
+        parts = {
+            "env": self.env,
+            "preprocessor": self.preprocessor,
+            "actor": self.actor,
+            **{f"predictor_{name}": p for name, p in self.predictors.items()},
+        }
         return {name: part for name, part in parts.items() if part is not None}
 
     def describe(self) -> dict:
         """What produced the run (``records/run.json``): each component's own description."""
+
         def entry(part):
             return {"class": f"{type(part).__module__}.{type(part).__qualname__}", **part.describe()}
-        return {"env": entry(self.env), "preprocessor": entry(self.preprocessor) if self.preprocessor else None,
-                "predictors": {name: entry(p) for name, p in self.predictors.items()}, "actor": entry(self.actor)}
+
+        return {
+            "env": entry(self.env),
+            "preprocessor": entry(self.preprocessor) if self.preprocessor else None,
+            "predictors": {name: entry(p) for name, p in self.predictors.items()},
+            "actor": entry(self.actor),
+        }
 
     # ---- checkpoints ----------------------------------------------------------------------------
     def checkpoint(self, phase: str | None = None, state=None) -> None:
@@ -148,9 +192,15 @@ class Job:
         if phase is not None:
             self.progress["partial"][phase] = state
         self.progress["wall_time_s"] = self.wall_time()
-        self.run.save_checkpoint({
-            "progress": self.progress, "generator": self.generator.get_state(), "guard": self.guard.state_dict(),
-            **{name: part.state_dict() for name, part in self.components().items()}}, self.writer)
+        self.run.save_checkpoint(
+            {
+                "progress": self.progress,
+                "generator": self.generator.get_state(),
+                "guard": self.guard.state_dict(),
+                **{name: part.state_dict() for name, part in self.components().items()},
+            },
+            self.writer,
+        )
         if self.stop.requested:  # train.py prints where, and exits 128 + the signal
             raise Interrupted(self.stop.signal, where(phase, state, self.progress["done"]))
 

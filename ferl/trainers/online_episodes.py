@@ -30,22 +30,19 @@ prediction error of the observation-predicting predictors at the step's new obse
 η_k = η · max(0, 1 − k / (``curiosity_anneal`` · N)) (η = ``curiosity``; 0 = off). Returns and
 every metric are measured on the raw reward.
 """
+
 import time
 
 import numpy as np
 import torch
 
-from ferl import rng
-from ferl.config.params import ConfigError, Momentum, NonNegative, Positive, PositiveInt, UnitInterval, checked
+from ferl.config.params import ConfigError, Momentum, NonNegative, Positive, PositiveInt, UnitInterval
 from ferl.config.swaps import chosen
-from ferl.interfaces import EpisodicEnvironment
 from ferl.predictors.popart import observe_rewards
 from ferl.predictors.recurrent import lookup_step
 from ferl.replay import draw_episodes, store_episode, stored_episodes
 from ferl.trainers.actor_episodes import ActorEpisodes
 from ferl.trainers.episodes import Episodes, episode_tensors
-from ferl.trainers.observations import FitPreprocessor, log_observations
-from ferl.trainers.phased import PhasedTrainer
 
 
 class OnlineEpisodes(ActorEpisodes):
@@ -53,22 +50,35 @@ class OnlineEpisodes(ActorEpisodes):
     β following their held-out error and the curiosity bonus (module docstring). Records
     ``online.npz``: per run and episode the held-out error, β and η, and the phase's time split."""
 
-    name = "online"
-
-    def __init__(self, *args, replay_episodes: int, replay_sample: int, replay_batch_size: int | None,
-                 beta_error_ratio: float, error_ema: float, curiosity: float, curiosity_anneal: float):
-        super().__init__(*args)
+    def __init__(
+        self,
+        n_episodes: PositiveInt,
+        actor_obs_scale: Positive,
+        td_sample_every: PositiveInt,
+        final_window: PositiveInt,
+        replay_episodes: PositiveInt,
+        replay_sample: PositiveInt,
+        replay_batch_size: PositiveInt | None,
+        beta_error_ratio: Momentum,
+        error_ema: UnitInterval,
+        curiosity: NonNegative,
+        curiosity_anneal: NonNegative,
+    ):
+        super().__init__(n_episodes, actor_obs_scale, td_sample_every, final_window)
         self.K, self.n_replay, self.replay_batch = replay_episodes, replay_sample, replay_batch_size
         self.tau, self.ema, self.eta, self.anneal = beta_error_ratio, error_ema, curiosity, curiosity_anneal
-        self.eta_now, self.beta_now = 0.0, None
+        self.eta_now = 0.0
+        self.beta_now: torch.Tensor  # β_k per run (R, 1, 1): set by begin_episode
 
     def prepare(self, job) -> None:
         if not job.predictors:
-            raise ConfigError(f"predictor=none is not allowed with {chosen('trainer', 'OnlineAlgorithm')}: it trains "
-                              "predictors and actor together; a memoryless actor alone is the actor phase of "
-                              "trainer=algorithm1")
+            raise ConfigError(
+                f"predictor=none is not allowed with {chosen('trainer', 'OnlineEpisodes')}: it trains "
+                "predictors and actor together; a memoryless actor alone is the actor phase of "
+                "trainer=algorithm1"
+            )
         super().prepare(job)
-        groups = {}
+        groups: dict = {}
         for p in job.predictors.values():
             groups.setdefault(p.batch_key, []).append(p)
         self.groups = list(groups.values())
@@ -76,11 +86,19 @@ class OnlineEpisodes(ActorEpisodes):
     def fresh_state(self, job) -> dict:
         R, K, T = job.R, self.K, job.env.max_steps
         zeros = lambda *shape, **kw: torch.zeros(R, K, *shape, device=job.device, **kw)  # noqa: E731
-        return {**super().fresh_state(job),
-                "replay": {"obs": zeros(T + 1, dtype=torch.long) - 1, "actions": zeros(T, dtype=torch.long),
-                           "rewards": zeros(T), "lengths": zeros(dtype=torch.long)},
-                "error_first": None, "error_ema": None, "predictor_time": 0.0,
-                "online": {k: np.zeros((R, self.N), np.float32) for k in ("prediction_error", "beta", "curiosity")}}
+        return {
+            **super().fresh_state(job),
+            "replay": {
+                "obs": zeros(T + 1, dtype=torch.long) - 1,
+                "actions": zeros(T, dtype=torch.long),
+                "rewards": zeros(T),
+                "lengths": zeros(dtype=torch.long),
+            },
+            "error_first": None,
+            "error_ema": None,
+            "predictor_time": 0.0,
+            "online": {k: np.zeros((R, self.N), np.float32) for k in ("prediction_error", "beta", "curiosity")},
+        }
 
     def fuses(self, job) -> bool:
         """Eager: β and the curiosity η change from episode to episode, and the replay's BPTT,
@@ -117,8 +135,13 @@ class OnlineEpisodes(ActorEpisodes):
         started = time.perf_counter()
         ep = self.as_episodes(job, episode)
         with torch.no_grad():
-            error = sum(torch.nanmean(p.prediction_errors(*episode_tensors(job, ep, p)).flatten(1), 1)
-                        for p in job.predictors.values())
+            error = sum(
+                (
+                    torch.nanmean(p.prediction_errors(*episode_tensors(job, ep, p)).flatten(1), 1)
+                    for p in job.predictors.values()
+                ),
+                torch.zeros((), device=job.device),
+            )
         if state["error_first"] is None:
             state["error_first"] = state["error_ema"] = error
         else:
@@ -127,10 +150,20 @@ class OnlineEpisodes(ActorEpisodes):
         online["prediction_error"][:, k] = error.cpu().numpy()
         online["beta"][:, k] = self.beta_now.flatten().cpu().numpy()  # the β episode k acted with
         online["curiosity"][:, k] = self.eta_now
-        observe_rewards(job.predictors.values(), ep.rewards, ep.lengths)  # once per new episode, after its held-out error
+        observe_rewards(
+            job.predictors.values(), ep.rewards, ep.lengths
+        )  # once per new episode, after its held-out error
         replay = state["replay"]
-        store_episode(replay, k, {"obs": ep.obs[:, 0], "actions": ep.actions[:, 0], "rewards": ep.rewards[:, 0],
-                                  "lengths": ep.lengths[:, 0]})
+        store_episode(
+            replay,
+            k,
+            {
+                "obs": ep.obs[:, 0],
+                "actions": ep.actions[:, 0],
+                "rewards": ep.rewards[:, 0],
+                "lengths": ep.lengths[:, 0],
+            },
+        )
         pick = draw_episodes(replay, k + 1, self.n_replay, job.generator, job.device)
         sample = Episodes(**stored_episodes(replay, pick))
         order = torch.arange(self.n_replay, device=job.device).expand(job.R, -1)
@@ -148,7 +181,7 @@ class OnlineEpisodes(ActorEpisodes):
     def as_episodes(self, job, episode: dict) -> Episodes:
         """The trajectory of ``play_episode`` as one padded episode per run, (R, 1, …)."""
         obs, actions, rewards = episode["trajectory"]
-        T, lengths = job.env.max_steps, episode["outcome"][1].long()
+        T, lengths = job.env.max_steps, episode["lengths"].long()
         steps = torch.arange(T + 1, device=job.device).unsqueeze(1)
         pad = lambda x, fill: torch.nn.functional.pad(x, (0, 0, 0, T + 1 - x.shape[0]), value=fill)  # noqa: E731
         obs = torch.where(steps <= lengths, pad(obs, -1), -1)
@@ -158,35 +191,10 @@ class OnlineEpisodes(ActorEpisodes):
 
     def finish(self, job, state: dict) -> None:
         super().finish(job, state)
-        job.run.save_records("online", job.R, **state["online"], predictor_time_s=np.float64(state["predictor_time"]),
-                             actor_time_s=np.float64(state["active_time"] - state["predictor_time"]))
-
-
-class OnlineAlgorithm(PhasedTrainer):
-    """``trainer=online`` (docs/beyond.md): [the preprocessor's fit, as Algorithm 2's first phase,
-    when the config has one →] ``OnlineEpisodes``. Arguments as in conf/trainer/online.yaml."""
-
-    seed_offsets = rng.EPISODIC
-    environment = EpisodicEnvironment
-    kind = "online"
-
-    @checked
-    def __init__(self, n_episodes: PositiveInt, actor_obs_scale: Positive, replay_episodes: PositiveInt,
-                 replay_sample: PositiveInt, replay_batch_size: PositiveInt | None, beta_error_ratio: Momentum, error_ema: UnitInterval,
-                 curiosity: NonNegative, curiosity_anneal: NonNegative, log_every: PositiveInt,
-                 td_sample_every: PositiveInt, final_window: PositiveInt, checkpoint_every: PositiveInt,
-                 checkpoint_minutes: NonNegative, divergence_limit: Positive):
-        self.params = dict(n_episodes=n_episodes, actor_obs_scale=actor_obs_scale, replay_episodes=replay_episodes,
-                           replay_sample=replay_sample, replay_batch_size=replay_batch_size, beta_error_ratio=beta_error_ratio, error_ema=error_ema,
-                           curiosity=curiosity, curiosity_anneal=curiosity_anneal, final_window=final_window)
-        self.last_step = n_episodes
-        super().__init__([
-            FitPreprocessor(),
-            OnlineEpisodes(n_episodes, actor_obs_scale, log_every, td_sample_every, final_window, checkpoint_every,
-                           checkpoint_minutes, replay_episodes=replay_episodes, replay_sample=replay_sample,
-                           replay_batch_size=replay_batch_size,
-                           beta_error_ratio=beta_error_ratio, error_ema=error_ema, curiosity=curiosity,
-                           curiosity_anneal=curiosity_anneal)], divergence_limit)
-
-    def start(self, job) -> None:
-        log_observations(job)
+        job.run.save_records(
+            "online",
+            job.R,
+            **state["online"],
+            predictor_time_s=np.float64(state["predictor_time"]),
+            actor_time_s=np.float64(state["active_time"] - state["predictor_time"]),
+        )

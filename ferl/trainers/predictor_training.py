@@ -1,15 +1,17 @@
 """Algorithm 1's predictor phase (§4.3.1, Eqs. 4.1–4.8; §5.2 for Algorithm 2's several predictors).
 
-Every predictor trains on the collected episodes (``job.shared["episodes"]``) for N_epoch epochs,
+Every predictor trains on the collected episodes (``job.outputs.episodes``) for N_epoch epochs,
 each in its own shuffled order per epoch; those with one ``batch_key`` train as one
 ``training_batch``. The prediction error of Eq. (4.7) — per step t and episode length T, mean
 over the sequences, on the training and the test data — is measured every ``error_every``
 epochs (Figs. 4.5, 4.10, 5.2, 5.17). Only lengths T_min … T_min + L_training − 1 are trained on.
 """
+
 import numpy as np
 import torch
 from tqdm import tqdm
 
+from ferl.config.params import NonNegativeInt, PositiveInt
 from ferl.predictors.popart import observe_rewards
 from ferl.run.directory import CheckpointTimer
 from ferl.run.tensorboard import log_weights
@@ -20,30 +22,35 @@ from ferl.trainers.phased import Phase
 class TrainPredictors(Phase):
     """``n_epoch`` epochs of every predictor on lengths up to T_min + ``l_training`` − 1, errors
     every ``error_every`` epochs, a checkpoint every ``checkpoint_every_epochs`` (and by the
-    clock, ``checkpoint_minutes``). Records ``predictor.npz``."""
+    clock, the run node's ``checkpoint_minutes``). Records ``predictor.npz``."""
 
     name = "predictors"
 
     def applies(self, job) -> bool:
         return bool(job.predictors)
 
-    def __init__(self, l_training: int, n_epoch: int, error_every: int, checkpoint_every_epochs: int,
-                 checkpoint_minutes: float):
+    def __init__(
+        self,
+        l_training: PositiveInt,
+        n_epoch: NonNegativeInt,
+        error_every: PositiveInt,
+        checkpoint_every_epochs: PositiveInt,
+    ):
         self.l_training, self.n_epoch, self.error_every = l_training, n_epoch, error_every
-        self.checkpoint_every_epochs, self.checkpoint_minutes = checkpoint_every_epochs, checkpoint_minutes
+        self.checkpoint_every_epochs = checkpoint_every_epochs
 
     def run_bytes(self, job) -> int:
         """The peak of ``run`` (``ferl.run.footprint``'s hook): the collected episodes, each as
         float32 tensors y (T_max+1, Y + a reward), a (T_max, A) for every predictor's two splits, the
         training set and its batch, and two error arrays (T_max+1) per episode."""
-        n, T = job.resources.get("episodes_per_run", 0), job.env.max_steps
+        n, T = job.prepared.episodes_per_run, job.env.max_steps
         tensors = 4 * ((T + 1) * (job.n_obs + 1) + T * job.env.n_actions)
         return job.R * n * (episode_bytes(T) + (len(job.predictors) + 2) * tensors + 2 * 4 * (T + 1))
 
     def run(self, job, state) -> None:
         """Every group of predictors not yet trained; a finished group is checkpointed."""
         state = state or {"records": {}, "done": [], "group": None}
-        groups = {}
+        groups: dict[tuple, list[str]] = {}  # batch_key → the names of the predictors that train as one batch
         for name, p in job.predictors.items():
             groups.setdefault(p.batch_key, []).append(name)
         for names in groups.values():
@@ -63,13 +70,15 @@ class TrainPredictors(Phase):
         ``tensors`` (y, a, r, lengths) of a data split."""
         lengths = tensors[3]
         err = predictor.prediction_errors(*tensors)  # (R, B, Tmax+1), NaN on padding
-        out = [torch.nanmean(torch.where((lengths == T).unsqueeze(-1), err, torch.nan), dim=1) for T in self.lengths(job)]
+        out = [
+            torch.nanmean(torch.where((lengths == T).unsqueeze(-1), err, torch.nan), dim=1) for T in self.lengths(job)
+        ]
         return torch.stack(out, 1).cpu().numpy().astype(np.float32)
 
     def train_group(self, job, names: list, state: dict) -> dict:
         """The named predictors for N_epoch epochs, from the epoch a checkpoint left them at."""
-        data, R = job.shared["episodes"], job.R
-        train = data["train"]
+        data, R = job.outputs.episodes, job.R
+        train = data.train
         members = [job.predictors[name] for name in names]
         # the training set proper: lengths T_min … T_min + L_training − 1; balancing laid the
         # lengths out in the same blocks in every run, so run 0's positions hold for all
@@ -80,37 +89,59 @@ class TrainPredictors(Phase):
         if partial.get("names") != names:  # a fresh start: the fit's rewards set a normalised reward head's statistics
             observe_rewards(members, fit.rewards, fit.lengths)
         batch = type(members[0]).training_batch(
-            members, y, a, [p.reward_targets(job.env.reward_values, fit.rewards) for p in members], lengths)
+            members, y, a, [p.reward_targets(job.env.reward_values, fit.rewards) for p in members], lengths
+        )
         if job.fast:  # a batch without a fast path stays eager (``TrainingBatchBase.fuse``)
             batch.fuse(job.device)
-        splits = {(name, s): episode_tensors(job, data[s], p) for name, p in zip(names, members) for s in ("train", "test")}
+        splits = {
+            (name, s): episode_tensors(job, split, p)
+            for name, p in zip(names, members)
+            for s, split in (("train", data.train), ("test", data.test))
+        }
         if partial.get("names") == names:
             errors, epochs, start = partial["errors"], partial["epochs"], partial["epoch"]
         else:
-            errors = {name: {s: [self.prediction_errors(job, splits[name, s], p)] for s in ("train", "test")}
-                      for name, p in zip(names, members)}
+            errors = {
+                name: {s: [self.prediction_errors(job, splits[name, s], p)] for s in ("train", "test")}
+                for name, p in zip(names, members)
+            }
             epochs, start = [0], 0
             for name, p in zip(names, members):
                 log_weights(job.writer, f"predictor_{name}", p, 0)
-        clock = CheckpointTimer(self.checkpoint_minutes)
-        for epoch in (bar := tqdm(range(start + 1, self.n_epoch + 1), desc=f"predictor {'+'.join(names)}",
-                                  unit="epoch", initial=start, total=self.n_epoch, mininterval=1.0)):
+        clock = CheckpointTimer(job.control.checkpoint_minutes)
+        for epoch in (
+            bar := tqdm(
+                range(start + 1, self.n_epoch + 1),
+                desc=f"predictor {'+'.join(names)}",
+                unit="epoch",
+                initial=start,
+                total=self.n_epoch,
+                mininterval=1.0,
+            )
+        ):
             orders = [torch.rand(R, y.shape[1], generator=job.generator, device=job.device).argsort(1) for _ in members]
             batch.train_epoch(orders)
             if epoch % self.error_every == 0 or epoch == self.n_epoch:
                 epochs.append(epoch)
                 for name, p in zip(names, members):
                     self.log_errors(job, name, p, errors[name], splits, epoch)
-                bar.set_postfix(error_test=" ".join(f"{np.nanmean(errors[n]['test'][-1]):.4f}" for n in names), refresh=False)
-            if (epoch % self.checkpoint_every_epochs == 0 or job.stop.requested or clock.due()) and epoch < self.n_epoch:
+                bar.set_postfix(
+                    error_test=" ".join(f"{np.nanmean(errors[n]['test'][-1]):.4f}" for n in names), refresh=False
+                )
+            if (
+                epoch % self.checkpoint_every_epochs == 0 or job.stop.requested or clock.due()
+            ) and epoch < self.n_epoch:
                 state["group"] = {"names": names, "epoch": epoch, "errors": errors, "epochs": epochs}
                 job.checkpoint(self.name, state)
         lengths_all = np.arange(job.env.optimal_steps, job.env.max_steps + 1)
-        records = {}
+        records: dict[str, np.ndarray] = {}
         for name, p in zip(names, members):
             log_weights(job.writer, f"predictor_{name}", p, self.n_epoch)
-            records |= {f"{name}_lengths": lengths_all, f"{name}_epochs": np.asarray(epochs),
-                        **{f"{name}_error_{s}": np.stack(errors[name][s], 1) for s in ("train", "test")}}
+            records |= {
+                f"{name}_lengths": lengths_all,
+                f"{name}_epochs": np.asarray(epochs),
+                **{f"{name}_error_{s}": np.stack(errors[name][s], 1) for s in ("train", "test")},
+            }
         return records
 
     def log_errors(self, job, name: str, predictor, errors: dict, splits: dict, epoch: int) -> None:

@@ -8,6 +8,7 @@ opened as ever; only their writes fail (the run's train.log too).
 FERL_SLOW_IMPORT=SECONDS:MODULE:MARKER instead makes ``import MODULE`` wait (after touching MARKER),
 so that a test can send SIGINT while train.py's imports run.
 """
+
 import builtins
 import errno
 import fnmatch
@@ -26,6 +27,7 @@ class _Disk:
 
 def _failing(file, name: str):
     """``file`` whose write() raises once the disk is full."""
+
     class Failing:
         def __init__(self, inner):
             self._inner = inner
@@ -50,6 +52,7 @@ def _failing(file, name: str):
 
         def __getattr__(self, key):
             return getattr(self._inner, key)
+
     return Failing(file)
 
 
@@ -70,6 +73,7 @@ def _patched_open(real):
     def patched(file, mode="r", *args, **kwargs):
         f = real(file, mode, *args, **kwargs)
         return _failing(f, file) if _watch(file, mode) else f
+
     return patched
 
 
@@ -81,6 +85,7 @@ def _patched_fdopen(real):
         except OSError:
             return f
         return _failing(f, name) if _watch(name, mode) else f
+
     return patched
 
 

@@ -1,0 +1,60 @@
+"""What the actor phase writes to TensorBoard (docs/records.md): run 0's weights, the moving
+averages of its episodes and the hidden activations at its probe visits in the projector."""
+
+import numpy as np
+import torch
+
+from ferl.images import IMAGE_SIDE, matrix_image, tile, weight_images
+from ferl.interfaces import ActorViews
+from ferl.run.tensorboard import log_embedding, log_weights
+
+EMBEDDED_PROBES = 2000  # run 0's last probe visits in the projector (docs/records.md)
+
+
+def log_actor(job, step: int) -> None:
+    """Run 0's weights: histograms, the state weights as a (state nodes × hidden) image and,
+    where the observation is an unprocessed image, its rows as 28 × 28 tiles (the last two
+    where the actor shows them, ``ActorViews``)."""
+    log_weights(job.writer, "actor", job.actor, step)
+    if not isinstance(job.actor, ActorViews):
+        return
+    W = job.actor.state_weights()
+    job.writer.add_image("actor/W_sh_matrix", matrix_image(W[0]), step)
+    if job.preprocessor is None and job.env.observation_size == IMAGE_SIDE**2:
+        job.writer.add_image("actor/W_sh_images", tile(weight_images(W[:, : IMAGE_SIDE**2])[:, 0]), step)
+
+
+def log_probes(job, probes: dict, records: dict, rates: list, n_episodes: int) -> None:
+    """Run 0's actor hidden activations at its last probe visits in the projector, labelled
+    with the episode's labels and outcome (Figs. 4.14–4.19)."""
+    visits = np.flatnonzero(probes["run"] == 0)[-EMBEDDED_PROBES:] if "hidden" in probes else np.array([], int)
+    if len(visits) == 0:
+        return
+    episode = probes["episode"][visits]
+    log_embedding(
+        job.writer,
+        "actor/hidden_at_probe",
+        probes["hidden"][visits],
+        {
+            **{key: probes[key][visits] for key in job.env.labels()},
+            "episode": episode,
+            "steps_to_goal": probes["steps_to_goal"][visits],
+            **{key: records[key][0, episode].astype(int) for key in rates},
+        },
+        n_episodes,
+    )
+
+
+def log_episodes(writer, window: int, rates: list, records: dict, done: int, lr: float, beta: float) -> None:
+    """Moving averages over the last ``window`` episodes (``final_window``; 200: Figs. 4.6–4.8,
+    4.11–4.13), mean over runs, tagged ``actor/<name>_ma<window>``; ``rates``: the boolean outcomes."""
+    recent = slice(max(0, done - window), done)
+    for name in ("discounted_return", "steps", "terminal_reward", "td_abs_mean", *rates):
+        writer.add_scalar(f"actor/{name}_ma{window}", float(records[name][:, recent].mean()), done)
+    writer.add_scalar("schedule/learning_rate", lr, done)
+    writer.add_scalar("schedule/beta", beta, done)
+
+
+def concat_records(parts: list) -> dict:
+    """Probe records gathered episode by episode (a list of dicts of tensors) → one dict."""
+    return {key: torch.cat([p[key] for p in parts]) for key in parts[0]}
