@@ -42,13 +42,15 @@ def publish_figures(figures: dict, out: Path, tb_dir: Path) -> None:
     Each figure is rendered once by the Agg canvas and the same pixels go to both,
     which is what ``SummaryWriter.add_figure`` logs, without drawing it twice more.
     """
+    shutil.rmtree(tb_dir, ignore_errors=True)
+    if not figures:
+        return
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.image import imsave
 
     # imported here: torch's start-up is paid only by a call that writes figures
     from torch.utils.tensorboard import SummaryWriter
 
-    shutil.rmtree(tb_dir, ignore_errors=True)
     with SummaryWriter(str(tb_dir)) as writer:
         for name, (fig, _) in figures.items():
             canvas = FigureCanvasAgg(fig)
