@@ -2,6 +2,7 @@
 analysed again, an unchanged run is not redrawn, a changed one is, and the sweep's report reads the
 kept runs exactly as it read them when they were drawn."""
 
+import dataclasses
 import hashlib
 import json
 from pathlib import Path
@@ -92,19 +93,21 @@ def test_force_and_a_touched_folder_analyse_again(sweep, capsys):
 def test_the_digest_follows_every_input(sweep):
     """summary.json, each records file and the code each change the digest; nothing else does."""
     run = sweep / "0"
-    plugins = REGISTRY.modules
-    digest = cache.inputs_digest(run, plugins)
+    digest = cache.inputs_digest(run, REGISTRY)
     (run / "notes.txt").write_text("a file analysis does not read")
-    assert cache.inputs_digest(run, plugins) == digest
+    assert cache.inputs_digest(run, REGISTRY) == digest
     records = sorted((run / "records").glob("*.npz"))
     assert records
     for path in records:
         saved = path.read_bytes()
         path.write_bytes(saved + b"\0")
-        assert cache.inputs_digest(run, plugins) != digest, path.name
+        assert cache.inputs_digest(run, REGISTRY) != digest, path.name
         path.write_bytes(saved)
-    assert cache.inputs_digest(run, plugins) == digest
-    assert cache.inputs_digest(run, ("json",)) != digest  # another plug-in's code
+    assert cache.inputs_digest(run, REGISTRY) == digest
+    other_code = dataclasses.replace(REGISTRY, modules=[*REGISTRY.modules, "json"])  # another plug-in's code
+    assert cache.inputs_digest(run, other_code) != digest
+    fewer_claims = dataclasses.replace(REGISTRY, chapters=REGISTRY.chapters[1:])  # another registry
+    assert cache.inputs_digest(run, fewer_claims) != digest
 
 
 def test_a_kept_outcome_equals_the_drawn_one(sweep):

@@ -1,8 +1,8 @@
 """A run's analysis kept while nothing it was made from has changed.
 
-A run's ``analysis/`` is a function of the run's ``summary.json``, its ``records/`` and the code
-that analyses them (ferl and every registered plug-in package, e.g. ``reproduction``), and of
-nothing else. ``inputs_digest`` hashes all of these (SHA-256 of every file's name and bytes); the
+A run's ``analysis/`` is a function of the run's ``summary.json``, its ``records/``, the code
+that analyses them (ferl and every registered plug-in package, e.g. ``reproduction``) and what the
+plug-ins registered (``ferl.analysis.dispatch.REGISTRY``), and of nothing else. ``inputs_digest`` hashes all of these (SHA-256 of every file's name and bytes); the
 analysis writes it last, as ``analysis/.inputs.sha256``, beside ``analysis/.outcome.json`` (the
 run's line of a sweep report and the files it wrote). A later ``analyze.py`` finds the same digest
 and every file it listed, and no other, and keeps the folder as it is: a sweep analysed again
@@ -23,6 +23,7 @@ import matplotlib
 import numpy as np
 
 from ferl.analysis.claims import Claim, ClaimResult, Measured
+from ferl.analysis.dispatch import Registry
 from ferl.analysis.report import RunOutcome
 
 DIGEST = ".inputs.sha256"
@@ -49,10 +50,23 @@ def code_digest(plugins: tuple[str, ...]) -> str:
     return h.hexdigest()
 
 
-def inputs_digest(run_dir: Path, plugins: Sequence[str]) -> str:
-    """SHA-256 of what the run's analysis is made from: summary.json, every file of records/ and
-    the code (``code_digest``)."""
-    h = hashlib.sha256(code_digest(tuple(plugins)).encode())
+def registry_key(registry: Registry) -> str:
+    """What is registered, in words: the reference, each chapter's model and claims, the analysed
+    environment kinds and the plug-in modules (a run analysed under another registry is redrawn)."""
+    return json.dumps(
+        [
+            registry.reference,
+            [(c.model, [(claim.source, claim.text) for claim in c.claims]) for c in registry.chapters],
+            sorted(registry.environments),
+            list(registry.modules),
+        ]
+    )
+
+
+def inputs_digest(run_dir: Path, registry: Registry) -> str:
+    """SHA-256 of what the run's analysis is made from: summary.json, every file of records/, the
+    code (``code_digest``) and what is registered (``registry_key``)."""
+    h = hashlib.sha256(code_digest(tuple(registry.modules)).encode() + registry_key(registry).encode())
     records = run_dir / "records"
     files = [run_dir / "summary.json", *sorted(p for p in records.rglob("*") if p.is_file())]
     _hash_files(h, [p for p in files if p.is_file()], run_dir)

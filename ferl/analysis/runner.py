@@ -113,7 +113,7 @@ def analyze_run(run_dir: Path, force: bool = False) -> RunOutcome:
         return RunOutcome(run_dir, experiment, task, f"skipped: no {MANIFEST}")
 
     out, tb_dir = run_dir / "analysis", run_dir / "tb" / "analysis"
-    digest = cache.inputs_digest(run_dir, REGISTRY.modules)
+    digest = cache.inputs_digest(run_dir, REGISTRY)
     kept = None if force else _kept(run_dir, digest)
     if kept is not None:
         return kept
@@ -137,7 +137,7 @@ def analyze_run(run_dir: Path, force: bool = False) -> RunOutcome:
 def _kept(run_dir: Path, digest: str | None = None) -> RunOutcome | None:
     """The run's kept analysis (``ferl.analysis.cache``), said in one line; None: analyse it."""
     out = run_dir / "analysis"
-    digest = digest or cache.inputs_digest(run_dir, REGISTRY.modules)
+    digest = digest or cache.inputs_digest(run_dir, REGISTRY)
     kept = cache.load(run_dir, out, digest, run_dir / "tb" / "analysis", REGISTRY.all_claims)
     if kept is not None:
         print(
