@@ -33,6 +33,9 @@ class Head:
         """Q (R, B, nA) from h (R, B, H)."""
         raise NotImplementedError
 
+    def adjust(self, params: dict) -> None:
+        """Changes to the drawn initial parameters (in place)."""
+
     def describe(self) -> dict:
         return {"head": self.name}
 
@@ -67,6 +70,13 @@ class EnergyHead(Head):
         x = torch.bmm(h, p["W_sh"]).unsqueeze(2) + (p["W_ah"] + p["b_k"].unsqueeze(1)).unsqueeze(1)
         visible = torch.bmm(h, p["b_s"].unsqueeze(-1)) + p["b_a"].unsqueeze(1)
         return -self.form.energy(visible, x)
+
+    def adjust(self, params: dict) -> None:
+        """The action biases start lowered by Σ_k φ(0) (K ln 2 for the free energies, 0 for the
+        expected energy), so that Q starts near 0 as the linear head's does: otherwise every
+        action's Q starts near K ln 2 ≈ 14, far above the returns, and the bootstrapped targets
+        of unfinished episodes keep that optimism long after a goal's true value is learnt."""
+        params["b_a"] -= self.form.hidden_term(torch.zeros(self.head_hidden)).sum()
 
     def describe(self) -> dict:
         return {"head": self.name, "head_hidden": self.head_hidden, "q_scale": 1.0 / self.form.scale}

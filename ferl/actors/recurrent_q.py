@@ -99,6 +99,7 @@ class RecurrentQActor(SoftmaxActor):
             ]
             drawn[name] = torch.stack(draws)
         self.core.adjust(drawn)
+        self.head.adjust(drawn)
         fixed = self.core.fixed(generators)
         self.fixed_names = tuple(fixed)
         for name, value in {**drawn, **fixed}.items():
