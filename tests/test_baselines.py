@@ -7,9 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from ferl.actors import drqn
-from ferl.actors.drqn import DRQNActor
 from ferl.actors.mlp_q import MLPQActor
+from ferl.actors.recurrent_q import RecurrentQActor
 from ferl.actors.tabular import TabularQActor
 from ferl.actors.td import first_action, td_step
 from ferl.envs.tmaze import TMaze, maze_tables
@@ -117,7 +116,7 @@ def test_true_state_view_names_every_state_once_and_keeps_the_dynamics():
     assert len(set(oracle.observation_names)) == oracle.observation_size == (3 + 2) * 4
 
 
-def reference_gru(actor: DRQNActor, r: int) -> torch.nn.GRUCell:
+def reference_gru(actor: RecurrentQActor, r: int) -> torch.nn.GRUCell:
     """torch.nn.GRUCell holding run r's weights."""
     cell = torch.nn.GRUCell(actor.W_x.shape[1], actor.n_hidden)
     with torch.no_grad():
@@ -129,10 +128,10 @@ def reference_gru(actor: DRQNActor, r: int) -> torch.nn.GRUCell:
 
 
 def test_gru_step_is_torch_grucell_run_by_run():
-    actor = DRQNActor(R, S, NA, H, 0.9, seed=2, **schedules())
+    actor = RecurrentQActor(R, S, NA, H, 0.9, seed=2, **schedules())
     x = torch.randn(R, 7, S + NA)
     h = torch.randn(R, 7, H)
-    out = drqn.gru_step(actor.params(), x, h)
+    out = actor.core.step(actor.params(), x, h)
     for r in range(R):
         torch.testing.assert_close(out[r], reference_gru(actor, r)(x[r], h[r]))
 
@@ -149,7 +148,7 @@ def episodes_batch(T=6, B=5, seed=0) -> dict:
     }
 
 
-def reference_loss(actor: DRQNActor, r: int, batch: dict, cell, W_q, b_q) -> torch.Tensor:
+def reference_loss(actor: RecurrentQActor, r: int, batch: dict, cell, W_q, b_q) -> torch.Tensor:
     """Run r's DRQN loss step by step in Python, with torch.nn.GRUCell and the target network."""
     target_cell = torch.nn.GRUCell(cell.input_size, cell.hidden_size)
     with torch.no_grad():
@@ -185,8 +184,8 @@ def reference_loss(actor: DRQNActor, r: int, batch: dict, cell, W_q, b_q) -> tor
 def test_drqn_bptt_gradient_of_every_run_equals_a_per_run_reference():
     """The batched loss's gradient with respect to run r's parameters is run r's own loss gradient,
     computed by an independent per-episode Python unroll with torch.nn.GRUCell."""
-    actor = DRQNActor(R, S, NA, H, 0.9, seed=4, **schedules())
-    for name in drqn.PARAMETERS:  # a target network that differs from the online one
+    actor = RecurrentQActor(R, S, NA, H, 0.9, seed=4, **schedules())
+    for name in actor.names:  # a target network that differs from the online one
         getattr(actor, f"{name}_target").add_(torch.randn_like(getattr(actor, name)) * 0.1)
     batch = episodes_batch()
     p = {name: value.clone().requires_grad_() for name, value in actor.params().items()}
@@ -196,12 +195,12 @@ def test_drqn_bptt_gradient_of_every_run_equals_a_per_run_reference():
         W_q, b_q = actor.W_q[r].clone().requires_grad_(), actor.b_q[r].clone().requires_grad_()
         loss = reference_loss(actor, r, batch, cell, W_q, b_q)
         ref = torch.autograd.grad(loss, [cell.weight_ih, cell.weight_hh, cell.bias_ih, cell.bias_hh, W_q, b_q])
-        for name, expected in zip(drqn.PARAMETERS, (ref[0].T, ref[1].T, ref[2], ref[3], ref[4], ref[5])):
+        for name, expected in zip(actor.names, (ref[0].T, ref[1].T, ref[2], ref[3], ref[4], ref[5])):
             torch.testing.assert_close(grads[name][r], expected, rtol=1e-4, atol=1e-6)
 
 
 def test_drqn_adam_step_equals_torch_adam():
-    actor = DRQNActor(R, S, NA, H, 0.9, seed=1, **schedules())
+    actor = RecurrentQActor(R, S, NA, H, 0.9, seed=1, **schedules())
     batch = episodes_batch(seed=3)
     params = {name: value.clone().requires_grad_() for name, value in actor.params().items()}
     optimiser = torch.optim.Adam(list(params.values()), lr=0.01)
@@ -210,13 +209,13 @@ def test_drqn_adam_step_equals_torch_adam():
         actor.loss(params, batch).backward()
         optimiser.step()
         actor.adam_step(batch, 0.01)
-    for name in drqn.PARAMETERS:
+    for name in actor.names:
         torch.testing.assert_close(getattr(actor, name), params[name].detach(), rtol=1e-5, atol=1e-6)
 
 
 @pytest.mark.parametrize("draws", [3])
 def test_drqn_replay_draws_per_run_and_resumes_from_its_extra_state(draws):
-    actor = DRQNActor(R, S, NA, H, 0.9, batch_episodes=4, updates_per_episode=0, seed=0, **schedules())
+    actor = RecurrentQActor(R, S, NA, H, 0.9, batch_episodes=4, updates_per_episode=0, seed=0, **schedules())
     T = 4
     for k in range(draws):
         actor.end_episode(
@@ -231,7 +230,7 @@ def test_drqn_replay_draws_per_run_and_resumes_from_its_extra_state(draws):
             ),
             0.01,
         )
-    copy = DRQNActor(R, S, NA, H, 0.9, batch_episodes=4, updates_per_episode=0, seed=0, **schedules())
+    copy = RecurrentQActor(R, S, NA, H, 0.9, batch_episodes=4, updates_per_episode=0, seed=0, **schedules())
     copy.load_state_dict(actor.state_dict())
     first, again = actor.sample(), copy.sample()
     assert torch.equal(first["states"], again["states"])
@@ -241,7 +240,7 @@ def test_drqn_replay_draws_per_run_and_resumes_from_its_extra_state(draws):
 def test_drqn_forgets_its_memory_when_the_episode_ends():
     """``end_episode`` is where DRQN learns (nothing per step: ``learn`` leaves every weight) and
     where its memory starts afresh: the next episode's first Q is the untrained h = 0 one."""
-    actor = DRQNActor(R, S, NA, H, 0.9, updates_per_episode=0, seed=2, **schedules())
+    actor = RecurrentQActor(R, S, NA, H, 0.9, updates_per_episode=0, seed=2, **schedules())
     s = torch.rand(R, 1, S, generator=torch.Generator().manual_seed(4))
     F_fresh, _ = actor.evaluate(s)
     weights = {k: v.clone() for k, v in actor.named_buffers() if k not in ("h", "a_prev")}
@@ -297,7 +296,7 @@ def test_the_continuing_td_phase_refuses_an_actor_that_learns_only_from_episodes
     from ferl.trainers.phased import RunControl
 
     job = SimpleNamespace(
-        actor=DRQNActor(R, S, NA, H, 0.9, **schedules()),
+        actor=RecurrentQActor(R, S, NA, H, 0.9, **schedules()),
         env=SimpleNamespace(task="floor"),
         R=R,
         control=RunControl(log_every=5, checkpoint_every=5, checkpoint_minutes=0.0, divergence_limit=1e6),
@@ -328,7 +327,7 @@ def test_an_actor_without_the_logging_views_records_no_hidden_activations():
     env = SimpleNamespace(labels=lambda: {"cue": torch.tensor([1, 0, 1])})
     phase = ActorEpisodes.__new__(ActorEpisodes)
     seen = {}
-    for actor in (Viewless(), DRQNActor(R, S, NA, H, 0.9, **schedules())):
+    for actor in (Viewless(), RecurrentQActor(R, S, NA, H, 0.9, **schedules())):
         seen[isinstance(actor, ActorViews)] = phase.probe_visits(
             SimpleNamespace(actor=actor, env=env, predictors={"m": None}), 7, ep
         )

@@ -108,7 +108,7 @@ def test_every_job_of_make_baselines_composes_and_validates():
         "ferl": "FERLActor",
         "memoryless": "FERLActor",
         "mlp_q": "MLPQActor",
-        "drqn": "DRQNActor",
+        "drqn": "RecurrentQActor",
         "oracle": "TabularQActor",
     }
     assert {name.split("/")[0] for name in jobs} == {"floor", "matching", "bit", "pixel", "corridor20"}

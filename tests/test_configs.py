@@ -210,6 +210,8 @@ TYPE_ERRORS = [
     ("actor.gamma=high", "actor.gamma"),
     ("actor.action_code=gray", "actor.action_code"),
     ("actor.action_selection=argmax", "actor.action_selection"),
+    ("actor=recurrent_q predictor=none actor.head=rbm", "actor.head"),
+    ("actor=recurrent_q predictor=none actor.memory=ntm", "actor.memory"),
     ("+actor.foo=1", "actor.foo"),
     ("trainer.test_noise_levels=[a]", "trainer.test_noise_levels"),
     ("data.test_per_class=many", "data.test_per_class"),

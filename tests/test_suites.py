@@ -43,7 +43,7 @@ def test_every_job_of_make_suites_composes_and_validates(monkeypatch):
     monkeypatch.syspath_prepend(str(ROOT / "baselines"))
     suites = load("suites")
     jobs = suites.train_jobs()
-    expected = {"ferl": "FERLActor", "memoryless": "FERLActor", "mlp_q": "MLPQActor", "drqn": "DRQNActor"}
+    expected = {"ferl": "FERLActor", "memoryless": "FERLActor", "mlp_q": "MLPQActor", "drqn": "RecurrentQActor"}
     assert {name.split("/")[0] for name in jobs} == {e.split("_", 1)[1] for e in SUITES}
     assert set(suites.EPISODES) == set(SUITES)
     for name, overrides in jobs.items():

@@ -187,10 +187,16 @@ def test_sigterm_in_the_preprocessor_phase_then_resume(tmp_path):
     assert_same_records(cut, whole, ("preprocessor", "predictor", "episodes"))
 
 
-def test_drqn_resumes_mid_actor_equal_to_uninterrupted(tmp_path):
-    """DRQN's checkpoint (its replay, Adam's moments, the target network, each run's generator)
-    continues the run exactly."""
-    agent = ("actor=drqn", "predictor=none")
+@pytest.mark.parametrize(
+    "agent",
+    [
+        ("actor=drqn", "predictor=none"),
+        ("actor=recurrent_q", "actor.head=free_energy", "actor.memory=lstm", "predictor=none"),
+    ],
+)
+def test_drqn_resumes_mid_actor_equal_to_uninterrupted(tmp_path, agent):
+    """The recurrent Q-learner's checkpoint (its replay, Adam's moments, the target network, each
+    run's generator) continues the run exactly: DRQN, and an RBM head on an LSTM core."""
     whole, cut = tmp_path / "whole", tmp_path / "cut"
     proc = train(*agent, f"hydra.run.dir={whole}")
     assert proc.wait(timeout=300) == 0, proc.stderr.read()[-2000:]

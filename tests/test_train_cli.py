@@ -89,6 +89,8 @@ def test_same_seed_same_numbers(tmp_path, tiny_run):
         "experiment=table4_1_matching actor.action_selection=gibbs actor.q=expected_energy",
         # issue 4/8: a memoryless agent has nothing to train online
         "experiment=table4_1_matching trainer=online predictor=none",
+        # the recurrent Q-learner's value head: one of its four
+        "experiment=table4_1_matching actor=recurrent_q predictor=none actor.head=rbm",
     ],
 )
 def test_bad_input_one_line_nothing_written(tmp_path, override):

@@ -1,77 +1,56 @@
-"""A DRQN-style recurrent Q-learner (Hausknecht & Stone 2015, "Deep recurrent Q-learning for
-partially observable MDPs"): the baseline that remembers end to end, without a separate
-predictor (``actor=drqn predictor=none``).
+"""The recurrent Q-learner (``actor=recurrent_q predictor=none``; docs/beyond.md): a recurrent core
+(``actor.memory``: ``ferl.actors.recurrent_cores``) reads the (processed) observation and the
+previous action, a value head (``actor.head``: ``ferl.actors.q_heads``) gives Q of every action:
 
-A GRU reads the (processed) observation and the previous action, a linear head gives Q:
+    x_t = (s_t, onehot(a_{t−1})),   h_t = core(x_t, h_{t−1}), h_{−1} = 0,   Q(h_t, ·) = head(h_t)
 
-    x_t = (s_t, onehot(a_{t−1})),   h_t = GRU(x_t, h_{t−1}), h_{−1} = 0,   Q(h_t, ·) = W_q h_t + b_q
-
-(the GRU as torch.nn.GRUCell defines and computes it, batched over runs: ``gru_step``). It acts by the same
-softmax / β schedule (Eq. 3.11) as the FERL actor, stepping h with every ``act``. It learns from
-replayed whole episodes (the "bootstrapped sequential updates" of §4 of the paper): after every
-episode, ``updates_per_episode`` Adam steps on ``batch_episodes`` episodes per run drawn from its
-last ``replay_episodes``, each unrolled from h = 0 by back-propagation through time (autograd) on
+With ``memory=gru head=linear`` it is DRQN (Hausknecht & Stone 2015, "Deep recurrent Q-learning
+for partially observable MDPs"; ``actor=drqn``); with ``head=free_energy`` it is the dissertation's
+RBM value Q = −F (Eqs. 2.21–2.22, 3.1) on a memory learnt for reward rather than by prediction.
+It acts by the same softmax / β schedule (Eq. 3.11) as the FERL actor, stepping the core with
+every ``act``. It learns from replayed whole episodes (the "bootstrapped sequential updates" of
+§4 of the DRQN paper): after every episode, ``updates_per_episode`` Adam steps on
+``batch_episodes`` episodes per run drawn from its last ``replay_episodes``, each unrolled from
+the zero state by back-propagation through time (autograd, through head and core) on
 
     L = mean_t Huber(Q(h_t, a_t) − y_t),   y_t = r_{t+1} + γ (1 − terminal) max_a Q⁻(h_{t+1}, a)
 
-with Q⁻ a target network copied every ``target_every`` episodes (Mnih et al. 2015). Runs are
+with Q⁻ a target network copied every ``target_every`` episodes (Mnih et al. 2015); the mean runs
+over each run's valid steps, so padding after an episode's end changes nothing. Runs are
 independent: the loss is summed over runs, Adam is elementwise, and each run replays its own
 episodes, drawn for every run at once from the actor's generator, never from the trainer's (so
 the lockstep episodes' pre-drawn streams stay as they are).
 """
 
 import math
+from typing import Literal
 
 import torch
 from torch.nn import functional as nnf
 
 from ferl import rng
+from ferl.actors.q_heads import head as make_head
+from ferl.actors.recurrent_cores import CORES
 from ferl.actors.softmax import SoftmaxActor, TDRule
-from ferl.config.params import Discount, NonNegative, NonNegativeInt, PositiveInt, checked
+from ferl.config.params import Discount, NonNegative, NonNegativeInt, Positive, PositiveInt, checked
 from ferl.interfaces import EndedEpisode
-from ferl.predictors.gated import gru_cell
 from ferl.replay import draw_episodes, new_replay, store_episode, stored_episodes
 
-PARAMETERS = ("W_x", "W_h", "b_x", "b_h", "W_q", "b_q")
+HeadName = Literal["linear", "free_energy", "scaled_free_energy", "expected_energy"]  # q_heads.head's names
+MemoryName = Literal["gru", "lstm", "elman", "esn"]  # recurrent_cores.CORES' names
 ADAM_BETAS, ADAM_EPS = (0.9, 0.999), 1e-8
 
 
-def gru_step(p: dict, x: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
-    """h_t from x_t (R, B, X) and h_{t−1} (R, B, H) by the GRU cell (``ferl.predictors.gated.gru_cell``):
-    W_x (R, X, 3H), W_h (R, H, 3H), b_x and b_h (R, 3H), the gates in PyTorch's order."""
-    gx = torch.baddbmm(p["b_x"].unsqueeze(1), x, p["W_x"])
-    return gru_cell(gx, torch.baddbmm(p["b_h"].unsqueeze(1), h, p["W_h"]), h)
+class RecurrentQActor(SoftmaxActor):
+    """The recurrent Q-learner: a core over (observation, previous action) and a value head,
+    acting by the FERL actor's softmax (Eq. 3.11) and learning from replayed whole episodes by
+    BPTT on the Huber TD loss with a target network (module docstring)."""
 
-
-def q_values(p: dict, h: torch.Tensor) -> torch.Tensor:
-    """Q (R, B, nA) from h (R, B, H)."""
-    return torch.baddbmm(p["b_q"].unsqueeze(1), h, p["W_q"])
-
-
-def unroll(p: dict, states: torch.Tensor, prev_actions: torch.Tensor) -> torch.Tensor:
-    """Q of every step of episodes: states (R, B, T+1, S), prev_actions one-hot (R, B, T+1, nA)
-    (zeros at t = 0) → (R, B, T+1, nA), from h = 0."""
-    R, B = states.shape[:2]
-    h = states.new_zeros(R, B, p["W_h"].shape[1])
-    qs = []
-    for t in range(states.shape[2]):
-        h = gru_step(p, torch.cat([states[:, :, t], prev_actions[:, :, t]], -1), h)
-        qs.append(q_values(p, h))
-    return torch.stack(qs, 2)
-
-
-class DRQNActor(SoftmaxActor):
-    """The DRQN baseline (Hausknecht & Stone 2015): a GRU over (observation, previous action) with a
-    linear Q head, acting by the FERL actor's softmax (Eq. 3.11) and learning from replayed whole
-    episodes by BPTT on the Huber TD loss with a target network (module docstring)."""
-
-    learns_from_episodes = True  # nothing per step; its memory h steps in place with every act
-    # GRU weights (R, ·), then Q's head (PARAMETERS); their Adam moments and target copies are
-    # buffers named with _m, _v, _target, read through ``params``
-    W_x: torch.Tensor  # (R, S + nA, 3H)
-    W_h: torch.Tensor  # (R, H, 3H)
-    W_q: torch.Tensor  # (R, H, nA)
-    h: torch.Tensor  # (R, 1, H) the memory
+    learns_from_episodes = True  # nothing per step; its memory steps in place with every act
+    # the core's trained weights (R, ·), then the head's (``names``); their Adam moments and target
+    # copies are buffers named with _m, _v, _target, read through ``params``; the core's fixed
+    # weights (an echo-state reservoir) are buffers of their own (``fixed_names``)
+    h: torch.Tensor  # (R, 1, state size) the core's state
     a_prev: torch.Tensor  # (R, 1, nA) the previous action, one-hot
     replay: dict[str, torch.Tensor] | None
 
@@ -85,6 +64,10 @@ class DRQNActor(SoftmaxActor):
         gamma: Discount,
         lr,
         beta,
+        head: HeadName = "linear",
+        memory: MemoryName = "gru",
+        head_hidden: PositiveInt = 20,
+        q_scale: Positive | None = None,
         replay_episodes: PositiveInt = 1000,
         batch_episodes: PositiveInt = 16,
         updates_per_episode: NonNegativeInt = 1,
@@ -98,17 +81,15 @@ class DRQNActor(SoftmaxActor):
         self.lr_schedule, self.beta_schedule, self.lr_divisor = lr, beta, 1.0
         self.replay_episodes, self.batch_episodes = replay_episodes, batch_episodes
         self.updates_per_episode, self.target_every = updates_per_episode, target_every
-        # PyTorch's GRU initialisation U(−1/√H, 1/√H) unless init_std is given, per run from seed + r
+        self.core = CORES[memory](n_state + n_actions, n_hidden)
+        self.head = make_head(head, n_hidden, n_actions, head_hidden, q_scale)
+        shapes = {**self.core.shapes(), **self.head.shapes()}
+        self.names = tuple(shapes)
+        # U(−1/√H, 1/√H) (PyTorch's recurrent-cell initialisation) unless init_std is given, per
+        # run from seed + r, parameter by parameter in the order of ``shapes``
         generators = rng.run_generators(seed, n_runs)
         bound = 1 / math.sqrt(n_hidden)
-        shapes = {
-            "W_x": (n_state + n_actions, 3 * n_hidden),
-            "W_h": (n_hidden, 3 * n_hidden),
-            "b_x": (3 * n_hidden,),
-            "b_h": (3 * n_hidden,),
-            "W_q": (n_hidden, n_actions),
-            "b_q": (n_actions,),
-        }
+        drawn = {}
         for name, shape in shapes.items():
             draws = [
                 torch.rand(shape, generator=g) * 2 * bound - bound
@@ -116,12 +97,18 @@ class DRQNActor(SoftmaxActor):
                 else torch.randn(shape, generator=g) * init_std
                 for g in generators
             ]
-            self.register_buffer(name, torch.stack(draws))
-        for name in PARAMETERS:  # Adam's moments and the target network
+            drawn[name] = torch.stack(draws)
+        self.core.adjust(drawn)
+        self.head.adjust(drawn)
+        fixed = self.core.fixed(generators)
+        self.fixed_names = tuple(fixed)
+        for name, value in {**drawn, **fixed}.items():
+            self.register_buffer(name, value)
+        for name in self.names:  # Adam's moments and the target network
             self.register_buffer(f"{name}_m", torch.zeros_like(getattr(self, name)))
             self.register_buffer(f"{name}_v", torch.zeros_like(getattr(self, name)))
             self.register_buffer(f"{name}_target", getattr(self, name).clone())
-        self.register_buffer("h", torch.zeros(n_runs, 1, n_hidden))
+        self.register_buffer("h", torch.zeros(n_runs, 1, self.core.state_size))
         self.register_buffer("a_prev", torch.zeros(n_runs, 1, n_actions))
         # the replay's draws for every run at once, from a seed that run 0's stream gives
         self.generator = rng.generator(rng.child_seed(generators[0]))
@@ -130,15 +117,22 @@ class DRQNActor(SoftmaxActor):
 
     @property
     def n_runs(self) -> int:
-        return self.W_q.shape[0]
+        return self.a_prev.shape[0]
 
     def params(self, suffix: str = "") -> dict:
-        return {name: getattr(self, name + suffix) for name in PARAMETERS}
+        """The trained parameters (their ``suffix`` copies: ``_target``) and the fixed weights."""
+        return {
+            **{name: getattr(self, name + suffix) for name in self.names},
+            **{name: getattr(self, name) for name in self.fixed_names},
+        }
 
     def describe(self) -> dict:
+        """What the records keep; the kind is ``drqn`` for its GRU and linear head (``actor=drqn``)."""
+        drqn = self.core.name == "gru" and self.head.name == "linear"
         return {
-            "kind": "drqn",
-            "memory": "gru",
+            "kind": "drqn" if drqn else "recurrent_q",
+            "memory": self.core.name,
+            **self.head.describe(),
             "n_hidden": self.n_hidden,
             "gamma": self.gamma,
             "td_rule": self.td_rule,
@@ -149,22 +143,30 @@ class DRQNActor(SoftmaxActor):
         }
 
     def state_weights(self) -> torch.Tensor:
-        """The observation's weights into the GRU's gates (R, S, 3H)."""
-        return self.W_x[:, : self.W_x.shape[1] - self.n_actions]
+        """The observation's weights into the core (R, S, G·H)."""
+        W = self.get_buffer("W_in" if self.core.name == "esn" else "W_x")
+        return W[:, : W.shape[1] - self.n_actions]
 
     def hidden(self, h: torch.Tensor) -> torch.Tensor:
-        return h
+        return self.core.hidden(h)
+
+    def unroll(self, p: dict, states: torch.Tensor, prev_actions: torch.Tensor) -> torch.Tensor:
+        """Q of every step of episodes: states (R, B, T+1, S), prev_actions one-hot (R, B, T+1, nA)
+        (zeros at t = 0) → (R, B, T+1, nA), from the zero state."""
+        return self.core.unroll(p, torch.cat([states, prev_actions], -1), lambda h: self.head.q(p, h))
 
     @torch.no_grad()
     def evaluate(self, s: torch.Tensor):
-        """F = −Q (R, B, nA) at the present memory h, stepped on s (R, B, S) by the previous
-        action; h broadcast over the actions as the cache. Only ``act`` moves the memory on."""
+        """F = −Q (R, B, nA) at the present memory, stepped on s (R, B, S) by the previous
+        action; the core's state broadcast over the actions as the cache. Only ``act`` moves
+        the memory on."""
         p = self.params()
-        h = gru_step(p, torch.cat([s, self.a_prev.expand(-1, s.shape[1], -1)], -1), self.h.expand(-1, s.shape[1], -1))
-        return -q_values(p, h), h.unsqueeze(2).expand(-1, -1, self.n_actions, -1)
+        x = torch.cat([s, self.a_prev.expand(-1, s.shape[1], -1)], -1)
+        h = self.core.step(p, x, self.h.expand(-1, s.shape[1], -1))
+        return -self.head.q(p, self.core.hidden(h)), h.unsqueeze(2).expand(-1, -1, self.n_actions, -1)
 
     def act(self, s: torch.Tensor, beta: float, generator: torch.Generator, uniform: torch.Tensor | None = None):
-        """``SoftmaxActor.act`` at s (R, 1, S), then the memory steps: h ← GRU((s, a_{t−1}), h)
+        """``SoftmaxActor.act`` at s (R, 1, S), then the memory steps: h ← core((s, a_{t−1}), h)
         and a_{t−1} ← the action drawn."""
         a, F_a, h, F_boot = super().act(s, beta, generator, uniform)
         self.h.copy_(h)
@@ -191,7 +193,7 @@ class DRQNActor(SoftmaxActor):
         for _ in range(self.updates_per_episode):
             self.adam_step(self.sample(), lr)
         if self.episodes % self.target_every == 0:
-            for name in PARAMETERS:
+            for name in self.names:
                 getattr(self, f"{name}_target").copy_(getattr(self, name))
         self.h.zero_()
         self.a_prev.zero_()
@@ -200,7 +202,7 @@ class DRQNActor(SoftmaxActor):
         """``batch_episodes`` stored episodes per run, drawn uniformly with replacement, every
         run's in one draw."""
         assert self.replay is not None  # end_episode has stored one
-        index = draw_episodes(self.replay, self.episodes, self.batch_episodes, self.generator).to(self.W_q.device)
+        index = draw_episodes(self.replay, self.episodes, self.batch_episodes, self.generator).to(self.a_prev.device)
         return stored_episodes(self.replay, index)
 
     def loss(self, p: dict, batch: dict) -> torch.Tensor:
@@ -209,9 +211,9 @@ class DRQNActor(SoftmaxActor):
         T = actions.shape[-1]
         onehot = nnf.one_hot(actions, self.n_actions).to(states.dtype)  # (R, B, T, nA)
         prev = torch.cat([torch.zeros_like(onehot[:, :, :1]), onehot], 2)  # a_{t−1}, (R, B, T+1, nA)
-        q = unroll(p, states, prev)  # (R, B, T+1, nA)
+        q = self.unroll(p, states, prev)  # (R, B, T+1, nA)
         with torch.no_grad():
-            q_next = unroll(self.params("_target"), states, prev)[:, :, 1:].max(-1).values  # (R, B, T)
+            q_next = self.unroll(self.params("_target"), states, prev)[:, :, 1:].max(-1).values  # (R, B, T)
             t = torch.arange(T, device=states.device)
             valid = t < batch["lengths"].unsqueeze(-1)
             last = t == batch["lengths"].unsqueeze(-1) - 1
@@ -228,12 +230,13 @@ class DRQNActor(SoftmaxActor):
         so parameters differ by ~1 ulp from the second step on (tests/test_baselines.py holds the
         two within 1e-5); the moments stay buffers of the module, checkpointed with it."""
         p = {name: value.detach().requires_grad_() for name, value in self.params().items()}
+        trained = [p[name] for name in self.names]
         with torch.enable_grad():
-            grads = torch.autograd.grad(self.loss(p, batch), list(p.values()))
+            grads = torch.autograd.grad(self.loss(p, batch), trained)
         self.adam_steps += 1
         (b1, b2), k = ADAM_BETAS, self.adam_steps
         with torch.no_grad():
-            for name, g in zip(PARAMETERS, grads):
+            for name, g in zip(self.names, grads):
                 m, v = getattr(self, f"{name}_m"), getattr(self, f"{name}_v")
                 m.mul_(b1).add_(g, alpha=1 - b1)
                 v.mul_(b2).addcmul_(g, g, value=1 - b2)
