@@ -89,6 +89,12 @@ def test_same_seed_same_numbers(tmp_path, tiny_run):
         "experiment=table4_1_matching actor.action_selection=gibbs actor.q=expected_energy",
         # issue 4/8: a memoryless agent has nothing to train online
         "experiment=table4_1_matching trainer=online predictor=none",
+        # issue 1/6 of phase 3: an unknown exploration method, a zeta exponent ≤ 1, a continuing
+        # trainer (no episodes), an actor whose act steps its own memory
+        "experiment=table4_1_regular exploration=boltzmann_plus",
+        "experiment=table4_1_regular exploration=ez_greedy exploration.mu=1.0",
+        "experiment=ch3_floor exploration=ez_greedy",
+        "experiment=table4_1_regular predictor=none actor=drqn exploration=ez_greedy",
     ],
 )
 def test_bad_input_one_line_nothing_written(tmp_path, override):

@@ -65,7 +65,7 @@ class EzGreedy(ExplorationBase):
         if actor.learns_from_episodes:
             raise ConfigError(
                 f"exploration=ez_greedy cannot override the actions of {type(actor).__name__}: its act "
-                "steps its memory with the action it drew itself; use exploration=count_bonus or none"
+                "steps its memory with the action it drew itself; use exploration=none"
             )
 
     def begin_episode(self, generator: torch.Generator, max_steps: int) -> None:

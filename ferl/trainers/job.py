@@ -200,6 +200,7 @@ class Job:
             "preprocessor": entry(self.preprocessor) if self.preprocessor else None,
             "predictors": {name: entry(p) for name, p in self.predictors.items()},
             "actor": entry(self.actor),
+            **({"exploration": entry(self.exploration)} if self.exploration.active else {}),
         }
 
     # ---- checkpoints ----------------------------------------------------------------------------
