@@ -41,8 +41,14 @@ def main(argv: list[str] | None = None) -> int:
         help="paste a sweep's results into this page's generated blocks (the "
         "claims table, the scorecard), between their marker lines; repeatable",
     )
+    parser.add_argument(
+        "--force",
+        action="store_true",
+        help="analyse every run again, also those whose records and code are unchanged since "
+        "their last analysis (which are otherwise kept)",
+    )
     args = parser.parse_args(argv)
-    return runner.main(args.dirs, args.readme)
+    return runner.main(args.dirs, args.readme, args.force)
 
 
 if __name__ == "__main__":

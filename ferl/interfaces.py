@@ -9,7 +9,7 @@ kept in ``records/run.json``, from which analysis decides which figures and clai
 A protocol declares every member that ferl calls, its hooks too, each with a default on the small
 base class beside it (``EnvironmentBase`` … ``ActorBase``, as acme's ``core.py``): a component
 that subclasses the base names only the hooks it changes, and ferl calls every member directly. A
-component is checked against its protocol when it is built (``ferl.trainers.facts.missing_members``).
+component is checked against its protocol when it is built (``ferl.conformance.missing_members``).
 
 Constructors receive their YAML keys plus what the trainer supplies (``n_runs``, sizes, ``seed``,
 ``generator``, ``device``, ``data`` where the constructor names it); the types and ranges of the

@@ -23,7 +23,6 @@ from typing import cast
 
 import pandas as pd
 from omegaconf import OmegaConf
-from tensorboard.backend.event_processing.event_accumulator import SCALARS, EventAccumulator
 
 from ferl import stats
 
@@ -149,6 +148,9 @@ def scalars(path, tags=None) -> pd.DataFrame:
     for run_dir in find_runs(root):
         if not (run_dir / "tb").is_dir():
             continue
+        # imported here: the reader brings TensorBoard (and torch) in, which only scalars need
+        from tensorboard.backend.event_processing.event_accumulator import SCALARS, EventAccumulator
+
         events = EventAccumulator(str(run_dir / "tb"), size_guidance={SCALARS: 0})
         events.Reload()
         for tag in events.Tags()[SCALARS]:

@@ -8,6 +8,7 @@ Fig. 3.4 is a generic figure (``ferl.analysis.figures``).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -16,23 +17,28 @@ from matplotlib.patches import Patch
 from scipy.cluster.hierarchy import dendrogram
 
 from ferl import stats
-from ferl.images import IMAGE_SIDE
 
-SIDE = IMAGE_SIDE  # MNIST tiles are 28 × 28 pixels (§3.4)
 OPTIMAL_COLOR, OTHER_COLOR, GOAL_COLOR = "tab:orange", "tab:blue", "lightgray"
 PHASE_COLOR = {"before": "tab:gray", "after": "tab:red"}
 
 
 def _mosaic(tiles: np.ndarray, ncols: int, pad_x: int = 2, pad_y: int = 2) -> np.ndarray:
     """(k, 28, 28) tiles → one 2-D image, row-major, NaN in the gaps."""
+    side = tiles.shape[-1]  # 28: MNIST (§3.4)
     nrows = -(-len(tiles) // ncols)
-    out = np.full((nrows * (SIDE + pad_y), ncols * (SIDE + pad_x)), np.nan)
+    out = np.full((nrows * (side + pad_y), ncols * (side + pad_x)), np.nan)
     for k, tile in enumerate(tiles):
         r, c = divmod(k, ncols)
-        out[r * (SIDE + pad_y) + pad_y : (r + 1) * (SIDE + pad_y), c * (SIDE + pad_x) : c * (SIDE + pad_x) + SIDE] = (
+        out[r * (side + pad_y) + pad_y : (r + 1) * (side + pad_y), c * (side + pad_x) : c * (side + pad_x) + side] = (
             tile
         )
     return out
+
+
+def _square(pixels: int) -> tuple[int, int]:
+    """The (side, side) of square images of ``pixels`` pixels (28 × 28: MNIST, §3.4)."""
+    side = math.isqrt(pixels)
+    return side, side
 
 
 def _no_ticks(ax) -> None:
@@ -47,7 +53,7 @@ def weight_images(w_before: np.ndarray, w_after: np.ndarray, ncols: int = 10) ->
     fig = Figure(figsize=(1.0 * ncols + 1, 2.2 * -(-n_hidden // ncols) + 1), layout="constrained")
     axes = fig.subplots(2, 1)
     for ax, w, phase in zip(axes, (w_before, w_after), ("before", "after")):
-        tiles = w.T.reshape(n_hidden, SIDE, SIDE)
+        tiles = w.T.reshape(n_hidden, *_square(w.shape[0]))
         # Each unit is scaled to its own max |w| so that untrained (small) weights stay visible.
         scale = np.abs(tiles).max(axis=(1, 2), keepdims=True)
         tiles = tiles / np.where(scale > 0, scale, 1.0)
@@ -159,12 +165,13 @@ def _sorted_probe_panel(ax, images: np.ndarray, prob: np.ndarray, n_show: int, n
     spread = np.linspace(0, len(order) - 1, min(n_show, len(order))).round().astype(int)
     picks = order[np.unique(spread)]
     pad_y = 9  # room for the printed probability
-    ax.imshow(_mosaic(images[picks].reshape(-1, SIDE, SIDE), ncols, pad_y=pad_y), cmap="gray_r", vmin=0, vmax=1)
+    side = math.isqrt(images.shape[-1])  # 28: MNIST (§3.4)
+    ax.imshow(_mosaic(images[picks].reshape(-1, side, side), ncols, pad_y=pad_y), cmap="gray_r", vmin=0, vmax=1)
     for k, i in enumerate(picks):
         r, c = divmod(k, ncols)
         ax.text(
-            c * (SIDE + 2) + SIDE / 2,
-            r * (SIDE + pad_y) + pad_y - 1,
+            c * (side + 2) + side / 2,
+            r * (side + pad_y) + pad_y - 1,
             f"{prob[i]:.2f}",
             ha="center",
             va="bottom",

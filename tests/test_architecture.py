@@ -14,13 +14,13 @@ import torch
 from conftest import ROOT
 from ferl import interfaces
 from ferl.actors.free_energy import FERLActor
+from ferl.conformance import required_members
 from ferl.envs.digit_floor import DigitFloor
 from ferl.envs.digit_tmaze import DigitTMaze
 from ferl.envs.tmaze import TMaze
 from ferl.predictors.elman import ElmanPredictor
 from ferl.preprocessors.rbm import RBMPreprocessor
 from ferl.schedules import Constant
-from ferl.trainers.facts import required_members
 from test_digit_floor import tiny_split
 
 FERL = ROOT / "ferl"

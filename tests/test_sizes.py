@@ -18,8 +18,9 @@ import torch
 
 from conftest import run_train
 from ferl.config.params import ConfigError
+from ferl.conformance import missing_members, required_members
 from ferl.interfaces import EpisodicEnvironment, EpisodicEnvironmentBase, TrainingBatch
-from ferl.trainers.facts import check_conforms, facts_for, missing_members, required_members
+from ferl.trainers.facts import check_conforms, facts_for
 from five_arms import FiveArms, Forgetful
 
 TESTS = Path(__file__).resolve().parent

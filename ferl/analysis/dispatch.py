@@ -68,6 +68,11 @@ class Registry:
     pages: Pages | None = None
     modules: list[str] = field(default_factory=list)  # what registered: imported by every worker
 
+    @property
+    def all_claims(self) -> list[Claim]:
+        """Every registered chapter's claims (a kept analysis finds its judged claims among them)."""
+        return [claim for chapter in self.chapters for claim in chapter.claims]
+
     def chapter_of(self, manifest: Manifest) -> Chapter | None:
         return next((c for c in self.chapters if c.applies(manifest)), None)
 

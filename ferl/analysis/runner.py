@@ -2,7 +2,8 @@
 
 A directory holding ``summary.json`` is a run: its ``analysis/`` folder is rebuilt (PNG figures,
 CSV/JSON data, ``report.md``) and the figures are logged to its TensorBoard under
-``tb/analysis/`` (replaced on every analysis). What a run gets is decided on what it recorded
+``tb/analysis/`` (replaced on every analysis), unless nothing it is made from changed since its
+last analysis (``ferl.analysis.cache``: then it is kept; ``force`` rebuilds it). What a run gets is decided on what it recorded
 (``records/run.json``) and on what plug-ins registered (``ferl.analysis.dispatch.REGISTRY``); a run
 without run.json is skipped with a message. Any other directory is a sweep: every run below it
 is analyzed, and ``DIR/analysis/`` gets the sweep's aggregate tables and claims report
@@ -22,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ferl import runs
-from ferl.analysis import generic, members
+from ferl.analysis import cache, generic, members
 from ferl.analysis import sweep as sw
 from ferl.analysis.claims import VERDICTS, ClaimResult, Numbering, evaluate
 from ferl.analysis.dispatch import REGISTRY, import_plugins
@@ -41,13 +42,15 @@ def publish_figures(figures: dict, out: Path, tb_dir: Path) -> None:
     Each figure is rendered once by the Agg canvas and the same pixels go to both,
     which is what ``SummaryWriter.add_figure`` logs, without drawing it twice more.
     """
+    shutil.rmtree(tb_dir, ignore_errors=True)
+    if not figures:
+        return
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.image import imsave
 
     # imported here: torch's start-up is paid only by a call that writes figures
     from torch.utils.tensorboard import SummaryWriter
 
-    shutil.rmtree(tb_dir, ignore_errors=True)
     with SummaryWriter(str(tb_dir)) as writer:
         for name, (fig, _) in figures.items():
             canvas = FigureCanvasAgg(fig)
@@ -99,8 +102,9 @@ def run_analysis(run: Run, out: Path) -> RunAnalysis:
     return analysis
 
 
-def analyze_run(run_dir: Path) -> RunOutcome:
-    """Rebuild ``run_dir/analysis/``; return the run's line of a sweep report."""
+def analyze_run(run_dir: Path, force: bool = False) -> RunOutcome:
+    """Rebuild ``run_dir/analysis/``, unless what it was made from is unchanged since and ``force``
+    is off (``ferl.analysis.cache``); return the run's line of a sweep report."""
     summary = runs.load_summary(run_dir)
     task, experiment = str(summary.get("task")), str(summary.get("experiment", "?"))
     manifest = Manifest.load(run_dir)
@@ -108,11 +112,15 @@ def analyze_run(run_dir: Path) -> RunOutcome:
         print(f"{run_dir}: skipped, no {MANIFEST}")
         return RunOutcome(run_dir, experiment, task, f"skipped: no {MANIFEST}")
 
-    out = _fresh(run_dir / "analysis")
-    analysis = run_analysis(Run.load(run_dir, manifest), out)
-    publish_figures(analysis.figures, out, run_dir / "tb" / "analysis")
-    write_json(out / "claims.json", [_claim_json(r) for r in analysis.results])
-    analysis.data_files.append("claims.json")
+    out, tb_dir = run_dir / "analysis", run_dir / "tb" / "analysis"
+    digest = cache.inputs_digest(run_dir, REGISTRY.modules)
+    kept = None if force else _kept(run_dir, digest)
+    if kept is not None:
+        return kept
+    analysis = run_analysis(Run.load(run_dir, manifest), _fresh(out))
+    publish_figures(analysis.figures, out, tb_dir)
+    write_json(out / cache.CLAIMS, [_claim_json(r) for r in analysis.results])
+    analysis.data_files.append(cache.CLAIMS)
     write_run_report(out / "report.md", analysis, REGISTRY.reference)
 
     verdicts = {v: sum(r.verdict == v for r in analysis.results) for v in VERDICTS}
@@ -120,23 +128,30 @@ def analyze_run(run_dir: Path) -> RunOutcome:
         f"{run_dir}: {len(analysis.figures)} figures, {len(analysis.results)} claims "
         f"({', '.join(f'{n} {v}' for v, n in verdicts.items())}) -> {out / 'report.md'}"
     )
-    return RunOutcome(
-        run_dir,
-        experiment,
-        task,
-        "analyzed",
-        verdicts,
-        analysis.results,
-        [(name, caption) for name, (_, caption) in analysis.figures.items()],
-    )
+    figures = [(name, caption) for name, (_, caption) in analysis.figures.items()]
+    outcome = RunOutcome(run_dir, experiment, task, "analyzed", verdicts, analysis.results, figures)
+    cache.save(out, outcome, digest, sorted(p.name for p in tb_dir.glob("*")))
+    return outcome
 
 
-def _safe_analyze_run(run_dir: Path, plugins: Sequence[str] = ()) -> RunOutcome:
+def _kept(run_dir: Path, digest: str | None = None) -> RunOutcome | None:
+    """The run's kept analysis (``ferl.analysis.cache``), said in one line; None: analyse it."""
+    out = run_dir / "analysis"
+    digest = digest or cache.inputs_digest(run_dir, REGISTRY.modules)
+    kept = cache.load(run_dir, out, digest, run_dir / "tb" / "analysis", REGISTRY.all_claims)
+    if kept is not None:
+        print(
+            f"{run_dir}: unchanged since its last analysis, kept ({len(kept.figures)} figures) -> {out / 'report.md'}"
+        )
+    return kept
+
+
+def _safe_analyze_run(run_dir: Path, plugins: Sequence[str] = (), force: bool = False) -> RunOutcome:
     """One failing run must not stop a sweep: report it in one line and go on. ``plugins``: the
     modules to import first (in a worker process, ``dispatch.import_plugins``)."""
     import_plugins(plugins)
     try:
-        return analyze_run(run_dir)
+        return analyze_run(run_dir, force)
     except Exception as exc:  # noqa: BLE001 — any failure is reported per run
         print(f"{PROG}: error: {run_dir}: {type(exc).__name__}: {exc}", file=sys.stderr)
         return RunOutcome(run_dir, "?", "?", f"failed: {type(exc).__name__}: {exc}")
@@ -151,24 +166,38 @@ def _read_summary(run_dir: Path) -> dict | None:
         return None
 
 
-def analyze_runs(found: list[Path]) -> list[RunOutcome]:
+def analyze_runs(found: list[Path], force: bool = False) -> list[RunOutcome]:
     """Every run's own analysis, on every CPU at once from POOL_MIN_RUNS runs on (the figures'
-    drawing is most of the time, and the runs are independent)."""
-    workers = min(os.cpu_count() or 1, len(found))
-    if workers < 2 or len(found) < POOL_MIN_RUNS:
-        return [_safe_analyze_run(r) for r in found]
-    from joblib import Parallel, delayed  # loky's workers return the claims' functions too (cloudpickle)
+    drawing is most of the time, and the runs are independent); a run whose analysis is kept
+    (unchanged since, ``ferl.analysis.cache``; not with ``force``) is not handed to a worker."""
+    kept = {} if force else {r: o for r in found if (o := _safe_kept(r)) is not None}
+    stale = [r for r in found if r not in kept]
+    workers = min(os.cpu_count() or 1, len(stale))
+    if workers < 2 or len(stale) < POOL_MIN_RUNS:
+        done = [_safe_analyze_run(r, force=force) for r in stale]
+    else:
+        from joblib import Parallel, delayed  # loky's workers return the claims' functions too (cloudpickle)
 
-    return Parallel(n_jobs=workers)(delayed(_safe_analyze_run)(r, REGISTRY.modules) for r in found)
+        done = Parallel(n_jobs=workers)(delayed(_safe_analyze_run)(r, REGISTRY.modules, force) for r in stale)
+    by_run = kept | dict(zip(stale, done))
+    return [by_run[r] for r in found]
 
 
-def analyze_sweep(sweep_dir: Path, pages: Sequence[Path] = ()) -> list[RunOutcome]:
+def _safe_kept(run_dir: Path) -> RunOutcome | None:
+    """``_kept``, where an unreadable run is left to its analysis to report."""
+    try:
+        return _kept(run_dir)
+    except (OSError, ValueError):
+        return None
+
+
+def analyze_sweep(sweep_dir: Path, pages: Sequence[Path] = (), force: bool = False) -> list[RunOutcome]:
     """Analyze every run below ``sweep_dir``, then the sweep as a whole (``ferl.analysis.sweep``,
     then the registered sweep sections)."""
     start = time.perf_counter()
     found = runs.find_runs(sweep_dir)
     skipped = report_unfinished(sweep_dir)
-    outcomes = analyze_runs(found)
+    outcomes = analyze_runs(found, force)
     jobs = [sw.Job(o, summary) for o in outcomes if (summary := _read_summary(o.run_dir)) is not None]
     sweep = sw.Sweep(sweep_dir, jobs)
     out = _fresh(sweep_dir / "analysis")
@@ -244,7 +273,7 @@ def _usage_error(dirs: list[Path], pages: Sequence[Path]) -> str | None:
     return None
 
 
-def main(dirs: list[Path], pages: Sequence[Path] = ()) -> int:
+def main(dirs: list[Path], pages: Sequence[Path] = (), force: bool = False) -> int:
     """Analyze each directory (a run or a sweep); the exit status: 2 for a usage error or a
     directory without runs, 1 when a run's analysis failed (a damaged or missing file), else 0 —
     also when members of a sweep were skipped for having no summary.json yet (each is named in
@@ -256,7 +285,7 @@ def main(dirs: list[Path], pages: Sequence[Path] = ()) -> int:
     status = 0
     for d in dirs:
         if (d / "summary.json").is_file():
-            outcomes = [_safe_analyze_run(d)]
+            outcomes = [_safe_analyze_run(d, force=force)]
         elif not any(d.rglob("summary.json")):
             skipped = report_unfinished(d)
             print(
@@ -267,7 +296,7 @@ def main(dirs: list[Path], pages: Sequence[Path] = ()) -> int:
             status = 2
             continue
         else:
-            outcomes = analyze_sweep(d, pages)
+            outcomes = analyze_sweep(d, pages, force)
         if any(o.status.startswith("failed") for o in outcomes):
             status = max(status, 1)
     return status

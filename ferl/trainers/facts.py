@@ -16,10 +16,11 @@ exists; ``check_conforms`` names everything it lacks at once, with the recipe th
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any
 
 from ferl import exploration, interfaces
 from ferl.config.params import ConfigError, plain, signature, target
+from ferl.conformance import missing_members
 
 
 @dataclass(frozen=True)
@@ -124,22 +125,3 @@ def check_conforms(part, protocol: type, key: str) -> None:
         raise ConfigError(
             f"{key}: {class_name(part)} lacks {', '.join(missing)} ({what} needs them: {where}{defaults})"
         )
-
-
-def required_members(protocol: type) -> list[str]:
-    """The attributes and methods ``protocol`` declares, in the order written, its bases' first:
-    what a component must have, its hooks too (a base class gives their defaults)."""
-    names = []
-    for cls in reversed(protocol.__mro__):
-        if cls in (Protocol, object) or not getattr(cls, "_is_protocol", False):
-            continue
-        methods = [n for n, v in vars(cls).items() if callable(v) or isinstance(v, (property, classmethod))]
-        names += [
-            n for n in (*getattr(cls, "__annotations__", {}), *methods) if not n.startswith("_") and n not in names
-        ]
-    return names
-
-
-def missing_members(part, protocol: type) -> list[str]:
-    """What ``part`` lacks of ``protocol`` (``required_members``), in declaration order; [] if it conforms."""
-    return [name for name in required_members(protocol) if not hasattr(part, name)]
