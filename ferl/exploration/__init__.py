@@ -21,7 +21,7 @@ from typing import Protocol, runtime_checkable
 import torch
 from torch import Tensor, nn
 
-from ferl.config.params import PositiveInt
+from ferl.config.params import ConfigError, PositiveInt
 
 
 @runtime_checkable
@@ -66,7 +66,14 @@ class ExplorationBase(nn.Module):
         super().__init__()
         self.n_runs = n_runs
 
-    def check_actor(self, actor) -> None: ...
+    # why the method cannot work with an actor that learns only from replayed episodes and steps
+    # its memory in ``act`` (``Actor.learns_from_episodes``, DRQN); None: it can
+    episode_learners_refused: str | None = None
+
+    def check_actor(self, actor) -> None:
+        if actor.learns_from_episodes and self.episode_learners_refused is not None:
+            kind = self.describe()["kind"]
+            raise ConfigError(f"exploration={kind} with {type(actor).__name__}: {self.episode_learners_refused}")
 
     def begin_episode(self, generator: torch.Generator, max_steps: int) -> None: ...
 

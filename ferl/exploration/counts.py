@@ -18,7 +18,7 @@ import torch
 from torch import Tensor
 
 from ferl import rng
-from ferl.config.params import ConfigError, Positive, PositiveInt, checked
+from ferl.config.params import Positive, PositiveInt, checked
 from ferl.exploration import ExplorationBase
 
 MAX_BITS = 24  # 2^24 counters per run: 64 MiB a run at float32
@@ -28,6 +28,9 @@ class CountBonus(ExplorationBase):
     """The SimHash count bonus over R runs (module docstring): ``scale`` the bonus at a first visit,
     ``bits`` the hash's length."""
 
+    episode_learners_refused = (
+        "it learns from its replayed episodes' raw rewards, which the bonus does not reach; use exploration=none"
+    )
     A: torch.Tensor  # (R, S, bits) the hash's projections
     counts: torch.Tensor  # (R, 2^bits) N per run and code
     powers: torch.Tensor  # (bits,) 2^j
@@ -47,13 +50,6 @@ class CountBonus(ExplorationBase):
 
     def describe(self) -> dict:
         return {"kind": "count_bonus", "scale": self.scale, "bits": self.bits}
-
-    def check_actor(self, actor) -> None:
-        if actor.learns_from_episodes:
-            raise ConfigError(
-                f"exploration=count_bonus: {type(actor).__name__} learns from its replayed episodes' raw "
-                "rewards, not from the per-step rewards the bonus is added to; use exploration=none"
-            )
 
     def codes(self, s: Tensor) -> Tensor:
         """φ(s) of states s (R, 1, S) → (R,) long in [0, 2^bits)."""

@@ -21,7 +21,7 @@ from typing import Annotated
 import torch
 from torch import Tensor
 
-from ferl.config.params import Allowed, ConfigError, PositiveInt, UnitInterval, checked
+from ferl.config.params import Allowed, PositiveInt, UnitInterval, checked
 from ferl.exploration import ExplorationBase, taken
 
 AboveOne = Annotated[float, Allowed(lambda x: x > 1, "> 1 (the zeta distribution needs μ > 1)")]
@@ -44,6 +44,7 @@ class EzGreedy(ExplorationBase):
     """εz-greedy over R runs (module docstring): ``epsilon`` the chance of starting an option at a
     step without one, ``mu`` the zeta exponent (2: Dabney et al.'s choice across Atari)."""
 
+    episode_learners_refused = "its act steps its memory with the action it drew itself; use exploration=none"
     held: torch.Tensor  # (R,) ω, the action of each run's option
     left: torch.Tensor  # (R,) steps of ω still to take (0: no option running)
     cdf: torch.Tensor  # (T_max,) float64, ``zeta_cdf`` for the episode's T_max + 1 choices
@@ -60,13 +61,6 @@ class EzGreedy(ExplorationBase):
 
     def describe(self) -> dict:
         return {"kind": "ez_greedy", "epsilon": self.epsilon, "mu": self.mu}
-
-    def check_actor(self, actor) -> None:
-        if actor.learns_from_episodes:
-            raise ConfigError(
-                f"exploration=ez_greedy cannot override the actions of {type(actor).__name__}: its act "
-                "steps its memory with the action it drew itself; use exploration=none"
-            )
 
     def begin_episode(self, generator: torch.Generator, max_steps: int) -> None:
         """No option held; the episode's uniforms (T_max + 1, R, 3), drawn in one call."""
