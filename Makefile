@@ -71,7 +71,7 @@ reproduce: $(STAMP)
 # per update for the same reason). Then the sweep's report with its "beyond" section.
 BEYOND_EPISODES ?= 2000
 BEYOND_ETA      ?= 0.1
-MEMORIES        := elman,lstm,gru,esn
+MEMORIES        := elman,lstm,gru,esn,transformer
 
 beyond: $(STAMP)
 	@dir=outputs/beyond/$$(date +%Y-%m-%d_%H-%M-%S); start=$$(date +%s); \

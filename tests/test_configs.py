@@ -30,6 +30,7 @@ def test_contract_experiments_exist():
         "table4_2_digit",
         "table5_1_bit",
         "table5_1_pixel",
+        "passive_tmaze",
     } <= set(EXPERIMENTS)
 
 
@@ -49,9 +50,14 @@ def test_experiment_composes_validates_and_builds(compose_cfg, name):
     for p_cfg, predictor in zip((cfg.get("predictor") or {}).values(), job.predictors.values()):
         assert predictor.memory_size == p_cfg.n_memory
         if predictor.reward_output == "bits":  # one reward bit per reward value, read off the environment
-            assert predictor.W_rm.shape[1] == len(job.env.reward_values) == 4
+            # the passive maze: its penalty and goal reward (0 is no bit); the others ±5, −1, −0.1
+            assert predictor.W_rm.shape[1] == len(job.env.reward_values) == (2 if cfg.env.get("passive") else 4)
     optimal = job.env.optimal(cfg.actor.gamma)
-    if job.env.task == "tmaze":
+    if job.env.task == "tmaze" and cfg.env.get("passive"):  # L steps of reward 0, then the goal
+        assert optimal["discounted_return"] == pytest.approx(
+            cfg.actor.gamma**cfg.env.corridor_length * cfg.env.goal_reward
+        )
+    elif job.env.task == "tmaze":
         assert optimal["discounted_return"] == pytest.approx(4.3175)
     elif job.env.task == "gymnasium":  # an outside task's optimum only where its config states one
         assert optimal == ({} if cfg.env.optimal_return is None else {"return": cfg.env.optimal_return})
@@ -233,6 +239,9 @@ VALUE_ERRORS = [
     ("data=mnist_idx data.root=/nonexistent", "data.root"),
     ("experiment=table4_1_regular env.corridor_length=0", "env.corridor_length"),
     ("experiment=table4_1_regular env.corridor_length=5 env.max_steps=4", "env.max_steps"),
+    ("experiment=table4_1_regular env.max_steps=null", "env.max_steps"),
+    ("experiment=passive_tmaze env.matching=true", "env.matching"),
+    ("experiment=passive_tmaze env.max_steps=10", "env.max_steps"),
     ("experiment=table4_2_digit env.digit_classes.start_0=11", "env.digit_classes"),
     ("experiment=table4_2_digit +env.digit_classes.elsewhere=3", "env.digit_classes.elsewhere"),
     ("experiment=table4_2_digit ~env.digit_classes.corridor", "env.digit_classes.corridor"),

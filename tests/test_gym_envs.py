@@ -30,6 +30,8 @@ IDS = list(ENV_SPECS)
 MAZE_REWARDS = (5.0, -5.0, -1.0, -0.1)
 FLOOR_REWARDS = (10.0, 4.0, -2.0)
 T_MAX = 10  # the registered mazes' max_steps (conf/env/tmaze.yaml)
+PASSIVE = "ferl/PassiveTMaze-v0"  # Ni et al.'s passive maze, L = 3: 4 actions, rewards 1, 0, −1/3
+PASSIVE_REWARDS = (1.0, 0.0, -1.0 / 3)
 
 
 def allowed(reward: float, values) -> bool:
@@ -43,6 +45,8 @@ def batched_twin(env_id: str, n_runs: int, seed: int):
         return DigitFloor(n_runs, embedded_mnist(), generator)
     if env_id == "ferl/DigitMatchingTMaze-v0":
         return DigitTMaze(n_runs, generator, embedded_mnist(), DIGIT_CLASSES, matching=True)
+    if env_id == PASSIVE:
+        return TMaze(n_runs, generator, passive=True, max_steps=None, goal_reward=1.0)
     return TMaze(n_runs, generator, matching=env_id == "ferl/MatchingTMaze-v0")
 
 
@@ -71,9 +75,12 @@ def test_random_agent_through_gymnasium_make(env_id):
         obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
         length += 1
         assert obs in env.observation_space
-        assert allowed(reward, FLOOR_REWARDS if floor else MAZE_REWARDS)
+        assert allowed(reward, FLOOR_REWARDS if floor else PASSIVE_REWARDS if env_id == PASSIVE else MAZE_REWARDS)
         if floor:
             assert not terminated and truncated == (length == FLOOR_EPISODE_STEPS)
+        elif env_id == PASSIVE:  # a finite horizon: L + 1 actions, then the end, wherever the agent is
+            assert terminated == (length == 4) and not truncated
+            assert info["correct"] == (terminated and reward > 0)
         else:
             assert terminated == (info["position"] >= 3)  # entering a goal ends the episode
             assert truncated == (not terminated and length == T_MAX)
@@ -198,7 +205,8 @@ def test_render_returns_an_rgb_image(env_id):
     env.step(0)
     frame = env.render()
     assert frame.dtype == np.uint8 and frame.ndim == 3 and frame.shape[2] == 3
-    assert frame.shape[:2] == ((336, 336) if env_id == "ferl/DigitFloor-v0" else (3 * 28, 3 * 28))
+    cells = {"ferl/DigitFloor-v0": 12, PASSIVE: 4}.get(env_id, 3)  # the passive maze: L + 1 = 4 cells up
+    assert frame.shape[:2] == ((336, 336) if env_id == "ferl/DigitFloor-v0" else (cells * 28, 3 * 28))
     assert (frame == (0, 0, 255)).all(axis=2).any() or (frame == (255, 0, 0)).all(axis=2).any()  # the agent
     assert gymnasium.make(env_id).unwrapped.render() is None  # no render_mode: nothing to draw
 

@@ -1,7 +1,8 @@
-"""Memories beyond the Elman layer (§5.4): LSTM, GRU and echo-state predictors against per-step
-references written from their equations, their training gradients against central finite
-differences on padded sequences, the reservoir's spectral radius against NumPy, the memory chosen
-by name, and a memory that lasts: LSTM and GRU keep a bit over 12 steps."""
+"""Memories beyond the Elman layer (§5.4): LSTM, GRU, echo-state and transformer predictors against
+references written from their equations (the transformer's in tests/test_transformer.py), their
+training gradients against central finite differences on padded sequences, the reservoir's
+spectral radius against NumPy, the memory chosen by name, and a memory that lasts: LSTM and GRU
+keep a bit over 12 steps."""
 
 import numpy as np
 import pytest
@@ -14,12 +15,15 @@ from ferl.predictors.gated import GRUPredictor, LSTMPredictor
 from ferl.predictors.heads import clean
 from ferl.predictors.recurrent import predictor
 from ferl.predictors.training import PredictorBatch
+from test_transformer import reference as transformer_reference
 
 Y, A, M, NR = 4, 3, 3, 2
 KW = dict(n_memory=M, n_reward=NR, c_y=0.7, c_a=1.3, beta_y=1.2, beta_r=0.9, rho_y=1.5, rho_r=2.5, init_std=0.7)
 
 
 def make(memory, R=2, seed=0, **kw):
+    if memory == "transformer":
+        kw.setdefault("context", 8)  # the sequences' longest
     return predictor(memory=memory, n_runs=R, n_obs=Y, n_actions=A, seed=seed, **{**KW, **kw}).double()
 
 
@@ -33,6 +37,8 @@ def data(R, B, T, seed=1):
 
 def reference_memory(p, run: int, y, a) -> list:
     """h_0 … h_T of one unpadded sequence, step by step from the module docstrings' equations."""
+    if p.kind == "transformer":
+        return list(transformer_reference(p, run, y[: len(a) + 1], a))
     sig = torch.sigmoid
     if p.kind != "esn":
         W, U, b = p.W[run], p.U[run], p.b[run]
@@ -57,7 +63,7 @@ def reference_memory(p, run: int, y, a) -> list:
     return out
 
 
-@pytest.mark.parametrize("memory", ["lstm", "gru", "esn"])
+@pytest.mark.parametrize("memory", ["lstm", "gru", "esn", "transformer"])
 def test_unroll_and_online_step_match_the_equations(memory):
     p = make(memory, R=2)
     y, a, _ = data(2, 3, 5)
@@ -72,10 +78,10 @@ def test_unroll_and_online_step_match_the_equations(memory):
         torch.testing.assert_close(m[run, 2], want)
 
 
-@pytest.mark.parametrize("memory", ["lstm", "gru", "esn"])
+@pytest.mark.parametrize("memory", ["lstm", "gru", "esn", "transformer"])
 @pytest.mark.parametrize("time_average", [False, True])
 def test_training_gradients_equal_finite_differences_on_padded_sequences(memory, time_average):
-    """``gradients`` (what training applies: autograd through the unrolled LSTM/GRU, the readout's
+    """``gradients`` (what training applies: autograd through the unrolled LSTM/GRU/transformer, the readout's
     gradients written out for the ESN) = central differences of Σ_b w_b loss_b, float64, every
     trained entry; sequences of lengths 1, 4 and 6 padded to 6, NaN in the padding."""
     p = make(memory, R=2, time_average=time_average)
@@ -125,7 +131,9 @@ def test_memory_is_chosen_by_name_and_checked_as_that_class():
     assert isinstance(make("lstm"), LSTMPredictor) and isinstance(make("gru"), GRUPredictor)
     assert isinstance(make("esn"), EchoStatePredictor)
     assert make("lstm").memory_size == M and make("lstm").initial_state().shape == (2, 2 * M)
-    with pytest.raises(ConfigError, match=r"predictor.joint.memory='tcn' is not allowed: one of elman, esn, gru, lstm"):
+    with pytest.raises(
+        ConfigError, match=r"predictor.joint.memory='tcn' is not allowed: one of elman, esn, gru, lstm, transformer"
+    ):
         check_arguments(predictor, {"memory": "tcn"}, "predictor.joint.")
     with pytest.raises(ConfigError, match=r"predictor.joint.spectral_radius is not allowed"):
         check_arguments(predictor, {"memory": "gru", "spectral_radius": 0.9}, "predictor.joint.")
@@ -149,29 +157,31 @@ def delayed_bit(R: int, N: int, delay: int, seed: int):
     return y, a, r, torch.full((R, N), delay), bit
 
 
+def recall_predictor(memory: str, R: int, **kw):
+    """A predictor of the reward bit alone (ρ_y = 0), trained on the plain sum Σ_t E_t, seed 4."""
+    return predictor(
+        memory=memory, n_runs=R, n_obs=Y, n_actions=A, n_reward=NR, seed=4, rho_y=0.0, time_average=False, **kw
+    )
+
+
+def trained_on_delayed_bits(p, R: int, n: int, delay: int, epochs: int):
+    """Train ``p`` (R runs) for ``epochs`` pattern-mode epochs on n ``delayed_bit`` sequences, each
+    run in its own random order; returns 200 fresh sequences (y, a, r, lengths, bit) to test it on."""
+    y, a, r, lengths, _ = delayed_bit(R, n, delay, seed=0)
+    batch = PredictorBatch([p], y, a, [r], lengths)
+    g = torch.Generator().manual_seed(1)
+    for _ in range(epochs):
+        batch.train_epoch([torch.rand(R, n, generator=g).argsort(1)])
+    return delayed_bit(R, 200, delay, seed=2)
+
+
 @pytest.mark.parametrize("memory", ["lstm", "gru"])
 def test_gated_memory_keeps_a_bit_over_twelve_steps(memory):
     """After 30 pattern-mode epochs on 64 sequences (float32, 2 runs), the memory recalls at the
     cue the bit shown 12 steps earlier, on fresh sequences (chance: 0.5)."""
     delay, R = 12, 2
-    p = predictor(
-        memory=memory,
-        n_runs=R,
-        n_obs=Y,
-        n_actions=A,
-        n_memory=8,
-        n_reward=NR,
-        lr=0.3,
-        seed=4,
-        rho_y=0.0,
-        time_average=False,
-    )
-    y, a, r, lengths, _ = delayed_bit(R, 64, delay, seed=0)
-    batch = PredictorBatch([p], y, a, [r], lengths)
-    g = torch.Generator().manual_seed(1)
-    for _ in range(30):
-        batch.train_epoch([torch.rand(R, 64, generator=g).argsort(1)])
-    y, a, r, lengths, bit = delayed_bit(R, 200, delay, seed=2)
+    p = recall_predictor(memory, R, n_memory=8, lr=0.3)
+    y, a, _, lengths, bit = trained_on_delayed_bits(p, R, 64, delay, epochs=30)
     with torch.no_grad():
         _, r_hat, _ = p.forward_sequences(y, a, lengths)
     accuracy = ((r_hat[:, :, -1, 0] > 0.5).long() == bit).double().mean(1)

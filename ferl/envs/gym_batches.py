@@ -144,12 +144,27 @@ class FloorBatch(Batch):
 
 class MazeBatch(Batch):
     """T-mazes with 7-bit observations (Fig. 4.3): regular (§4.3.1) or matching (§4.3.2); rewards
-    ±5 at the goals, −1 for a wall bump, −0.1 otherwise; cut off after ``max_steps`` actions."""
+    ±5 at the goals, −1 for a wall bump, −0.1 otherwise; cut off after ``max_steps`` actions. Or
+    (``passive=True``) Ni et al.'s passive T-maze of corridor ``corridor_length`` (``ferl.envs.passive``)."""
 
     observation_space: spaces.Space = spaces.MultiBinary(7)
 
-    def __init__(self, n_runs: int, corridor_length: int = 3, max_steps: int = 10, matching: bool = False):
-        self.maze = dict(corridor_length=corridor_length, max_steps=max_steps, matching=matching)
+    def __init__(
+        self,
+        n_runs: int,
+        corridor_length: int = 3,
+        max_steps: int | None = 10,
+        matching: bool = False,
+        passive: bool = False,
+        goal_reward: float = 5.0,
+    ):
+        self.maze = dict(
+            corridor_length=corridor_length,
+            max_steps=max_steps,
+            matching=matching,
+            passive=passive,
+            goal_reward=goal_reward,
+        )
         super().__init__(n_runs)
 
     def build(self, generator: torch.Generator) -> TMaze:

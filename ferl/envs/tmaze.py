@@ -6,7 +6,9 @@ Actions N E S W; E/W enter the goals from the junction and bump a wall elsewhere
 ±5 at the rewarded / other goal (the episode terminates), −1 for a wall bump (no move), −0.1
 otherwise; the episode is cut off after T_max actions. Regular maze: a signal s0 shown at the
 start, s0 = 1 rewards the right goal. Matching maze: s0 at the start and s1 at the junction,
-s0 = s1 rewards the right goal (§4.3.2).
+s0 = s1 rewards the right goal (§4.3.2). Passive maze (``passive=True``): Ni et al. (2023)'s
+passive T-maze, the episode exactly the shortest path, rewards of their definition
+(``ferl.envs.passive``).
 
 Observations are ids into ``observation_table``: 7 bits (5 position + 2 signal, Fig. 4.3), one
 fixed image per observation (the digit matching T-maze, §4.3.3), or a reservoir of K images per
@@ -21,6 +23,7 @@ import torch
 
 from ferl.config.params import ArgumentError, PositiveInt, at_least, checked
 from ferl.envs.compass import ACTIONS, E, N, S, W
+from ferl.envs.passive import passive_optimal_return, passive_penalty, passive_reward
 from ferl.interfaces import EpisodicEnvironmentBase
 
 POSITION_BITS = ("start", "corridor", "junction", "goal_left", "goal_right")
@@ -100,7 +103,7 @@ class TMaze(EpisodicEnvironmentBase):
         n_runs: PositiveInt,
         generator: torch.Generator,
         corridor_length: Annotated[int, at_least(2, "start, corridor cells, junction")] = 3,
-        max_steps: PositiveInt = 10,
+        max_steps: PositiveInt | None = 10,
         matching: bool = False,
         goal_reward: float = 5.0,
         wall_reward: float = -1.0,
@@ -108,12 +111,23 @@ class TMaze(EpisodicEnvironmentBase):
         true_state: bool = False,
         images=None,
         device="cpu",
+        passive: bool = False,
     ):
         self.n_runs, self.generator, self.device = n_runs, generator, torch.device(device)
+        # passive: corridor_length is Ni et al.'s L, the junction L cells up, so the maze has
+        # L + 1 cells and its episode L + 1 actions (ferl.envs.passive); self.corridor_length is
+        # the number of cells (T_min) in both modes
+        self.passive, self.configured_length = passive, corridor_length
+        if passive:
+            corridor_length += 1
+            max_steps = corridor_length
+        assert max_steps is not None  # null only with passive (check_config)
         self.corridor_length, self.max_steps, self.matching = corridor_length, max_steps, matching
         self.optimal_steps = corridor_length
         self.rewards = (goal_reward, wall_reward, step_reward)
         self.reward_values = tuple(sorted({-goal_reward, goal_reward, wall_reward, step_reward}))
+        if passive:  # a reward of 0 (on schedule, the other goal) is no bit at all, as a done run's
+            self.reward_values = (passive_penalty(self.configured_length, goal_reward), goal_reward)
         self._reward_values = torch.tensor(self.reward_values, dtype=torch.float32, device=self.device)
 
         self.observation_names = observation_names(matching)
@@ -139,6 +153,8 @@ class TMaze(EpisodicEnvironmentBase):
             self.observation_names, self.observation_kind = true_state_names(corridor_length), "state"
             table = torch.eye(len(self.observation_names)).repeat_interleave(self.reservoir_size, 0)
         self.observation_table = table.to(self.device)
+        # the passive maze shows its cue at the first step only (the oracle's true state is as it is)
+        self._start_revisited = self.observation_names.index("corridor") if passive and not true_state else None
         self.observation_size = self.observation_table.shape[1]
 
         nxt, reward = maze_tables(corridor_length, *self.rewards)
@@ -150,8 +166,19 @@ class TMaze(EpisodicEnvironmentBase):
 
     @classmethod
     def check_config(cls, args: dict) -> None:
-        if args["max_steps"] < args["corridor_length"]:
-            raise ArgumentError("max_steps", f"T_max ≥ corridor_length={args['corridor_length']} (T_min)")
+        length, max_steps = args["corridor_length"], args["max_steps"]
+        if args.get("passive"):
+            if args["matching"]:
+                raise ArgumentError("matching", "false with passive=true (Ni et al.'s passive T-maze has one cue)")
+            if max_steps not in (None, length + 1):
+                raise ArgumentError(
+                    "max_steps",
+                    f"null or corridor_length + 1 = {length + 1} with passive=true (the episode is the shortest path)",
+                )
+        elif max_steps is None:
+            raise ArgumentError("max_steps", "a positive integer (null only with passive=true)")
+        elif max_steps < length:
+            raise ArgumentError("max_steps", f"T_max ≥ corridor_length={length} (T_min)")
 
     def describe(self) -> dict:
         return {
@@ -164,7 +191,8 @@ class TMaze(EpisodicEnvironmentBase):
             "action_names": list(self.action_names),
             "true_state": self.true_state,
             "matching": self.matching,
-            "corridor_length": self.corridor_length,
+            "corridor_length": self.configured_length,
+            **({"passive": True} if self.passive else {}),  # the other mazes' records stay as they were
             "max_steps": self.max_steps,
             "goal_reward": self.rewards[0],
             "reward_values": list(self.reward_values),
@@ -193,8 +221,12 @@ class TMaze(EpisodicEnvironmentBase):
 
     @property
     def observation_class(self) -> torch.Tensor:
-        """Index into ``observation_names`` of what every run sees now."""
-        return self.observation_id_table.index_select(0, torch.add(self._signals, self.position, alpha=4))
+        """Index into ``observation_names`` of what every run sees now; the passive maze shows
+        the cue at the first step only (its start revisited looks like the corridor)."""
+        seen = self.observation_id_table.index_select(0, torch.add(self._signals, self.position, alpha=4))
+        if self._start_revisited is not None:
+            seen = torch.where((self.position == 0) & (self.t > 0), self._start_revisited, seen)
+        return seen
 
     def _draw_observation(self) -> None:
         """Fix the observation id of the current visit; a reservoir draws a fresh image (§5.3.2),
@@ -286,7 +318,12 @@ class TMaze(EpisodicEnvironmentBase):
         reward = torch.where(live, self.move_reward.index_select(0, torch.add(self._side, move, alpha=2)), 0.0)
         self.position = torch.where(live, self.next_position.index_select(0, move), self.position)
         self.t = self.t + live
-        terminated = live & (self.position >= self.corridor_length)
+        if self.passive:  # a finite horizon: the (L + 1)-th action ends every episode (ferl.envs.passive)
+            paid = passive_reward(self.position, self.t, self.rewarded_goal, self.max_steps, self._reward_values)
+            reward = torch.where(live, paid, 0.0)
+            terminated = live & (self.t >= self.max_steps)
+        else:
+            terminated = live & (self.position >= self.corridor_length)
         truncated = live & ~terminated & (self.t >= self.max_steps)
         self.done = self.done | terminated | truncated
         self._draw_observation()
@@ -298,10 +335,13 @@ class TMaze(EpisodicEnvironmentBase):
         return self.observe(), reward, terminated, truncated
 
     def reward_code(self, reward: torch.Tensor) -> torch.Tensor:
-        """One bit per reward value (§4.2 fn. 1), (R, 4); all zero for a reward of 0 (done runs)."""
+        """One bit per reward value (§4.2 fn. 1), (R, len(reward_values)); all zero for a reward of 0 (done runs)."""
         return (reward.unsqueeze(1) == self._reward_values).float()
 
     def optimal_discounted_return(self, gamma: float) -> float:
+        if self.passive:
+            next_position = self.next_position.view(-1, 4).cpu().numpy()
+            return passive_optimal_return(next_position, self.configured_length, gamma, self.rewards[0])
         return optimal_return(self.corridor_length, self.max_steps, gamma, *self.rewards)
 
     def optimal(self, gamma: float) -> dict:

@@ -3,9 +3,9 @@ every component checked against its protocol as soon as it is built (docs/archit
 run is put together").
 
 Sizes are the environment's facts, not config keys. The number of reward values that chapter 4's
-reward bits encode (§4.2 fn. 1) and the observation size a preprocessor takes are read off the
-built environment and passed to every constructor that takes them, once, by the ``Job``; no YAML
-repeats them. A config that states one anyway must agree with the environment, or the run is
+reward bits encode (§4.2 fn. 1), the observation size a preprocessor takes and the episode limit
+T_max that a transformer memory's context must cover are read off the built environment and
+passed to every constructor that takes them, once, by the ``Job``; no YAML repeats them. A config that states one anyway must agree with the environment, or the run is
 refused in one line before anything is trained or written. The observation and action sizes of
 predictors and actors (``n_obs``, ``n_state``, ``n_actions``) are passed the same way by the Job.
 
@@ -49,6 +49,12 @@ FACTS = (
     ),
     Fact(
         "n_visible", lambda env: env.observation_size, lambda env: f"has observations of {env.observation_size} values"
+    ),
+    # T_max, the longest episode: what a memory of bounded context must see whole (a transformer's)
+    Fact(
+        "max_steps",
+        lambda env: env.max_steps if isinstance(env, interfaces.EpisodicEnvironment) else None,
+        lambda env: f"has episodes of at most {env.max_steps} steps",
     ),
 )
 
