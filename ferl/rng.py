@@ -29,6 +29,7 @@ class SeedOffsets:
     predictors: int = 10_000  # predictor i: + i × this
     preprocessor: int = 200_000
     env: int = 300_000  # an environment that draws its own task per run (``seed`` in its constructor)
+    exploration: int = 400_000  # a directed-exploration method's own draws (``ferl.exploration.counts``' hash)
 
 
 # Online TD on a continuing task (the digit floor, ch. 3): the actor on seed + r, as the

@@ -91,6 +91,12 @@ def test_same_seed_same_numbers(tmp_path, tiny_run):
         "experiment=table4_1_matching trainer=online predictor=none",
         # the recurrent Q-learner's value head: one of its four
         "experiment=table4_1_matching actor=recurrent_q predictor=none actor.head=rbm",
+        # an unknown exploration method, a zeta exponent ≤ 1, a continuing trainer (no episodes),
+        # an actor whose act steps its own memory
+        "experiment=table4_1_regular exploration=boltzmann_plus",
+        "experiment=table4_1_regular exploration=ez_greedy exploration.mu=1.0",
+        "experiment=ch3_floor exploration=ez_greedy",
+        "experiment=table4_1_regular predictor=none actor=drqn exploration=ez_greedy",
     ],
 )
 def test_bad_input_one_line_nothing_written(tmp_path, override):

@@ -14,8 +14,6 @@ count towards ``solved``) and the activations at its ``probe`` states with its `
 environment may declare, docs/records.md).
 """
 
-from typing import NamedTuple
-
 import numpy as np
 import torch
 from tqdm import tqdm
@@ -29,7 +27,7 @@ from ferl.random_blocks import Blocks, steps_per_block
 from ferl.run.directory import CheckpointTimer
 from ferl.stats import final_metrics, sample_efficiency, solved_against
 from ferl.trainers.actor_logs import concat_records, log_actor, log_episodes, log_probes
-from ferl.trainers.episodes import discount_factors, discounted_return, observation_table
+from ferl.trainers.episodes import Step, discount_factors, discounted_return, observation_table, stacked
 from ferl.trainers.observations import log_observations
 from ferl.trainers.phased import Phase
 
@@ -169,9 +167,9 @@ class ActorEpisodes(Phase):
     def after_episode(self, job, k: int, episode: dict, state: dict) -> None:
         """What learns from episode k besides the actor: nothing while the predictors are frozen."""
 
-    def reward_bonus(self, job, states: list, obs_id: torch.Tensor):
-        """What is added to the raw reward the actor learns from after a step: nothing (None) here."""
-        return None
+    def reward_bonus(self, job, states: list, obs_id: torch.Tensor, s_next: torch.Tensor, active: torch.Tensor):
+        """Added to the raw reward the actor learns from: the directed exploration's bonus, or None."""
+        return job.exploration.reward_bonus(s_next, active) if job.exploration.active else None
 
     def memory_step(self, predictor, table: torch.Tensor, n_actions: int):
         """A predictor's step on observation ids: the frozen one (``Predictor.frozen_step``)."""
@@ -205,6 +203,7 @@ class ActorEpisodes(Phase):
             and job.env.traceable_steps
             and not job.actor.samples_with_generator
             and not job.actor.learns_from_episodes
+            and not job.exploration.active  # its hooks keep Python state (a step counter, counts)
         )
 
     def state(self, job, obs_id: torch.Tensor, memories: list) -> torch.Tensor:
@@ -219,6 +218,7 @@ class ActorEpisodes(Phase):
         (steps + 1, R), actions (steps, R) and raw rewards (steps, R)."""
         job.env.reset()
         (uniform,) = self.uniforms.next()  # (T_max + 1, R, 1, 1)
+        job.exploration.begin_episode(job.generator, job.env.max_steps)  # its draws after the actor's
         if self.fused is None:
             ep = self.episode(job, lr, beta, uniform, True)
         else:  # α and β as tensors, so that one graph serves every episode
@@ -249,10 +249,11 @@ class ActorEpisodes(Phase):
         observation ids (steps + 1); the last state, whether each run's episode terminated, and
         the outcome (len(outcome_names), R)."""
         env, actor, predictors = job.env, job.actor, list(job.predictors.values())
+        choose = job.exploration.choose if job.exploration.active else None  # directed exploration
         m = [p.initial_state() for p in predictors]  # m_0 (Eq. 4.1): it learns too when the predictors do
         memories = [p.memory(x) for p, x in zip(predictors, m)]
         s = self.state(job, env.obs_id, memories)
-        a, F_sa, x_sa = first_action(actor, s, beta, job.generator, uniform[0])
+        a, F_sa, x_sa = first_action(actor, s, beta, job.generator, uniform[0], choose)
         record, obs = [], [env.obs_id]
         terminated_any = torch.zeros_like(env.done)
         for t in range(env.max_steps):
@@ -265,7 +266,7 @@ class ActorEpisodes(Phase):
             m = [step(x, obs_prev, action) for step, x in zip(self.steps, m)]
             memories = [p.memory(x) for p, x in zip(predictors, m)]
             s_next = self.state(job, env.obs_id, memories)
-            bonus = self.reward_bonus(job, m, env.obs_id)
+            bonus = self.reward_bonus(job, m, env.obs_id, s_next, active)
             a, F_sa, x_sa, delta = td_step(
                 actor,
                 s,
@@ -281,6 +282,7 @@ class ActorEpisodes(Phase):
                 job.guard.alive,
                 (terminated | ~active).unsqueeze(1),
                 active.unsqueeze(1),
+                choose,
             )
             record.append(Step(*visit, action, r, delta.squeeze(1)))
             s = s_next
@@ -373,26 +375,3 @@ class ActorEpisodes(Phase):
             random_steps = np.zeros(job.R, np.int64)
         job.metrics.update(sample_efficiency(records, random_steps, self.optimum, self.final_window, self.rates))
         job.count_agent_steps(state["agent_steps"], state["active_time"])
-
-
-class Step(NamedTuple):
-    """One step of an episode of every run, as ``ActorEpisodes.episode`` keeps it (a NamedTuple, so
-    that it traces under torch.compile in the fused episode); ``stacked`` over the steps, each field
-    gains a leading step axis."""
-
-    probe: torch.Tensor  # (R,) bool: at a probe state, the run's episode on
-    active: torch.Tensor  # (R,) bool: the run's episode on
-    memories: tuple  # every predictor's memory m_t, (R, M) each
-    state: torch.Tensor  # (R, S) the actor's state s_t
-    cache: torch.Tensor  # (R, ·) the actor's cache of (s_t, a_t)
-    action: torch.Tensor  # (R,) a_t
-    reward: torch.Tensor  # (R,) the raw reward r_(t+1)
-    delta: torch.Tensor  # (R,) the TD error δ_t
-
-
-def stacked(steps: list[Step]) -> Step:
-    """The steps of an episode as one ``Step`` whose fields are stacked over the steps (steps, R, …)."""
-    return Step._make(
-        tuple(torch.stack(m) for m in zip(*field)) if isinstance(field[0], tuple) else torch.stack(field)
-        for field in zip(*steps)
-    )

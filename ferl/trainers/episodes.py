@@ -11,7 +11,7 @@ An id stands for the (processed) observation in ``ObservationTable``.
 """
 
 from dataclasses import dataclass
-from typing import Annotated
+from typing import Annotated, NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -215,3 +215,26 @@ def discounted_return(discounts: list[float], rewards: torch.Tensor) -> torch.Te
     for t in range(len(rewards)):
         total = total + discounts[t] * rewards[t].double()
     return total.float()
+
+
+class Step(NamedTuple):
+    """One step of an episode of every run, as ``ActorEpisodes.episode`` keeps it (a NamedTuple, so
+    that it traces under torch.compile in the fused episode); ``stacked`` over the steps, each field
+    gains a leading step axis."""
+
+    probe: torch.Tensor  # (R,) bool: at a probe state, the run's episode on
+    active: torch.Tensor  # (R,) bool: the run's episode on
+    memories: tuple  # every predictor's memory m_t, (R, M) each
+    state: torch.Tensor  # (R, S) the actor's state s_t
+    cache: torch.Tensor  # (R, ·) the actor's cache of (s_t, a_t)
+    action: torch.Tensor  # (R,) a_t
+    reward: torch.Tensor  # (R,) the raw reward r_(t+1)
+    delta: torch.Tensor  # (R,) the TD error δ_t
+
+
+def stacked(steps: list[Step]) -> Step:
+    """The steps of an episode as one ``Step`` whose fields are stacked over the steps (steps, R, …)."""
+    return Step._make(
+        tuple(torch.stack(m) for m in zip(*field)) if isinstance(field[0], tuple) else torch.stack(field)
+        for field in zip(*steps)
+    )

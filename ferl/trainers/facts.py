@@ -18,7 +18,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from ferl import interfaces
+from ferl import exploration, interfaces
 from ferl.config.params import ConfigError, plain, signature, target
 from ferl.conformance import missing_members
 
@@ -83,6 +83,7 @@ NEEDS: dict[type, tuple[str, str, type]] = {
         interfaces.PredictorBase,
     ),
     interfaces.Actor: ("an actor", 'docs/architecture.md, "Add an actor"', interfaces.ActorBase),
+    exploration.Exploration: ("an exploration method", "ferl/exploration/__init__.py", exploration.ExplorationBase),
 }
 
 
@@ -126,7 +127,7 @@ def check_conforms(part, protocol: type, key: str) -> None:
     if missing:
         what, where, base = NEEDS[protocol]
         hooks = [name for name in missing if name in dir(base)]
-        defaults = f"; ferl.interfaces.{base.__name__} gives the defaults of {', '.join(hooks)}" if hooks else ""
+        defaults = f"; {base.__module__}.{base.__name__} gives the defaults of {', '.join(hooks)}" if hooks else ""
         raise ConfigError(
             f"{key}: {class_name(part)} lacks {', '.join(missing)} ({what} needs them: {where}{defaults})"
         )

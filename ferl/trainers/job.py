@@ -28,7 +28,8 @@ from torch.utils.tensorboard import SummaryWriter
 from ferl import rng
 from ferl.compiled import compile_seconds, fast_path
 from ferl.config.params import ConfigError, signature, target
-from ferl.interfaces import Actor, Environment, Predictor, Preprocessor
+from ferl.exploration import Exploration
+from ferl.interfaces import Actor, Environment, EpisodicEnvironment, Predictor, Preprocessor
 from ferl.rng import SeedOffsets
 from ferl.run.directory import RunDir, StopRequest
 from ferl.run.failures import Interrupted, where
@@ -96,6 +97,7 @@ class Job:
         self.actor = self.make_part(
             cfg.actor, "actor", Actor, n_state=n_state, n_actions=self.env.n_actions, seed=cfg.seed + seeds.actor
         )
+        self.exploration = self.make_exploration(n_state, cfg.seed + seeds.exploration, env_protocol)
         self.guard = DivergenceGuard(self.R, control.divergence_limit, self.seeds, device)
         self.env.on_fault = self.guard.freeze  # an outside environment's failed run is frozen (ferl.envs.boundary)
         # what a checkpoint saves of the run's course: finished phases, an unfinished one's state,
@@ -154,6 +156,21 @@ class Job:
             )
         return part
 
+    def make_exploration(self, n_state: int, seed: int, env_protocol: type):
+        """The config's directed exploration (``ferl.exploration``; ``none`` when the config has no
+        ``exploration`` node), given the sizes its constructor takes; refused with a continuing
+        trainer (it acts in episodes) and with an actor it cannot work with."""
+        node = self.cfg.get("exploration") or {"_target_": "ferl.exploration.NoExploration"}
+        given = {"n_state": n_state, "n_actions": self.env.n_actions, "seed": seed}
+        part = self.make_part(node, "exploration", Exploration, **{k: v for k, v in given.items() if takes(node, k)})
+        if part.active and env_protocol is not EpisodicEnvironment:
+            raise ConfigError(
+                f"exploration={part.describe()['kind']} acts in episodes, and this trainer's environment "
+                "is continuing: use exploration=none"
+            )
+        part.check_actor(self.actor)
+        return part
+
     def make_env(self, n_runs: int):
         """A batch of ``n_runs`` environments of the config on the job's generator."""
         extra: dict[str, Any] = {"data": self.data} if takes(self.cfg.env, "data") else {}
@@ -167,6 +184,7 @@ class Job:
             "env": self.env,
             "preprocessor": self.preprocessor,
             "actor": self.actor,
+            "exploration": self.exploration if self.exploration.active else None,  # its counts
             **{f"predictor_{name}": p for name, p in self.predictors.items()},
         }
         return {name: part for name, part in parts.items() if part is not None}
@@ -182,6 +200,7 @@ class Job:
             "preprocessor": entry(self.preprocessor) if self.preprocessor else None,
             "predictors": {name: entry(p) for name, p in self.predictors.items()},
             "actor": entry(self.actor),
+            **({"exploration": entry(self.exploration)} if self.exploration.active else {}),
         }
 
     # ---- checkpoints ----------------------------------------------------------------------------

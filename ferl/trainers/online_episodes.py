@@ -38,6 +38,7 @@ import torch
 
 from ferl.config.params import ConfigError, Momentum, NonNegative, Positive, PositiveInt, UnitInterval
 from ferl.config.swaps import chosen
+from ferl.exploration import added
 from ferl.predictors.popart import observe_rewards
 from ferl.predictors.recurrent import lookup_step
 from ferl.replay import draw_episodes, store_episode, stored_episodes
@@ -121,14 +122,16 @@ class OnlineEpisodes(ActorEpisodes):
         return self.beta_now
 
     @torch.no_grad()
-    def reward_bonus(self, job, states: list, obs_id: torch.Tensor):
-        """η_k e^y_t: the observation prediction error at the new observation (module docstring)."""
+    def reward_bonus(self, job, states: list, obs_id: torch.Tensor, s_next: torch.Tensor, active: torch.Tensor):
+        """η_k e^y_t: the observation prediction error at the new observation (module docstring),
+        plus the directed exploration's bonus (``ActorEpisodes.reward_bonus``)."""
+        explore = super().reward_bonus(job, states, obs_id, s_next, active)
         if self.eta_now == 0:
-            return None
+            return explore
         y = self.observations.lookup(obs_id)
         errors = [p.observation_error(x, y) for p, x in zip(job.predictors.values(), states)]
         errors = [e for e in errors if e is not None]  # the predictors that predict observations
-        return self.eta_now * sum(errors) if errors else None
+        return added(self.eta_now * sum(errors), explore) if errors else explore
 
     def after_episode(self, job, k: int, episode: dict, state: dict) -> None:
         """Held-out error of episode k, then into the replay, then the predictors' BPTT steps."""

@@ -1,0 +1,85 @@
+"""Temporally extended ε-greedy, εz-greedy (Dabney, Ostrovski & Barreto 2021, Algorithm 1).
+
+At a step where no random option is running, with probability ε a run starts one: an action ω
+drawn uniformly from the n actions, repeated for n steps with n drawn from the zeta distribution
+
+    P(n) = n^(−μ) / ζ(μ),   n = 1, 2, …   (μ > 1; ζ the Riemann zeta function)
+
+and otherwise it takes the actor's own choice (Eq. 3.11; their "greedy"). The heavy tail gives
+the Lévy-flight walks that cross a corridor of aliased observations in ~T_min steps where a
+one-step random walk needs ~T_min² (Dabney et al.'s §3). A duration longer than the episode's
+remaining choices is cut by the episode's end, so n is drawn from the zeta law censored at
+T_max + 1 (every longer n acts alike): the exact distribution of what is acted.
+
+The random numbers of an episode — per run and choice, U(0, 1) for "start an option", for ω and
+for n — are drawn when it starts (``begin_episode``), (T_max + 1, R, 3) from the batch's
+generator. An option never outlives its episode.
+"""
+
+from typing import Annotated
+
+import torch
+from torch import Tensor
+
+from ferl.config.params import Allowed, PositiveInt, UnitInterval, checked
+from ferl.exploration import ExplorationBase, taken
+
+AboveOne = Annotated[float, Allowed(lambda x: x > 1, "> 1 (the zeta distribution needs μ > 1)")]
+
+
+def zeta_cdf(mu: float, longest: int) -> Tensor:
+    """P(n ≤ k) for k = 1 … longest − 1 of the zeta law P(n) = n^(−μ)/ζ(μ) (float64, (longest − 1,)):
+    the thresholds that ``zeta_durations`` inverts (n ≥ longest is one last class)."""
+    k = torch.arange(1, longest, dtype=torch.float64)
+    return (k ** (-mu)).cumsum(0) / torch.special.zeta(torch.tensor(mu, dtype=torch.float64), 1.0)
+
+
+def zeta_durations(cdf: Tensor, u: Tensor) -> Tensor:
+    """Durations n ≥ 1 by inverting the zeta CDF at uniforms u (any shape): n = 1 + #{k : cdf_k ≤ u}
+    … capped at len(cdf) + 1 (the censored class)."""
+    return 1 + torch.searchsorted(cdf, u.to(cdf.dtype).contiguous(), right=True)
+
+
+class EzGreedy(ExplorationBase):
+    """εz-greedy over R runs (module docstring): ``epsilon`` the chance of starting an option at a
+    step without one, ``mu`` the zeta exponent (2: Dabney et al.'s choice across Atari)."""
+
+    episode_learners_refused = "its act steps its memory with the action it drew itself; use exploration=none"
+    held: torch.Tensor  # (R,) ω, the action of each run's option
+    left: torch.Tensor  # (R,) steps of ω still to take (0: no option running)
+    cdf: torch.Tensor  # (T_max,) float64, ``zeta_cdf`` for the episode's T_max + 1 choices
+    uniforms: torch.Tensor  # (T_max + 1, R, 3) the episode's draws: start, ω, n
+    step: int  # choices made in the episode
+
+    @checked
+    def __init__(self, n_runs: PositiveInt, n_actions: PositiveInt, epsilon: UnitInterval = 0.1, mu: AboveOne = 2.0):
+        super().__init__(n_runs)
+        self.n_actions, self.epsilon, self.mu = n_actions, epsilon, mu
+        self.longest = 0  # T_max + 1, known at the first episode
+        self.register_buffer("held", torch.zeros(n_runs, dtype=torch.long), persistent=False)  # ω per run
+        self.register_buffer("left", torch.zeros(n_runs, dtype=torch.long), persistent=False)  # steps of ω to go
+
+    def describe(self) -> dict:
+        return {"kind": "ez_greedy", "epsilon": self.epsilon, "mu": self.mu}
+
+    def begin_episode(self, generator: torch.Generator, max_steps: int) -> None:
+        """No option held; the episode's uniforms (T_max + 1, R, 3), drawn in one call."""
+        if self.longest != max_steps + 1:
+            self.longest = max_steps + 1
+            self.cdf = zeta_cdf(self.mu, self.longest).to(self.held.device)
+        self.uniforms = torch.rand(max_steps + 1, self.n_runs, 3, generator=generator, device=self.held.device)
+        self.step = 0
+        self.left.zero_()
+
+    def choose(self, actor, s: Tensor, proposal: tuple) -> tuple:
+        """Algorithm 1 of Dabney et al.: continue a running option, else start one with chance ε,
+        else the actor's proposal."""
+        u = self.uniforms[self.step]  # (R, 3): start, ω, n
+        self.step += 1
+        start = (self.left == 0) & (u[:, 0] < self.epsilon)
+        omega = (u[:, 1] * self.n_actions).long().clamp(max=self.n_actions - 1)
+        self.held = torch.where(start, omega, self.held)
+        self.left = torch.where(start, zeta_durations(self.cdf, u[:, 2]), self.left)
+        take = self.left > 0
+        self.left = (self.left - 1).clamp(min=0)
+        return taken(actor, s, proposal, take, self.held)
