@@ -90,6 +90,27 @@ def run_train(*overrides, cwd=ROOT, timeout=600, env=None, **popen):
     )
 
 
+# Algorithm 1 (or 2) at a size a test affords: a few random episodes, two predictor epochs, 40 actor episodes
+SHORT_ALGORITHM1 = [
+    "trainer.n_sample=300",
+    "trainer.n_epoch=2",
+    "trainer.n_episodes=40",
+    "trainer.log_every=20",
+    "trainer.td_sample_every=20",
+    "trainer.final_window=20",
+]
+# the regular maze, checkpointed after actor episodes 100 and 200 and after every phase
+RESUMABLE_TMAZE = [
+    "experiment=table4_1_regular",
+    "n_runs=2",
+    "trainer.n_sample=200",
+    "trainer.n_epoch=20",
+    "trainer.phases.predictors.checkpoint_every_epochs=5",
+    "trainer.n_episodes=300",
+    "trainer.checkpoint_every=100",
+    "trainer.log_every=100",
+]
+
 TINY = [
     "n_runs=2",
     "trainer.steps=300",

@@ -27,20 +27,11 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import assert_same_tb_log, run_train
+from conftest import RESUMABLE_TMAZE, assert_same_tb_log, run_train
 from ferl.run import checkpoint
 from ferl.run.checkpoint import CheckpointError, RunIdentity
 
-TMAZE = [
-    "experiment=table4_1_regular",
-    "n_runs=2",
-    "trainer.n_sample=200",
-    "trainer.n_epoch=20",
-    "trainer.phases.predictors.checkpoint_every_epochs=5",
-    "trainer.n_episodes=300",
-    "trainer.checkpoint_every=100",
-    "trainer.log_every=100",
-]  # checkpoints after episodes 100 and 200 and after the actor phase
+TMAZE = RESUMABLE_TMAZE  # checkpoints after episodes 100 and 200 and after the actor phase
 PIXEL = [
     "experiment=table5_1_pixel",
     "n_runs=2",

@@ -8,7 +8,7 @@ import signal
 
 import pytest
 
-from conftest import assert_same_tb_log, compose_config, train_job
+from conftest import SHORT_ALGORITHM1, assert_same_tb_log, compose_config, train_job
 from ferl.preprocessors.rbm import RBMPreprocessor
 from ferl.run import checkpoint
 from test_tmaze_resume import assert_same_records
@@ -17,12 +17,7 @@ PIXEL = [
     "experiment=table5_1_pixel",
     "seed=3",
     "n_runs=2",
-    "trainer.n_sample=300",
-    "trainer.n_epoch=2",
-    "trainer.n_episodes=40",
-    "trainer.log_every=20",
-    "trainer.td_sample_every=20",
-    "trainer.final_window=20",
+    *SHORT_ALGORITHM1,
     "preprocessor.sweeps=6",
     "env.reservoir_size=5",
     "preprocessor.cache_dir=null",

@@ -17,7 +17,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from conftest import ROOT, run_train, validated_config
+from conftest import ROOT, SHORT_ALGORITHM1, run_train, validated_config
 from ferl.config.params import ConfigError
 from ferl.interfaces import TrainerBase
 from ferl.run import footprint
@@ -35,12 +35,7 @@ ONLINE = [
 ]
 MAZE = [
     "experiment=table4_1_regular",
-    "trainer.n_sample=300",
-    "trainer.n_epoch=2",
-    "trainer.n_episodes=40",
-    "trainer.log_every=20",
-    "trainer.td_sample_every=20",
-    "trainer.final_window=20",
+    *SHORT_ALGORITHM1,
 ]
 
 

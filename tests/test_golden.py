@@ -24,7 +24,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import train_job
+from conftest import SHORT_ALGORITHM1, train_job
 
 GOLDEN = Path(__file__).parent / "golden" / "reduced_scale.json"
 FLOOR = [
@@ -37,12 +37,7 @@ FLOOR = [
 ]
 MAZE = [
     "n_runs=2",
-    "trainer.n_sample=300",
-    "trainer.n_epoch=2",
-    "trainer.n_episodes=40",
-    "trainer.log_every=20",
-    "trainer.td_sample_every=20",
-    "trainer.final_window=20",
+    *SHORT_ALGORITHM1,
 ]
 REDUCED = {
     "ch3_floor": FLOOR,

@@ -14,7 +14,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from conftest import train_job, validated_config
+from conftest import SHORT_ALGORITHM1, train_job, validated_config
 from ferl.config.params import ConfigError
 from ferl.data import IDX_FILES, DataError, MnistFull, MnistIDX
 from ferl.mnist_download import default_dir, present
@@ -119,12 +119,7 @@ def test_mnist_full_composes_and_a_tiny_pixel_run_fits_the_rbm_on_all_60000(tmp_
             "preprocessor.sweeps=1",
             "preprocessor.cache_dir=null",
             "env.reservoir_size=5",
-            "trainer.n_sample=300",
-            "trainer.n_epoch=2",
-            "trainer.n_episodes=40",
-            "trainer.log_every=20",
-            "trainer.td_sample_every=20",
-            "trainer.final_window=20",
+            *SHORT_ALGORITHM1,
         ]
     )
     assert OmegaConf.to_container(cfg.data) == {"_target_": "ferl.data.MnistFull", "root": REAL_ROOT}

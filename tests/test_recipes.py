@@ -28,28 +28,20 @@ PAGES = [ROOT / "docs" / "architecture.md", ROOT / "docs" / "usage.md"]
 MARKED = re.compile(r"<!-- recipe: (\S+) (file=(\S+)|run) -->\n```[a-z]*\n(.*?)\n```", re.S)
 COMPONENTS = {"environment", "predictor", "actor", "gymnasium", "phase"}
 OTHERS = {"gym_views"}
+ALGORITHM1 = [
+    "n_runs=2",
+    "compile=false",
+    "trainer.n_sample=200",
+    "trainer.n_epoch=2",
+    "trainer.n_episodes=50",
+    "trainer.log_every=25",
+    "trainer.td_sample_every=25",
+    "trainer.final_window=25",
+]
 # appended to each printed train.py command, by the trainer it names: a tiny scale, eager
 REDUCED = {
-    "trainer=algorithm1": [
-        "n_runs=2",
-        "compile=false",
-        "trainer.n_sample=200",
-        "trainer.n_epoch=2",
-        "trainer.n_episodes=50",
-        "trainer.log_every=25",
-        "trainer.td_sample_every=25",
-        "trainer.final_window=25",
-    ],
-    "trainer=algorithm1_norm": [
-        "n_runs=2",
-        "compile=false",
-        "trainer.n_sample=200",
-        "trainer.n_epoch=2",
-        "trainer.n_episodes=50",
-        "trainer.log_every=25",
-        "trainer.td_sample_every=25",
-        "trainer.final_window=25",
-    ],
+    "trainer=algorithm1": ALGORITHM1,
+    "trainer=algorithm1_norm": ALGORITHM1,  # the phase recipe's trainer: Algorithm 1 and a phase
     "trainer=online": [
         "n_runs=2",
         "compile=false",

@@ -9,23 +9,14 @@ from pathlib import Path
 
 import pytest
 
-from conftest import run_train, validated_config
+from conftest import RESUMABLE_TMAZE, run_train, validated_config
 from ferl.config.params import ConfigError
 from ferl.config.validate import resolved
 from ferl.run import checkpoint
 from ferl.run.checkpoint import RunIdentity
 from ferl.run.resume import ALLOWED, apply_overrides, resumed_run
 
-TMAZE = [
-    "experiment=table4_1_regular",
-    "n_runs=2",
-    "trainer.n_sample=200",
-    "trainer.n_epoch=20",
-    "trainer.phases.predictors.checkpoint_every_epochs=5",
-    "trainer.n_episodes=300",
-    "trainer.checkpoint_every=100",
-    "trainer.log_every=100",
-]
+TMAZE = RESUMABLE_TMAZE
 
 
 def saved_run(tmp_path, overrides=TMAZE, device="cpu") -> Path:

@@ -220,14 +220,7 @@ class FERLActor(SoftmaxActor):
             return a, F_a, x_a, F_a
         return super().act(s, beta, generator, uniform)
 
-    def select(
-        self,
-        s: torch.Tensor,
-        F: torch.Tensor,
-        beta: float,
-        generator: torch.Generator,
-        uniform: torch.Tensor | None = None,
-    ) -> torch.Tensor:
+    def select(self, s: torch.Tensor, F: torch.Tensor, beta: float, generator: torch.Generator, uniform=None):
         """An action index per (run, state): clamped softmax (Eq. 3.11) or alternating Gibbs.
 
         ``uniform`` (R, B, 1) may carry pre-drawn U(0, 1) numbers for the clamped softmax.

@@ -41,7 +41,7 @@ import torch
 
 from ferl import rbm
 from ferl.config.params import Positive, PositiveInt, checked
-from ferl.preprocessors.rbm import Generators, RBMPreprocessor, uniform
+from ferl.preprocessors.rbm import RBMPreprocessor, uniform
 
 GaussianVisibleMode = Literal["mean", "sampled"]
 
@@ -126,19 +126,11 @@ class GaussianRBMPreprocessor(RBMPreprocessor):
 
     # ---- training ------------------------------------------------------------------------------
     @torch.no_grad()
-    def train(  # type: ignore[override]  # as RBMPreprocessor.train
-        self,
-        images: torch.Tensor,
-        generator: Generators | None = None,
-        writer=None,
-        progress: bool = True,
-        stop=None,
-        resume: dict | None = None,
-    ) -> np.ndarray:
+    def train(self, images: torch.Tensor, *args, **kwargs) -> np.ndarray:  # type: ignore[override]  # as the base's
         """The binary RBM's training (CD-k, its streams, logging, stop and resume) on the images
         standardised by their own per-pixel statistics (N, V) or (R, N, V); returns the error (R, sweeps)."""
         self.fit_standardisation(images)
-        return super().train(self.standardise(images), generator, writer, progress, stop, resume)
+        return super().train(self.standardise(images), *args, **kwargs)
 
     @torch.no_grad()
     def fit(self, data, writer, stop=None, resume: dict | None = None) -> dict:

@@ -36,7 +36,7 @@ import time
 import numpy as np
 import torch
 
-from ferl.config.params import ConfigError, Momentum, NonNegative, Positive, PositiveInt, UnitInterval
+from ferl.config.params import ConfigError, Momentum, NonNegative, PositiveInt, UnitInterval
 from ferl.config.swaps import chosen
 from ferl.exploration import added
 from ferl.predictors.popart import observe_rewards
@@ -53,10 +53,6 @@ class OnlineEpisodes(ActorEpisodes):
 
     def __init__(
         self,
-        n_episodes: PositiveInt,
-        actor_obs_scale: Positive,
-        td_sample_every: PositiveInt,
-        final_window: PositiveInt,
         replay_episodes: PositiveInt,
         replay_sample: PositiveInt,
         replay_batch_size: PositiveInt | None,
@@ -64,8 +60,10 @@ class OnlineEpisodes(ActorEpisodes):
         error_ema: UnitInterval,
         curiosity: NonNegative,
         curiosity_anneal: NonNegative,
+        **episodes,
     ):
-        super().__init__(n_episodes, actor_obs_scale, td_sample_every, final_window)
+        """``episodes``: ``ActorEpisodes``' own keys (its signature, which the config checks read too)."""
+        super().__init__(**episodes)
         self.K, self.n_replay, self.replay_batch = replay_episodes, replay_sample, replay_batch_size
         self.tau, self.ema, self.eta, self.anneal = beta_error_ratio, error_ema, curiosity, curiosity_anneal
         self.eta_now = 0.0
