@@ -15,10 +15,10 @@ from ferl.schedules import Constant
 
 def make_actor(R=3, S=6, A=4, H=5, code="onehot", td_rule="sarsa", init_std=0.5, **kw):
     actor = FERLActor(
-        R,
-        S,
-        A,
-        H,
+        n_runs=R,
+        n_state=S,
+        n_actions=A,
+        n_hidden=H,
         td_rule=td_rule,
         gamma=0.9,
         lr=Constant(0.1),
@@ -182,10 +182,10 @@ def test_gibbs_sampling_reaches_free_energy_softmax(code):
     temperature free energy of the same RBM with all parameters scaled by β (§2.1.5)."""
     R, beta = 4000, 1.5
     actor = FERLActor(
-        R,
-        3,
-        4,
-        3,
+        n_runs=R,
+        n_state=3,
+        n_actions=4,
+        n_hidden=3,
         td_rule="sarsa",
         gamma=0.9,
         lr=Constant(0.1),

@@ -39,7 +39,16 @@ def test_components_meet_their_protocols():
     assert isinstance(DigitTMaze(2, gen, tiny_split(), digits, matching=True), interfaces.EpisodicEnvironment)
     assert isinstance(RBMPreprocessor(2, n_visible=16, n_hidden=4), interfaces.Preprocessor)
     assert isinstance(ElmanPredictor(2, 7, 4, n_reward=4), interfaces.Predictor)
-    actor = FERLActor(2, 27, 4, 20, "sarsa", 0.95, Constant(0.05), Constant(1.0))
+    actor = FERLActor(
+        n_runs=2,
+        n_state=27,
+        n_actions=4,
+        n_hidden=20,
+        td_rule="sarsa",
+        gamma=0.95,
+        lr=Constant(0.05),
+        beta=Constant(1.0),
+    )
     assert isinstance(actor, interfaces.Actor) and isinstance(actor, interfaces.ActorViews)
 
 

@@ -23,7 +23,19 @@ def schedules(lr=0.1, beta=1.0):
 
 
 def test_mlp_q_update_is_alpha_delta_times_the_autograd_gradient_of_q():
-    actor = MLPQActor(R, S, NA, H, "sarsa", 0.9, lr_norm="none", init_std=0.5, td_fresh=False, seed=3, **schedules())
+    actor = MLPQActor(
+        n_runs=R,
+        n_state=S,
+        n_actions=NA,
+        n_hidden=H,
+        td_rule="sarsa",
+        gamma=0.9,
+        lr_norm="none",
+        init_std=0.5,
+        td_fresh=False,
+        seed=3,
+        **schedules(),
+    )
     actor.b_1.normal_(generator=torch.Generator().manual_seed(1))
     gen = torch.Generator().manual_seed(0)
     s = torch.rand(R, 1, S, generator=gen)
@@ -62,7 +74,14 @@ def test_oracle_tabular_values_are_the_value_iteration_fixed_point():
     T_min, gamma, runs = 3, 0.95, 2
     gen = torch.Generator().manual_seed(0)
     env = TMaze(runs, gen, corridor_length=T_min, max_steps=10, true_state=True)
-    actor = TabularQActor(runs, env.observation_size, env.n_actions, "q", gamma, **schedules(lr=1.0, beta=0.0))
+    actor = TabularQActor(
+        n_runs=runs,
+        n_state=env.observation_size,
+        n_actions=env.n_actions,
+        td_rule="q",
+        gamma=gamma,
+        **schedules(lr=1.0, beta=0.0),
+    )
     alive = torch.ones(runs, 1, dtype=torch.bool)
     for _ in range(1500):
         env.reset()
@@ -128,7 +147,7 @@ def reference_gru(actor: RecurrentQActor, r: int) -> torch.nn.GRUCell:
 
 
 def test_gru_step_is_torch_grucell_run_by_run():
-    actor = RecurrentQActor(R, S, NA, H, 0.9, seed=2, **schedules())
+    actor = RecurrentQActor(n_runs=R, n_state=S, n_actions=NA, n_hidden=H, gamma=0.9, seed=2, **schedules())
     x = torch.randn(R, 7, S + NA)
     h = torch.randn(R, 7, H)
     out = actor.core.step(actor.params(), x, h)
@@ -184,7 +203,7 @@ def reference_loss(actor: RecurrentQActor, r: int, batch: dict, cell, W_q, b_q) 
 def test_drqn_bptt_gradient_of_every_run_equals_a_per_run_reference():
     """The batched loss's gradient with respect to run r's parameters is run r's own loss gradient,
     computed by an independent per-episode Python unroll with torch.nn.GRUCell."""
-    actor = RecurrentQActor(R, S, NA, H, 0.9, seed=4, **schedules())
+    actor = RecurrentQActor(n_runs=R, n_state=S, n_actions=NA, n_hidden=H, gamma=0.9, seed=4, **schedules())
     for name in actor.names:  # a target network that differs from the online one
         getattr(actor, f"{name}_target").add_(torch.randn_like(getattr(actor, name)) * 0.1)
     batch = episodes_batch()
@@ -200,7 +219,7 @@ def test_drqn_bptt_gradient_of_every_run_equals_a_per_run_reference():
 
 
 def test_drqn_adam_step_equals_torch_adam():
-    actor = RecurrentQActor(R, S, NA, H, 0.9, seed=1, **schedules())
+    actor = RecurrentQActor(n_runs=R, n_state=S, n_actions=NA, n_hidden=H, gamma=0.9, seed=1, **schedules())
     batch = episodes_batch(seed=3)
     params = {name: value.clone().requires_grad_() for name, value in actor.params().items()}
     optimiser = torch.optim.Adam(list(params.values()), lr=0.01)
@@ -215,7 +234,17 @@ def test_drqn_adam_step_equals_torch_adam():
 
 @pytest.mark.parametrize("draws", [3])
 def test_drqn_replay_draws_per_run_and_resumes_from_its_extra_state(draws):
-    actor = RecurrentQActor(R, S, NA, H, 0.9, batch_episodes=4, updates_per_episode=0, seed=0, **schedules())
+    actor = RecurrentQActor(
+        n_runs=R,
+        n_state=S,
+        n_actions=NA,
+        n_hidden=H,
+        gamma=0.9,
+        batch_episodes=4,
+        updates_per_episode=0,
+        seed=0,
+        **schedules(),
+    )
     T = 4
     for k in range(draws):
         actor.end_episode(
@@ -230,7 +259,17 @@ def test_drqn_replay_draws_per_run_and_resumes_from_its_extra_state(draws):
             ),
             0.01,
         )
-    copy = RecurrentQActor(R, S, NA, H, 0.9, batch_episodes=4, updates_per_episode=0, seed=0, **schedules())
+    copy = RecurrentQActor(
+        n_runs=R,
+        n_state=S,
+        n_actions=NA,
+        n_hidden=H,
+        gamma=0.9,
+        batch_episodes=4,
+        updates_per_episode=0,
+        seed=0,
+        **schedules(),
+    )
     copy.load_state_dict(actor.state_dict())
     first, again = actor.sample(), copy.sample()
     assert torch.equal(first["states"], again["states"])
@@ -240,7 +279,9 @@ def test_drqn_replay_draws_per_run_and_resumes_from_its_extra_state(draws):
 def test_drqn_forgets_its_memory_when_the_episode_ends():
     """``end_episode`` is where DRQN learns (nothing per step: ``learn`` leaves every weight) and
     where its memory starts afresh: the next episode's first Q is the untrained h = 0 one."""
-    actor = RecurrentQActor(R, S, NA, H, 0.9, updates_per_episode=0, seed=2, **schedules())
+    actor = RecurrentQActor(
+        n_runs=R, n_state=S, n_actions=NA, n_hidden=H, gamma=0.9, updates_per_episode=0, seed=2, **schedules()
+    )
     s = torch.rand(R, 1, S, generator=torch.Generator().manual_seed(4))
     F_fresh, _ = actor.evaluate(s)
     weights = {k: v.clone() for k, v in actor.named_buffers() if k not in ("h", "a_prev")}
@@ -296,7 +337,7 @@ def test_the_continuing_td_phase_refuses_an_actor_that_learns_only_from_episodes
     from ferl.trainers.phased import RunControl
 
     job = SimpleNamespace(
-        actor=RecurrentQActor(R, S, NA, H, 0.9, **schedules()),
+        actor=RecurrentQActor(n_runs=R, n_state=S, n_actions=NA, n_hidden=H, gamma=0.9, **schedules()),
         env=SimpleNamespace(task="floor"),
         R=R,
         control=RunControl(log_every=5, checkpoint_every=5, checkpoint_minutes=0.0, divergence_limit=1e6),
@@ -327,7 +368,7 @@ def test_an_actor_without_the_logging_views_records_no_hidden_activations():
     env = SimpleNamespace(labels=lambda: {"cue": torch.tensor([1, 0, 1])})
     phase = ActorEpisodes.__new__(ActorEpisodes)
     seen = {}
-    for actor in (Viewless(), RecurrentQActor(R, S, NA, H, 0.9, **schedules())):
+    for actor in (Viewless(), RecurrentQActor(n_runs=R, n_state=S, n_actions=NA, n_hidden=H, gamma=0.9, **schedules())):
         seen[isinstance(actor, ActorViews)] = phase.probe_visits(
             SimpleNamespace(actor=actor, env=env, predictors={"m": None}), 7, ep
         )

@@ -95,12 +95,12 @@ def actors(code: str, dtype, n_actions: int, td_rule="sarsa"):
         action_code=code,
         init_std=0.7,
     )
-    batched = FERLActor(R, seed=3, **kw).to(dtype)
+    batched = FERLActor(n_runs=R, seed=3, **kw).to(dtype)
     g = torch.Generator().manual_seed(11)
     for name in ("b_s", "b_a", "b_h"):
         buf = getattr(batched, name)
         buf.copy_(0.5 * torch.randn(buf.shape, generator=g, dtype=torch.float64))
-    return batched, lambda: FERLActor(1, seed=99, **kw).to(dtype)
+    return batched, lambda: FERLActor(n_runs=1, seed=99, **kw).to(dtype)
 
 
 def actor_params(actor) -> dict:
@@ -491,7 +491,15 @@ def test_numpy_sarsa_step_matches_ferl_actor():
     params = ref.init_actor(rng, n_state, 20)
     params[2][:], params[3][:], params[4][:] = (rng.normal(0, 0.5, p.shape) for p in params[2:])
     actor = FERLActor(
-        1, n_state, ref.N_ACTIONS, 20, "sarsa", 0.95, Constant(0.05), Constant(1.0), lr_norm="fan_in"
+        n_runs=1,
+        n_state=n_state,
+        n_actions=ref.N_ACTIONS,
+        n_hidden=20,
+        td_rule="sarsa",
+        gamma=0.95,
+        lr=Constant(0.05),
+        beta=Constant(1.0),
+        lr_norm="fan_in",
     ).double()
     for name, value in zip(ACTOR_KEYS, params):
         getattr(actor, name).copy_(torch.from_numpy(value)[None])
@@ -537,7 +545,16 @@ def test_numpy_fresh_pair_is_the_free_energy_after_the_update(a_next):
     n_state = ref.N_OBS + 20
     params = ref.init_actor(rng, n_state, 20)
     actor = FERLActor(
-        1, n_state, ref.N_ACTIONS, 20, "sarsa", 0.95, Constant(0.05), Constant(1.0), lr_norm="fan_in", td_fresh=True
+        n_runs=1,
+        n_state=n_state,
+        n_actions=ref.N_ACTIONS,
+        n_hidden=20,
+        td_rule="sarsa",
+        gamma=0.95,
+        lr=Constant(0.05),
+        beta=Constant(1.0),
+        lr_norm="fan_in",
+        td_fresh=True,
     ).double()
     for name, value in zip(ACTOR_KEYS, params):
         getattr(actor, name).copy_(torch.from_numpy(value)[None])

@@ -26,7 +26,17 @@ DRQN_COMMIT = "83efea8"  # the last commit with ferl/actors/drqn.py, DRQN's own 
 
 def actor(head="linear", memory="gru", **kwargs) -> RecurrentQActor:
     return RecurrentQActor(
-        R, S, NA, H, 0.9, Constant(0.01), Constant(2.0), head=head, memory=memory, head_hidden=K, **kwargs
+        n_runs=R,
+        n_state=S,
+        n_actions=NA,
+        n_hidden=H,
+        gamma=0.9,
+        lr=Constant(0.01),
+        beta=Constant(2.0),
+        head=head,
+        memory=memory,
+        head_hidden=K,
+        **kwargs,
     )
 
 
@@ -104,7 +114,17 @@ def test_every_cores_step_equals_its_reference(memory):
 
 
 def test_esn_reservoir_has_the_spectral_radius_and_stays_fixed():
-    agent = RecurrentQActor(R, S, NA, 30, 0.9, Constant(0.01), Constant(2.0), memory="esn", seed=2)  # not nilpotent
+    agent = RecurrentQActor(
+        n_runs=R,
+        n_state=S,
+        n_actions=NA,
+        n_hidden=30,
+        gamma=0.9,
+        lr=Constant(0.01),
+        beta=Constant(2.0),
+        memory="esn",
+        seed=2,
+    )  # not nilpotent
     radius = torch.linalg.eigvals(agent.W_res.double()).abs().amax(-1)
     torch.testing.assert_close(radius, torch.full((R,), 0.95, dtype=torch.float64))
     assert "W_res" not in agent.names and "W_in" not in agent.names  # no Adam step moves them
@@ -166,16 +186,29 @@ def ended(k: int, T: int = 4) -> EndedEpisode:
     )
 
 
-def drqn_module() -> types.ModuleType:
-    """ferl/actors/drqn.py as it was before the recurrent Q-learner replaced it (git)."""
-    source = subprocess.run(
-        ["git", "-C", str(ROOT), "show", f"{DRQN_COMMIT}:ferl/actors/drqn.py"], capture_output=True, text=True
-    )
+def old_module(path: str, name: str, replace: str = "", **names) -> types.ModuleType:
+    """``path`` as it was at DRQN_COMMIT (git), run as module ``name`` with ``names`` defined first
+    and the line ``replace`` taken out."""
+    source = subprocess.run(["git", "-C", str(ROOT), "show", f"{DRQN_COMMIT}:{path}"], capture_output=True, text=True)
     if source.returncode != 0:
         pytest.skip(f"no git history with {DRQN_COMMIT}")
-    module = types.ModuleType("old_drqn")
-    exec(compile(source.stdout, "old_drqn.py", "exec"), module.__dict__)
+    module = types.ModuleType(name)
+    module.__dict__.update(names)
+    exec(compile(source.stdout.replace(replace, ""), f"{name}.py", "exec"), module.__dict__)
     return module
+
+
+def drqn_module() -> types.ModuleType:
+    """ferl/actors/drqn.py as it was before the recurrent Q-learner replaced it, on the softmax
+    actor base of the same commit (git)."""
+    softmax = old_module("ferl/actors/softmax.py", "old_softmax")
+    return old_module(
+        "ferl/actors/drqn.py",
+        "old_drqn",
+        "from ferl.actors.softmax import SoftmaxActor, TDRule\n",
+        SoftmaxActor=softmax.SoftmaxActor,
+        TDRule=softmax.TDRule,
+    )
 
 
 def test_drqn_is_the_recurrent_q_learner_with_a_gru_and_a_linear_head():
@@ -185,7 +218,18 @@ def test_drqn_is_the_recurrent_q_learner_with_a_gru_and_a_linear_head():
     assert cfg.actor._target_.endswith("RecurrentQActor") and (cfg.actor.head, cfg.actor.memory) == ("linear", "gru")
     kwargs = {"batch_episodes": 3, "target_every": 2, "seed": 5}
     old = drqn_module().DRQNActor(R, S, NA, H, 0.9, Constant(0.05), Constant(2.0), **kwargs)
-    new = RecurrentQActor(R, S, NA, H, 0.9, Constant(0.05), Constant(2.0), head="linear", memory="gru", **kwargs)
+    new = RecurrentQActor(
+        n_runs=R,
+        n_state=S,
+        n_actions=NA,
+        n_hidden=H,
+        gamma=0.9,
+        lr=Constant(0.05),
+        beta=Constant(2.0),
+        head="linear",
+        memory="gru",
+        **kwargs,
+    )
     for k in range(5):
         s = torch.rand(R, 1, S, generator=torch.Generator().manual_seed(100 + k))
         a_old = old.act(s, 2.0, torch.Generator().manual_seed(k))
@@ -233,7 +277,17 @@ def test_the_free_energy_head_learns_to_remember_a_cue_through_its_core():
     agent names the cue half the time; trained end to end, every run names it in ≥ 95 % of
     greedy episodes."""
     agent = RecurrentQActor(
-        R, 3, 2, 8, 0.9, Constant(0.01), Constant(3.0), head="free_energy", head_hidden=8, target_every=20, seed=0
+        n_runs=R,
+        n_state=3,
+        n_actions=2,
+        n_hidden=8,
+        gamma=0.9,
+        lr=Constant(0.01),
+        beta=Constant(3.0),
+        head="free_energy",
+        head_hidden=8,
+        target_every=20,
+        seed=0,
     )
     gen = torch.Generator().manual_seed(0)
     for _ in range(400):

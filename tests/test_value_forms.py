@@ -18,10 +18,10 @@ PARAMS = ("W_sh", "W_ah", "b_s", "b_a", "b_h")
 
 def make_actor(q, R=2, S=3, A=4, H=4, code="onehot", **kw):
     actor = FERLActor(
-        R,
-        S,
-        A,
-        H,
+        n_runs=R,
+        n_state=S,
+        n_actions=A,
+        n_hidden=H,
         td_rule="sarsa",
         gamma=0.9,
         lr=Constant(0.1),
@@ -139,10 +139,10 @@ def test_gradient_norm_and_the_normalised_step(q):
 
 def factored_actor(R, beta, q="free_energy", sweeps=30):
     actor = FERLActor(
-        R,
-        3,
-        8,
-        3,
+        n_runs=R,
+        n_state=3,
+        n_actions=8,
+        n_hidden=3,
         td_rule="sarsa",
         gamma=0.0,
         lr=Constant(0.1),
@@ -201,10 +201,10 @@ def test_annealed_chain_rises_geometrically_to_beta():
     """gibbs_anneal_from: the sweeps' inverse temperatures go from that value to β by a constant
     ratio (at β / Z for the scaled free energy); without it every sweep runs at β."""
     plain = FERLActor(
-        1,
-        3,
-        8,
-        2,
+        n_runs=1,
+        n_state=3,
+        n_actions=8,
+        n_hidden=2,
         td_rule="sarsa",
         gamma=0.0,
         lr=Constant(0.1),
@@ -215,10 +215,10 @@ def test_annealed_chain_rises_geometrically_to_beta():
     )
     assert plain.chain_betas(4.0) == [4.0] * 5
     annealed = FERLActor(
-        1,
-        4,
-        8,
-        2,
+        n_runs=1,
+        n_state=4,
+        n_actions=8,
+        n_hidden=2,
         td_rule="sarsa",
         gamma=0.0,
         lr=Constant(0.1),

@@ -26,11 +26,11 @@ from typing import Literal
 
 import torch
 
-from ferl import rbm, rng
-from ferl.actors.softmax import SoftmaxActor, TDRule, check_schedules, sample_categorical
+from ferl import rbm
+from ferl.actors.softmax import SoftmaxActor, check_schedules, sample_categorical
 from ferl.actors.values import FORMS, value_form
 from ferl.bits import from_bits, to_bits
-from ferl.config.params import ArgumentError, Discount, NonNegative, NonNegativeInt, Positive, PositiveInt, checked
+from ferl.config.params import ArgumentError, NonNegative, Positive, PositiveInt, checked
 
 # what α is divided by: the square root of the edges or of a hidden node's fan-in, nothing, or
 # ‖∂Q(s, a)/∂θ‖² (normalised LMS: α is then the share of δ that one update corrects)
@@ -70,14 +70,8 @@ class FERLActor(SoftmaxActor):
     @checked
     def __init__(
         self,
-        n_runs: PositiveInt,
-        n_state: PositiveInt,
-        n_actions: PositiveInt,
+        *,
         n_hidden: PositiveInt,
-        td_rule: TDRule,
-        gamma: Discount,
-        lr,
-        beta,
         lr_norm: LRNorm = "edges",
         init_std: NonNegative = 0.01,
         bias_init_std: NonNegative = 0.0,
@@ -88,12 +82,13 @@ class FERLActor(SoftmaxActor):
         td_fresh: bool = False,
         q: ValueForm = "free_energy",
         q_scale: Positive | None = None,
-        seed: NonNegativeInt = 0,
+        **softmax,
     ):
-        super().__init__()
-        self.td_rule, self.gamma, self.td_fresh = td_rule, gamma, td_fresh
-        self.n_hidden, self.lr_norm = n_hidden, lr_norm
-        self.lr_schedule, self.beta_schedule = lr, beta
+        """``softmax``: the sizes, TD rule, γ, schedules and seed every softmax actor takes
+        (``SoftmaxActor``)."""
+        super().__init__(**softmax)
+        _, n_state, n_actions = self.sizes
+        self.td_fresh, self.n_hidden, self.lr_norm = td_fresh, n_hidden, lr_norm
         self.action_selection, self.gibbs_sweeps = action_selection, gibbs_sweeps
         self.gibbs_anneal_from = gibbs_anneal_from
         # Z of the scaled free energy: by default √(state nodes), Elfwing et al. (2013)'s choice
@@ -107,7 +102,7 @@ class FERLActor(SoftmaxActor):
         n_bits = codes.shape[1]
         self.register_buffer("codes", codes)
         # Each run is initialised from its own seed, so run r does not depend on n_runs.
-        gens = rng.run_generators(seed, n_runs)
+        gens = self.run_generators()
         self.register_buffer(
             "W_sh", torch.stack([torch.randn(n_state, n_hidden, generator=g) for g in gens]) * init_std
         )

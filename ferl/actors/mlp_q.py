@@ -20,9 +20,8 @@ from typing import Literal
 
 import torch
 
-from ferl import rng
-from ferl.actors.softmax import SoftmaxActor, TDRule
-from ferl.config.params import Discount, NonNegative, NonNegativeInt, PositiveInt, checked
+from ferl.actors.softmax import SoftmaxActor
+from ferl.config.params import NonNegative, PositiveInt, checked
 
 LRNorm = Literal["fan_in", "none"]  # α / √(state inputs of a hidden node), or α as given
 
@@ -40,24 +39,20 @@ class MLPQActor(SoftmaxActor):
     @checked
     def __init__(
         self,
-        n_runs: PositiveInt,
-        n_state: PositiveInt,
-        n_actions: PositiveInt,
+        *,
         n_hidden: PositiveInt,
-        td_rule: TDRule,
-        gamma: Discount,
-        lr,
-        beta,
         lr_norm: LRNorm = "fan_in",
         init_std: NonNegative = 0.1,
         td_fresh: bool = True,
-        seed: NonNegativeInt = 0,
+        **softmax,
     ):
-        super().__init__()
-        self.td_rule, self.gamma, self.td_fresh, self.n_hidden = td_rule, gamma, td_fresh, n_hidden
-        self.lr_schedule, self.beta_schedule = lr, beta
+        """``softmax``: the sizes, TD rule, γ, schedules and seed every softmax actor takes
+        (``SoftmaxActor``)."""
+        super().__init__(**softmax)
+        n_runs, n_state, n_actions = self.sizes
+        self.td_fresh, self.n_hidden = td_fresh, n_hidden
         self.lr_divisor = math.sqrt(n_state) if lr_norm == "fan_in" else 1.0
-        gens = rng.run_generators(seed, n_runs)
+        gens = self.run_generators()
         draw = lambda *shape: torch.stack([torch.randn(*shape, generator=g) for g in gens]) * init_std  # noqa: E731
         self.register_buffer("W_1", draw(n_state, n_hidden))
         self.register_buffer("W_2", draw(n_hidden, n_actions))

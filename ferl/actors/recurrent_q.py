@@ -32,7 +32,7 @@ from ferl import rng
 from ferl.actors.q_heads import head as make_head
 from ferl.actors.recurrent_cores import CORES
 from ferl.actors.softmax import SoftmaxActor, TDRule
-from ferl.config.params import Discount, NonNegative, NonNegativeInt, Positive, PositiveInt, checked
+from ferl.config.params import NonNegative, NonNegativeInt, Positive, PositiveInt, checked
 from ferl.interfaces import EndedEpisode
 from ferl.replay import draw_episodes, new_replay, store_episode, stored_episodes
 
@@ -57,13 +57,8 @@ class RecurrentQActor(SoftmaxActor):
     @checked
     def __init__(
         self,
-        n_runs: PositiveInt,
-        n_state: PositiveInt,
-        n_actions: PositiveInt,
+        *,
         n_hidden: PositiveInt,
-        gamma: Discount,
-        lr,
-        beta,
         head: HeadName = "linear",
         memory: MemoryName = "gru",
         head_hidden: PositiveInt = 20,
@@ -73,12 +68,14 @@ class RecurrentQActor(SoftmaxActor):
         updates_per_episode: NonNegativeInt = 1,
         target_every: PositiveInt = 100,
         td_rule: TDRule = "q",
-        seed: NonNegativeInt = 0,
         init_std: NonNegative | None = None,
+        **softmax,
     ):
-        super().__init__()
-        self.td_rule, self.gamma, self.n_hidden, self.n_actions = td_rule, gamma, n_hidden, n_actions
-        self.lr_schedule, self.beta_schedule, self.lr_divisor = lr, beta, 1.0
+        """``softmax``: the sizes, γ, schedules and seed every softmax actor takes (``SoftmaxActor``);
+        the TD rule is Q-learning's unless given."""
+        super().__init__(td_rule=td_rule, **softmax)
+        n_runs, n_state, n_actions = self.sizes
+        self.n_hidden, self.n_actions = n_hidden, n_actions
         self.replay_episodes, self.batch_episodes = replay_episodes, batch_episodes
         self.updates_per_episode, self.target_every = updates_per_episode, target_every
         self.core = CORES[memory](n_state + n_actions, n_hidden)
@@ -87,7 +84,7 @@ class RecurrentQActor(SoftmaxActor):
         self.names = tuple(shapes)
         # U(−1/√H, 1/√H) (PyTorch's recurrent-cell initialisation) unless init_std is given, per
         # run from seed + r, parameter by parameter in the order of ``shapes``
-        generators = rng.run_generators(seed, n_runs)
+        generators = self.run_generators()
         bound = 1 / math.sqrt(n_hidden)
         drawn = {}
         for name, shape in shapes.items():

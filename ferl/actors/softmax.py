@@ -9,17 +9,26 @@ a slice of the runs whose updates land in the whole batch.
 
 import copy
 from collections.abc import Callable
-from typing import Literal, get_args
+from typing import Literal, NamedTuple, get_args
 
 import torch
 from hydra.utils import instantiate
 from torch import nn
 
-from ferl.config.params import ArgumentError
+from ferl import rng
+from ferl.config.params import ArgumentError, Discount, NonNegativeInt, PositiveInt
 from ferl.interfaces import ActorBase
 
 TDRule = Literal["sarsa", "q", "expected_sarsa"]
 TD_RULES = get_args(TDRule)
+
+
+class ActorSizes(NamedTuple):
+    """The sizes an actor is built with: runs R, state nodes S, actions nA (the environment's)."""
+
+    runs: int
+    state: int
+    actions: int
 
 
 def pick(x: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
@@ -52,8 +61,9 @@ def check_schedules(args: dict) -> None:
 class SoftmaxActor(ActorBase, nn.Module):
     """An actor choosing among its n actions by Eq. (3.11) and learning by a TD rule (§3.2).
 
-    Subclasses set ``td_rule``, ``gamma``, ``lr_schedule``, ``beta_schedule``, ``lr_divisor`` and
-    give ``evaluate(s) → (F (R, B, nA), cache (R, B, nA, ·))`` and ``learn`` (or ``end_episode``);
+    Its constructor takes what every such actor is given; a subclass takes its own keys by keyword
+    and passes these on (``**softmax``), sets ``lr_divisor`` if α is normalised, and gives
+    ``evaluate(s) → (F (R, B, nA), cache (R, B, nA, ·))`` and ``learn`` (or ``end_episode``);
     ``ActorBase`` gives the other hooks' defaults."""
 
     shared_buffers: tuple = ()  # buffers without a run dimension (``slice_runs`` keeps them whole)
@@ -62,6 +72,28 @@ class SoftmaxActor(ActorBase, nn.Module):
     lr_schedule: Callable[[float], float]  # α at a fraction of training done
     beta_schedule: Callable[[float], float]  # β likewise
     lr_divisor: float
+
+    def __init__(
+        self,
+        n_runs: PositiveInt,
+        n_state: PositiveInt,
+        n_actions: PositiveInt,
+        td_rule: TDRule,
+        gamma: Discount,
+        lr,
+        beta,
+        seed: NonNegativeInt = 0,
+    ):
+        """The sizes (the environment's, ``sizes``), the TD rule and discount γ of §3.2, the α and β
+        schedules over training (Eq. 3.11) and the seed of the runs' initial weights."""
+        super().__init__()
+        self.sizes = ActorSizes(n_runs, n_state, n_actions)
+        self.td_rule, self.gamma, self.seed = td_rule, gamma, seed
+        self.lr_schedule, self.beta_schedule, self.lr_divisor = lr, beta, 1.0
+
+    def run_generators(self) -> list[torch.Generator]:
+        """One generator per run, from seed + r (``ferl.rng``): run r's weights do not depend on R."""
+        return rng.run_generators(self.seed, self.sizes.runs)
 
     def evaluate(self, s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """F (R, B, nA) and the cache (R, B, nA, ·) at states s: the subclass's."""

@@ -14,8 +14,8 @@ what it visits only, as value iteration's fixed point (``tests/test_baselines.py
 
 import torch
 
-from ferl.actors.softmax import SoftmaxActor, TDRule
-from ferl.config.params import Discount, NonNegativeInt, PositiveInt, checked
+from ferl.actors.softmax import SoftmaxActor
+from ferl.config.params import checked
 
 
 class TabularQActor(SoftmaxActor):
@@ -25,22 +25,11 @@ class TabularQActor(SoftmaxActor):
     Q: torch.Tensor  # (R, S, nA)
 
     @checked
-    def __init__(
-        self,
-        n_runs: PositiveInt,
-        n_state: PositiveInt,
-        n_actions: PositiveInt,
-        td_rule: TDRule,
-        gamma: Discount,
-        lr,
-        beta,
-        init_value: float = 0.0,
-        seed: NonNegativeInt = 0,
-    ):
-        super().__init__()
-        self.td_rule, self.gamma = td_rule, gamma
-        self.lr_schedule, self.beta_schedule, self.lr_divisor = lr, beta, 1.0
-        self.register_buffer("Q", torch.full((n_runs, n_state, n_actions), float(init_value)))
+    def __init__(self, *, init_value: float = 0.0, **softmax):
+        """``softmax``: the sizes, TD rule, γ, schedules and seed every softmax actor takes
+        (``SoftmaxActor``); every Q starts at ``init_value``."""
+        super().__init__(**softmax)
+        self.register_buffer("Q", torch.full(self.sizes, float(init_value)))
 
     @property
     def n_runs(self) -> int:
