@@ -1,4 +1,4 @@
-"""The baseline actors (issue 4/8, CONTRACT §2 ``actor``) checked against independent computations:
+"""The baseline actors (``actor=mlp_q|oracle|drqn``) checked against independent computations:
 the MLP-Q update against autograd, the oracle's tabular values against value iteration on the
 maze's definition, DRQN's GRU and its BPTT gradient against torch.nn.GRU run run by run, its Adam
 against torch.optim.Adam."""
@@ -16,6 +16,7 @@ from ferl.interfaces import EndedEpisode
 from ferl.schedules import Constant
 
 R, S, NA, H = 3, 5, 4, 6
+SIZES = dict(n_runs=R, n_state=S, n_actions=NA, n_hidden=H)  # the actors' sizes, by keyword
 
 
 def schedules(lr=0.1, beta=1.0):
@@ -24,17 +25,7 @@ def schedules(lr=0.1, beta=1.0):
 
 def test_mlp_q_update_is_alpha_delta_times_the_autograd_gradient_of_q():
     actor = MLPQActor(
-        n_runs=R,
-        n_state=S,
-        n_actions=NA,
-        n_hidden=H,
-        td_rule="sarsa",
-        gamma=0.9,
-        lr_norm="none",
-        init_std=0.5,
-        td_fresh=False,
-        seed=3,
-        **schedules(),
+        **SIZES, td_rule="sarsa", gamma=0.9, lr_norm="none", init_std=0.5, td_fresh=False, seed=3, **schedules()
     )
     actor.b_1.normal_(generator=torch.Generator().manual_seed(1))
     gen = torch.Generator().manual_seed(0)
@@ -147,7 +138,7 @@ def reference_gru(actor: RecurrentQActor, r: int) -> torch.nn.GRUCell:
 
 
 def test_gru_step_is_torch_grucell_run_by_run():
-    actor = RecurrentQActor(n_runs=R, n_state=S, n_actions=NA, n_hidden=H, gamma=0.9, seed=2, **schedules())
+    actor = RecurrentQActor(**SIZES, gamma=0.9, seed=2, **schedules())
     x = torch.randn(R, 7, S + NA)
     h = torch.randn(R, 7, H)
     out = actor.core.step(actor.params(), x, h)
@@ -203,7 +194,7 @@ def reference_loss(actor: RecurrentQActor, r: int, batch: dict, cell, W_q, b_q) 
 def test_drqn_bptt_gradient_of_every_run_equals_a_per_run_reference():
     """The batched loss's gradient with respect to run r's parameters is run r's own loss gradient,
     computed by an independent per-episode Python unroll with torch.nn.GRUCell."""
-    actor = RecurrentQActor(n_runs=R, n_state=S, n_actions=NA, n_hidden=H, gamma=0.9, seed=4, **schedules())
+    actor = RecurrentQActor(**SIZES, gamma=0.9, seed=4, **schedules())
     for name in actor.names:  # a target network that differs from the online one
         getattr(actor, f"{name}_target").add_(torch.randn_like(getattr(actor, name)) * 0.1)
     batch = episodes_batch()
@@ -219,7 +210,7 @@ def test_drqn_bptt_gradient_of_every_run_equals_a_per_run_reference():
 
 
 def test_drqn_adam_step_equals_torch_adam():
-    actor = RecurrentQActor(n_runs=R, n_state=S, n_actions=NA, n_hidden=H, gamma=0.9, seed=1, **schedules())
+    actor = RecurrentQActor(**SIZES, gamma=0.9, seed=1, **schedules())
     batch = episodes_batch(seed=3)
     params = {name: value.clone().requires_grad_() for name, value in actor.params().items()}
     optimiser = torch.optim.Adam(list(params.values()), lr=0.01)
@@ -234,17 +225,7 @@ def test_drqn_adam_step_equals_torch_adam():
 
 @pytest.mark.parametrize("draws", [3])
 def test_drqn_replay_draws_per_run_and_resumes_from_its_extra_state(draws):
-    actor = RecurrentQActor(
-        n_runs=R,
-        n_state=S,
-        n_actions=NA,
-        n_hidden=H,
-        gamma=0.9,
-        batch_episodes=4,
-        updates_per_episode=0,
-        seed=0,
-        **schedules(),
-    )
+    actor = RecurrentQActor(**SIZES, gamma=0.9, batch_episodes=4, updates_per_episode=0, seed=0, **schedules())
     T = 4
     for k in range(draws):
         actor.end_episode(
@@ -259,17 +240,7 @@ def test_drqn_replay_draws_per_run_and_resumes_from_its_extra_state(draws):
             ),
             0.01,
         )
-    copy = RecurrentQActor(
-        n_runs=R,
-        n_state=S,
-        n_actions=NA,
-        n_hidden=H,
-        gamma=0.9,
-        batch_episodes=4,
-        updates_per_episode=0,
-        seed=0,
-        **schedules(),
-    )
+    copy = RecurrentQActor(**SIZES, gamma=0.9, batch_episodes=4, updates_per_episode=0, seed=0, **schedules())
     copy.load_state_dict(actor.state_dict())
     first, again = actor.sample(), copy.sample()
     assert torch.equal(first["states"], again["states"])
@@ -279,9 +250,7 @@ def test_drqn_replay_draws_per_run_and_resumes_from_its_extra_state(draws):
 def test_drqn_forgets_its_memory_when_the_episode_ends():
     """``end_episode`` is where DRQN learns (nothing per step: ``learn`` leaves every weight) and
     where its memory starts afresh: the next episode's first Q is the untrained h = 0 one."""
-    actor = RecurrentQActor(
-        n_runs=R, n_state=S, n_actions=NA, n_hidden=H, gamma=0.9, updates_per_episode=0, seed=2, **schedules()
-    )
+    actor = RecurrentQActor(**SIZES, gamma=0.9, updates_per_episode=0, seed=2, **schedules())
     s = torch.rand(R, 1, S, generator=torch.Generator().manual_seed(4))
     F_fresh, _ = actor.evaluate(s)
     weights = {k: v.clone() for k, v in actor.named_buffers() if k not in ("h", "a_prev")}
@@ -337,7 +306,7 @@ def test_the_continuing_td_phase_refuses_an_actor_that_learns_only_from_episodes
     from ferl.trainers.phased import RunControl
 
     job = SimpleNamespace(
-        actor=RecurrentQActor(n_runs=R, n_state=S, n_actions=NA, n_hidden=H, gamma=0.9, **schedules()),
+        actor=RecurrentQActor(**SIZES, gamma=0.9, **schedules()),
         env=SimpleNamespace(task="floor"),
         R=R,
         control=RunControl(log_every=5, checkpoint_every=5, checkpoint_minutes=0.0, divergence_limit=1e6),
@@ -368,7 +337,7 @@ def test_an_actor_without_the_logging_views_records_no_hidden_activations():
     env = SimpleNamespace(labels=lambda: {"cue": torch.tensor([1, 0, 1])})
     phase = ActorEpisodes.__new__(ActorEpisodes)
     seen = {}
-    for actor in (Viewless(), RecurrentQActor(n_runs=R, n_state=S, n_actions=NA, n_hidden=H, gamma=0.9, **schedules())):
+    for actor in (Viewless(), RecurrentQActor(**SIZES, gamma=0.9, **schedules())):
         seen[isinstance(actor, ActorViews)] = phase.probe_visits(
             SimpleNamespace(actor=actor, env=env, predictors={"m": None}), 7, ep
         )

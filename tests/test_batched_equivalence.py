@@ -483,6 +483,14 @@ def test_numpy_bptt_matches_torch_autograd_and_train_epoch(hp):
         np.testing.assert_allclose(P[name], q[0].detach().numpy(), rtol=1e-9, atol=1e-12, err_msg=name)
 
 
+def reference_actor(n_state: int, **kw) -> FERLActor:
+    """One run of the maze actor as the NumPy reference (``ref``) builds it, in float64."""
+    sizes = dict(n_runs=1, n_state=n_state, n_actions=ref.N_ACTIONS, n_hidden=20)
+    return FERLActor(
+        **sizes, td_rule="sarsa", gamma=0.95, lr=Constant(0.05), beta=Constant(1.0), lr_norm="fan_in", **kw
+    ).double()
+
+
 def test_numpy_sarsa_step_matches_ferl_actor():
     """One SARSA(0) step of the NumPy reference (free energies, TD error with and without a
     terminal, Eq. 3.10 update) = FERLActor.evaluate and ``td_step`` on one run."""
@@ -490,17 +498,7 @@ def test_numpy_sarsa_step_matches_ferl_actor():
     n_state = ref.N_OBS + 20
     params = ref.init_actor(rng, n_state, 20)
     params[2][:], params[3][:], params[4][:] = (rng.normal(0, 0.5, p.shape) for p in params[2:])
-    actor = FERLActor(
-        n_runs=1,
-        n_state=n_state,
-        n_actions=ref.N_ACTIONS,
-        n_hidden=20,
-        td_rule="sarsa",
-        gamma=0.95,
-        lr=Constant(0.05),
-        beta=Constant(1.0),
-        lr_norm="fan_in",
-    ).double()
+    actor = reference_actor(n_state)
     for name, value in zip(ACTOR_KEYS, params):
         getattr(actor, name).copy_(torch.from_numpy(value)[None])
     s, s_next = rng.random(n_state), rng.random(n_state)
@@ -544,18 +542,7 @@ def test_numpy_fresh_pair_is_the_free_energy_after_the_update(a_next):
     rng = np.random.default_rng(4)
     n_state = ref.N_OBS + 20
     params = ref.init_actor(rng, n_state, 20)
-    actor = FERLActor(
-        n_runs=1,
-        n_state=n_state,
-        n_actions=ref.N_ACTIONS,
-        n_hidden=20,
-        td_rule="sarsa",
-        gamma=0.95,
-        lr=Constant(0.05),
-        beta=Constant(1.0),
-        lr_norm="fan_in",
-        td_fresh=True,
-    ).double()
+    actor = reference_actor(n_state, td_fresh=True)
     for name, value in zip(ACTOR_KEYS, params):
         getattr(actor, name).copy_(torch.from_numpy(value)[None])
     s, s_next, a, delta, alpha = rng.random(n_state), rng.random(n_state), 2, -3.0, 0.01

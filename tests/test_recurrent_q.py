@@ -19,6 +19,7 @@ from ferl.interfaces import EndedEpisode
 from ferl.schedules import Constant
 
 R, S, NA, H, K = 3, 5, 4, 6, 4
+SIZES = dict(n_runs=R, n_state=S, n_actions=NA, n_hidden=H)  # the actors' sizes, by keyword
 HEADS = ("linear", "free_energy", "scaled_free_energy", "expected_energy")
 MEMORIES = ("gru", "lstm", "elman", "esn")
 DRQN_COMMIT = "83efea8"  # the last commit with ferl/actors/drqn.py, DRQN's own module
@@ -26,17 +27,7 @@ DRQN_COMMIT = "83efea8"  # the last commit with ferl/actors/drqn.py, DRQN's own 
 
 def actor(head="linear", memory="gru", **kwargs) -> RecurrentQActor:
     return RecurrentQActor(
-        n_runs=R,
-        n_state=S,
-        n_actions=NA,
-        n_hidden=H,
-        gamma=0.9,
-        lr=Constant(0.01),
-        beta=Constant(2.0),
-        head=head,
-        memory=memory,
-        head_hidden=K,
-        **kwargs,
+        **SIZES, gamma=0.9, lr=Constant(0.01), beta=Constant(2.0), head=head, memory=memory, head_hidden=K, **kwargs
     )
 
 
@@ -219,16 +210,7 @@ def test_drqn_is_the_recurrent_q_learner_with_a_gru_and_a_linear_head():
     kwargs = {"batch_episodes": 3, "target_every": 2, "seed": 5}
     old = drqn_module().DRQNActor(R, S, NA, H, 0.9, Constant(0.05), Constant(2.0), **kwargs)
     new = RecurrentQActor(
-        n_runs=R,
-        n_state=S,
-        n_actions=NA,
-        n_hidden=H,
-        gamma=0.9,
-        lr=Constant(0.05),
-        beta=Constant(2.0),
-        head="linear",
-        memory="gru",
-        **kwargs,
+        **SIZES, gamma=0.9, lr=Constant(0.05), beta=Constant(2.0), head="linear", memory="gru", **kwargs
     )
     for k in range(5):
         s = torch.rand(R, 1, S, generator=torch.Generator().manual_seed(100 + k))
