@@ -64,28 +64,64 @@ reproduce: $(STAMP)
 	$(PY) docs/figures/gallery.py $$dir --readme README.md && \
 	echo "  reproduced in $$(( $$(date +%s) - start )) s; report: $$dir/analysis/report.md"
 
-# Beyond the dissertation (§5.4; CONTRACT §3): (b) sample efficiency on three tasks, each by its
-# phased algorithm, online, and online with curiosity; (a) the memory-length curve: the regular
-# T-maze trained online with every memory at corridor lengths 3 … 50 (T_max = 2 T_min + 4), with
-# BEYOND_EPISODES episodes (the curve compares memories, not budgets; fewer replayed episodes
-# per update for the same reason). Then the sweep's report with its "beyond" section.
-BEYOND_EPISODES ?= 2000
-BEYOND_ETA      ?= 0.1
-MEMORIES        := elman,lstm,gru,esn,transformer
+# Beyond the dissertation (§5.4; CONTRACT §3): (b) sample efficiency on the tasks
+# BEYOND_EFFICIENCY (none: skipped), each by its phased algorithm, online, and online with
+# curiosity; (a) the memory curves, trained online with
+# BEYOND_EPISODES episodes (the curves compare memories, not budgets; fewer replayed episodes per
+# update for the same reason): the regular T-maze with every memory at the corridor lengths
+# BEYOND_CORRIDORS (T_max = 2 T_min + 4), the same maze with directed exploration
+# (BEYOND_EXPLORATION: εz-greedy, the method that reached goals most often in docs/beyond.md's
+# side-by-side) for BEYOND_EXPLORE_MEMORIES at BEYOND_EXPLORE_CORRIDORS (its runs without
+# exploration are the first curve's), and the passive T-maze of Ni et al. (2023) for
+# BEYOND_PASSIVE_MEMORIES at memory lengths BEYOND_PASSIVE_CORRIDORS (BEYOND_PASSIVE_EPISODES
+# episodes, its experiment's other settings). Each curve job has BEYOND_RUNS runs, BEYOND_LONG_RUNS
+# from corridor BEYOND_LONG_FROM on. Then the sweep's report with its "beyond" section. A reduced
+# version: e.g. make beyond BEYOND_PASSIVE_CORRIDORS="5 10" BEYOND_PASSIVE_MEMORIES=lstm,gru BEYOND_RUNS=2.
+BEYOND_EFFICIENCY        ?= table5_1_pixel,table5_1_bit,table4_1_matching
+BEYOND_EPISODES          ?= 2000
+BEYOND_ETA               ?= 0.1
+BEYOND_RUNS              ?= 10
+BEYOND_LONG_RUNS         ?= 5
+BEYOND_LONG_FROM         ?= 200
+BEYOND_CORRIDORS         ?= 50 20 10 5 3
+MEMORIES                 ?= elman,lstm,gru,esn,transformer
+BEYOND_EXPLORATION       ?= ez_greedy
+BEYOND_EXPLORE_CORRIDORS ?= 50 20 10 5
+BEYOND_EXPLORE_MEMORIES  ?= lstm,gru,transformer
+BEYOND_PASSIVE_CORRIDORS ?= 200 100 50 20 10
+BEYOND_PASSIVE_MEMORIES  ?= elman,esn,lstm,gru,transformer
+BEYOND_PASSIVE_EPISODES  ?= 10000
+BEYOND_SWEEPS = $(shell echo $$(($(if $(BEYOND_EFFICIENCY),2,0) + $(words $(BEYOND_CORRIDORS) $(BEYOND_EXPLORE_CORRIDORS) $(BEYOND_PASSIVE_CORRIDORS)))))
 
 beyond: $(STAMP)
 	@dir=outputs/beyond/$$(date +%Y-%m-%d_%H-%M-%S); start=$$(date +%s); \
 	jobs="hydra/launcher=joblib hydra.launcher.n_jobs=$(REPRO_JOBS)"; \
-	echo "ferl: sweep 1/7: phased" && \
-	$(PY) train.py -m experiment=table5_1_pixel,table5_1_bit,table4_1_matching $$jobs hydra.sweep.dir=$$dir/phased && \
-	echo "ferl: sweep 2/7: online" && \
-	$(PY) train.py -m experiment=table5_1_pixel,table5_1_bit,table4_1_matching trainer=online trainer.curiosity=0,$(BEYOND_ETA) \
-	  $$jobs hydra.sweep.dir=$$dir/online && \
-	n=2; for c in 50 20 10 5 3; do \
-	  n=$$((n + 1)); echo "ferl: sweep $$n/7: memory_length/corridor_$$c"; \
+	runs() { if [ $$1 -ge $(BEYOND_LONG_FROM) ]; then echo $(BEYOND_LONG_RUNS); else echo $(BEYOND_RUNS); fi; }; \
+	n=0; if [ -n "$(BEYOND_EFFICIENCY)" ]; then n=2; \
+	  echo "ferl: sweep 1/$(BEYOND_SWEEPS): phased" && \
+	  $(PY) train.py -m experiment=$(BEYOND_EFFICIENCY) $$jobs hydra.sweep.dir=$$dir/phased && \
+	  echo "ferl: sweep 2/$(BEYOND_SWEEPS): online" && \
+	  $(PY) train.py -m experiment=$(BEYOND_EFFICIENCY) trainer=online trainer.curiosity=0,$(BEYOND_ETA) \
+	    $$jobs hydra.sweep.dir=$$dir/online || exit 1; \
+	fi; \
+	for c in $(BEYOND_CORRIDORS); do \
+	  n=$$((n + 1)); echo "ferl: sweep $$n/$(BEYOND_SWEEPS): memory_length/corridor_$$c"; \
 	  $(PY) train.py -m experiment=table4_1_regular trainer=online predictor.joint.memory=$(MEMORIES) \
 	    env.corridor_length=$$c env.max_steps=$$((2 * c + 4)) trainer.n_episodes=$(BEYOND_EPISODES) \
-	    trainer.replay_sample=16 $$jobs hydra.sweep.dir=$$dir/memory_length/corridor_$$c || exit 1; \
+	    trainer.replay_sample=16 n_runs=$$(runs $$c) $$jobs hydra.sweep.dir=$$dir/memory_length/corridor_$$c || exit 1; \
+	done && \
+	for c in $(BEYOND_EXPLORE_CORRIDORS); do \
+	  n=$$((n + 1)); echo "ferl: sweep $$n/$(BEYOND_SWEEPS): exploration_curve/corridor_$$c"; \
+	  $(PY) train.py -m experiment=table4_1_regular trainer=online predictor.joint.memory=$(BEYOND_EXPLORE_MEMORIES) \
+	    exploration=$(BEYOND_EXPLORATION) env.corridor_length=$$c env.max_steps=$$((2 * c + 4)) \
+	    trainer.n_episodes=$(BEYOND_EPISODES) trainer.replay_sample=16 n_runs=$$(runs $$c) $$jobs \
+	    hydra.sweep.dir=$$dir/exploration_curve/corridor_$$c || exit 1; \
+	done && \
+	for c in $(BEYOND_PASSIVE_CORRIDORS); do \
+	  n=$$((n + 1)); echo "ferl: sweep $$n/$(BEYOND_SWEEPS): passive_curve/corridor_$$c"; \
+	  $(PY) train.py -m experiment=passive_tmaze predictor.joint.memory=$(BEYOND_PASSIVE_MEMORIES) \
+	    env.corridor_length=$$c trainer.n_episodes=$(BEYOND_PASSIVE_EPISODES) n_runs=$$(runs $$c) $$jobs \
+	    hydra.sweep.dir=$$dir/passive_curve/corridor_$$c || exit 1; \
 	done && \
 	echo $$(( $$(date +%s) - start )) > $$dir/train_wall_time_s && \
 	$(PY) analyze.py $$dir && \

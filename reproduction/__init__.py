@@ -12,7 +12,7 @@ imports it back:
   (``tmaze_claims`` the measures chapters 4 and 5 share), ``sweep_claims`` those only a comparison
   of jobs can judge, ``scope`` the runs they speak to (the dissertation's components, algorithm);
 * a sweep's sections: ``noise_grid`` (Fig. 3.6 across jobs), ``beyond`` (findings beyond the
-  dissertation, §5.4) and ``variants`` (agents side by side per task: the variants, the baselines
+  dissertation, §5.4, with ``curves``: the passive and active T-mazes' memory curves) and ``variants`` (agents side by side per task: the variants, the baselines
   and the third-party suites);
 * ``published`` pastes a sweep's results into README.md and docs/reproduction.md (``--readme``).
 """

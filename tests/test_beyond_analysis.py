@@ -1,7 +1,7 @@
 """The sweep report's "beyond the dissertation" section (reproduction/beyond.py) on a real
-miniature sweep: online jobs with two memories at two corridor lengths, a phased job and an
-online job with curiosity. The memory-length table is checked against the runs' records read
-another way (an episode ended in a goal iff the environment says it ended in the rewarded one, or
+miniature sweep: online jobs with two memories at two corridor lengths, one with εz-greedy, a
+passive-maze job, a phased job and an online job with curiosity. The memory-length table is
+checked against the runs' records read another way (an episode ended in a goal iff the environment says it ended in the rewarded one, or
 its last reward is the wrong goal's −5), the sample-efficiency rows against summary.json."""
 
 import csv
@@ -35,6 +35,16 @@ def sweep(tmp_path_factory):
         for memory in ("elman", "esn")
         for c in (3, 5)
     }
+    jobs["online_esn_3_ez"] = [*jobs["online_esn_3"], "exploration=ez_greedy"]
+    jobs |= {
+        f"passive_{memory}_{L}": [
+            "experiment=passive_tmaze",
+            *TINY_ONLINE,
+            f"predictor.joint.memory={memory}",
+            f"env.corridor_length={L}",
+        ]
+        for memory, L in (("gru", 2),)
+    }
     jobs["phased"] = [
         "experiment=table4_1_matching",
         "n_runs=2",
@@ -56,14 +66,15 @@ def table(path):
 def test_memory_length_curve_matches_the_records(sweep):
     root, summaries = sweep
     curve = table(root / "analysis" / "memory_length_curve.csv")
-    assert [(r["memory"], r["corridor_length"]) for r in curve] == [
-        ("elman", "3"),
-        ("elman", "5"),
-        ("esn", "3"),
-        ("esn", "5"),
+    assert [(r["memory"], r["exploration"], r["corridor_length"]) for r in curve] == [
+        ("elman", "none", "3"),
+        ("elman", "none", "5"),
+        ("esn", "none", "3"),
+        ("esn", "none", "5"),
+        ("esn", "ez_greedy", "3"),
     ]
     for r in curve:
-        name = f"online_{r['memory']}_{r['corridor_length']}"
+        name = f"online_{r['memory']}_{r['corridor_length']}" + ("_ez" if r["exploration"] != "none" else "")
         with np.load(root / name / "records" / "episodes.npz") as episodes:
             last = slice(-20, None)  # trainer.final_window=20: the runs' final window, not the default 200
             reached = episodes["correct_goal"][:, last] | (episodes["terminal_reward"][:, last] == -5.0)
@@ -74,6 +85,29 @@ def test_memory_length_curve_matches_the_records(sweep):
     report = (root / "analysis" / "report.md").read_text()
     assert "## Beyond the dissertation (findings of ours, §5.4)" in report
     assert "![Memory-length curve" in report and (root / "analysis" / "memory_length_curve.png").is_file()
+
+
+def test_passive_curve_reads_the_runs_records(sweep):
+    """The passive jobs' rows: memory and L from run.json, solved and success from summary.json;
+    a run on schedule at the junction (discounted return ≥ 0) is the only kind that can succeed."""
+    root, summaries = sweep
+    curve = table(root / "analysis" / "passive_tmaze_curve.csv")
+    assert [(r["memory"], r["exploration"], r["corridor_length"]) for r in curve] == [("gru", "none", "2")]
+    for r in curve:
+        name = f"passive_{r['memory']}_{r['corridor_length']}"
+        metrics = summaries[name]["metrics"]
+        assert int(r["solved"]) == sum(metrics["solved"]) and int(r["n_runs"]) == 2
+        assert float(r["correct_goal_rate"]) == pytest.approx(np.mean(metrics["final_correct_goal_rate"]), rel=1e-5)
+        with np.load(root / name / "records" / "episodes.npz") as episodes:
+            last = slice(-20, None)
+            on_schedule = episodes["discounted_return"][:, last] >= 0
+            assert not (episodes["correct_goal"][:, last] & ~on_schedule).any()
+        assert float(r["junction_on_schedule_share"]) == pytest.approx(on_schedule.mean(), rel=1e-5)
+    report = (root / "analysis" / "report.md").read_text()
+    assert (
+        "![Memory-length curve: passive T-maze" in report and (root / "analysis" / "passive_tmaze_curve.png").is_file()
+    )
+    assert "### Memory-length curve, passive T-maze (Ni et al. 2023), online trainer" in report
 
 
 def test_sample_efficiency_lists_every_procedure_per_run(sweep):

@@ -53,6 +53,7 @@ class Manifest:
     preprocessor: dict | None
     predictors: dict[str, dict]
     actor: dict
+    exploration: dict = field(default_factory=dict)  # a directed exploration's facts; {} for none
 
     @classmethod
     def load(cls, run_dir: Path) -> Manifest | None:
@@ -74,6 +75,7 @@ class Manifest:
             facts.get("preprocessor"),
             facts.get("predictors") or {},
             facts.get("actor") or {},
+            facts.get("exploration") or {},
         )
 
     @property
