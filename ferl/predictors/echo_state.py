@@ -17,6 +17,7 @@ from typing import Annotated
 import torch
 
 from ferl.config.params import Allowed, Positive, checked
+from ferl.interfaces import PredictorBase
 from ferl.predictors.heads import linear, scaled
 from ferl.predictors.recurrent import RecurrentPredictor
 
@@ -54,6 +55,9 @@ class EchoStatePredictor(RecurrentPredictor):
 
     def memory_parameters(self) -> list:
         return []  # the reservoir is fixed
+
+    # nor does it take the actor's TD error (td_to_memory refuses it)
+    descend_memory = PredictorBase.descend_memory
 
     @property
     def gains(self) -> tuple:

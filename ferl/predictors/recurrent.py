@@ -181,6 +181,11 @@ class RecurrentPredictor(OutputHeads):
             m = self.unroll_with(leaves, y, a)  # type: ignore[operator]  # every memory with trained parameters has one
             return list(torch.autograd.grad((m * dm).sum(), leaves))
 
+    @torch.no_grad()
+    def descend_memory(self, y, a, dm) -> None:
+        """θ_m ← θ_m − α ∂(Σ dm · m)/∂θ_m (``memory_gradients``), α the predictor's ``lr``."""
+        torch._foreach_add_(self.memory_parameters(), self.memory_gradients(y, a, dm), alpha=-self.lr)
+
     def train_epoch(self, y, a, r, lengths, order: torch.Tensor) -> None:
         """One epoch of pattern-mode SGD (§4.3.1) on this predictor alone (``PredictorBatch``)."""
         PredictorBatch([self], y, a, [r], lengths).train_epoch([order])

@@ -23,7 +23,7 @@ actor's own update, Eq. 3.10, holds it), λ times, through the memory part of s_
   κ (b_s + W_sh φ'(x)) (``FERLActor.state_gradient``); only the columns of predictor p's memory
   are sent to p;
 * m_t(θ_m): the memories m_0 … m_{T−1} of the states where actions were taken (none at the last
-  state m_T), recomputed from the episode by the predictor's own BPTT (``memory_gradients``:
+  state m_T), recomputed from the episode by the predictor's own BPTT (``descend_memory``:
   Eqs. 2.59–2.63 written out for the Elman memory, autograd through ``unroll_with`` for the others).
 
 The step is taken before the replay's BPTT steps, at the parameters that produced the episode's
@@ -54,6 +54,4 @@ def td_to_memory(predictors: list, actor, y, a, lengths, states, actions, deltas
     y, a, _ = clean(y, a, None, lengths)
     errors = memory_errors(actor, states, actions, deltas, lam, [p.memory_size for p in predictors])
     for p, dm in zip(predictors, errors):
-        grads = p.memory_gradients(y, a, dm.unsqueeze(1))
-        if grads:
-            torch._foreach_add_(p.memory_parameters(), grads, alpha=-p.lr)
+        p.descend_memory(y, a, dm.unsqueeze(1))
