@@ -241,26 +241,16 @@ class Predictor(Checkpointed, Protocol):
         """Take in the rewards of new episodes (R, B, T_max) with lengths (R, B), once each (a
         normalised reward head's statistics, ``ferl.predictors.popart``)."""
 
-    def descend_memory(self, y: Tensor, a: Tensor, dm: Tensor) -> None:
-        """One plain SGD step of the memory's parameters θ_m at the predictor's own α down
-        Σ dm · m, the error dm (R, B, T+1, M) on the memories m_0 … m_T of cleaned sequences y, a
-        backpropagated by the predictor's BPTT (the online trainer's ``td_to_memory``,
-        ``ferl.trainers.memory_td``); ``PredictorBase``'s: none, which ``td_to_memory`` refuses."""
-
     def describe(self) -> dict: ...
 
 
 class PredictorBase:
-    """The defaults of ``Predictor``'s hooks: no observation head, no reward statistics, no memory
-    that learns from an error from outside."""
+    """The defaults of ``Predictor``'s hooks: no observation head, no reward statistics."""
 
     def observation_error(self, state: State, y: Tensor) -> Tensor | None:
         return None
 
     def observe_rewards(self, rewards: Tensor, lengths: Tensor) -> None: ...
-
-    def descend_memory(self, y: Tensor, a: Tensor, dm: Tensor) -> None:
-        raise NotImplementedError("this predictor's memory takes no error from outside (td_to_memory)")
 
 
 class EndedEpisode(NamedTuple):
@@ -344,18 +334,12 @@ class Actor(Checkpointed, Protocol):
     def prepare_for_compile(self) -> None:
         """Lay the parameters out for a compiled step (their values unchanged)."""
 
-    def state_gradient(self, s: Tensor, a: Tensor) -> Tensor:
-        """∂Q(s, a)/∂s (R, B, S) at states s (R, B, S) and actions a (R, B): what the online
-        trainer's ``td_to_memory`` sends into the predictors' memory; ``ActorBase``'s: none, which
-        ``td_to_memory`` refuses."""
-
     def describe(self) -> dict: ...
 
 
 class ActorBase:
     """The defaults of ``Actor``'s hooks: nothing learnt after a step or an episode (an actor
-    overrides the one it learns in), no random number drawn inside a step, no layout to prepare,
-    no ∂Q/∂s."""
+    overrides the one it learns in), no random number drawn inside a step, no layout to prepare."""
 
     learns_from_episodes: bool = False
 
@@ -371,9 +355,6 @@ class ActorBase:
 
     def prepare_for_compile(self) -> None:
         """Nothing to lay out: the parameters' default layout serves a compiled step."""
-
-    def state_gradient(self, s: Tensor, a: Tensor) -> Tensor:
-        raise NotImplementedError("this actor gives no ∂Q/∂s (td_to_memory)")
 
 
 @runtime_checkable

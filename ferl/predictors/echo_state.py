@@ -17,7 +17,6 @@ from typing import Annotated
 import torch
 
 from ferl.config.params import Allowed, Positive, checked
-from ferl.interfaces import PredictorBase
 from ferl.predictors.heads import linear, scaled
 from ferl.predictors.recurrent import RecurrentPredictor
 
@@ -56,8 +55,9 @@ class EchoStatePredictor(RecurrentPredictor):
     def memory_parameters(self) -> list:
         return []  # the reservoir is fixed
 
-    # nor does it take the actor's TD error (td_to_memory refuses it)
-    descend_memory = PredictorBase.descend_memory
+    # nor does it take the actor's TD error: not a ferl.trainers.memory_td.MemoryFromTD, which
+    # td_to_memory refuses
+    descend_memory = None  # type: ignore[assignment]
 
     @property
     def gains(self) -> tuple:

@@ -30,10 +30,50 @@ The step is taken before the replay's BPTT steps, at the parameters that produce
 memories. It draws no random numbers; λ = 0 skips it, so the run is today's to the bit.
 """
 
+from typing import Protocol, runtime_checkable
+
 import torch
 import torch.nn.functional as F
+from torch import Tensor
 
+from ferl.config.params import ConfigError
+from ferl.config.swaps import chosen
 from ferl.predictors.heads import clean
+
+
+@runtime_checkable
+class StateGradient(Protocol):
+    """An actor that gives ∂Q(s, a)/∂s (R, B, S) at states s (R, B, S) and actions a (R, B)
+    (``FERLActor.state_gradient``); optional, as ``ferl.interfaces.ActorViews``."""
+
+    def state_gradient(self, s: Tensor, a: Tensor) -> Tensor: ...
+
+
+@runtime_checkable
+class MemoryFromTD(Protocol):
+    """A predictor whose memory takes an error from outside: one plain SGD step of the memory's
+    parameters θ_m at the predictor's own α down Σ dm · m, the error dm (R, B, T+1, M) on its
+    memories m_0 … m_T of cleaned sequences y (R, B, T+1, Y), a (R, B, T, A), backpropagated by
+    its BPTT (``RecurrentPredictor.descend_memory``); optional."""
+
+    def descend_memory(self, y: Tensor, a: Tensor, dm: Tensor) -> None: ...
+
+
+def check_td_to_memory(job, lam: float) -> None:
+    """λ > 0 needs an actor that gives ∂Q/∂s and predictors whose memory learns from an error from
+    outside: one line naming the key before any work otherwise."""
+    if not isinstance(job.actor, StateGradient):
+        raise ConfigError(
+            f"trainer.td_to_memory={lam:g} is not allowed with {chosen('actor', type(job.actor).__name__)}: "
+            "the TD gradient into the memory needs the actor's ∂Q(s, a)/∂s (its state_gradient; actor=ferl "
+            "and its variants have it); 0 turns it off"
+        )
+    fixed = [name for name, p in job.predictors.items() if not isinstance(p, MemoryFromTD)]
+    if fixed:
+        raise ConfigError(
+            f"trainer.td_to_memory={lam:g} is not allowed: the memory of predictor {', '.join(fixed)} does not "
+            "learn from the actor's TD error (descend_memory; an echo-state reservoir is fixed); 0 turns it off"
+        )
 
 
 def memory_errors(actor, states, actions, deltas, lam: float, sizes: list[int]) -> list[torch.Tensor]:

@@ -43,30 +43,12 @@ import torch
 from ferl.config.params import ConfigError, Momentum, NonNegative, PositiveInt, UnitInterval
 from ferl.config.swaps import chosen
 from ferl.exploration import added
-from ferl.interfaces import ActorBase, PredictorBase
 from ferl.predictors.popart import observe_rewards
 from ferl.predictors.recurrent import lookup_step
 from ferl.replay import draw_episodes, store_episode, stored_episodes
 from ferl.trainers.actor_episodes import ActorEpisodes
 from ferl.trainers.episodes import Episodes, episode_tensors
-from ferl.trainers.memory_td import td_to_memory
-
-
-def check_td_to_memory(job, lam: float) -> None:
-    """``td_to_memory`` > 0 needs an actor that gives ∂Q/∂s and predictors whose memory learns
-    from an error from outside (the hooks ``ActorBase`` and ``PredictorBase`` leave out)."""
-    if type(job.actor).state_gradient is ActorBase.state_gradient:
-        raise ConfigError(
-            f"trainer.td_to_memory={lam:g} is not allowed with {chosen('actor', type(job.actor).__name__)}: "
-            "the TD gradient into the memory needs the actor's ∂Q(s, a)/∂s (its state_gradient; actor=ferl "
-            "and its variants have it); 0 turns it off"
-        )
-    fixed = [name for name, p in job.predictors.items() if type(p).descend_memory is PredictorBase.descend_memory]
-    if fixed:
-        raise ConfigError(
-            f"trainer.td_to_memory={lam:g} is not allowed: the memory of predictor {', '.join(fixed)} does not "
-            "learn from the actor's TD error (descend_memory; an echo-state reservoir is fixed); 0 turns it off"
-        )
+from ferl.trainers.memory_td import check_td_to_memory, td_to_memory
 
 
 class OnlineEpisodes(ActorEpisodes):
