@@ -97,6 +97,13 @@ def test_same_seed_same_numbers(tmp_path, tiny_run):
         "experiment=table4_1_regular exploration=ez_greedy exploration.mu=1.0",
         "experiment=ch3_floor exploration=ez_greedy",
         "experiment=table4_1_regular predictor=none actor=drqn exploration=ez_greedy",
+        # TD into the memory: λ < 0; a key of the online trainer alone, so a phased trainer has
+        # none (and reads none when added); an actor without ∂Q/∂s; a reservoir that does not learn
+        "experiment=table4_1_matching trainer=online trainer.td_to_memory=-0.1",
+        "experiment=table4_1_matching trainer.td_to_memory=0.1",
+        "experiment=table4_1_matching +trainer.td_to_memory=0.1",
+        "experiment=table4_1_matching trainer=online actor=mlp_q trainer.td_to_memory=0.1",
+        "experiment=table4_1_matching trainer=online predictor.joint.memory=esn trainer.td_to_memory=0.1",
     ],
 )
 def test_bad_input_one_line_nothing_written(tmp_path, override):

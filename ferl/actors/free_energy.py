@@ -195,6 +195,17 @@ class FERLActor(SoftmaxActor):
         visible = rbm.visible_term(s, self.b_s) + (code * self.b_a.unsqueeze(1)).sum(-1)
         return self.form.energy(visible, x), x
 
+    def state_gradient(self, s: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+        """∂Q(s, a)/∂s (R, B, S) at states s (R, B, S) and actions a (R, B), written out: with
+        Q = κ (sᵀb_s + aᵀb_a + Σ_k φ(x_k)), x = W_shᵀs + W_ahᵀa + b_h (Eq. 3.1c,
+        ``ferl.actors.values``), ∂Q/∂s = κ (b_s + W_sh φ'(x)) — for the free energy
+        b_s + W_sh σ(x) (Eq. 2.22 differentiated in s). What the online trainer's
+        ``td_to_memory`` sends into the predictors' memory (``ferl.trainers.memory_td``)."""
+        _, x = self.evaluate_actions(s, a)
+        return self.scaled(
+            torch.baddbmm(self.b_s.unsqueeze(1), self.form.hidden_gradient(x), self.W_sh.transpose(1, 2))
+        )
+
     def code(self, a: torch.Tensor) -> torch.Tensor:
         """The action nodes' states of actions a (R, B) → (R, B, K)."""
         return self.codes[a] if self.enumerated else to_bits(a, self.W_ah.shape[1]).to(self.W_ah.dtype)

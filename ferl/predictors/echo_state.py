@@ -55,6 +55,10 @@ class EchoStatePredictor(RecurrentPredictor):
     def memory_parameters(self) -> list:
         return []  # the reservoir is fixed
 
+    # nor does it take the actor's TD error: not a ferl.trainers.memory_td.MemoryFromTD, which
+    # td_to_memory refuses
+    descend_memory = None  # type: ignore[assignment]
+
     @property
     def gains(self) -> tuple:
         return self.c_y, self.c_a, self.leak_rate

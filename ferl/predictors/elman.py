@@ -117,6 +117,13 @@ class ElmanPredictor(RecurrentPredictor):
         """The gradients of a batch of Elman predictors (``bptt`` below)."""
         return bptt(members, memory, y, a, rs, steps, reward_steps)
 
+    @torch.no_grad()
+    def memory_gradients(self, y, a, dm) -> list:
+        """The memory's part of the written-out BPTT (``backprop_memory``, Eqs. 2.59–2.63) from
+        the error dm (R, B, T+1, M) on m_0 … m_T (``RecurrentPredictor.memory_gradients``)."""
+        params = self.memory_parameters()
+        return backprop_memory(self.W_mm, self.gains, unroll(params, self.gains, y, a), dm, y, a)
+
     # ---- online API (actor phase) ---------------------------------------------------------------
     @torch.no_grad()
     def initial_state(self) -> torch.Tensor:

@@ -166,6 +166,26 @@ class RecurrentPredictor(OutputHeads):
             [self], self.memory_parameters(), y, a, [r], steps, steps * (torch.arange(y.shape[2], device=y.device) > 0)
         )
 
+    def memory_gradients(self, y, a, dm) -> list:
+        """∂/∂θ of Σ dm · m for the memory's parameters θ (``memory_parameters()`` order): the
+        memory's part of BPTT from an error dm (R, B, T+1, M) on the memories m_0 … m_T of cleaned
+        sequences y (R, B, T+1, Y), a (R, B, T, A) — the chain from what the actor reads to the
+        memory's parameters. Through autograd on ``unroll_with(params, y, a)``; a memory whose BPTT
+        is written out (Elman) overrides it; one without trained parameters (the echo-state
+        reservoir) has none."""
+        memory = self.memory_parameters()
+        if not memory:
+            return []
+        with torch.enable_grad():
+            leaves = [q.detach().requires_grad_() for q in memory]
+            m = self.unroll_with(leaves, y, a)  # type: ignore[operator]  # every memory with trained parameters has one
+            return list(torch.autograd.grad((m * dm).sum(), leaves))
+
+    @torch.no_grad()
+    def descend_memory(self, y, a, dm) -> None:
+        """θ_m ← θ_m − α ∂(Σ dm · m)/∂θ_m (``memory_gradients``), α the predictor's ``lr``."""
+        torch._foreach_add_(self.memory_parameters(), self.memory_gradients(y, a, dm), alpha=-self.lr)
+
     def train_epoch(self, y, a, r, lengths, order: torch.Tensor) -> None:
         """One epoch of pattern-mode SGD (§4.3.1) on this predictor alone (``PredictorBatch``)."""
         PredictorBatch([self], y, a, [r], lengths).train_epoch([order])

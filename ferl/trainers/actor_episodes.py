@@ -214,8 +214,8 @@ class ActorEpisodes(Phase):
     def play_episode(self, job, k: int, lr: float, beta: float) -> dict:
         """Episode k of every run (``episode``), one compiled graph on the fast path, and what the
         records keep of it: the outcome (len(outcome_names), R), the TD errors (steps, R), NaN where
-        a run had ended, the probe visits (or None) and the trajectory: observation ids
-        (steps + 1, R), actions (steps, R) and raw rewards (steps, R)."""
+        a run had ended, the probe visits (or None), the trajectory: observation ids
+        (steps + 1, R), actions (steps, R) and raw rewards (steps, R), and the actor's states (steps, R, S)."""
         job.env.reset()
         (uniform,) = self.uniforms.next()  # (T_max + 1, R, 1, 1)
         job.exploration.begin_episode(job.generator, job.env.max_steps)  # its draws after the actor's
@@ -236,6 +236,7 @@ class ActorEpisodes(Phase):
             "td": torch.where(ep["actives"], ep["deltas"], torch.nan),
             "probes": self.probe_visits(job, k, ep),
             "trajectory": (ep["obs"], ep["actions"], ep["rewards"]),
+            "states": ep["states"],  # (steps, R, S) the actor's state at every step
         }
 
     def episode(self, job, lr, beta, uniform, until_done: bool) -> dict:

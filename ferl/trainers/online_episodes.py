@@ -29,6 +29,10 @@ the actor learns from r_t + η_k e^y_t, with e^y_t = Σ ρ_y Σ_i |y_{i,t} − �
 prediction error of the observation-predicting predictors at the step's new observation, and
 η_k = η · max(0, 1 − k / (``curiosity_anneal`` · N)) (η = ``curiosity``; 0 = off). Returns and
 every metric are measured on the raw reward.
+
+TD into the memory (``td_to_memory`` = λ ≥ 0, 0 = off): after every episode the predictors' memory
+parameters also take a step down −λ Σ_t δ_t Q(s_t, a_t) through the memory part of the actor's state
+(``ferl.trainers.memory_td``), before the replay's BPTT steps.
 """
 
 import time
@@ -44,6 +48,7 @@ from ferl.predictors.recurrent import lookup_step
 from ferl.replay import draw_episodes, store_episode, stored_episodes
 from ferl.trainers.actor_episodes import ActorEpisodes
 from ferl.trainers.episodes import Episodes, episode_tensors
+from ferl.trainers.memory_td import check_td_to_memory, td_to_memory
 
 
 class OnlineEpisodes(ActorEpisodes):
@@ -60,12 +65,14 @@ class OnlineEpisodes(ActorEpisodes):
         error_ema: UnitInterval,
         curiosity: NonNegative,
         curiosity_anneal: NonNegative,
+        td_to_memory: NonNegative = 0.0,
         **episodes,
     ):
         """``episodes``: ``ActorEpisodes``' own keys (its signature, which the config checks read too)."""
         super().__init__(**episodes)
         self.K, self.n_replay, self.replay_batch = replay_episodes, replay_sample, replay_batch_size
         self.tau, self.ema, self.eta, self.anneal = beta_error_ratio, error_ema, curiosity, curiosity_anneal
+        self.td_to_memory = td_to_memory
         self.eta_now = 0.0
         self.beta_now: torch.Tensor  # β_k per run (R, 1, 1): set by begin_episode
 
@@ -76,6 +83,8 @@ class OnlineEpisodes(ActorEpisodes):
                 "predictors and actor together; a memoryless actor alone is the actor phase of "
                 "trainer=algorithm1"
             )
+        if self.td_to_memory > 0:
+            check_td_to_memory(job, self.td_to_memory)
         super().prepare(job)
         groups: dict = {}
         for p in job.predictors.values():
@@ -154,6 +163,8 @@ class OnlineEpisodes(ActorEpisodes):
         observe_rewards(
             job.predictors.values(), ep.rewards, ep.lengths
         )  # once per new episode, after its held-out error
+        if self.td_to_memory > 0:
+            self.memory_td(job, ep, episode)
         replay = state["replay"]
         store_episode(
             replay,
@@ -178,6 +189,17 @@ class OnlineEpisodes(ActorEpisodes):
             window = slice(max(0, k + 1 - self.final_window), k + 1)
             for key, values in online.items():
                 job.writer.add_scalar(f"online/{key}_ma{self.final_window}", float(values[:, window].mean()), k + 1)
+
+    def memory_td(self, job, ep: Episodes, episode: dict) -> None:
+        """The TD step into the predictors' memory on the episode just played (``ferl.trainers.memory_td``)."""
+        states, actions, deltas = episode["states"], episode["trajectory"][1], episode["td"]
+        n = actions.shape[0]
+        deltas = torch.where(deltas.isfinite() & job.guard.alive.T, deltas, 0.0)  # NaN: the run's episode had ended
+        y, a, _, lengths = episode_tensors(job, ep, None)
+        predictors = list(job.predictors.values())
+        td_to_memory(
+            predictors, job.actor, y[:, :, : n + 1], a[:, :, :n], lengths, states, actions, deltas, self.td_to_memory
+        )
 
     def as_episodes(self, job, episode: dict) -> Episodes:
         """The trajectory of ``play_episode`` as one padded episode per run, (R, 1, …)."""
