@@ -286,14 +286,19 @@ def main(argv=None) -> None:
         default="actor",
         help="the fit's start: the actor's random weights, or the key-state experts (construct)",
     )
-    p.add_argument("--fit-steps", type=int, default=3000)
+    p.add_argument("--fit-steps", type=int, default=2000)
     p.add_argument("--batch", type=int, default=512, help="pairs per run per Adam step")
     p.add_argument("--lr", type=float, default=0.03)
-    p.add_argument("--states", type=int, default=2000, help="fresh states per run for Gibbs selection")
-    p.add_argument("--chains", type=int, default=4, help="Gibbs chains per state (the first is the reward)")
-    p.add_argument("--search-states", type=int, default=500, help="of those, states for the local search")
+    p.add_argument("--states", type=int, default=1000, help="fresh states per run for Gibbs selection")
+    p.add_argument("--chains", type=int, default=2, help="Gibbs chains per state (the first is the reward)")
+    p.add_argument("--search-states", type=int, default=300, help="of those, states for the local search")
     p.add_argument("--out", type=Path, help="JSON file of every run's numbers")
     args = p.parse_args(argv)
+    for key in ("runs", "fit_steps", "batch", "states", "chains", "search_states"):
+        if getattr(args, key) < 1:
+            raise SystemExit(f"large_action_bound.py: --{key.replace('_', '-')} must be at least 1")
+    if min(args.hidden) < 1 or args.search_states > args.states or args.lr <= 0:
+        raise SystemExit("large_action_bound.py: needs --hidden ≥ 1, --search-states ≤ --states and --lr > 0")
     torch.set_num_threads(1)
     rows = []
     for name in args.experiments:

@@ -127,3 +127,11 @@ def test_the_bound_uses_the_experiments_task_and_gibbs_settings():
     assert torch.equal(task.keys, same.keys) and torch.equal(task.key_actions, same.key_actions)
     assert task.states == "key_states" and beta == pytest.approx(10.0)
     assert (actor.n_hidden, actor.gibbs_sweeps, actor.W_ah.shape[1]) == (13, 100, 40)
+
+
+@pytest.mark.parametrize("argv", [["--runs", "0"], ["--states", "10", "--search-states", "20"], ["--lr", "0"]])
+def test_bad_input_is_one_line_before_any_work(argv, capsys):
+    with pytest.raises(SystemExit) as refused:
+        bound.main(argv)
+    assert str(refused.value).startswith("large_action_bound.py: ") and "\n" not in str(refused.value)
+    assert capsys.readouterr().out == ""  # nothing measured or printed
