@@ -99,6 +99,15 @@ SHORT_ALGORITHM1 = [
     "trainer.td_sample_every=20",
     "trainer.final_window=20",
 ]
+# Algorithm 1 at a tiny scale, logged and windowed every 25 actor episodes
+TINY_ALGORITHM1 = [
+    "trainer.n_sample=200",
+    "trainer.n_epoch=2",
+    "trainer.n_episodes=50",
+    "trainer.log_every=25",
+    "trainer.td_sample_every=25",
+    "trainer.final_window=25",
+]
 # the regular maze, checkpointed after actor episodes 100 and 200 and after every phase
 RESUMABLE_TMAZE = [
     "experiment=table4_1_regular",

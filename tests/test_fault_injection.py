@@ -27,7 +27,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import RESUMABLE_TMAZE, assert_same_tb_log, run_train
+from conftest import RESUMABLE_TMAZE, TINY_ALGORITHM1, assert_same_tb_log, run_train
 from ferl.run import checkpoint
 from ferl.run.checkpoint import CheckpointError, RunIdentity
 
@@ -37,12 +37,7 @@ PIXEL = [
     "n_runs=2",
     "env.reservoir_size=5",
     "preprocessor.sweeps=20",
-    "trainer.n_sample=200",
-    "trainer.n_epoch=2",
-    "trainer.n_episodes=50",
-    "trainer.log_every=25",
-    "trainer.td_sample_every=25",
-    "trainer.final_window=25",
+    *TINY_ALGORITHM1,
 ]
 WAYS = ("truncated", "other_bytes", "other_shape")
 

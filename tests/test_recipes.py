@@ -23,6 +23,8 @@ from pathlib import Path
 
 import pytest
 
+from conftest import TINY_ALGORITHM1
+
 ROOT = Path(__file__).resolve().parents[1]
 PAGES = [ROOT / "docs" / "architecture.md", ROOT / "docs" / "usage.md"]
 MARKED = re.compile(r"<!-- recipe: (\S+) (file=(\S+)|run) -->\n```[a-z]*\n(.*?)\n```", re.S)
@@ -31,12 +33,7 @@ OTHERS = {"gym_views"}
 ALGORITHM1 = [
     "n_runs=2",
     "compile=false",
-    "trainer.n_sample=200",
-    "trainer.n_epoch=2",
-    "trainer.n_episodes=50",
-    "trainer.log_every=25",
-    "trainer.td_sample_every=25",
-    "trainer.final_window=25",
+    *TINY_ALGORITHM1,
 ]
 # appended to each printed train.py command, by the trainer it names: a tiny scale, eager
 REDUCED = {
