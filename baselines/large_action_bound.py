@@ -34,7 +34,6 @@ prints a Markdown table (reward per step mean ± s.e.m. over runs, fit RMSE, wal
 import argparse
 import copy
 import json
-import math
 import time
 from pathlib import Path
 
@@ -42,7 +41,7 @@ import torch
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
-from ferl import rng
+from ferl import rng, stats
 from ferl.actors.free_energy import FERLActor
 from ferl.bits import from_bits, to_bits
 from ferl.envs.large_action import LargeActionTask
@@ -255,9 +254,9 @@ def measure(name: str, n_hidden: int, args) -> dict:
 
 
 def mean_sem(values: list[float]) -> str:
-    t = torch.tensor(values, dtype=torch.float64)
-    sem = t.std() / math.sqrt(len(t)) if len(t) > 1 else float("nan")
-    return f"{t.mean():.1f} ± {sem:.1f}"
+    """mean ± s.e.m. over the runs (``ferl.stats.mean_sem``), to one decimal."""
+    mean, sem, _ = stats.mean_sem(values)
+    return f"{mean:.1f} ± {sem:.1f}"
 
 
 def table(rows: list[dict]) -> str:
