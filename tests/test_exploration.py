@@ -144,3 +144,36 @@ def test_exploration_is_checkpointed_and_named_in_run_json():
     assert job.describe()["exploration"]["kind"] == "count_bonus"
     none, _ = actor_phase("n_runs=2")
     assert "exploration" not in none.components() and "exploration" not in none.describe()  # as before
+
+
+def test_ez_greedy_tells_the_recurrent_q_learner_the_action_it_took():
+    """The recurrent Q-learner steps its memory in ``act`` with the action it drew; under εz-greedy
+    (ε = 0.6: most steps overridden) the memory must read the action taken. Independent check: Q at
+    every step of a played episode against the actor's own ``unroll`` (the replay's form, from the
+    zero state) over the states and the actions taken; F returned by ``choose`` is −Q of the taken
+    action there."""
+    from ferl.actors.recurrent_q import RecurrentQActor
+    from ferl.schedules import Constant
+
+    R, S, nA, T = 4, 3, 4, 12
+    actor = RecurrentQActor(
+        n_runs=R, n_state=S, n_actions=nA, n_hidden=5, gamma=0.9, lr=Constant(0.1), beta=Constant(1.0), seed=2
+    )
+    explore = EzGreedy(n_runs=R, n_actions=nA, epsilon=0.6, mu=2.0)
+    explore.begin_episode(torch.Generator().manual_seed(5), T - 1)
+    g = torch.Generator().manual_seed(6)
+    states = torch.randn(R, 1, T, S, generator=g)
+    taken_actions, F_taken, overridden = [], [], 0
+    for t in range(T):
+        proposal = actor.act(states[:, :, t], 1.0, g)
+        a, F_a, _, _ = explore.choose(actor, states[:, :, t], proposal)
+        overridden += int((a != proposal[0]).sum())
+        taken_actions.append(a)
+        F_taken.append(F_a)
+    actions = torch.cat(taken_actions, 1).unsqueeze(1)  # (R, 1, T)
+    onehot = torch.nn.functional.one_hot(actions, nA).float()
+    prev = torch.cat([torch.zeros_like(onehot[:, :, :1]), onehot[:, :, :-1]], 2)  # a_{t−1}, zero at t = 0
+    q = actor.unroll(actor.params(), states, prev)  # (R, 1, T, nA)
+    want = -q.gather(3, actions.unsqueeze(3)).squeeze(3).squeeze(1)  # (R, T)
+    assert overridden > 0
+    torch.testing.assert_close(torch.cat(F_taken, 1), want)

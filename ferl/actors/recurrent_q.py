@@ -170,6 +170,15 @@ class RecurrentQActor(SoftmaxActor):
         self.a_prev.copy_(nnf.one_hot(a, self.n_actions).to(self.a_prev.dtype))
         return a, F_a, h, F_boot
 
+    @torch.no_grad()
+    def retake(self, a: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The action taken at the last ``act`` was a (R, 1) (a directed exploration's,
+        ``ferl.exploration.RetakesAction``): h_t does not depend on it, a_{t−1} of the next step
+        does. Returns F(s_t, a) = −Q(h_t, a) (R, 1) and the cache h_t (R, 1, state size)."""
+        self.a_prev.copy_(nnf.one_hot(a, self.n_actions).to(self.a_prev.dtype))
+        F = -self.head.q(self.params(), self.core.hidden(self.h))  # (R, 1, nA)
+        return F.gather(2, a.unsqueeze(2)).squeeze(2), self.h.clone()
+
     def end_episode(self, episode: EndedEpisode, lr: float) -> None:
         """Store every run's episode (``EndedEpisode.padded``: states (R, T_max+1, S), actions and
         rewards (R, T_max) padded after ``lengths`` (R,) actions, ``terminated`` (R,)), take the

@@ -96,6 +96,17 @@ class NoExploration(ExplorationBase):
         super().__init__(n_runs)
 
 
+@runtime_checkable
+class RetakesAction(Protocol):
+    """An actor whose ``act`` steps a memory in place with the action it drew (``RecurrentQActor``:
+    h_t from (s_t, a_{t−1}), then a_{t−1} ← a_t). A method that replaces the drawn action tells it."""
+
+    def retake(self, a: Tensor) -> tuple[Tensor, Tensor]:
+        """The action taken at the last ``act`` was a (R, 1), not the one drawn: the memory's next
+        step reads a; returns F(s_t, a) (R, 1) and its cache (R, 1, ·) at the state ``act`` reached."""
+        ...
+
+
 def added(bonus: Tensor | None, more: Tensor | None) -> Tensor | None:
     """The sum of two reward bonuses (R,), either of them None for nothing."""
     if bonus is None:
@@ -107,12 +118,15 @@ def taken(actor, s: Tensor, proposal: tuple, take: Tensor, action: Tensor) -> tu
     """``proposal`` (the actor's ``act`` at s (R, 1, S)) with ``action`` (R,) in the runs where
     ``take`` (R,) bool: the action, its F(s, a) and cache, and the F a TD error bootstraps from at
     s — the taken action's own under SARSA (the actor's ``td_rule``, SARSA when it states none);
-    Q(0)'s min_a F and expected SARSA's policy mean do not depend on the action taken. The
+    Q(0)'s min_a F and expected SARSA's policy mean do not depend on the action taken. An actor
+    whose ``act`` stepped its memory is told the action (``RetakesAction.retake``); else the
     actor's ``evaluate_actions`` gives F and cache of the given actions where it has one (factored
     actions are never enumerated), else they are picked from ``evaluate``'s every action."""
     a, _, _, F_boot = proposal
     a_new = torch.where(take.unsqueeze(1), action.unsqueeze(1), a)
-    if hasattr(actor, "evaluate_actions"):
+    if isinstance(actor, RetakesAction):  # act has stepped its memory: evaluating again would step it twice
+        F_new, cache_new = actor.retake(a_new)
+    elif hasattr(actor, "evaluate_actions"):
         F_new, cache_new = actor.evaluate_actions(s, a_new)
     else:
         F_all, cache_all = actor.evaluate(s)  # (R, 1, nA), (R, 1, nA, ·)

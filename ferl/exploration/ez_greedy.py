@@ -44,7 +44,6 @@ class EzGreedy(ExplorationBase):
     """εz-greedy over R runs (module docstring): ``epsilon`` the chance of starting an option at a
     step without one, ``mu`` the zeta exponent (2: Dabney et al.'s choice across Atari)."""
 
-    episode_learners_refused = "its act steps its memory with the action it drew itself; use exploration=none"
     held: torch.Tensor  # (R,) ω, the action of each run's option
     left: torch.Tensor  # (R,) steps of ω still to take (0: no option running)
     cdf: torch.Tensor  # (T_max,) float64, ``zeta_cdf`` for the episode's T_max + 1 choices
