@@ -74,7 +74,9 @@ reproduce: $(STAMP)
 # side-by-side) for BEYOND_EXPLORE_MEMORIES at BEYOND_EXPLORE_CORRIDORS (its runs without
 # exploration are the first curve's), and the passive T-maze of Ni et al. (2023) for
 # BEYOND_PASSIVE_MEMORIES at memory lengths BEYOND_PASSIVE_CORRIDORS (BEYOND_PASSIVE_EPISODES
-# episodes, its experiment's other settings). Each curve job has BEYOND_RUNS runs, BEYOND_LONG_RUNS
+# episodes, its experiment's other settings), and the same maze for the recurrent Q-learner, whose
+# memory is learnt for reward (actor=recurrent_q, its cores BEYOND_Q_MEMORIES, linear head, β's end
+# BEYOND_Q_BETA) at BEYOND_Q_CORRIDORS with BEYOND_Q_EPISODES episodes. Each curve job has BEYOND_RUNS runs, BEYOND_LONG_RUNS
 # from corridor BEYOND_LONG_FROM on. Then the sweep's report with its "beyond" section. A reduced
 # version: e.g. make beyond BEYOND_PASSIVE_CORRIDORS="5 10" BEYOND_PASSIVE_MEMORIES=lstm,gru BEYOND_RUNS=2.
 BEYOND_EFFICIENCY        ?= table5_1_pixel,table5_1_bit,table4_1_matching
@@ -93,7 +95,11 @@ BEYOND_EXPLORE_MEMORIES  ?= lstm,gru
 BEYOND_PASSIVE_CORRIDORS ?= 50 20 10
 BEYOND_PASSIVE_MEMORIES  ?= lstm,gru
 BEYOND_PASSIVE_EPISODES  ?= 2000
-BEYOND_SWEEPS = $(shell echo $$(($(if $(BEYOND_EFFICIENCY),2,0) + $(words $(BEYOND_CORRIDORS) $(BEYOND_EXPLORE_CORRIDORS) $(BEYOND_PASSIVE_CORRIDORS)))))
+BEYOND_Q_CORRIDORS       ?= 50
+BEYOND_Q_MEMORIES        ?= lstm,gru
+BEYOND_Q_EPISODES        ?= 10000
+BEYOND_Q_BETA            ?= 30
+BEYOND_SWEEPS = $(shell echo $$(($(if $(BEYOND_EFFICIENCY),2,0) + $(words $(BEYOND_CORRIDORS) $(BEYOND_EXPLORE_CORRIDORS) $(BEYOND_PASSIVE_CORRIDORS) $(BEYOND_Q_CORRIDORS)))))
 
 beyond: $(STAMP)
 	@dir=outputs/beyond/$$(date +%Y-%m-%d_%H-%M-%S); start=$$(date +%s); \
@@ -124,6 +130,13 @@ beyond: $(STAMP)
 	  $(PY) train.py -m experiment=passive_tmaze predictor.joint.memory=$(BEYOND_PASSIVE_MEMORIES) \
 	    env.corridor_length=$$c trainer.n_episodes=$(BEYOND_PASSIVE_EPISODES) n_runs=$$(runs $$c) $$jobs \
 	    hydra.sweep.dir=$$dir/passive_curve/corridor_$$c || exit 1; \
+	done && \
+	for c in $(BEYOND_Q_CORRIDORS); do \
+	  n=$$((n + 1)); echo "ferl: sweep $$n/$(BEYOND_SWEEPS): passive_q_curve/corridor_$$c"; \
+	  $(PY) train.py -m experiment=passive_tmaze trainer=algorithm1 predictor=none actor=recurrent_q actor.head=linear \
+	    actor.memory=$(BEYOND_Q_MEMORIES) actor.beta.end=$(BEYOND_Q_BETA) env.corridor_length=$$c \
+	    trainer.n_episodes=$(BEYOND_Q_EPISODES) n_runs=$$(runs $$c) $$jobs \
+	    hydra.sweep.dir=$$dir/passive_q_curve/corridor_$$c || exit 1; \
 	done && \
 	echo $$(( $$(date +%s) - start )) > $$dir/train_wall_time_s && \
 	$(PY) analyze.py $$dir && \

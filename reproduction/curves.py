@@ -1,8 +1,10 @@
 """The memory curves of the T-mazes (beyond the dissertation, §5.4; docs/beyond.md, "Memory
 curves"): how long a corridor each memory bridges, one line per memory model (and directed
-exploration), read from what every online T-maze job recorded — ``records/run.json`` (the
-environment's ``passive``, ``corridor_length``, ``matching`` and ``goal_reward``, the predictors'
-``kind``, the ``exploration``'s kind, none where the run recorded none), ``summary.json`` (per run
+exploration), read from what every T-maze job whose memory learns as it acts recorded (the online
+trainer's predictors, or an actor with a memory of its own: the recurrent Q-learner) —
+``records/run.json`` (the environment's ``passive``, ``corridor_length``, ``matching`` and
+``goal_reward``, the predictors' ``kind`` or the actor's ``kind``, ``memory`` and ``head``, the
+``exploration``'s kind, none where the run recorded none), ``summary.json`` (per run
 ``solved`` and ``final_correct_goal_rate``) and ``records/episodes.npz`` — never from experiment
 or directory names:
 
@@ -71,7 +73,7 @@ class Curve:
 PASSIVE = Curve(
     "passive_tmaze_curve",
     True,
-    "Memory-length curve: passive T-maze (Ni et al. 2023), online trainer, one line per memory model "
+    "Memory-length curve: passive T-maze (Ni et al. 2023), one line per memory model "
     f"(mean ± s.e.m. over runs). {NI_ET_AL}",
     "memory length L (env.corridor_length)",
     "junction_on_schedule_share",
@@ -80,7 +82,7 @@ PASSIVE = Curve(
 ACTIVE = Curve(
     "memory_length_curve",
     False,
-    "Memory-length curve: regular (active) T-maze, online trainer, one line per memory model and "
+    "Memory-length curve: regular (active) T-maze, one line per memory model and "
     "exploration method (dashed: directed exploration; mean ± s.e.m. over runs)",
     "corridor length T_min (env.corridor_length)",
     "goal_reached_share",
@@ -109,19 +111,35 @@ class CurvePoint:
         return self.solved >= SOLVED_SHARE * self.n
 
 
+def own_memory(job: Job) -> str | None:
+    """The memory of an actor that learns its own (``actor=recurrent_q``, ``drqn``: run.json's actor
+    ``memory``) where no predictor gives one: ``drqn``, ``recurrent_q lstm``, ``recurrent_q gru
+    free_energy`` (its head unless linear); None otherwise."""
+    actor = job.manifest.actor
+    if job.manifest.predictors or "memory" not in actor:
+        return None
+    if actor.get("kind") == "drqn":
+        return "drqn"
+    head = actor.get("head", "linear")
+    return " ".join([str(actor.get("kind")), str(actor["memory"]), *([str(head)] if head != "linear" else [])])
+
+
 def memory_kind(job: Job) -> str:
-    """The predictors' memory kinds, joined (``lstm``; ``elman+lstm`` for mixed predictors)."""
-    return "+".join(sorted({str(p.get("kind")) for p in job.manifest.predictors.values()})) or "none"
+    """The line a job is on: the predictors' memory kinds, joined (``lstm``; ``elman+lstm`` for
+    mixed predictors), or the actor's own memory (``own_memory``)."""
+    kinds = "+".join(sorted({str(p.get("kind")) for p in job.manifest.predictors.values()}))
+    return kinds or own_memory(job) or "none"
 
 
 def curve_jobs(jobs: Sequence[Job], curve: Curve) -> list[Job]:
-    """The online, non-matching T-maze jobs of ``curve``'s maze that recorded the final metrics."""
+    """The non-matching T-maze jobs of ``curve``'s maze that recorded the final metrics and whose
+    memory learns while the agent acts: the online trainer's predictors, or an actor's own."""
     return [
         j
         for j in jobs
         if j.manifest is not None
         and j.manifest.env_kind == "tmaze"
-        and j.manifest.trainer.get("kind") == "online"
+        and (j.manifest.trainer.get("kind") == "online" or own_memory(j) is not None)
         and not j.manifest.env.get("matching")
         and bool(j.manifest.env.get("passive")) == curve.passive
         and "final_correct_goal_rate" in j.summary.get("metrics", {})
@@ -281,7 +299,7 @@ def section(points: Sequence[CurvePoint], curve: Curve, out: Path, figures: dict
     )
     data_files.append(f"{curve.name}.csv")
     maze = "passive T-maze (Ni et al. 2023)" if curve.passive else "regular T-maze"
-    lines = ["", f"### Memory-length curve, {maze}, online trainer", ""]
+    lines = ["", f"### Memory-length curve, {maze}", ""]
     lines += table_lines(
         [
             "memory",

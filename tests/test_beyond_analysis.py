@@ -107,7 +107,7 @@ def test_passive_curve_reads_the_runs_records(sweep):
     assert (
         "![Memory-length curve: passive T-maze" in report and (root / "analysis" / "passive_tmaze_curve.png").is_file()
     )
-    assert "### Memory-length curve, passive T-maze (Ni et al. 2023), online trainer" in report
+    assert "### Memory-length curve, passive T-maze (Ni et al. 2023)" in report
 
 
 def test_sample_efficiency_lists_every_procedure_per_run(sweep):

@@ -92,6 +92,9 @@ def make_job(root: Path, name: str, design: dict, rng) -> Job:
         "predictors": {"joint": {"kind": design["memory"]}},
         "actor": {"kind": "free_energy"},
     }
+    if design["memory"].startswith("recurrent_q "):  # an actor with its own memory, no predictor
+        core = design["memory"].split()[1]
+        manifest |= {"predictors": {}, "actor": {"kind": "recurrent_q", "memory": core, "head": "linear"}}
     if design["exploration"] != "none":
         manifest["exploration"] = {"kind": design["exploration"]}
     (run_dir / "records" / "run.json").write_text(json.dumps(manifest))
@@ -117,6 +120,7 @@ DESIGN = {
     (True, "elman", "none"): {10: (0, 0.2), 20: (0, 0.0)},  # none: exploration at 10
     (False, "gru", "none"): {5: (5, 1.0)},  # limit 5, nothing failed
     (False, "gru", "ez_greedy"): {5: (4, 0.95), 10: (2, 0.8)},  # limit 5: memory
+    (True, "recurrent_q lstm", "none"): {50: (5, 1.0), 100: (2, 0.9)},  # its own memory, phased: limit 50
 }
 LIMITS = {
     (True, "lstm", "none"): (20, 50, "memory"),
@@ -124,6 +128,7 @@ LIMITS = {
     (True, "elman", "none"): (None, 10, "exploration"),
     (False, "gru", "none"): (5, None, None),
     (False, "gru", "ez_greedy"): (5, 10, "memory"),
+    (True, "recurrent_q lstm", "none"): (50, 100, "memory"),
 }
 
 
@@ -140,6 +145,8 @@ def synthetic(tmp_path_factory):
         {**designs[0], "matching": True, "passive": False},
         {**designs[0], "trainer": "phased"},
     ]
+    for d in designs:  # the recurrent Q-learner learns its memory under a phased trainer
+        d["trainer"] = "phased" if d["memory"].startswith("recurrent_q") else "online"
     jobs = [make_job(root, f"job{i}", d, rng) for i, d in enumerate(designs + others)]
     out, figures, data_files = root / "analysis", {}, []
     out.mkdir()
@@ -182,6 +189,7 @@ def test_each_lines_limit_and_its_cause(synthetic):
     text = "\n".join(lines)
     assert "**lstm**: limit 20 (" in text and "limited by **memory**" in text
     assert "**elman**: limit none (" in text and "**gru + ez_greedy**: limit 5 (" in text
+    assert "**recurrent_q lstm**: limit 50 (" in text
     assert "no per-length success numbers" in text  # Ni et al.: said, not drawn
 
 
@@ -219,6 +227,10 @@ def test_make_beyond_runs_each_curve_from_its_variables(tmp_path):
         "BEYOND_EPISODES": "45",
         "BEYOND_RUNS": "3",
         "BEYOND_LONG_RUNS": "2",
+        "BEYOND_Q_CORRIDORS": "60",
+        "BEYOND_Q_MEMORIES": "gru",
+        "BEYOND_Q_EPISODES": "77",
+        "BEYOND_Q_BETA": "9",
     }
     make = ["make", "-s", "-f", str(ROOT / "Makefile"), "beyond", *(f"{k}={v}" for k, v in overrides.items())]
     env = {**os.environ, "CALLS": str(tmp_path / "calls")}
@@ -249,7 +261,22 @@ def test_make_beyond_runs_each_curve_from_its_variables(tmp_path):
         }
         for c, runs in ((10, 3), (300, 2))  # BEYOND_LONG_FROM = 200: fewer runs at 300
     ]
+    want.append(
+        {
+            *[
+                "experiment=passive_tmaze",
+                "trainer=algorithm1",
+                "predictor=none",
+                "actor=recurrent_q",
+                "actor.head=linear",
+            ],
+            *["actor.memory=gru", "actor.beta.end=9", "env.corridor_length=60", "trainer.n_episodes=77", "n_runs=3"],
+        }
+    )
     assert len(calls) == len(want) + 1 and calls[-1] >= {"analyze.py"}
     for got, expected in zip(calls, want):
         assert expected <= got and "train.py" in got and "-m" in got
-    assert "sweep 5/5: passive_curve/corridor_300" in done.stdout
+    assert (
+        "sweep 5/6: passive_curve/corridor_300" in done.stdout
+        and "sweep 6/6: passive_q_curve/corridor_60" in done.stdout
+    )
