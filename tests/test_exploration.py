@@ -47,15 +47,17 @@ class TableActor:
         return F, F.unsqueeze(-1)
 
 
-def test_ez_greedy_follows_algorithm_1_and_evaluates_the_action_taken():
+@pytest.mark.parametrize(("epsilon", "epsilon_end", "progress"), [(0.3, None, 0.7), (0.6, 0.0, 0.5)])
+def test_ez_greedy_follows_algorithm_1_and_evaluates_the_action_taken(epsilon, epsilon_end, progress):
     """Per run and step, Algorithm 1 of Dabney et al. written out in Python on the same uniforms:
     an option runs on, else one starts with chance ε (ω and n from the step's uniforms), else the
-    actor's proposal; F and the cache returned are the actor's at the action taken."""
+    actor's proposal; F and the cache returned are the actor's at the action taken. ε is 0.3 in
+    both cases: constant, or 0.6 falling linearly to 0, half-way through the training."""
     R, S, nA, T = 6, 3, 4, 40
     g = torch.Generator().manual_seed(3)
     actor = TableActor(torch.randn(R, S, nA, generator=g))
-    explore = EzGreedy(n_runs=R, n_actions=nA, epsilon=0.3, mu=2.0)
-    explore.begin_episode(torch.Generator().manual_seed(4), T - 1)
+    explore = EzGreedy(n_runs=R, n_actions=nA, epsilon=epsilon, mu=2.0, epsilon_end=epsilon_end)
+    explore.begin_episode(torch.Generator().manual_seed(4), T - 1, progress)
     uniforms = explore.uniforms.clone()  # (T, R, 3)
     cdf = zeta_cdf(2.0, T).numpy()
     held, left = [0] * R, [0] * R
@@ -160,7 +162,7 @@ def test_ez_greedy_tells_the_recurrent_q_learner_the_action_it_took():
         n_runs=R, n_state=S, n_actions=nA, n_hidden=5, gamma=0.9, lr=Constant(0.1), beta=Constant(1.0), seed=2
     )
     explore = EzGreedy(n_runs=R, n_actions=nA, epsilon=0.6, mu=2.0)
-    explore.begin_episode(torch.Generator().manual_seed(5), T - 1)
+    explore.begin_episode(torch.Generator().manual_seed(5), T - 1, 0.0)
     g = torch.Generator().manual_seed(6)
     states = torch.randn(R, 1, T, S, generator=g)
     taken_actions, F_taken, overridden = [], [], 0

@@ -36,9 +36,10 @@ class Exploration(Protocol):
     def check_actor(self, actor) -> None:
         """ConfigError when the method cannot work with this actor (checked before any work)."""
 
-    def begin_episode(self, generator: torch.Generator, max_steps: int) -> None:
-        """Before an episode of every run: forget what the previous episode held and draw this
-        episode's random numbers from the batch's ``generator``, all at once in a fixed order
+    def begin_episode(self, generator: torch.Generator, max_steps: int, progress: float) -> None:
+        """Before an episode of every run, at ``progress`` ∈ [0, 1) of the training (episode k of N:
+        k / N, what the actor's schedules read): forget what the previous episode held and draw
+        this episode's random numbers from the batch's ``generator``, all at once in a fixed order
         (so that no run's episode length shifts another run's stream)."""
 
     def choose(self, actor, s: Tensor, proposal: tuple) -> tuple:
@@ -75,7 +76,7 @@ class ExplorationBase(nn.Module):
             kind = self.describe()["kind"]
             raise ConfigError(f"exploration={kind} with {type(actor).__name__}: {self.episode_learners_refused}")
 
-    def begin_episode(self, generator: torch.Generator, max_steps: int) -> None: ...
+    def begin_episode(self, generator: torch.Generator, max_steps: int, progress: float) -> None: ...
 
     def choose(self, actor, s: Tensor, proposal: tuple) -> tuple:
         return proposal

@@ -5,7 +5,10 @@ drawn uniformly from the n actions, repeated for n steps with n drawn from the z
 
     P(n) = n^(−μ) / ζ(μ),   n = 1, 2, …   (μ > 1; ζ the Riemann zeta function)
 
-and otherwise it takes the actor's own choice (Eq. 3.11; their "greedy"). The heavy tail gives
+and otherwise it takes the actor's own choice (Eq. 3.11; their "greedy"). ε may fall linearly
+over the training, from ``epsilon`` to ``epsilon_end`` (episode k of N: ε_k = ε + (ε_end − ε) k/N),
+as the actor's β rises: a method that still starts options in the final window keeps its
+episodes off the greedy return that ``solved`` asks for (docs/records.md). The heavy tail gives
 the Lévy-flight walks that cross a corridor of aliased observations in ~T_min steps where a
 one-step random walk needs ~T_min² (Dabney et al.'s §3). A duration longer than the episode's
 remaining choices is cut by the episode's end, so n is drawn from the zeta law censored at
@@ -42,7 +45,8 @@ def zeta_durations(cdf: Tensor, u: Tensor) -> Tensor:
 
 class EzGreedy(ExplorationBase):
     """εz-greedy over R runs (module docstring): ``epsilon`` the chance of starting an option at a
-    step without one, ``mu`` the zeta exponent (2: Dabney et al.'s choice across Atari)."""
+    step without one (falling linearly to ``epsilon_end`` over the training; None: constant),
+    ``mu`` the zeta exponent (2: Dabney et al.'s choice across Atari)."""
 
     held: torch.Tensor  # (R,) ω, the action of each run's option
     left: torch.Tensor  # (R,) steps of ω still to take (0: no option running)
@@ -51,18 +55,28 @@ class EzGreedy(ExplorationBase):
     step: int  # choices made in the episode
 
     @checked
-    def __init__(self, n_runs: PositiveInt, n_actions: PositiveInt, epsilon: UnitInterval = 0.1, mu: AboveOne = 2.0):
+    def __init__(
+        self,
+        n_runs: PositiveInt,
+        n_actions: PositiveInt,
+        epsilon: UnitInterval = 0.1,
+        mu: AboveOne = 2.0,
+        epsilon_end: UnitInterval | None = None,
+    ):
         super().__init__(n_runs)
-        self.n_actions, self.epsilon, self.mu = n_actions, epsilon, mu
+        self.n_actions, self.epsilon, self.mu, self.epsilon_end = n_actions, epsilon, mu, epsilon_end
+        self.epsilon_now = epsilon  # ε of the episode under way
         self.longest = 0  # T_max + 1, known at the first episode
         self.register_buffer("held", torch.zeros(n_runs, dtype=torch.long), persistent=False)  # ω per run
         self.register_buffer("left", torch.zeros(n_runs, dtype=torch.long), persistent=False)  # steps of ω to go
 
     def describe(self) -> dict:
-        return {"kind": "ez_greedy", "epsilon": self.epsilon, "mu": self.mu}
+        return {"kind": "ez_greedy", "epsilon": self.epsilon, "epsilon_end": self.epsilon_end, "mu": self.mu}
 
-    def begin_episode(self, generator: torch.Generator, max_steps: int) -> None:
-        """No option held; the episode's uniforms (T_max + 1, R, 3), drawn in one call."""
+    def begin_episode(self, generator: torch.Generator, max_steps: int, progress: float) -> None:
+        """No option held; ε of the episode at ``progress``; its uniforms (T_max + 1, R, 3), drawn in one call."""
+        end = self.epsilon if self.epsilon_end is None else self.epsilon_end
+        self.epsilon_now = self.epsilon + (end - self.epsilon) * progress
         if self.longest != max_steps + 1:
             self.longest = max_steps + 1
             self.cdf = zeta_cdf(self.mu, self.longest).to(self.held.device)
@@ -75,7 +89,7 @@ class EzGreedy(ExplorationBase):
         else the actor's proposal."""
         u = self.uniforms[self.step]  # (R, 3): start, ω, n
         self.step += 1
-        start = (self.left == 0) & (u[:, 0] < self.epsilon)
+        start = (self.left == 0) & (u[:, 0] < self.epsilon_now)
         omega = (u[:, 1] * self.n_actions).long().clamp(max=self.n_actions - 1)
         self.held = torch.where(start, omega, self.held)
         self.left = torch.where(start, zeta_durations(self.cdf, u[:, 2]), self.left)

@@ -218,7 +218,7 @@ class ActorEpisodes(Phase):
         (steps + 1, R), actions (steps, R) and raw rewards (steps, R), and the actor's states (steps, R, S)."""
         job.env.reset()
         (uniform,) = self.uniforms.next()  # (T_max + 1, R, 1, 1)
-        job.exploration.begin_episode(job.generator, job.env.max_steps)  # its draws after the actor's
+        job.exploration.begin_episode(job.generator, job.env.max_steps, k / self.N)  # its draws after the actor's
         if self.fused is None:
             ep = self.episode(job, lr, beta, uniform, True)
         else:  # α and β as tensors, so that one graph serves every episode
