@@ -92,11 +92,12 @@ def test_same_seed_same_numbers(tmp_path, tiny_run):
         # the recurrent Q-learner's value head: one of its four
         "experiment=table4_1_matching actor=recurrent_q predictor=none actor.head=rbm",
         # an unknown exploration method, a zeta exponent ≤ 1, a continuing trainer (no episodes),
-        # an actor whose act steps its own memory
+        # a bonus that an actor learning from its replayed raw rewards would never see
         "experiment=table4_1_regular exploration=boltzmann_plus",
         "experiment=table4_1_regular exploration=ez_greedy exploration.mu=1.0",
+        "experiment=table4_1_regular exploration=ez_greedy exploration.epsilon_end=1.5",
         "experiment=ch3_floor exploration=ez_greedy",
-        "experiment=table4_1_regular predictor=none actor=drqn exploration=ez_greedy",
+        "experiment=table4_1_regular predictor=none actor=drqn exploration=count_bonus",
         # TD into the memory: λ < 0; a key of the online trainer alone, so a phased trainer has
         # none (and reads none when added); an actor without ∂Q/∂s; a reservoir that does not learn
         "experiment=table4_1_matching trainer=online trainer.td_to_memory=-0.1",
