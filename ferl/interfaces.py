@@ -290,15 +290,13 @@ class Actor(Checkpointed, Protocol):
     ``evaluate`` gives every action's value as an energy F (lower is better: Q = −F) and a cache
     of what ``learn`` reuses; ``ferl.actors.td.td_step`` is the one online step that every trainer
     takes with any actor. The fast path's members (``samples_with_generator``, ``slice_runs``,
-    ``prepare_for_compile``) say how its steps may be compiled; the hooks have defaults on
-    ``ActorBase``. What the records show of it is the optional ``ActorViews``.
+    ``prepare_for_compile``, ``compile_updates``) say how it may be compiled; the hooks have
+    defaults on ``ActorBase``. What the records show of it is the optional ``ActorViews``.
     """
 
     n_runs: int
     gamma: float  # the discount of its TD errors (and of the returns the optimum is measured in)
-    # True when it learns only at ``end_episode`` (from replayed episodes), not per step: a continuing
-    # task, which has no episodes, cannot train it, and its ``act`` steps a memory in place, so its
-    # episodes stay eager
+    # True when it learns only at ``end_episode`` (replayed episodes): a continuing task cannot train it
     learns_from_episodes: bool
 
     def learning_rate(self, progress: float) -> float: ...
@@ -334,6 +332,7 @@ class Actor(Checkpointed, Protocol):
     def prepare_for_compile(self) -> None:
         """Lay the parameters out for a compiled step (their values unchanged)."""
 
+    def compile_updates(self, device: torch.device) -> None: ...  # compile what end_episode learns
     def describe(self) -> dict: ...
 
 
@@ -355,6 +354,8 @@ class ActorBase:
 
     def prepare_for_compile(self) -> None:
         """Nothing to lay out: the parameters' default layout serves a compiled step."""
+
+    def compile_updates(self, device: torch.device) -> None: ...  # nothing learnt after an episode
 
 
 @runtime_checkable

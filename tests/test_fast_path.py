@@ -72,19 +72,22 @@ def test_fused_bptt_equals_autograd_sgd_of_each_run_alone(monkeypatch, batch_siz
                 torch.testing.assert_close(qb[run], qs[0], rtol=1e-10, atol=1e-10, msg=name)
 
 
-def episodes(tmp_path, name: str, *overrides) -> tuple[dict, dict]:
+BIT_TINY = (
+    "experiment=table5_1_bit",
+    "n_runs=3",
+    "trainer.n_sample=300",
+    "trainer.n_epoch=2",
+    "trainer.n_episodes=60",
+    "trainer.log_every=20",
+    "trainer.td_sample_every=20",
+    "trainer.final_window=20",
+)
+
+
+def episodes(tmp_path, name: str, *overrides, tiny=BIT_TINY) -> tuple[dict, dict]:
+    """A run of ``tiny`` and ``overrides`` in process: its summary and its episodes.npz."""
     from conftest import compose_config
 
-    tiny = [
-        "experiment=table5_1_bit",
-        "n_runs=3",
-        "trainer.n_sample=300",
-        "trainer.n_epoch=2",
-        "trainer.n_episodes=60",
-        "trainer.log_every=20",
-        "trainer.td_sample_every=20",
-        "trainer.final_window=20",
-    ]
     summary = train_job(compose_config([*tiny, *overrides]), tmp_path / name)
     with np.load(tmp_path / name / "records" / "episodes.npz") as ep:
         return summary, dict(ep)

@@ -192,11 +192,14 @@ def test_sigterm_in_the_preprocessor_phase_then_resume(tmp_path):
     [
         ("actor=drqn", "predictor=none"),
         ("actor=recurrent_q", "actor.head=free_energy", "actor.memory=lstm", "predictor=none"),
+        ("actor=drqn", "predictor=none", "compile=true"),
     ],
 )
 def test_drqn_resumes_mid_actor_equal_to_uninterrupted(tmp_path, agent):
     """The recurrent Q-learner's checkpoint (its replay, Adam's moments, the target network, each
-    run's generator) continues the run exactly: DRQN, and an RBM head on an LSTM core."""
+    run's generator) continues the run exactly: DRQN, and an RBM head on an LSTM core; DRQN on
+    the fast path too (its compiled episodes and replay steps are deterministic: the resumed
+    process, which loads the graphs, computes bit for bit what the uninterrupted one did)."""
     whole, cut = tmp_path / "whole", tmp_path / "cut"
     proc = train(*agent, f"hydra.run.dir={whole}")
     assert proc.wait(timeout=300) == 0, proc.stderr.read()[-2000:]

@@ -31,14 +31,15 @@ from torch.nn import functional as nnf
 from ferl import rng
 from ferl.actors.q_heads import head as make_head
 from ferl.actors.recurrent_cores import CORES
+from ferl.actors.recurrent_q_fast import ADAM_BETAS, ADAM_EPS, adam_scalars, replay_step
 from ferl.actors.softmax import SoftmaxActor, TDRule
+from ferl.compiled import compiled
 from ferl.config.params import NonNegative, NonNegativeInt, Positive, PositiveInt, checked
 from ferl.interfaces import EndedEpisode
 from ferl.replay import draw_episodes, new_replay, store_episode, stored_episodes
 
 HeadName = Literal["linear", "free_energy", "scaled_free_energy", "expected_energy"]  # q_heads.head's names
 MemoryName = Literal["gru", "lstm", "elman", "esn"]  # recurrent_cores.CORES' names
-ADAM_BETAS, ADAM_EPS = (0.9, 0.999), 1e-8
 
 
 class RecurrentQActor(SoftmaxActor):
@@ -111,6 +112,11 @@ class RecurrentQActor(SoftmaxActor):
         self.generator = rng.generator(rng.child_seed(generators[0]))
         self.replay = None  # allocated by the first episode, whose length fixes T_max
         self.episodes = self.adam_steps = 0
+        self.fast_update = None  # the compiled replay step (compile_updates), or None: adam_step
+
+    def compile_updates(self, device: torch.device) -> None:
+        """On the fast path the replay steps run as one compiled graph (``replay_step``)."""
+        self.fast_update = compiled(replay_step, device, "a replay step")
 
     @property
     def n_runs(self) -> int:
@@ -197,19 +203,27 @@ class RecurrentQActor(SoftmaxActor):
         store_episode(self.replay, self.episodes, stored)
         self.episodes += 1
         for _ in range(self.updates_per_episode):
-            self.adam_step(self.sample(), lr)
+            if self.fast_update is None:
+                self.adam_step(self.sample(), lr)
+            else:
+                self.adam_steps += 1
+                self.fast_update(self, self.draw(), *adam_scalars(lr, self.adam_steps, self.a_prev.device))
         if self.episodes % self.target_every == 0:
             for name in self.names:
                 getattr(self, f"{name}_target").copy_(getattr(self, name))
         self.h.zero_()
         self.a_prev.zero_()
 
-    def sample(self) -> dict:
-        """``batch_episodes`` stored episodes per run, drawn uniformly with replacement, every
-        run's in one draw."""
+    def draw(self) -> torch.Tensor:
+        """The slots (R, ``batch_episodes``) of the episodes a step replays: uniform with
+        replacement over the stored ones, every run's in one draw."""
         assert self.replay is not None  # end_episode has stored one
-        index = draw_episodes(self.replay, self.episodes, self.batch_episodes, self.generator).to(self.a_prev.device)
-        return stored_episodes(self.replay, index)
+        return draw_episodes(self.replay, self.episodes, self.batch_episodes, self.generator).to(self.a_prev.device)
+
+    def sample(self) -> dict:
+        """``batch_episodes`` stored episodes per run (``draw``), every field (R, B, …)."""
+        assert self.replay is not None
+        return stored_episodes(self.replay, self.draw())
 
     def loss(self, p: dict, batch: dict) -> torch.Tensor:
         """Σ over runs of the mean Huber TD loss of the module docstring over the batch's steps."""
@@ -243,11 +257,17 @@ class RecurrentQActor(SoftmaxActor):
         (b1, b2), k = ADAM_BETAS, self.adam_steps
         with torch.no_grad():
             for name, g in zip(self.names, grads):
-                m, v = getattr(self, f"{name}_m"), getattr(self, f"{name}_v")
-                m.mul_(b1).add_(g, alpha=1 - b1)
-                v.mul_(b2).addcmul_(g, g, value=1 - b2)
+                m, v = self.moments(name, g)
                 denominator = (v.sqrt() / math.sqrt(1 - b2**k)).add_(ADAM_EPS)
                 getattr(self, name).addcdiv_(m, denominator, value=-lr / (1 - b1**k))
+
+    def moments(self, name: str, g: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Adam's moments of parameter ``name`` moved on by its gradient g, in place:
+        m ← β1 m + (1 − β1) g, v ← β2 v + (1 − β2) g²."""
+        (b1, b2), m, v = ADAM_BETAS, getattr(self, f"{name}_m"), getattr(self, f"{name}_v")
+        m.mul_(b1).add_(g, alpha=1 - b1)
+        v.mul_(b2).addcmul_(g, g, value=1 - b2)
+        return m, v
 
     def get_extra_state(self) -> dict:
         """What a checkpoint needs beyond the buffers: the replay, the counters, the generator."""

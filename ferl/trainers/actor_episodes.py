@@ -190,19 +190,21 @@ class ActorEpisodes(Phase):
         self.obs_offsets = torch.arange(job.R, device=job.device) * ids if table.dim() == 3 else None
         self.discounts = discount_factors(job.actor.gamma, job.env.max_steps)
         self.fused = None
+        if job.fast:  # what the actor learns after an episode, however the episodes are played
+            job.actor.compile_updates(job.device)
         if self.fuses(job):
             job.actor.prepare_for_compile()
             self.fused = compiled(self.episode, job.device, "an episode")
 
     def fuses(self, job) -> bool:
         """Whether episodes run as one compiled graph (``ferl.compiled``): on the fast path, with an
-        environment whose steps are tensor operations (``traceable_steps``) and an actor that
-        neither draws inside a step (Gibbs) nor steps a memory in place (``learns_from_episodes``)."""
+        environment whose steps are tensor operations (``traceable_steps``) and an actor that does
+        not draw inside a step (Gibbs). An actor that steps a memory in place (the recurrent
+        Q-learner's buffers) is traced too: the graph writes the buffers back when it returns."""
         return (
             job.fast
             and job.env.traceable_steps
             and not job.actor.samples_with_generator
-            and not job.actor.learns_from_episodes
             and not job.exploration.active  # its hooks keep Python state (a step counter, counts)
         )
 
