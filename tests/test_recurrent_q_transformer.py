@@ -1,5 +1,5 @@
 """The recurrent Q-learner's transformer core (``actor.memory=transformer``,
-ferl/actors/recurrent_cores.py): no step sees a later input, padding after an episode's end
+ferl/actors/recurrent_cores.py): its unroll equals torch.nn's own pre-LN encoder layers, no step sees a later input, padding after an episode's end
 changes no valid step, the parallel unroll equals stepping one input at a time through the
 key/value cache, the loss's gradient through head and core equals central finite differences
 (float64, autograd-free), the same seed gives the same actor, and train.py runs it on the passive
@@ -49,6 +49,48 @@ def stepped(agent: RecurrentQActor, p: dict, x: torch.Tensor) -> torch.Tensor:
         state = agent.core.step(p, x[:, :, t], state)
         out.append(agent.core.hidden(state))
     return torch.stack(out, 2)
+
+
+def torch_reference(agent: RecurrentQActor, p: dict, run: int, x: torch.Tensor) -> torch.Tensor:
+    """h_0 … h_T (B, T+1, H) of run ``run`` by torch.nn's pre-LN encoder layers (norm_first, GELU,
+    4 H feed-forward, no dropout) under a causal mask, the final LN and tanh: the GPT-2 block the
+    core's docstring states, computed by another implementation."""
+    P, H, N = {k: v[run] for k, v in p.items()}, agent.n_hidden, x.shape[2]
+    angle = torch.arange(N, dtype=torch.float64)[:, None] / 10000.0 ** (torch.arange(0, H, 2) / H)
+    z = x[run] @ P["W_in"].T + P["b_in"] + torch.stack([angle.sin(), angle.cos()], -1).flatten(-2)
+    for layer in range(agent.core.layers):
+        block = torch.nn.TransformerEncoderLayer(
+            H, agent.core.heads, 4 * H, dropout=0.0, activation="gelu", norm_first=True, batch_first=True
+        ).double()
+        with torch.no_grad():
+            for target, name in [
+                (block.self_attn.in_proj_weight, "W_qkv"),
+                (block.self_attn.in_proj_bias, "b_qkv"),
+                (block.self_attn.out_proj.weight, "W_o"),
+                (block.self_attn.out_proj.bias, "b_o"),
+                (block.linear1.weight, "W_1"),
+                (block.linear1.bias, "b_1"),
+                (block.linear2.weight, "W_2"),
+                (block.linear2.bias, "b_2"),
+                (block.norm1.weight, "ln1_g"),
+                (block.norm1.bias, "ln1_b"),
+                (block.norm2.weight, "ln2_g"),
+                (block.norm2.bias, "ln2_b"),
+            ]:
+                target.copy_(P[name][layer])
+        block.eval()
+        z = block(z, src_mask=torch.nn.Transformer.generate_square_subsequent_mask(N, dtype=torch.float64))
+    return torch.tanh(torch.nn.functional.layer_norm(z, (H,), P["lnf_g"], P["lnf_b"]))
+
+
+def test_the_unroll_equals_torchs_own_transformer_layers():
+    agent = actor()
+    p = perturbed(agent)
+    x = inputs()
+    with torch.no_grad():
+        h = agent.core.unroll(p, x)
+        for run in range(R):
+            torch.testing.assert_close(h[run], torch_reference(agent, p, run, x))
 
 
 def test_no_step_sees_a_later_input():
