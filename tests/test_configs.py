@@ -262,6 +262,8 @@ VALUE_ERRORS = [
     ("experiment=table5_1_pixel env.binarize_threshold=2", "env.binarize_threshold"),
     ("experiment=table4_1_matching actor.bias_init_std=-1", "actor.bias_init_std"),
     ("trainer.prefetch=-1", "trainer.prefetch"),
+    ("actor=recurrent_q predictor=none actor.context=30", "actor.context"),  # a transformer's key on a GRU
+    ("actor=recurrent_q predictor=none actor.memory=transformer actor.heads=3", "actor.heads"),
 ]
 
 # what involves two components: rejected by the trainer's setup, once they are built
@@ -274,6 +276,10 @@ SETUP_ERRORS = [
     ("optimized_metric=final_discounted_return", "optimized_metric"),
     ("experiment=table5_1_pixel env.reservoir_size=101", "env.reservoir_size"),
     ("data.test_per_class=500", "data.test_per_class"),  # the embedded data hold 500 images a class
+    (
+        "experiment=passive_tmaze actor=recurrent_q predictor=none actor.memory=transformer actor.context=5",
+        "actor.context",
+    ),
 ]
 
 

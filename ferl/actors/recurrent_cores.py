@@ -9,14 +9,21 @@ end by the actor's TD loss instead of by prediction. Parameters carry the run di
 * ``elman`` (Eq. 4.3 with β_m = 1): h_t = σ(W_xᵀ x_t + W_hᵀ h_{t−1} + b_x) (``ferl.predictors.elman.recur``).
 * ``esn`` (Jaeger & Haas 2004): the echo-state reservoir of ``ferl.predictors.echo_state``
   (leak λ = 0.5, spectral radius 0.95, density 0.2), fixed; only the head learns through it.
+* ``transformer``: the predictors' causal GPT-style transformer (``ferl.predictors.transformer``;
+  Radford et al. 2019; Ni et al. 2023's memory) over x_0 … x_t, d_model = H, ``layers`` pre-LN
+  blocks of ``heads`` heads, sinusoidal positions; h_t = tanh(LN_f(·)) at token t. Its state is a
+  key/value cache of ``context`` tokens (``cached_token``), so acting steps one input at a time,
+  while ``unroll`` runs every step of a batch of episodes at once under one causal mask.
 
 Every core starts from the zero state and draws its weights uniform in ±1/√H, per run from the
-run's generator, in the order of ``shapes`` (PyTorch's recurrent-cell initialisation; DRQN's).
-A new memory (e.g. an attention window, whose state would hold the last inputs) is a ``Core``
-subclass registered in ``CORES``: ``shapes``, ``fixed``, ``step`` and ``hidden`` are all the actor
-asks of it, ``unroll`` loops ``step`` unless the core overrides it with a parallel form.
+run's generator, in the order of ``shapes`` (PyTorch's recurrent-cell initialisation; DRQN's);
+the transformer rescales its draws to the predictors' transformer's scales (``adjust``).
+A new memory is a ``Core`` subclass registered in ``CORES``: ``shapes``, ``fixed``, ``step`` and
+``hidden`` are all the actor asks of it, ``unroll`` loops ``step`` unless the core overrides it
+with a parallel form (the transformer's).
 """
 
+import math
 from collections.abc import Callable
 
 import torch
@@ -24,6 +31,15 @@ import torch
 from ferl.predictors.echo_state import leaky_step
 from ferl.predictors.elman import recur
 from ferl.predictors.gated import gru_cell, lstm_cell
+from ferl.predictors.transformer import (
+    Weights,
+    affine,
+    cached_token,
+    causal_stack,
+    initial_std,
+    positions,
+    weight_shapes,
+)
 
 ESN_LEAK, ESN_RADIUS, ESN_DENSITY = 0.5, 0.95, 0.2
 
@@ -60,6 +76,14 @@ class Core:
     def hidden(self, state: torch.Tensor) -> torch.Tensor:
         """h_t (…, H), what the head reads, from the state (…, state_size)."""
         return state[..., : self.n_hidden]
+
+    def input_weights(self, p: dict) -> torch.Tensor:
+        """The weights from the inputs x_t into the core (R, X, ·), for the records' images."""
+        return p["W_x"]
+
+    def describe(self) -> dict:
+        """What the records keep of the core beyond its name and size."""
+        return {}
 
     def unroll(self, p: dict, x: torch.Tensor, readout: Callable = lambda h: h) -> torch.Tensor:
         """readout(h_t) of t = 0 … T stacked on dim 2, of inputs x (R, B, T+1, X), from the zero
@@ -144,5 +168,67 @@ class EchoStateCore(Core):
     def step(self, p: dict, x: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
         return leaky_step(p["W_res"], ESN_LEAK, torch.bmm(x, p["W_in"]), state)
 
+    def input_weights(self, p: dict) -> torch.Tensor:
+        return p["W_in"]
 
-CORES: dict[str, type[Core]] = {core.name: core for core in (GRUCore, LSTMCore, ElmanCore, EchoStateCore)}
+
+class TransformerCore(Core):
+    """``memory: transformer``: ``Weights`` of ``ferl.predictors.transformer`` over tokens
+    x_0 … x_t (the embedding W_in x_s + b_in + p_s, p_s sinusoidal), ``context`` tokens at most
+    (≥ T_max + 1: s_0 … s_T_max). The state [h_t, n, cache] (R, B, H + 1 + layers · 2 · context · H)
+    holds h_t, the tokens n seen and every layer's keys and values; the zero state is the
+    episode's start (n = 0, nothing cached), so the actor's zero state needs no special case."""
+
+    name = "transformer"
+
+    def __init__(self, n_in: int, n_hidden: int, context: int, layers: int = 1, heads: int = 1):
+        super().__init__(n_in, n_hidden)
+        self.context, self.layers, self.heads = context, layers, heads
+
+    def shapes(self) -> dict[str, tuple]:
+        return weight_shapes(self.n_in, self.n_hidden, self.layers)
+
+    def adjust(self, params: dict) -> None:
+        """The drawn U(±1/√H) weights (std 1/√(3H)) rescaled to the predictors' transformer's
+        standard deviations (``initial_std``: 1/√fan-in, GPT-2's 1/√(2 · layers) on the residual
+        projections), still uniform; biases 0 and LN gains 1, as GPT-2 starts."""
+        for name, shape in self.shapes().items():
+            if name.startswith("W_"):
+                params[name].mul_(math.sqrt(3 * self.n_hidden) * initial_std(name, shape, self.layers))
+            else:
+                params[name].fill_(1.0 if name.endswith("_g") else 0.0)
+
+    @property
+    def state_size(self) -> int:
+        return self.n_hidden + 1 + self.layers * 2 * self.context * self.n_hidden
+
+    def weights(self, p: dict) -> Weights:
+        return Weights(*(p[name] for name in Weights._fields))
+
+    def step(self, p: dict, x: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
+        """Token n of the episode: x (R, B, X) attends to the cached tokens 0 … n − 1 and itself."""
+        W = self.weights(p)
+        return cached_token(W, self.heads, self.context, state, affine(x, W.W_in, W.b_in))
+
+    def unroll(self, p: dict, x: torch.Tensor, readout: Callable = lambda h: h) -> torch.Tensor:
+        """The parallel form of stepping: every token of x (R, B, T+1, X) at once, token t
+        attending to tokens 0 … t only (one causal mask, no loop over time), so padding after an
+        episode's end reaches none of its steps; the readout sees h (R, B·(T+1), H)."""
+        R, B, N, _ = x.shape
+        if N > self.context:
+            raise ValueError(f"context={self.context} is shorter than the episodes' {N} steps")
+        W = self.weights(p)
+        embedded = affine(x, W.W_in, W.b_in) + positions(torch.arange(N, device=x.device), self.n_hidden).to(x.dtype)
+        out = readout(causal_stack(W, embedded, self.heads).reshape(R, B * N, self.n_hidden))
+        return out.view(R, B, N, *out.shape[2:])
+
+    def input_weights(self, p: dict) -> torch.Tensor:
+        return p["W_in"].transpose(1, 2)
+
+    def describe(self) -> dict:
+        return {"context": self.context, "layers": self.layers, "heads": self.heads}
+
+
+CORES: dict[str, type[Core]] = {
+    core.name: core for core in (GRUCore, LSTMCore, ElmanCore, EchoStateCore, TransformerCore)
+}

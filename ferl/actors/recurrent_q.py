@@ -34,12 +34,14 @@ from ferl.actors.recurrent_cores import CORES
 from ferl.actors.recurrent_q_fast import ADAM_BETAS, ADAM_EPS, adam_scalars, replay_step
 from ferl.actors.softmax import SoftmaxActor, TDRule
 from ferl.compiled import compiled
-from ferl.config.params import NonNegative, NonNegativeInt, Positive, PositiveInt, checked
+from ferl.config.params import ArgumentError, NonNegative, NonNegativeInt, Positive, PositiveInt, checked
 from ferl.interfaces import EndedEpisode
+from ferl.predictors.transformer import Layers
 from ferl.replay import draw_episodes, new_replay, store_episode, stored_episodes
 
 HeadName = Literal["linear", "free_energy", "scaled_free_energy", "expected_energy"]  # q_heads.head's names
-MemoryName = Literal["gru", "lstm", "elman", "esn"]  # recurrent_cores.CORES' names
+MemoryName = Literal["gru", "lstm", "elman", "esn", "transformer"]  # recurrent_cores.CORES' names
+ATTENTION_KEYS = {"context": None, "layers": 1, "heads": 1}  # the transformer's keys and their defaults
 
 
 class RecurrentQActor(SoftmaxActor):
@@ -70,16 +72,28 @@ class RecurrentQActor(SoftmaxActor):
         target_every: PositiveInt = 100,
         td_rule: TDRule = "q",
         init_std: NonNegative | None = None,
+        context: PositiveInt | None = None,
+        layers: Layers = 1,
+        heads: PositiveInt = 1,
+        max_steps: PositiveInt | None = None,
         **softmax,
     ):
         """``softmax``: the sizes, γ, schedules and seed every softmax actor takes (``SoftmaxActor``);
-        the TD rule is Q-learning's unless given."""
+        the TD rule is Q-learning's unless given. ``context``, ``layers``, ``heads``: the transformer
+        core's (``check_config``); ``max_steps``: the environment's T_max, which the job passes."""
         super().__init__(td_rule=td_rule, **softmax)
         n_runs, n_state, n_actions = self.sizes
         self.n_hidden, self.n_actions = n_hidden, n_actions
         self.replay_episodes, self.batch_episodes = replay_episodes, batch_episodes
         self.updates_per_episode, self.target_every = updates_per_episode, target_every
-        self.core = CORES[memory](n_state + n_actions, n_hidden)
+        attention = {}
+        if memory == "transformer":
+            if context is None:
+                if max_steps is None:
+                    raise ValueError("context is needed where no environment gives T_max (max_steps)")
+                context = max_steps + 1
+            attention = {"context": context, "layers": layers, "heads": heads}
+        self.core = CORES[memory](n_state + n_actions, n_hidden, **attention)
         self.head = make_head(head, n_hidden, n_actions, head_hidden, q_scale)
         shapes = {**self.core.shapes(), **self.head.shapes()}
         self.names = tuple(shapes)
@@ -118,6 +132,28 @@ class RecurrentQActor(SoftmaxActor):
         """On the fast path the replay steps run as one compiled graph (``replay_step``)."""
         self.fast_update = compiled(replay_step, device, "a replay step")
 
+    @classmethod
+    def check_config(cls, args: dict) -> None:
+        """The transformer's keys: ``context`` ≥ T_max + 1 (every state s_0 … s_T_max of an episode
+        is a token), ``heads`` dividing d_model = ``n_hidden``; refused with any other memory."""
+        super().check_config(args)
+        if args["memory"] != "transformer":
+            for key, default in ATTENTION_KEYS.items():
+                if args[key] != default:
+                    raise ArgumentError(
+                        key, f"only with memory=transformer (leave it out with memory={args['memory']})"
+                    )
+            return
+        if args["n_hidden"] % args["heads"]:
+            raise ArgumentError("heads", f"a divisor of n_hidden={args['n_hidden']} (d_model = n_hidden)")
+        context, max_steps = args["context"], args["max_steps"]
+        if context is not None and max_steps is not None and context < max_steps + 1:
+            raise ArgumentError(
+                "context",
+                f"≥ {max_steps + 1}, the environment's T_max + 1 (env.max_steps + 1): "
+                "the core attends to every state s_0 … s_T_max of an episode",
+            )
+
     @property
     def n_runs(self) -> int:
         return self.a_prev.shape[0]
@@ -135,6 +171,7 @@ class RecurrentQActor(SoftmaxActor):
         return {
             "kind": "drqn" if drqn else "recurrent_q",
             "memory": self.core.name,
+            **self.core.describe(),
             **self.head.describe(),
             "n_hidden": self.n_hidden,
             "gamma": self.gamma,
@@ -147,7 +184,7 @@ class RecurrentQActor(SoftmaxActor):
 
     def state_weights(self) -> torch.Tensor:
         """The observation's weights into the core (R, S, G·H)."""
-        W = self.get_buffer("W_in" if self.core.name == "esn" else "W_x")
+        W = self.core.input_weights(self.params())
         return W[:, : W.shape[1] - self.n_actions]
 
     def hidden(self, h: torch.Tensor) -> torch.Tensor:

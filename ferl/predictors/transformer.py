@@ -108,12 +108,69 @@ def block(W: Weights, layer: int, x: torch.Tensor, heads: int, self_attention) -
     return x + affine(hidden, W.W_2[:, layer], W.b_2[:, layer])
 
 
+def initial_std(name: str, shape: tuple, layers: int) -> float:
+    """The standard deviation a weight ``name`` (W_in, W_qkv, W_o, W_1, W_2; shape (…, O, I)) is
+    drawn with: 1/√fan-in, the residual projections W_o, W_2 also × 1/√(2 · layers) (GPT-2's
+    scaling of the residual branches). Biases start at 0, LN gains at 1."""
+    return shape[-1] ** -0.5 * ((2 * layers) ** -0.5 if name in ("W_o", "W_2") else 1.0)
+
+
+def weight_shapes(n_in: int, d_model: int, layers: int) -> dict[str, tuple]:
+    """The shapes of ``Weights`` (without the run dimension), in its order, for inputs of ``n_in``
+    values; a layer's are stacked (layers, …)."""
+    L, M, H = layers, d_model, FFN_RATIO * d_model
+    return dict(
+        zip(
+            Weights._fields,
+            [(M, n_in), (M,), (L, M), (L, M), (L, 3 * M, M), (L, 3 * M), (L, M, M), (L, M)]
+            + [(L, M), (L, M), (L, H, M), (L, H), (L, M, H), (L, M), (M,), (M,)],
+        )
+    )
+
+
+def causal_stack(W: Weights, x: torch.Tensor, heads: int) -> torch.Tensor:
+    """m = tanh(LN_f(x)) after every block of W on token embeddings x (R, …, N, d) (positions
+    added), each token attending to itself and the earlier ones: (R, …, N, d)."""
+    causal = torch.ones(x.shape[-2], x.shape[-2], dtype=torch.bool, device=x.device).tril()
+    for layer in range(W.W_qkv.shape[1]):
+        x = block(W, layer, x, heads, lambda q, k, v: attend(q, k, v, causal, heads))
+    return torch.tanh(layer_norm(x, W.lnf_g, W.lnf_b))
+
+
+def cached_token(W: Weights, heads: int, tokens: int, state: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """The state after a token whose embedding (without position) is x (R, …, d), from ``state``
+    (R, …, d + 1 + layers · 2 · tokens · d) = [m, n, cache]: the last output m (…, d), the tokens n
+    seen so far and every layer's keys and values of tokens 0 … tokens − 1, (…, layers, 2,
+    tokens, d), zero beyond n. The new token is token n: its keys and values are written at n and
+    it attends to tokens 0 … n, so a sequence stepped token by token gives ``causal_stack``'s m."""
+    d, lead, L = x.shape[-1], x.shape[:-1], W.W_qkv.shape[1]
+    n = state[..., d].long()  # (R, …)
+    cache = state[..., d + 1 :].reshape(*lead, L, 2, tokens, d)
+    index = torch.arange(tokens, device=state.device)
+    slot = (index == n.unsqueeze(-1)).view(*lead, 1, tokens, 1)
+    seen = (index <= n.unsqueeze(-1)).view(*lead, 1, 1, tokens)
+    x = (x + positions(n, d).to(x.dtype)).unsqueeze(-2)  # (R, …, 1, d)
+    kept = []
+
+    def cached_attention(q, k, v):
+        kv = torch.where(slot, torch.stack([k, v], -3), cache[..., layer, :, :, :])  # (R, …, 2, tokens, d)
+        kept.append(kv)
+        return attend(q, kv[..., 0, :, :], kv[..., 1, :, :], seen, heads)
+
+    for layer in range(L):
+        x = block(W, layer, x, heads, cached_attention)
+    m = torch.tanh(layer_norm(x.squeeze(-2), W.lnf_g, W.lnf_b))
+    return torch.cat([m, (n + 1).unsqueeze(-1).to(m.dtype), torch.stack(kept, -4).flatten(-4)], -1)
+
+
 class TransformerPredictor(RecurrentPredictor):
     """``memory: transformer`` (see the module docstring): ``context`` past steps (null: the
     environment's T_max, ``max_steps``), ``layers`` blocks of ``heads`` heads, d_model = n_memory;
     the other arguments are ``RecurrentPredictor``'s."""
 
     kind = "transformer"
+    W_in: torch.Tensor  # the memory's parameters (R, …), set by ``init_memory`` as ``weight_shapes`` names them
+    b_in: torch.Tensor
 
     @checked
     def __init__(
@@ -145,23 +202,13 @@ class TransformerPredictor(RecurrentPredictor):
             )
 
     def init_memory(self, gaussian, generators: list, n_obs: int, n_actions: int, n_memory: int) -> None:
-        R, L, M, D = len(generators), self.layers, n_memory, n_obs + n_actions
-        H, residual = FFN_RATIO * M, (2 * L) ** -0.5
-
-        def zeros(*shape):
-            return nn.Parameter(torch.zeros(R, *shape))
-
-        def ones(*shape):
-            return nn.Parameter(torch.ones(R, *shape))
-
-        self.W_in, self.b_in = gaussian(M, D, std=D**-0.5), zeros(M)
-        self.ln1_g, self.ln1_b = ones(L, M), zeros(L, M)
-        self.W_qkv, self.b_qkv = gaussian(L, 3 * M, M, std=M**-0.5), zeros(L, 3 * M)
-        self.W_o, self.b_o = gaussian(L, M, M, std=M**-0.5 * residual), zeros(L, M)
-        self.ln2_g, self.ln2_b = ones(L, M), zeros(L, M)
-        self.W_1, self.b_1 = gaussian(L, H, M, std=M**-0.5), zeros(L, H)
-        self.W_2, self.b_2 = gaussian(L, M, H, std=H**-0.5 * residual), zeros(L, M)
-        self.lnf_g, self.lnf_b = ones(M), zeros(M)
+        R, L = len(generators), self.layers
+        for name, shape in weight_shapes(n_obs + n_actions, n_memory, L).items():
+            if name.startswith("W_"):
+                value = gaussian(*shape, std=initial_std(name, shape, L))
+            else:  # LN gains 1, biases 0
+                value = nn.Parameter((torch.ones if name.endswith("_g") else torch.zeros)(R, *shape))
+            setattr(self, name, value)
 
     def memory_parameters(self) -> list:
         return [getattr(self, name) for name in Weights._fields]
@@ -188,10 +235,7 @@ class TransformerPredictor(RecurrentPredictor):
         W = Weights(*params)
         u = F.pad(self.inputs(y[:, :, :-1], a), (0, 0, 1, 0))  # (R, B, T+1, Y+A): token 0 = the zero input
         x = affine(u, W.W_in, W.b_in) + positions(torch.arange(T + 1, device=y.device), self.memory_size).to(y.dtype)
-        causal = torch.ones(T + 1, T + 1, dtype=torch.bool, device=y.device).tril()
-        for layer in range(self.layers):
-            x = block(W, layer, x, self.heads, lambda q, k, v: attend(q, k, v, causal, self.heads))
-        return torch.tanh(layer_norm(x, W.lnf_g, W.lnf_b))
+        return causal_stack(W, x, self.heads)
 
     def unroll(self, y: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
         return self.unroll_with(self.memory_parameters(), y, a)
@@ -202,25 +246,9 @@ class TransformerPredictor(RecurrentPredictor):
     def token(self, state: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         """The state after the token whose embedding (without position) is x (R, M): the state
         [m_t, n, cache] holds m_t (R, M), the tokens n seen so far (R, 1) and every layer's keys
-        and values of tokens 0 … context, (R, layers, 2, context + 1, M), zero beyond n. The new
-        token is token n: its keys and values are written at n and it attends to tokens 0 … n."""
-        W, M, R = Weights(*self.memory_parameters()), self.memory_size, state.shape[0]
-        n = state[:, M].long()  # (R,)
-        cache = state[:, M + 1 :].view(R, self.layers, 2, self.context + 1, M)
-        slot = torch.arange(self.context + 1, device=state.device) == n.unsqueeze(1)  # (R, context + 1)
-        seen = (torch.arange(self.context + 1, device=state.device) <= n.unsqueeze(1)).view(R, 1, 1, -1)
-        x = (x + positions(n, M).to(x.dtype)).unsqueeze(1)  # (R, 1, M)
-        kept = []
-
-        def cached_attention(q, k, v):
-            kv = torch.where(slot.view(R, 1, -1, 1), torch.stack([k, v], 1), cache[:, layer])  # (R, 2, context + 1, M)
-            kept.append(kv)
-            return attend(q, kv[:, 0], kv[:, 1], seen, self.heads)
-
-        for layer in range(self.layers):
-            x = block(W, layer, x, self.heads, cached_attention)
-        m = torch.tanh(layer_norm(x.squeeze(1), W.lnf_g, W.lnf_b))
-        return torch.cat([m, (n + 1).unsqueeze(1).to(m.dtype), torch.stack(kept, 1).flatten(1)], 1)
+        and values of tokens 0 … context, (R, layers, 2, context + 1, M), zero beyond n
+        (``cached_token``)."""
+        return cached_token(Weights(*self.memory_parameters()), self.heads, self.context + 1, state, x)
 
     @torch.no_grad()
     def initial_state(self) -> torch.Tensor:
