@@ -27,6 +27,13 @@ from ferl.messages import warn
 CACHE_ENV = "TORCHINDUCTOR_CACHE_DIR"
 DEFAULT_CACHE = Path.home() / ".cache" / "ferl" / "inductor"
 _first_calls = [0.0]  # seconds this process has spent in compiled functions' first calls
+# Steps one compiled graph may unroll. Inductor's compile time grows faster than the graph: the
+# recurrent Q-learner's episode and replay graphs took ~95 s at T_max = 44 on the 2-core CPU and
+# were still compiling after 24 min at T_max = 101; an online replay step of an LSTM predictor
+# over 44 steps took ~120 s with another job on the second core (docs/performance.md). 80 keeps
+# the dissertation's chunks (8 SGD steps of ≤ 10 actions); longer unrolls run in smaller chunks
+# (``unroll_chunk``) or eagerly.
+MAX_UNROLLED_STEPS = 80
 
 
 def compile_seconds() -> float:
@@ -90,6 +97,17 @@ def fast_path(wanted: bool, device: torch.device) -> bool:
     return True
 
 
+def unrolls(steps: int) -> bool:
+    """Whether one graph may unroll ``steps`` steps (``MAX_UNROLLED_STEPS``)."""
+    return steps <= MAX_UNROLLED_STEPS
+
+
+def unroll_chunk(steps_each: int, wanted: int) -> int:
+    """How many of ``wanted`` steps of ``steps_each`` unrolled steps one graph takes: as many as
+    fit in MAX_UNROLLED_STEPS, at least one."""
+    return max(1, min(wanted, MAX_UNROLLED_STEPS // max(steps_each, 1)))
+
+
 def compiled(fn, device: torch.device, what: str):
     """``fn`` as one graph per input shape (fullgraph: a graph break would silently bring back the
     per-operation overhead), its kernels called from C++ on a CPU. The first call that had to
@@ -102,28 +120,30 @@ def compiled(fn, device: torch.device, what: str):
 
     def call(*args):
         nonlocal first, graph
-        if not first:
-            return graph(*args)
-        first = False
         from torch._dynamo.exc import TorchDynamoException
         from torch._dynamo.utils import counters
 
-        misses = counters["inductor"]["fxgraph_cache_miss"]
+        # a call that traced a new graph (the first, or new shapes) is compiling time, not running
+        graphs, misses = counters["stats"]["unique_graphs"], counters["inductor"]["fxgraph_cache_miss"]
         started = time.perf_counter()
         try:
             out = graph(*args)
         except TorchDynamoException as e:
+            if not first:
+                raise
             warn(f"compile=true: {what} cannot be compiled ({str(e).splitlines()[0]}); running it eagerly")
             graph = fn
             return fn(*args)
-        seconds = time.perf_counter() - started
-        _first_calls[0] += seconds
-        if counters["inductor"]["fxgraph_cache_miss"] > misses:
-            print(
-                f"ferl: compiled {what} in {seconds:.0f} s (the first run of this configuration on this "
-                f"machine; later runs load it from {cache_dir()})",
-                file=sys.stderr,
-            )
+        if first or counters["stats"]["unique_graphs"] > graphs:
+            seconds = time.perf_counter() - started
+            _first_calls[0] += seconds
+            if counters["inductor"]["fxgraph_cache_miss"] > misses:
+                print(
+                    f"ferl: compiled {what} in {seconds:.0f} s (the first run of this configuration on this "
+                    f"machine; later runs load it from {cache_dir()})",
+                    file=sys.stderr,
+                )
+        first = False
         return out
 
     return call

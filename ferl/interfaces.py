@@ -177,14 +177,14 @@ class TrainingBatch(Protocol):
     def train_epoch(self, orders: Sequence[Tensor]) -> None:
         """One epoch, member k taking the sequences in its order orders[k] (R, N)."""
 
-    def fuse(self, device: torch.device) -> None:
-        """Run the next epochs on the fast path (compiled chunks of steps) where it can (compile=true)."""
+    def fuse(self, device: torch.device, unroll_to: int | None = None) -> None:
+        """Run the next epochs compiled where it can (compile=true), unrolled to ``unroll_to`` if given."""
 
 
 class TrainingBatchBase:
     """The default of ``TrainingBatch``'s hook: epochs stay eager."""
 
-    def fuse(self, device: torch.device) -> None: ...
+    def fuse(self, device: torch.device, unroll_to: int | None = None) -> None: ...
 
 
 @runtime_checkable

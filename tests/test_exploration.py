@@ -47,16 +47,21 @@ class TableActor:
         return F, F.unsqueeze(-1)
 
 
-@pytest.mark.parametrize(("epsilon", "epsilon_end", "progress"), [(0.3, None, 0.7), (0.6, 0.0, 0.5)])
-def test_ez_greedy_follows_algorithm_1_and_evaluates_the_action_taken(epsilon, epsilon_end, progress):
+@pytest.mark.parametrize(
+    ("epsilon", "epsilon_end", "over", "progress"),
+    [(0.3, None, 1.0, 0.7), (0.6, 0.0, 1.0, 0.5), (0.6, 0.0, 0.5, 0.25), (0.7, 0.3, 0.5, 0.8)],
+)
+def test_ez_greedy_follows_algorithm_1_and_evaluates_the_action_taken(epsilon, epsilon_end, over, progress):
     """Per run and step, Algorithm 1 of Dabney et al. written out in Python on the same uniforms:
     an option runs on, else one starts with chance ε (ω and n from the step's uniforms), else the
     actor's proposal; F and the cache returned are the actor's at the action taken. ε is 0.3 in
-    both cases: constant, or 0.6 falling linearly to 0, half-way through the training."""
+    every case: constant; 0.6 falling linearly to 0, half-way through the training; the same fall
+    over the first half (``epsilon_over``), a quarter through; 0.7 → 0.3 over the first half, held
+    at 0.3 after it."""
     R, S, nA, T = 6, 3, 4, 40
     g = torch.Generator().manual_seed(3)
     actor = TableActor(torch.randn(R, S, nA, generator=g))
-    explore = EzGreedy(n_runs=R, n_actions=nA, epsilon=epsilon, mu=2.0, epsilon_end=epsilon_end)
+    explore = EzGreedy(n_runs=R, n_actions=nA, epsilon=epsilon, mu=2.0, epsilon_end=epsilon_end, epsilon_over=over)
     explore.begin_episode(torch.Generator().manual_seed(4), T - 1, progress)
     uniforms = explore.uniforms.clone()  # (T, R, 3)
     cdf = zeta_cdf(2.0, T).numpy()

@@ -106,9 +106,9 @@ def test_compiled_phases_equal_eager_ones(tmp_path):
         np.testing.assert_allclose(fused[key], eager[key], rtol=1e-4, atol=1e-5, err_msg=key)
 
 
-def test_no_compiler_warns_once_and_runs_eagerly(monkeypatch, capsys):
-    monkeypatch.setattr(torch._inductor.config.cpp, "cxx", ("no-such-compiler++",))
-    assert fast.fast_path(True, CPU) is False
+def test_no_compiler_warns_once_and_runs_eagerly(capsys):
+    with torch._inductor.config.patch({"cpp.cxx": ("no-such-compiler++",)}):  # undone fully (monkeypatch is not)
+        assert fast.fast_path(True, CPU) is False
     lines = capsys.readouterr().err.splitlines()
     assert len(lines) == 1 and lines[0].startswith("ferl: warning: compile=true: no C++ compiler")
     assert "eagerly" in lines[0]
@@ -147,3 +147,63 @@ def test_what_cannot_be_compiled_warns_once_and_runs_eagerly(capsys):
     assert torch.equal(f(-torch.ones(3)), torch.full((3,), -2.0))
     lines = capsys.readouterr().err.splitlines()
     assert len(lines) == 1 and lines[0].startswith("ferl: warning: compile=true: a branchy step cannot be compiled")
+
+
+@pytest.mark.parametrize("memory", ["lstm", "transformer"])
+def test_fused_bptt_of_autograd_memories_equals_their_eager_epoch(monkeypatch, memory):
+    """A memory whose BPTT is autograd's (``autograd_bptt``: the heads written out, the memory by
+    ``torch.func.vjp``) compiles too: one SGD step per graph (MAX_UNROLLED_STEPS patched down, as
+    at long T_max), every sequence unrolled to ``unroll_to`` = 8 > the longest (6), the online
+    trainer's layout, two epochs of 6 padded sequences in steps of 2 — the same parameters as the
+    eager epochs (float64, 1e-10). The gradients themselves are checked against finite
+    differences in tests/test_memories.py."""
+    from test_memories import data as memory_data
+    from test_memories import make as make_memory
+
+    monkeypatch.setattr(fast, "MAX_UNROLLED_STEPS", 8)
+    y, a, r = memory_data(2, 6, 6)
+    lengths = torch.tensor([[1, 4, 6, 2, 5, 3], [6, 1, 4, 3, 3, 2]])
+    g = torch.Generator().manual_seed(8)
+    orders = [torch.rand(2, 6, generator=g).argsort(1) for _ in range(2)]
+    trained, initial = [], []
+    for fused in (False, True):
+        p = make_memory(memory, R=2, lr=0.3, batch_size=2, **({"context": 9} if memory == "transformer" else {}))
+        initial = [q.clone() for q in p.parameters()]
+        batch = PredictorBatch([p], y, a, [r], lengths)
+        if fused:
+            batch.fuse(CPU, unroll_to=8)
+            assert batch.chunk is not None
+        for order in orders:
+            batch.train_epoch([order])
+        trained.append([q.clone() for q in p.parameters()])
+    assert all((q - q0).abs().max() > 1e-3 for q, q0 in zip(trained[1], initial))  # every parameter learnt
+    for eager, compiled in zip(*trained):
+        torch.testing.assert_close(compiled, eager, rtol=1e-10, atol=1e-10)
+
+
+def test_online_replay_compiled_equals_eager(tmp_path, monkeypatch):
+    """The online trainer with an LSTM predictor, its replay's BPTT compiled (REPLAY_FUSED_FROM
+    patched down to this run's 40 episodes) against compile=false: the same actions in every
+    episode of every run, returns and TD errors within float32 rounding."""
+    from ferl.trainers import online_episodes
+
+    monkeypatch.setattr(online_episodes, "REPLAY_FUSED_FROM", 40)
+    tiny = (
+        "experiment=table4_1_regular",
+        "trainer=online",
+        "predictor.joint.memory=lstm",
+        "n_runs=2",
+        "env.max_steps=6",
+        "trainer.n_episodes=40",
+        "trainer.replay_sample=8",
+        "trainer.log_every=20",
+        "trainer.td_sample_every=20",
+        "trainer.final_window=20",
+    )
+    _, eager = episodes(tmp_path, "eager", "compile=false", tiny=tiny)
+    summary, fused = episodes(tmp_path, "fused", "compile=true", tiny=tiny)
+    assert summary["compile_time_s"] > 0  # the replay's graph (the episodes stay eager)
+    for key in ("steps", "correct_goal", "condition"):
+        np.testing.assert_array_equal(fused[key], eager[key], err_msg=key)
+    for key in ("discounted_return", "td_abs_mean", "td_sampled"):
+        np.testing.assert_allclose(fused[key], eager[key], rtol=1e-4, atol=1e-5, err_msg=key)

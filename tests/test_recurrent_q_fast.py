@@ -72,3 +72,20 @@ def test_compiled_drqn_equals_eager(tmp_path, capsys):
         np.testing.assert_array_equal(fast[key], eager[key], err_msg=key)
     for key in ("discounted_return", "terminal_reward", "td_abs_mean", "td_sampled"):
         np.testing.assert_allclose(fast[key], eager[key], rtol=1e-4, atol=1e-5, err_msg=key)
+
+
+def test_episodes_too_long_to_compile_run_eagerly_with_one_warning(tmp_path, capsys, monkeypatch):
+    """Episodes of more than MAX_UNROLLED_STEPS steps (patched down to 8; the matching maze's
+    T_max is 10): one warning naming T_max, nothing compiled, the eager run's numbers exactly."""
+    from ferl import compiled
+
+    monkeypatch.setattr(compiled, "MAX_UNROLLED_STEPS", 8)
+    tiny = (*DRQN_TINY, "trainer.n_episodes=20")
+    _, eager = episodes(tmp_path, "eager", "compile=false", tiny=tiny)
+    capsys.readouterr()
+    summary, long = episodes(tmp_path, "long", "compile=true", tiny=tiny)
+    lines = [line for line in capsys.readouterr().err.splitlines() if "too long to compile" in line]
+    assert len(lines) == 1 and "T_max = 10 " in lines[0]
+    assert summary["compile_time_s"] == 0
+    for key in ("discounted_return", "td_abs_mean", "steps"):
+        np.testing.assert_array_equal(long[key], eager[key], err_msg=key)

@@ -96,6 +96,9 @@ def test_same_seed_same_numbers(tmp_path, tiny_run):
         "experiment=table4_1_regular exploration=boltzmann_plus",
         "experiment=table4_1_regular exploration=ez_greedy exploration.mu=1.0",
         "experiment=table4_1_regular exploration=ez_greedy exploration.epsilon_end=1.5",
+        # a schedule's share of the training outside (0, 1]
+        "experiment=table4_1_regular exploration=ez_greedy exploration.epsilon_over=0",
+        "experiment=table4_1_matching actor.beta.over=1.5",
         "experiment=ch3_floor exploration=ez_greedy",
         "experiment=table4_1_regular predictor=none actor=drqn exploration=count_bonus",
         # TD into the memory: λ < 0; a key of the online trainer alone, so a phased trainer has

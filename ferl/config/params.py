@@ -71,6 +71,7 @@ Positive = Annotated[float, Allowed(lambda x: x > 0, "> 0")]
 NonNegative = Annotated[float, Allowed(lambda x: x >= 0, "≥ 0")]
 UnitInterval = Annotated[float, Allowed(lambda x: 0 <= x <= 1, "in [0, 1]")]
 Momentum = Annotated[float, Allowed(lambda x: 0 <= x < 1, "in [0, 1)")]
+Share = Annotated[float, Allowed(lambda x: 0 < x <= 1, "in (0, 1] (a share of the training)")]
 Discount = Annotated[float, Allowed(lambda x: 0 <= x < 1, "in [0, 1) (a discount factor)")]
 
 

@@ -6,8 +6,8 @@ drawn uniformly from the n actions, repeated for n steps with n drawn from the z
     P(n) = n^(−μ) / ζ(μ),   n = 1, 2, …   (μ > 1; ζ the Riemann zeta function)
 
 and otherwise it takes the actor's own choice (Eq. 3.11; their "greedy"). ε may fall linearly
-over the training, from ``epsilon`` to ``epsilon_end`` (episode k of N: ε_k = ε + (ε_end − ε) k/N),
-as the actor's β rises: a method that still starts options in the final window keeps its
+over the training, from ``epsilon`` to ``epsilon_end`` (episode k of N: ε_k = ε + (ε_end − ε)
+min(1, k / (``epsilon_over`` N)), ``epsilon_over`` = 1 by default: the whole training), as the actor's β rises: a method that still starts options in the final window keeps its
 episodes off the greedy return that ``solved`` asks for (docs/records.md). The heavy tail gives
 the Lévy-flight walks that cross a corridor of aliased observations in ~T_min steps where a
 one-step random walk needs ~T_min² (Dabney et al.'s §3). A duration longer than the episode's
@@ -24,8 +24,9 @@ from typing import Annotated
 import torch
 from torch import Tensor
 
-from ferl.config.params import Allowed, PositiveInt, UnitInterval, checked
+from ferl.config.params import Allowed, PositiveInt, Share, UnitInterval, checked
 from ferl.exploration import ExplorationBase, taken
+from ferl.schedules import Linear
 
 AboveOne = Annotated[float, Allowed(lambda x: x > 1, "> 1 (the zeta distribution needs μ > 1)")]
 
@@ -45,8 +46,8 @@ def zeta_durations(cdf: Tensor, u: Tensor) -> Tensor:
 
 class EzGreedy(ExplorationBase):
     """εz-greedy over R runs (module docstring): ``epsilon`` the chance of starting an option at a
-    step without one (falling linearly to ``epsilon_end`` over the training; None: constant),
-    ``mu`` the zeta exponent (2: Dabney et al.'s choice across Atari)."""
+    step without one (falling linearly to ``epsilon_end`` over the first share ``epsilon_over`` of
+    the training; None: constant), ``mu`` the zeta exponent (2: Dabney et al.'s choice across Atari)."""
 
     held: torch.Tensor  # (R,) ω, the action of each run's option
     left: torch.Tensor  # (R,) steps of ω still to take (0: no option running)
@@ -62,21 +63,29 @@ class EzGreedy(ExplorationBase):
         epsilon: UnitInterval = 0.1,
         mu: AboveOne = 2.0,
         epsilon_end: UnitInterval | None = None,
+        epsilon_over: Share = 1.0,
     ):
         super().__init__(n_runs)
         self.n_actions, self.epsilon, self.mu, self.epsilon_end = n_actions, epsilon, mu, epsilon_end
+        end = epsilon if epsilon_end is None else epsilon_end
+        self.schedule = Linear(epsilon, end, epsilon_over)  # ε of an episode at its progress
         self.epsilon_now = epsilon  # ε of the episode under way
         self.longest = 0  # T_max + 1, known at the first episode
         self.register_buffer("held", torch.zeros(n_runs, dtype=torch.long), persistent=False)  # ω per run
         self.register_buffer("left", torch.zeros(n_runs, dtype=torch.long), persistent=False)  # steps of ω to go
 
     def describe(self) -> dict:
-        return {"kind": "ez_greedy", "epsilon": self.epsilon, "epsilon_end": self.epsilon_end, "mu": self.mu}
+        return {
+            "kind": "ez_greedy",
+            "epsilon": self.epsilon,
+            "epsilon_end": self.epsilon_end,
+            "epsilon_over": self.schedule.over,
+            "mu": self.mu,
+        }
 
     def begin_episode(self, generator: torch.Generator, max_steps: int, progress: float) -> None:
         """No option held; ε of the episode at ``progress``; its uniforms (T_max + 1, R, 3), drawn in one call."""
-        end = self.epsilon if self.epsilon_end is None else self.epsilon_end
-        self.epsilon_now = self.epsilon + (end - self.epsilon) * progress
+        self.epsilon_now = self.schedule(progress)
         if self.longest != max_steps + 1:
             self.longest = max_steps + 1
             self.cdf = zeta_cdf(self.mu, self.longest).to(self.held.device)

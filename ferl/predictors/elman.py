@@ -21,7 +21,7 @@ the number of actions T of each sequence; steps beyond a sequence's length are m
 import torch
 
 from ferl.predictors.heads import affine, baddbmm, linear, scaled
-from ferl.predictors.recurrent import RecurrentPredictor
+from ferl.predictors.recurrent import RecurrentPredictor, members_heads
 
 MEMORY_PARAMETERS = ("W_my", "W_ma", "W_mm", "b_m", "b_init")
 
@@ -78,15 +78,10 @@ def bptt(members: list, memory: list, y, a, rs: list, steps, reward_steps) -> li
     (their memory parameters, concatenated) and then every member's head parameters. y, a as for
     ``unroll``; rs[k] member k's targets (R, B, T+1, ·) or None; steps (P·R, B, T+1) the weight
     of every step (0 on padding), reward_steps the same without t = 0."""
-    gains, R = members[0].gains, y.shape[0] // len(members)
+    gains = members[0].gains
     m = unroll(memory, gains, y, a)
-    heads, dm = [], []
-    for k, member in enumerate(members):
-        part = slice(k * R, (k + 1) * R)
-        g, d = member.head_gradients(m[part], y[part], rs[k], steps[part], reward_steps[part])
-        heads += g
-        dm.append(d)
-    return backprop_memory(memory[2], gains, m, torch.cat(dm) if len(dm) > 1 else dm[0], y, a) + heads
+    heads, dm = members_heads(members, m, y, rs, steps, reward_steps)
+    return backprop_memory(memory[2], gains, m, dm, y, a) + heads
 
 
 class ElmanPredictor(RecurrentPredictor):

@@ -192,26 +192,31 @@ class RecurrentPredictor(OutputHeads):
 
 
 def autograd_bptt(members: list, memory: list, y, a, rs: list, steps, reward_steps) -> list:
-    """The gradients ``PredictorBatch`` asks for, through autograd: members stacked along the run
-    axis (P·R, …) share ``memory`` (their memory parameters, concatenated); the loss is
-    Σ steps · E_t of every member's heads (``OutputHeads.weighted_errors``). Memories whose BPTT is
-    not written out (LSTM, GRU) use this; tests check it against finite differences."""
-    lead, R = members[0], y.shape[0] // len(members)
-    with torch.enable_grad():
-        leaves = [q.detach().requires_grad_() for q in memory]
-        heads = [q for member in members for q in member.head_parameters()]
-        m = lead.unroll_with(leaves, y, a)
-        total = sum(
-            member.weighted_errors(
-                m[k * R : (k + 1) * R],
-                y[k * R : (k + 1) * R],
-                rs[k],
-                steps[k * R : (k + 1) * R],
-                reward_steps[k * R : (k + 1) * R],
-            )
-            for k, member in enumerate(members)
-        )
-        return list(torch.autograd.grad(total, leaves + heads))
+    """The gradients ``PredictorBatch`` asks for, for a memory whose BPTT is not written out (LSTM,
+    GRU, the transformer): members stacked along the run axis (P·R, …) share ``memory`` (their
+    memory parameters, concatenated); the loss is Σ steps · E_t of every member's heads. The heads'
+    part is written out (``OutputHeads.head_gradients``, Eqs. 2.57–2.62), which also gives ∂J/∂m_t;
+    the memory's is the vector-Jacobian product of its ``unroll_with`` with that error
+    (``torch.func.vjp``: autograd's chain rule, in a form dynamo traces, so ``PredictorBatch.fuse``
+    can compile it). Tests check it against finite differences."""
+    lead = members[0]
+    m, pull = torch.func.vjp(lambda *params: lead.unroll_with(list(params), y, a), *memory)[:2]  # outer no_grad ignored
+    heads, dm = members_heads(members, m, y, rs, steps, reward_steps)
+    return list(pull(dm)) + heads
+
+
+def members_heads(members: list, m, y, rs: list, steps, reward_steps) -> tuple[list, torch.Tensor]:
+    """Every member's output heads' gradients (``OutputHeads.head_gradients``, members stacked
+    along the run axis of m (P·R, B, T+1, M), y, steps and reward_steps; rs[k] member k's targets)
+    and ∂J/∂m over all of them (P·R, B, T+1, M): the heads' part of a batch's BPTT."""
+    R = y.shape[0] // len(members)
+    heads, dm = [], []
+    for k, member in enumerate(members):
+        part = slice(k * R, (k + 1) * R)
+        g, d = member.head_gradients(m[part], y[part], rs[k], steps[part], reward_steps[part])
+        heads += g
+        dm.append(d)
+    return heads, torch.cat(dm) if len(dm) > 1 else dm[0]
 
 
 def memory_class(name: str):

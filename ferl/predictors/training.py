@@ -9,17 +9,18 @@ still takes its own order and its own plain SGD steps, so each one's training eq
 alone (tested).
 """
 
+import functools
 from collections.abc import Callable
 
 import torch
 import torch.nn.functional as F
 
-from ferl.compiled import compiled
+from ferl.compiled import compiled, unroll_chunk
 from ferl.interfaces import TrainingBatchBase
 from ferl.predictors.heads import clean, valid_steps
 
 # SGD steps per compiled chunk: 8 at T = 7 compiles in ~40 s (16: ~80 s) and leaves the call's
-# guards and launch ~1/8 of an update
+# guards and launch ~1/8 of an update; fewer where the sequences are long (``unroll_chunk``)
 CHUNK_STEPS = 8
 
 
@@ -44,6 +45,13 @@ def sgd_steps(
         torch._foreach_add_(params, grads, alpha=-lr)
 
 
+@functools.cache
+def compiled_chunk(device: torch.device) -> Callable[..., None]:
+    """``sgd_steps`` compiled once per device: every batch of a run (the online trainer builds one
+    after each episode) calls the same graph, whose guards pick it up again."""
+    return compiled(sgd_steps, device, "SGD steps of BPTT")
+
+
 class PredictorBatch(TrainingBatchBase):
     """Predictors with one ``batch_key`` and their training sequences (``Predictor.training_batch``)."""
 
@@ -65,15 +73,17 @@ class PredictorBatch(TrainingBatchBase):
         self.y, self.a, self.lengths = y, a, lengths
         self.rs = [torch.where(valid, r, 0.0) if r is not None else None for r in rs]
         self.chunk: Callable[..., None] | None = None  # sgd_steps compiled for chunks of CHUNK_STEPS steps (``fuse``)
+        self.unroll_to: int | None = None
 
-    def fuse(self, device: torch.device) -> None:
+    def fuse(self, device: torch.device, unroll_to: int | None = None) -> None:
         """Train in compiled chunks of CHUNK_STEPS SGD steps (``ferl.compiled``) where the class's
         BPTT is written out in tensor operations (``traceable_bptt``). Every step then unrolls the
-        longest training sequence, the shorter ones masked, and a short last chunk is filled
-        with sequences of weight 0, whose gradients are exactly 0: the same steps as eager, up
-        to the rounding of the generated kernels (tests/test_fast_path.py)."""
+        longest training sequence (or ``unroll_to`` actions: one graph for batches whose longest
+        sequence varies, as the online trainer's replays), the shorter ones masked, and a short
+        last chunk is filled with sequences of weight 0, whose gradients are exactly 0: the same
+        steps as eager, up to the rounding of the generated kernels (tests/test_fast_path.py)."""
         if type(self.lead).traceable_bptt:
-            self.chunk = compiled(sgd_steps, device, f"{CHUNK_STEPS} steps of BPTT")
+            self.chunk, self.unroll_to = compiled_chunk(device), unroll_to
 
     @torch.no_grad()
     def train_epoch(self, orders: list) -> None:
@@ -105,7 +115,8 @@ class PredictorBatch(TrainingBatchBase):
         steps = valid_steps(L, y.shape[2]) * scale.unsqueeze(-1)
         reward_steps = steps * (torch.arange(y.shape[2], device=L.device) > 0)
         if self.chunk is not None:
-            self.train_chunks(memory, params, y, a, rs, steps, reward_steps, int(L.max()))
+            T = self.unroll_to if self.unroll_to is not None else int(L.max())
+            self.train_chunks(memory, params, y, a, rs, steps, reward_steps, T)
         else:
             # T of every step: the longest sequence of its B positions over all runs, read once (one
             # host sync per epoch); it trims the padding all runs and sequences of the step share
@@ -134,7 +145,8 @@ class PredictorBatch(TrainingBatchBase):
         the sequences padded with zero-weight ones to whole chunks."""
         assert self.chunk is not None  # train_epoch calls this only once fused
         B = self.batch_size
-        size = CHUNK_STEPS * B
+        # fewer steps a graph where sequences are long, and no more than the epoch has
+        size = unroll_chunk(T, min(CHUNK_STEPS, -(-y.shape[1] // B))) * B
         pad = -y.shape[1] % size
         fill = lambda x, length: F.pad(x[:, :, :length], (0, 0) * (x.dim() - 2) + (0, pad)) if x is not None else None  # noqa: E731
         y, a, steps, reward_steps = fill(y, T + 1), fill(a, T), fill(steps, T + 1), fill(reward_steps, T + 1)

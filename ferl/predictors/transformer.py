@@ -240,6 +240,7 @@ class TransformerPredictor(RecurrentPredictor):
     def unroll(self, y: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
         return self.unroll_with(self.memory_parameters(), y, a)
 
+    traceable_bptt = True  # autograd_bptt is tensor operations and torch.func: PredictorBatch.fuse compiles it
     bptt = staticmethod(autograd_bptt)
 
     # ---- online API: a cache of keys and values ---------------------------------------------------

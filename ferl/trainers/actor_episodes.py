@@ -19,9 +19,10 @@ import torch
 from tqdm import tqdm
 
 from ferl.actors.td import first_action, td_step
-from ferl.compiled import compiled, run_clock
+from ferl.compiled import compiled, run_clock, unrolls
 from ferl.config.params import Positive, PositiveInt
 from ferl.interfaces import ActorViews, EndedEpisode
+from ferl.messages import warn
 from ferl.predictors.heads import scaled
 from ferl.random_blocks import Blocks, steps_per_block
 from ferl.run.directory import CheckpointTimer
@@ -190,7 +191,13 @@ class ActorEpisodes(Phase):
         self.obs_offsets = torch.arange(job.R, device=job.device) * ids if table.dim() == 3 else None
         self.discounts = discount_factors(job.actor.gamma, job.env.max_steps)
         self.fused = None
-        if job.fast:  # what the actor learns after an episode, however the episodes are played
+        if job.fast and not unrolls(job.env.max_steps):
+            warn(
+                f"compile=true: episodes of T_max = {job.env.max_steps} steps are too long to compile as one "
+                "graph (ferl.compiled.MAX_UNROLLED_STEPS: the compile time outgrows the run); they and the "
+                "actor's updates run eagerly"
+            )
+        elif job.fast:  # what the actor learns after an episode, however the episodes are played
             job.actor.compile_updates(job.device)
         if self.fuses(job):
             job.actor.prepare_for_compile()
@@ -203,6 +210,7 @@ class ActorEpisodes(Phase):
         Q-learner's buffers) is traced too: the graph writes the buffers back when it returns."""
         return (
             job.fast
+            and unrolls(job.env.max_steps)  # the graph unrolls every step
             and job.env.traceable_steps
             and not job.actor.samples_with_generator
             and not job.exploration.active  # its hooks keep Python state (a step counter, counts)

@@ -35,11 +35,10 @@ parameters also take a step down −λ Σ_t δ_t Q(s_t, a_t) through the memory 
 (``ferl.trainers.memory_td``), before the replay's BPTT steps.
 """
 
-import time
-
 import numpy as np
 import torch
 
+from ferl.compiled import run_clock, unrolls
 from ferl.config.params import ConfigError, Momentum, NonNegative, PositiveInt, UnitInterval
 from ferl.config.swaps import chosen
 from ferl.exploration import added
@@ -49,6 +48,11 @@ from ferl.replay import draw_episodes, store_episode, stored_episodes
 from ferl.trainers.actor_episodes import ActorEpisodes
 from ferl.trainers.episodes import Episodes, episode_tensors
 from ferl.trainers.memory_td import check_td_to_memory, td_to_memory
+
+# The replay's BPTT compiles for runs of this many episodes or more: an LSTM's replay step at
+# T_max = 44 took 0.21 s eager and 0.08 s compiled after ~120 s of compiling (10 runs, 64 replayed
+# episodes, another job on the second core), so shorter runs stay eager (docs/performance.md)
+REPLAY_FUSED_FROM = 5000
 
 
 class OnlineEpisodes(ActorEpisodes):
@@ -86,6 +90,7 @@ class OnlineEpisodes(ActorEpisodes):
         if self.td_to_memory > 0:
             check_td_to_memory(job, self.td_to_memory)
         super().prepare(job)
+        self.fused_replay = self.fuses_replay(job)
         groups: dict = {}
         for p in job.predictors.values():
             groups.setdefault(p.batch_key, []).append(p)
@@ -109,9 +114,16 @@ class OnlineEpisodes(ActorEpisodes):
         }
 
     def fuses(self, job) -> bool:
-        """Eager: β and the curiosity η change from episode to episode, and the replay's BPTT,
-        not the episode, takes most of the time."""
+        """Eager: β and the curiosity η change from episode to episode, and compiling an episode
+        with live predictors costs more than it saves at these budgets (an LSTM at T_max = 44:
+        522 s of compiling, with two other jobs on the 2 cores, to save ~0.05 s an episode)."""
         return False
+
+    def fuses_replay(self, job) -> bool:
+        """Whether the replay's BPTT steps run as compiled graphs (one SGD step of T_max actions
+        each at long T_max, ``ferl.compiled.unroll_chunk``): on the fast path, for runs of at least
+        REPLAY_FUSED_FROM episodes, the ones whose saving repays the compiling (module constant)."""
+        return job.fast and self.N >= REPLAY_FUSED_FROM and unrolls(job.env.max_steps)
 
     def memory_step(self, predictor, table: torch.Tensor, n_actions: int):
         """The predictor's step with its current weights (they learn between episodes)."""
@@ -142,7 +154,7 @@ class OnlineEpisodes(ActorEpisodes):
 
     def after_episode(self, job, k: int, episode: dict, state: dict) -> None:
         """Held-out error of episode k, then into the replay, then the predictors' BPTT steps."""
-        started = time.perf_counter()
+        started = run_clock()  # compiling is left out, as from the phase's active time
         ep = self.as_episodes(job, episode)
         with torch.no_grad():
             error = sum(
@@ -183,8 +195,10 @@ class OnlineEpisodes(ActorEpisodes):
         for members in self.groups:
             rs = [p.reward_targets(job.env.reward_values, sample.rewards) for p in members]
             batch = type(members[0]).training_batch(members, y, a, rs, lengths, self.replay_batch, summed=True)
+            if self.fused_replay:  # one graph for every replay: each unrolls T_max actions
+                batch.fuse(job.device, unroll_to=job.env.max_steps)
             batch.train_epoch([order] * len(members))
-        state["predictor_time"] += time.perf_counter() - started
+        state["predictor_time"] += run_clock() - started
         if (k + 1) % self.log_every == 0:
             window = slice(max(0, k + 1 - self.final_window), k + 1)
             for key, values in online.items():
