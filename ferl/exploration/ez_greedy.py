@@ -6,9 +6,10 @@ drawn uniformly from the n actions, repeated for n steps with n drawn from the z
     P(n) = n^(−μ) / ζ(μ),   n = 1, 2, …   (μ > 1; ζ the Riemann zeta function)
 
 and otherwise it takes the actor's own choice (Eq. 3.11; their "greedy"). ε may fall linearly
-over the training, from ``epsilon`` to ``epsilon_end`` (episode k of N: ε_k = ε + (ε_end − ε)
-min(1, k / (``epsilon_over`` N)), ``epsilon_over`` = 1 by default: the whole training), as the actor's β rises: a method that still starts options in the final window keeps its
-episodes off the greedy return that ``solved`` asks for (docs/records.md). The heavy tail gives
+from ``epsilon`` to ``epsilon_end`` over the first share ``epsilon_over`` of the training (episode
+k of N: ε_k = ε + (ε_end − ε) min(1, k / (``epsilon_over`` N)); 1 by default: all of it), as the
+actor's β rises: a method that still starts options in the final window keeps its episodes off
+the greedy return that ``solved`` asks for (docs/records.md). The heavy tail gives
 the Lévy-flight walks that cross a corridor of aliased observations in ~T_min steps where a
 one-step random walk needs ~T_min² (Dabney et al.'s §3). A duration longer than the episode's
 remaining choices is cut by the episode's end, so n is drawn from the zeta law censored at
