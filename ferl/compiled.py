@@ -117,12 +117,11 @@ def compiled(fn, device: torch.device, what: str):
     options: dict[str, str | int | bool | Callable] = {"cpp_wrapper": True} if device.type == "cpu" else {}
     graph = torch.compile(fn, fullgraph=True, dynamic=False, options=options)
     first = True
+    from torch._dynamo.exc import TorchDynamoException  # once here, not on every call
+    from torch._dynamo.utils import counters
 
     def call(*args):
         nonlocal first, graph
-        from torch._dynamo.exc import TorchDynamoException
-        from torch._dynamo.utils import counters
-
         # a call that traced a new graph (the first, or new shapes) is compiling time, not running
         graphs, misses = counters["stats"]["unique_graphs"], counters["inductor"]["fxgraph_cache_miss"]
         started = time.perf_counter()
