@@ -174,7 +174,10 @@ def rmse(actor: FERLActor, task: LargeActionTask, n: int, generator: torch.Gener
 @torch.no_grad()
 def gibbs_choices(actor: FERLActor, s: torch.Tensor, beta: float, generator: torch.Generator) -> torch.Tensor:
     """The action bits (R, B, K) that the actor's Gibbs selection (``gibbs_bits``) picks at s (R, B, S)."""
-    picks = [actor.gibbs_bits(s_c, beta, generator) for s_c in s.split(CHUNK, 1)]
+    picks = [
+        actor.gibbs_bits(s_c, beta, actor.chain_uniforms(s_c, generator, None, factored=True))
+        for s_c in s.split(CHUNK, 1)
+    ]
     return to_bits(torch.cat(picks, 1), actor.W_ah.shape[1]).to(actor.W_ah.dtype)
 
 

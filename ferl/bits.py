@@ -13,5 +13,7 @@ def to_bits(i: torch.Tensor, n_bits: int) -> torch.Tensor:
 
 def from_bits(bits: torch.Tensor) -> torch.Tensor:
     """Binary codes (…, n_bits) → the integers (…) they code (the inverse of ``to_bits``)."""
-    weights = 2 ** torch.arange(bits.shape[-1] - 1, -1, -1, device=bits.device)
-    return (bits.long() * weights).sum(-1)
+    # shifts, not 2 ** k: inductor's C++ wrapper has no integer power of a scalar (a compiled
+    # Gibbs chain ends here)
+    shifts = torch.arange(bits.shape[-1] - 1, -1, -1, device=bits.device)
+    return (bits.long() << shifts).sum(-1)

@@ -289,7 +289,7 @@ class Actor(Checkpointed, Protocol):
 
     ``evaluate`` gives every action's value as an energy F (lower is better: Q = −F) and a cache
     of what ``learn`` reuses; ``ferl.actors.td.td_step`` is the one online step that every trainer
-    takes with any actor. The fast path's members (``samples_with_generator``, ``slice_runs``,
+    takes with any actor. The fast path's members (``uniforms_per_action``, ``slice_runs``,
     ``prepare_for_compile``, ``compile_updates``) say how it may be compiled; the hooks have
     defaults on ``ActorBase``. What the records show of it is the optional ``ActorViews``.
     """
@@ -310,7 +310,7 @@ class Actor(Checkpointed, Protocol):
         self, s: Tensor, beta: float, generator: torch.Generator, uniform: Tensor | None = None
     ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """At states s (R, 1, S): an action (R, 1), its F (R, 1) and cache (R, 1, ·), and the F a TD
-        error bootstraps from at s (by the actor's TD rule); ``uniform`` (R, 1, 1) pre-drawn U(0, 1)."""
+        error bootstraps from at s (by the actor's TD rule); ``uniform`` (R, 1, uniforms_per_action)."""
 
     def learn(self, s, a, cache_sa, delta, lr, s_next, a_next, F_next, cache_next) -> tuple[Tensor, Tensor]:
         """After a step: update on (s, a) with TD errors delta (R, B); returns F and the cache of
@@ -321,9 +321,9 @@ class Actor(Checkpointed, Protocol):
         memory the actor carries starts afresh with the next ``act``)."""
 
     @property
-    def samples_with_generator(self) -> bool:
-        """True when ``select`` draws from the generator itself (then a step's random numbers
-        cannot be drawn ahead, and a step cannot be compiled)."""
+    def uniforms_per_action(self) -> int:
+        """U(0, 1) numbers one choice takes (``act``'s ``uniform``): 1, or a Gibbs chain's every draw;
+        0 where ``act`` draws from the generator itself (then nothing is drawn ahead or compiled)."""
 
     def slice_runs(self, index: slice) -> "Actor":
         """A view of a slice of the runs whose updates land in this actor (the fast path's groups
@@ -343,8 +343,8 @@ class ActorBase:
     learns_from_episodes: bool = False
 
     @property
-    def samples_with_generator(self) -> bool:
-        return False
+    def uniforms_per_action(self) -> int:
+        return 1
 
     def learn(self, s, a, cache_sa, delta, lr, s_next, a_next, F_next, cache_next) -> tuple[Tensor, Tensor]:
         return F_next, cache_next

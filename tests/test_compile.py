@@ -44,6 +44,7 @@ def test_chunk_length_divides_the_run_and_the_intervals():
     assert chunk_length(30_000, 1000, 5000) == 8
     assert chunk_length(32_000, 1024, 4096) == 16
     assert chunk_length(1001, 1001, 1001) == 1
+    assert chunk_length(32_000, 1024, 4096, most=4) == 4  # a Gibbs chain's chunk: at most ``most``
 
 
 @pytest.mark.parametrize("td_rule", ["sarsa", "expected_sarsa"])

@@ -160,9 +160,17 @@ class FERLActor(SoftmaxActor):
         }
 
     @property
-    def samples_with_generator(self) -> bool:
-        """Gibbs sampling draws from the generator step by step (``gibbs_actions``)."""
-        return self.action_selection == "gibbs"
+    def uniforms_per_action(self) -> int:
+        """U(0, 1) numbers one choice takes: 1 for the clamped softmax; a Gibbs chain's every draw
+        (``chain_width``), so that a step's random numbers are drawn beforehand and the chain runs
+        inside a compiled chunk."""
+        return 1 if self.action_selection != "gibbs" else self.chain_width(factored=not self.enumerated)
+
+    def chain_width(self, factored: bool) -> int:
+        """The draws of one Gibbs chain: ``gibbs_bits``' K + sweeps (H + K) (``factored``), or
+        ``gibbs_actions``' 1 + sweeps (H + 1)."""
+        K, H = self.W_ah.shape[1:]
+        return K + self.gibbs_sweeps * (H + K) if factored else 1 + self.gibbs_sweeps * (H + 1)
 
     def state_weights(self) -> torch.Tensor:
         """W_sh (R, S, H): what every state node feeds the hidden nodes (Figs. 3.5, 4.1a)."""
@@ -216,12 +224,13 @@ class FERLActor(SoftmaxActor):
         return weights if self.onehot else self.codes @ weights
 
     def act(self, s: torch.Tensor, beta: float, generator: torch.Generator, uniform: torch.Tensor | None = None):
-        """At states s (R, 1, S): an action a (R, 1) by the actor's selection, its F(s, a) (R, 1) and
-        hidden input (R, 1, H), and the F that a TD error bootstraps from at s (§3.2): F(s, a)
-        (SARSA), min_a F (Q(0)) or the policy's mean F (expected SARSA). Factored actions are
-        drawn by Gibbs sampling and only their own F is computed."""
+        """At states s (R, 1, S): an action a (R, 1), its F(s, a) (R, 1) and hidden input
+        (R, 1, H), and the F that a TD error bootstraps from at s (§3.2): F(s, a) (SARSA), min_a F
+        (Q(0)) or the policy's mean F (expected SARSA). Factored actions are drawn by Gibbs
+        sampling and only their own F is computed. ``uniform`` (R, 1, ``uniforms_per_action``):
+        the choice's pre-drawn U(0, 1) numbers, or None to draw them from ``generator``."""
         if not self.enumerated:
-            a = self.gibbs_bits(s, beta, generator)
+            a = self.gibbs_bits(s, beta, self.chain_uniforms(s, generator, uniform))
             F_a, x_a = self.evaluate_actions(s, a)
             return a, F_a, x_a, F_a
         return super().act(s, beta, generator, uniform)
@@ -229,13 +238,23 @@ class FERLActor(SoftmaxActor):
     def select(self, s: torch.Tensor, F: torch.Tensor, beta: float, generator: torch.Generator, uniform=None):
         """An action index per (run, state): clamped softmax (Eq. 3.11) or alternating Gibbs.
 
-        ``uniform`` (R, B, 1) may carry pre-drawn U(0, 1) numbers for the clamped softmax.
+        ``uniform`` (R, B, ``uniforms_per_action``) may carry the choice's pre-drawn U(0, 1) numbers.
         """
         if self.action_selection == "gibbs":
-            return self.gibbs_actions(s, beta, generator)
+            return self.gibbs_actions(s, beta, self.chain_uniforms(s, generator, uniform))
         return super().select(s, F, beta, generator, uniform)
 
-    def gibbs_actions(self, s: torch.Tensor, beta: float, generator: torch.Generator) -> torch.Tensor:
+    def chain_uniforms(
+        self, s: torch.Tensor, generator: torch.Generator, uniform: torch.Tensor | None, factored: bool | None = None
+    ) -> torch.Tensor:
+        """A Gibbs chain's U(0, 1) numbers (R, B, ``chain_width``) at states s (R, B, S): as given,
+        or drawn from ``generator``; ``factored``: for ``gibbs_bits`` (default: as ``act`` chooses)."""
+        if uniform is not None:
+            return uniform
+        width = self.chain_width(not self.enumerated if factored is None else factored)
+        return torch.rand(s.shape[:2] + (width,), generator=generator, device=s.device, dtype=s.dtype)
+
+    def gibbs_actions(self, s: torch.Tensor, beta, u: torch.Tensor) -> torch.Tensor:
         """Alternating Gibbs sampling with s clamped (end of §3.2): h ~ P(h|s,a), a ~ P(a|h).
 
         Both conditionals at inverse temperature β, so the chain's stationary law is
@@ -243,31 +262,27 @@ class FERLActor(SoftmaxActor):
         for ``binary`` codes this factorises into independent action nodes; for ``onehot`` it
         is the softmax unit that enforces one active action node. Each sweep runs at its
         ``chain_betas`` value (β / Z for a scaled free energy, annealed with ``gibbs_anneal_from``).
+        u (R, B, 1 + sweeps (H + 1)): the start's uniform, then per sweep H for h and 1 for a.
         """
         x_s = rbm.hidden_input(s, self.W_sh, self.b_h)
-        n_actions = self.codes.shape[0]
-        a = torch.randint(n_actions, x_s.shape[:2], generator=generator, device=s.device)
-        for b in self.chain_betas(beta):
+        H, n_actions = x_s.shape[-1], self.codes.shape[0]
+        a = (u[..., 0] * n_actions).long().clamp_(max=n_actions - 1)  # uniformly random start
+        for b, u_sweep in zip(self.chain_betas(beta), u[..., 1:].split(H + 1, -1)):
             x = x_s + torch.bmm(self.codes[a], self.W_ah)
-            h = torch.bernoulli(torch.sigmoid(b * x), generator=generator)
+            h = (u_sweep[..., :H] < torch.sigmoid(b * x)).to(x_s.dtype)
             action_field = torch.bmm(h, self.W_ah.transpose(1, 2)) + self.b_a.unsqueeze(1)
-            probs = torch.softmax(b * action_field @ self.codes.T, -1)
-            a = sample_categorical(
-                probs, torch.rand(a.shape + (1,), generator=generator, device=s.device, dtype=probs.dtype)
-            )
+            a = sample_categorical(torch.softmax(b * action_field @ self.codes.T, -1), u_sweep[..., H:])
         return a
 
-    def gibbs_bits(self, s: torch.Tensor, beta: float, generator: torch.Generator) -> torch.Tensor:
+    def gibbs_bits(self, s: torch.Tensor, beta, u: torch.Tensor) -> torch.Tensor:
         """``gibbs_actions`` for factored actions (Sallans & Hinton 2004, §3): the action nodes
         are independent given h, P(a_k = 1 | h) = σ(β (W_ah h + b_a)_k), so the chain never
-        enumerates the 2^K actions. Starts from uniformly random bits; all the chain's uniforms
-        are drawn in one call. With ``gibbs_anneal_from`` the chain is annealed: its inverse
-        temperature rises geometrically from that value to β over the sweeps. Returns action
-        indices (R, B)."""
+        enumerates the 2^K actions. Starts from uniformly random bits. With ``gibbs_anneal_from``
+        the chain is annealed: its inverse temperature rises geometrically from that value to β
+        over the sweeps. u (R, B, K + sweeps (H + K)): the start's K uniforms, then per sweep H
+        for h and K for the bits. Returns action indices (R, B)."""
         x_s = rbm.hidden_input(s, self.W_sh, self.b_h)
-        R, B, H = x_s.shape
-        K = self.W_ah.shape[1]
-        u = torch.rand(R, B, K + self.gibbs_sweeps * (H + K), generator=generator, device=s.device, dtype=x_s.dtype)
+        H, K = x_s.shape[-1], self.W_ah.shape[1]
         bits = (u[..., :K] < 0.5).to(x_s.dtype)
         W_ha = self.W_ah.transpose(1, 2)
         for b, u_sweep in zip(self.chain_betas(beta), u[..., K:].split(H + K, -1)):
@@ -275,9 +290,10 @@ class FERLActor(SoftmaxActor):
             bits = (u_sweep[..., H:] < torch.sigmoid(b * torch.baddbmm(self.b_a.unsqueeze(1), h, W_ha))).to(x_s.dtype)
         return from_bits(bits)
 
-    def chain_betas(self, beta: float) -> list[float]:
+    def chain_betas(self, beta) -> list:
         """The inverse temperature of every Gibbs sweep: β throughout, or annealed geometrically
-        from ``gibbs_anneal_from`` to β; at β / Z for a scaled free energy."""
+        from ``gibbs_anneal_from`` to β; at β / Z for a scaled free energy. β is a float, or a
+        0-d tensor in a compiled chunk (one graph for every β)."""
         beta = self.form.gibbs_beta(beta)
         n = self.gibbs_sweeps
         if self.gibbs_anneal_from is None or n == 1:
@@ -351,6 +367,10 @@ class FERLActor(SoftmaxActor):
             ).flatten()
             self.W_ah.view(-1, self.W_ah.shape[2]).index_add_(0, rows, g.flatten(0, 1))
             self.b_a.view(-1).index_add_(0, rows, step.flatten())
+        elif s.shape[1] == 1:  # as W_sh's (a compiled chunk's C++ wrapper also fails on this baddbmm_)
+            code = self.code(a)
+            self.W_ah.addcmul_(code.transpose(1, 2), g)
+            self.b_a.addcmul_(step, code.squeeze(1))
         else:
             code = self.code(a)
             self.W_ah.baddbmm_(code.transpose(1, 2), g)

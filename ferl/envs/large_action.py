@@ -107,8 +107,9 @@ class LargeActionTask(EnvironmentBase):
         return (to_bits(action, self.action_bits).to(key_action) == key_action).sum(-1).to(key_action)
 
     def reset(self) -> torch.Tensor:
+        """The first state (R, state_bits): a copy, never the task's own state tensor."""
         self.state = self.blocks.next()[0].clone()
-        return self.state
+        return self.state.clone()
 
     def step_inputs(self, steps: int) -> tuple:
         """The next ``steps`` states (steps, R, state_bits), for ``step_with``."""
@@ -118,7 +119,10 @@ class LargeActionTask(EnvironmentBase):
         """The reward of ``action`` (R,) in the present state, then the next state: (next_state, reward)."""
         reward = self.reward(self.state, action)
         self.state.copy_(next_state)  # in place: a view of some runs (``slice_runs``) moves this batch's
-        return next_state, reward
+        # observations are copies, never the task's state or a view of the drawn block: a compiled
+        # chunk traced with its inputs aliased (the observation and the task's state) failed on
+        # the next call, where they were not (AOT autograd compiles the aliasing it saw)
+        return next_state.clone(), reward
 
     def step(self, action: torch.Tensor):
         """(next state (R, state_bits), reward (R,), terminated, truncated); a continuing task."""

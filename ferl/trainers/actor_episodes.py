@@ -61,9 +61,10 @@ class ActorEpisodes(Phase):
             control.checkpoint_minutes,
         )
         steps = job.env.max_steps + 1  # an episode's action draws: a_0 … a_{T_max}
+        width = max(1, job.actor.uniforms_per_action)  # 1 for a softmax; a Gibbs chain's every draw
         self.uniforms = Blocks(
-            lambda n: (torch.rand(n, steps, job.R, 1, 1, generator=job.generator, device=job.device),),
-            steps_per_block(steps * job.R),
+            lambda n: (torch.rand(n, steps, job.R, 1, width, generator=job.generator, device=job.device),),
+            steps_per_block(steps * job.R * width),
         )
         job.unit = "episode"
         outcomes = job.env.outcomes()
@@ -206,13 +207,14 @@ class ActorEpisodes(Phase):
     def fuses(self, job) -> bool:
         """Whether episodes run as one compiled graph (``ferl.compiled``): on the fast path, with an
         environment whose steps are tensor operations (``traceable_steps``) and an actor that does
-        not draw inside a step (Gibbs). An actor that steps a memory in place (the recurrent
+        not draw inside a step and chooses by one number a step (a Gibbs chain's sweeps, unrolled
+        in every step of the episode, would make the graph too large to compile in a run's time). An actor that steps a memory in place (the recurrent
         Q-learner's buffers) is traced too: the graph writes the buffers back when it returns."""
         return (
             job.fast
             and unrolls(job.env.max_steps)  # the graph unrolls every step
             and job.env.traceable_steps
-            and not job.actor.samples_with_generator
+            and job.actor.uniforms_per_action == 1
             and not job.exploration.active  # its hooks keep Python state (a step counter, counts)
         )
 
@@ -227,7 +229,7 @@ class ActorEpisodes(Phase):
         a run had ended, the probe visits (or None), the trajectory: observation ids
         (steps + 1, R), actions (steps, R) and raw rewards (steps, R), and the actor's states (steps, R, S)."""
         job.env.reset()
-        (uniform,) = self.uniforms.next()  # (T_max + 1, R, 1, 1)
+        (uniform,) = self.uniforms.next()  # (T_max + 1, R, 1, uniforms_per_action)
         job.exploration.begin_episode(job.generator, job.env.max_steps, k / self.N)  # its draws after the actor's
         if self.fused is None:
             ep = self.episode(job, lr, beta, uniform, True)
@@ -252,7 +254,7 @@ class ActorEpisodes(Phase):
     def episode(self, job, lr, beta, uniform, until_done: bool) -> dict:
         """An episode of every run from the reset environment, with SARSA(0) updates at every step
         (``td_step``): observe → memories m_t (Eq. 4.3) → a' by Eq. (3.11) → δ → θ update
-        (Eq. 3.10); ``uniform`` (T_max + 1, R, 1, 1) the action draws. Runs whose episode has ended
+        (Eq. 3.10); ``uniform`` (T_max + 1, R, 1, ``uniforms_per_action``) the action draws. Runs whose episode has ended
         wait with δ = 0 and keep their parameters. ``until_done``: stop once every run has ended
         (eager); else play all T_max steps, the ended ones masked: the same episode as one graph
         of fixed shape. Returns per step, stacked (steps, R, …): probe and active masks, each

@@ -1,7 +1,7 @@
 """Online TD steps in chunks: a chunk of K steps of every run is one call, optionally one compiled graph.
 
-A chunk runs on random numbers drawn beforehand (action uniforms, the environment's
-``step_inputs``), so with ``compile=true`` it is one ``torch.compile``d graph: Python and
+A chunk runs on random numbers drawn beforehand (action uniforms — a whole Gibbs chain's for
+Gibbs selection —, the environment's ``step_inputs``), so with ``compile=true`` it is one ``torch.compile``d graph: Python and
 per-operation overhead is paid once per chunk, not per step, and on a CPU the chunk runs for one
 group of runs after another (``td_steps_by_groups``). With prefetching the random numbers of the
 next chunks are drawn on a second thread while a chunk runs: the same draws from the same
@@ -39,8 +39,9 @@ RUN_AXIS = {"s": 0, "a": 0, "F_sa": 0, "x_sa": 0, "rewards": 1, "deltas": 1}  # 
 
 def td_steps(actor, env, generator, s, a, F_sa, x_sa, alive, lrs, betas, uniforms, *inputs):
     """len(lrs) online TD steps of every run (``td_step``, §3.2); step k uses α = lrs[k],
-    β = betas[k], the action uniforms (R, 1, 1) and the environment's random inputs of index k
-    (``env.step_inputs``; Gibbs action selection draws from ``generator`` instead, and is not compiled).
+    β = betas[k], the action uniforms of step k and the environment's random inputs of index k
+    (``env.step_inputs``). uniforms (K, R, 1, ``actor.uniforms_per_action``): one number for a
+    softmax choice, a whole Gibbs chain's for Gibbs selection, which so runs inside the chunk too.
 
     s (R, 1, S), a (R, 1), F_sa (R, 1), x_sa (R, 1, ·): the state, action, its free energy and
     cache before the chunk; returns them after it, with rewards and TD errors (K, R): a ``TDChunk``.
@@ -98,10 +99,10 @@ def compiled_td_steps(n_runs: int, group_runs: int, device: torch.device):
     return td_steps_by_groups(steps, [slice(r, min(r + group_runs, n_runs)) for r in range(0, n_runs, group_runs)])
 
 
-def chunk_length(steps: int, *intervals: int) -> int:
-    """The longest chunk ≤ MAX_CHUNK that divides the run length and every interval, so logging
-    and periodic checkpoints fall on chunk ends."""
-    return math.gcd(MAX_CHUNK, steps, *intervals)
+def chunk_length(steps: int, *intervals: int, most: int = MAX_CHUNK) -> int:
+    """The longest chunk ≤ ``most`` (a divisor of MAX_CHUNK) that divides the run length and every
+    interval, so logging and periodic checkpoints fall on chunk ends."""
+    return math.gcd(most, steps, *intervals)
 
 
 @contextmanager

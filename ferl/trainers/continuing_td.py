@@ -21,7 +21,7 @@ from ferl.config.params import ConfigError, NonNegativeInt, PositiveInt
 from ferl.interfaces import ActorViews
 from ferl.random_blocks import Blocks, steps_per_block
 from ferl.run.directory import CheckpointTimer
-from ferl.trainers.chunks import chunk_length, compiled_td_steps, done_future, switch_interval, td_steps
+from ferl.trainers.chunks import MAX_CHUNK, chunk_length, compiled_td_steps, done_future, switch_interval, td_steps
 from ferl.trainers.phased import Phase
 
 # Prefetching pays from a few tens of runs on (compile=true, agent-steps/s drawn in turn → ahead:
@@ -54,20 +54,26 @@ class ContinuingTD(Phase):
             control.checkpoint_every,
             control.checkpoint_minutes,
         )
-        self.chunk = chunk_length(self.T, self.log_every, self.checkpoint_every)
         if actor.learns_from_episodes:
             raise ConfigError(
                 f"actor={actor.describe()['kind']} learns from whole episodes, and the continuing task "
                 f"{job.env.task} has none: use an episodic environment or another actor"
             )
+        # a choice's uniforms: 1 for a softmax, a whole Gibbs chain's draws (the large-action task)
+        width = max(1, actor.uniforms_per_action)
         self.action_uniforms = Blocks(
-            lambda steps: (torch.rand(steps, R, 1, 1, generator=job.generator, device=job.device),), steps_per_block(R)
+            lambda steps: (torch.rand(steps, R, 1, width, generator=job.generator, device=job.device),),
+            steps_per_block(R * width),
         )
+        # a Gibbs chain unrolls its sweeps in the graph (100 a step in the large-action task): one
+        # step a chunk keeps the graph's compile time that of one chain (docs/performance.md)
+        most = MAX_CHUNK if width == 1 else 1
+        self.chunk = chunk_length(self.T, self.log_every, self.checkpoint_every, most=most)
         self.td_steps = td_steps
-        if job.fast and not actor.samples_with_generator:  # Gibbs sampling draws inside a step: eager
+        if job.fast and actor.uniforms_per_action > 0:  # an actor that draws inside a step: eager
             actor.prepare_for_compile()
             self.td_steps = compiled_td_steps(R, self.compile_group_runs, job.device)
-        drawn_ahead = not actor.samples_with_generator and R >= PREFETCH_MIN_RUNS
+        drawn_ahead = actor.uniforms_per_action > 0 and R >= PREFETCH_MIN_RUNS
         self.prefetch = self.prefetch_chunks if drawn_ahead else 0
 
     def metric_names(self, job) -> list[str]:
