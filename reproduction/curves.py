@@ -28,7 +28,10 @@ schedule.
 A line's **limit** is its longest corridor solved in ≥ 80 % of its runs (8/10; ``SOLVED_SHARE``).
 At the shortest longer corridor that failed, the limit is called *exploration* when fewer than
 half of the final window's episodes got to the choice (``REACHED_SHARE``), else *memory* (the
-agent gets there and still chooses wrong).
+agent gets there and still chooses wrong). A corridor whose optimal discounted return is negative
+(summary.json's ``optimal``: the active maze's step costs outweigh its discounted goal at long
+corridors, e.g. T_min = 50 for γ 0.95–0.99) cannot be solved at all — ``solved`` asks for ≥ 0.95 × the optimum, which lies above
+it — so it sets no limit and the report says so.
 """
 
 from __future__ import annotations
@@ -101,10 +104,16 @@ class CurvePoint:
     reached: tuple[float, float]  # of the share of the final window that got to the choice
     correct_if_reached: tuple[float, float]
     job: Job
+    optimum: float | None = None  # the optimal discounted return the runs' ``solved`` compares with
 
     @property
     def line(self) -> tuple[str, str]:
         return self.memory, self.exploration
+
+    @property
+    def solvable(self) -> bool:
+        """Whether ``solved`` can be met: return ≥ 0.95 × optimum needs an optimum ≥ 0."""
+        return self.optimum is None or self.optimum >= 0
 
     @property
     def ok(self) -> bool:
@@ -184,6 +193,7 @@ def curve_points(jobs: Sequence[Job], curve: Curve) -> list[CurvePoint]:
                 stats.mean_sem(reached)[:2],
                 stats.mean_sem(given[~np.isnan(given)])[:2],
                 job,
+                job.summary.get("optimal", {}).get("discounted_return"),
             )
         )
     return sorted(points, key=lambda c: (c.memory, c.exploration != "none", c.exploration, c.corridor))
@@ -249,7 +259,7 @@ class Limit:
 def limit(mine: Sequence[CurvePoint]) -> Limit:
     ok = [c.corridor for c in mine if c.ok]
     longest = max(ok) if ok else None
-    failed = next((c for c in mine if not c.ok and (longest is None or c.corridor > longest)), None)
+    failed = next((c for c in mine if not c.ok and c.solvable and (longest is None or c.corridor > longest)), None)
     return Limit(longest, failed)
 
 
@@ -271,6 +281,13 @@ def limit_lines(points: Sequence[CurvePoint], curve: Curve) -> list[str]:
             text += (
                 f". At {bad.corridor}: {pm(bad.reached)} of the final window's episodes {curve.reached_words}, "
                 f"{pm(bad.correct_if_reached)} of those chose the cued goal: limited by **{lim.cause}**"
+            )
+        out_of_reach = [c for c in mine if not c.solvable]
+        if out_of_reach:
+            text += (
+                f". `solved` cannot be met at {' / '.join(str(c.corridor) for c in out_of_reach)}: the optimal "
+                f"discounted return is negative there ({' / '.join(fmt(c.optimum) for c in out_of_reach)}), and "
+                "0.95 × it lies above it"
             )
         lines.append(text)
     return lines
@@ -315,7 +332,7 @@ def section(points: Sequence[CurvePoint], curve: Curve, out: Path, figures: dict
                 c.memory,
                 c.exploration,
                 c.corridor,
-                f"{c.solved}/{c.n}",
+                f"{c.solved}/{c.n}" + ("" if c.solvable else " (cannot be met)"),
                 pm(c.correct),
                 pm(c.reached),
                 pm(c.correct_if_reached),

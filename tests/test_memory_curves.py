@@ -103,6 +103,8 @@ def make_job(root: Path, name: str, design: dict, rng) -> Job:
     )
     solved = [r < design["solved"] for r in range(len(counts))]
     summary = {"experiment": "x", "metrics": {"solved": solved, "final_correct_goal_rate": list(counts[:, 0] / WINDOW)}}
+    negative = not design["passive"] and design["corridor"] >= NEGATIVE_OPTIMUM_FROM
+    summary["optimal"] = {"discounted_return": -1.284 if negative else 1.8}
     return Job(RunOutcome(run_dir, "x", "tmaze", "analyzed"), summary)
 
 
@@ -121,7 +123,9 @@ DESIGN = {
     (False, "gru", "none"): {5: (5, 1.0)},  # limit 5, nothing failed
     (False, "gru", "ez_greedy"): {5: (4, 0.95), 10: (2, 0.8)},  # limit 5: memory
     (True, "recurrent_q lstm", "none"): {50: (5, 1.0), 100: (2, 0.9)},  # its own memory, phased: limit 50
+    (False, "lstm", "ez_greedy"): {10: (5, 1.0), 50: (0, 0.9)},  # 50: a negative optimum, no limit set there
 }
+NEGATIVE_OPTIMUM_FROM = 50  # the active maze's optimal return is negative from this corridor on (as at γ 0.98)
 LIMITS = {
     (True, "lstm", "none"): (20, 50, "memory"),
     (True, "gru", "none"): (20, 50, "exploration"),
@@ -129,6 +133,7 @@ LIMITS = {
     (False, "gru", "none"): (5, None, None),
     (False, "gru", "ez_greedy"): (5, 10, "memory"),
     (True, "recurrent_q lstm", "none"): (50, 100, "memory"),
+    (False, "lstm", "ez_greedy"): (10, None, None),
 }
 
 
@@ -190,6 +195,8 @@ def test_each_lines_limit_and_its_cause(synthetic):
     assert "**lstm**: limit 20 (" in text and "limited by **memory**" in text
     assert "**elman**: limit none (" in text and "**gru + ez_greedy**: limit 5 (" in text
     assert "**recurrent_q lstm**: limit 50 (" in text
+    assert "**lstm + ez_greedy**: limit 10 (" in text and "`solved` cannot be met at 50" in text
+    assert text.count("cannot be met") == 2  # the line's words and its table row at 50, nowhere else
     assert "no per-length success numbers" in text  # Ni et al.: said, not drawn
 
 
