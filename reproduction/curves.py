@@ -30,8 +30,8 @@ At the shortest longer corridor that failed, the limit is called *exploration* w
 half of the final window's episodes got to the choice (``REACHED_SHARE``), else *memory* (the
 agent gets there and still chooses wrong). A corridor whose optimal discounted return is negative
 (summary.json's ``optimal``: the active maze's step costs outweigh its discounted goal at long
-corridors, e.g. T_min = 50 for γ 0.95–0.99) cannot be solved at all — ``solved`` asks for ≥ 0.95 × the optimum, which lies above
-it — so it sets no limit and the report says so.
+corridors, e.g. T_min = 50 for γ 0.95–0.99) cannot be solved at all (``solved`` asks for ≥ 0.95 ×
+the optimum, which lies above it), so it sets no limit and the report says so.
 """
 
 from __future__ import annotations

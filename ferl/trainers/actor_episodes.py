@@ -206,10 +206,11 @@ class ActorEpisodes(Phase):
 
     def fuses(self, job) -> bool:
         """Whether episodes run as one compiled graph (``ferl.compiled``): on the fast path, with an
-        environment whose steps are tensor operations (``traceable_steps``) and an actor that does
-        not draw inside a step and chooses by one number a step (a Gibbs chain's sweeps, unrolled
-        in every step of the episode, would make the graph too large to compile in a run's time). An actor that steps a memory in place (the recurrent
-        Q-learner's buffers) is traced too: the graph writes the buffers back when it returns."""
+        environment whose steps are tensor operations (``traceable_steps``) and an actor that
+        chooses by one number a step (a Gibbs chain's sweeps, unrolled in every step of the
+        episode, would make the graph too large to compile in a run's time). An actor that steps a
+        memory in place (the recurrent Q-learner's buffers) is traced too: the graph writes the
+        buffers back when it returns."""
         return (
             job.fast
             and unrolls(job.env.max_steps)  # the graph unrolls every step
@@ -254,8 +255,8 @@ class ActorEpisodes(Phase):
     def episode(self, job, lr, beta, uniform, until_done: bool) -> dict:
         """An episode of every run from the reset environment, with SARSA(0) updates at every step
         (``td_step``): observe → memories m_t (Eq. 4.3) → a' by Eq. (3.11) → δ → θ update
-        (Eq. 3.10); ``uniform`` (T_max + 1, R, 1, ``uniforms_per_action``) the action draws. Runs whose episode has ended
-        wait with δ = 0 and keep their parameters. ``until_done``: stop once every run has ended
+        (Eq. 3.10); ``uniform`` (T_max + 1, R, 1, ``uniforms_per_action``) the action draws. Runs
+        whose episode has ended wait with δ = 0 and keep their parameters. ``until_done``: stop once every run has ended
         (eager); else play all T_max steps, the ended ones masked: the same episode as one graph
         of fixed shape. Returns per step, stacked (steps, R, …): probe and active masks, each
         predictor's memory, the state and the cache of (s, a) at the visit, action, raw reward, δ,

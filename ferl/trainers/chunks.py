@@ -1,8 +1,8 @@
 """Online TD steps in chunks: a chunk of K steps of every run is one call, optionally one compiled graph.
 
-A chunk runs on random numbers drawn beforehand (action uniforms — a whole Gibbs chain's for
-Gibbs selection —, the environment's ``step_inputs``), so with ``compile=true`` it is one ``torch.compile``d graph: Python and
-per-operation overhead is paid once per chunk, not per step, and on a CPU the chunk runs for one
+A chunk runs on random numbers drawn beforehand (action uniforms, a whole Gibbs chain's for Gibbs
+selection; the environment's ``step_inputs``), so with ``compile=true`` it is one
+``torch.compile``d graph: Python and per-operation overhead is paid once per chunk, not per step, and on a CPU the chunk runs for one
 group of runs after another (``td_steps_by_groups``). With prefetching the random numbers of the
 next chunks are drawn on a second thread while a chunk runs: the same draws from the same
 generator in the same order, so the results do not change.
