@@ -200,9 +200,16 @@ class TMazeRun:
     def _projections(self) -> dict:
         return {}
 
+    @cached_property
+    def _nonfinite(self) -> dict[str, np.ndarray]:
+        return {}
+
     def nonfinite_visits(self, layer: str) -> np.ndarray:
-        """Visits whose activations are not all finite (a diverged actor); PCA leaves them out."""
-        return np.asarray(~np.isfinite(self.junction[layer].astype(np.float64)).all(axis=1))  # (visits,)
+        """Visits whose activations are not all finite (a diverged actor); PCA leaves them out.
+        Computed once per layer: every (phase, run) projection asks for it."""
+        if layer not in self._nonfinite:
+            self._nonfinite[layer] = ~np.isfinite(self.junction[layer]).all(axis=1)  # (visits,)
+        return self._nonfinite[layer]
 
     def projection(self, layer: str, phase: str, r: int) -> Projection | None:
         """PCA fit on the finite visits of run r in one phase (None with fewer than 2)."""

@@ -95,6 +95,25 @@ def test_single_run_results_reflect_the_synthetic_truth(analyzed_run):
     )
 
 
+def test_tensorboard_holds_every_figure_as_the_png_file_s_bytes(analyzed_run):
+    """Each figure is encoded once: TensorBoard's image is the PNG file, byte for byte, and its
+    size is the PNG's own (decoded independently by PIL)."""
+    from PIL import Image
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    run_dir, _, result = analyzed_run
+    assert result.returncode == 0, result.stderr
+    acc = EventAccumulator(str(run_dir / "tb" / "analysis"), size_guidance={"images": 0})
+    acc.Reload()
+    assert sorted(acc.Tags()["images"]) == sorted(f"analysis/{name}" for name in FIGURES)
+    for name in FIGURES:
+        (event,) = acc.Images(f"analysis/{name}")
+        png = (run_dir / "analysis" / f"{name}.png").read_bytes()
+        assert event.encoded_image_string == png
+        with Image.open(run_dir / "analysis" / f"{name}.png") as image:
+            assert (event.width, event.height) == image.size and image.mode == "RGBA"
+
+
 def test_rerun_overwrites_only_analysis_and_its_tb_log(analyzed_run):
     run_dir, before, _ = analyzed_run
     stale = run_dir / "analysis" / "stale.txt"

@@ -13,6 +13,7 @@ is analyzed, and ``DIR/analysis/`` gets the sweep's aggregate tables and claims 
 
 from __future__ import annotations
 
+import io
 import os
 import shutil
 import sys
@@ -35,29 +36,49 @@ PROG = "analyze.py"
 POOL_MIN_RUNS = 4  # a pool's workers take a few seconds to start: fewer runs are analyzed in turn
 
 
+PNG_COMPRESS_LEVEL = 1  # zlib level: a third less encoding time than the default 6, files ~9 % larger
+
+
+def png_bytes(rgba: np.ndarray) -> bytes:
+    """One figure's pixels (H, W, 4) as PNG bytes, encoded once for both the file and TensorBoard."""
+    from PIL import Image
+
+    buffer = io.BytesIO()
+    Image.fromarray(rgba).save(buffer, format="png", compress_level=PNG_COMPRESS_LEVEL)
+    return buffer.getvalue()
+
+
 def publish_figures(figures: dict, out: Path, tb_dir: Path) -> None:
     """Save every figure as PNG and log it to a fresh TensorBoard log ``tb_dir`` under
     ``analysis/<name>``.
 
-    Each figure is rendered once by the Agg canvas and the same pixels go to both,
-    which is what ``SummaryWriter.add_figure`` logs, without drawing it twice more.
+    Each figure is rendered once by the Agg canvas and encoded once: the PNG file's bytes are the
+    TensorBoard image's (an image summary holds encoded PNG, what ``SummaryWriter.add_image``
+    would encode again). The event file is written with tensorboard's own writer, so an
+    analysis never imports torch.
     """
     shutil.rmtree(tb_dir, ignore_errors=True)
     if not figures:
         return
     from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.image import imsave
+    from tensorboard.compat.proto.event_pb2 import Event
+    from tensorboard.compat.proto.summary_pb2 import Summary
+    from tensorboard.summary.writer.event_file_writer import EventFileWriter
 
-    # imported here: torch's start-up is paid only by a call that writes figures
-    from torch.utils.tensorboard import SummaryWriter
-
-    with SummaryWriter(str(tb_dir)) as writer:
+    writer = EventFileWriter(str(tb_dir))
+    try:
         for name, (fig, _) in figures.items():
             canvas = FigureCanvasAgg(fig)
             canvas.draw()
             rgba = np.asarray(canvas.buffer_rgba())
-            imsave(out / f"{name}.png", rgba)
-            writer.add_image(f"analysis/{name}", rgba[..., :3], global_step=0, dataformats="HWC")
+            png = png_bytes(rgba)
+            (out / f"{name}.png").write_bytes(png)
+            height, width, channels = rgba.shape
+            image = Summary.Image(height=height, width=width, colorspace=channels, encoded_image_string=png)
+            summary = Summary(value=[Summary.Value(tag=f"analysis/{name}", image=image)])
+            writer.add_event(Event(wall_time=time.time(), step=0, summary=summary))
+    finally:
+        writer.close()
 
 
 def _claim_json(r: ClaimResult, **where) -> dict:
