@@ -14,8 +14,8 @@ that the cells of an agent play about as many agent-episodes:
   T-maze, one replay step of 10 sampled episodes after each episode (docs/performance.md);
 * ``online``: the online trainer's FERL on the regular T-maze at corridor 20 with an LSTM
   predictor, 64 replayed episodes a step: the bar's configuration. Its replay compiles only in
-  jobs of at least ``REPLAY_FUSED_FROM`` episodes, so at these lengths its compiled column is
-  the same eager path, and is not run.
+  jobs of at least ``REPLAY_FUSED_FROM`` episodes (its episodes never), so a shorter job's
+  compiled cell would be the eager path again, and is not run.
 
 A compiled job with a fresh shape compiles first (``compile_time_s``, printed beside). Prints a
 markdown table and merges it into benchmarks/results.json under "runs_scaling".
@@ -32,6 +32,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.report import save_results  # noqa: E402
+from ferl.trainers.online_episodes import REPLAY_FUSED_FROM  # noqa: E402
 
 AGENTS = {
     "recurrent_q": [
@@ -48,7 +49,7 @@ AGENTS = {
         "predictor.joint.memory=lstm",
     ],
 }
-COMPILES = {"recurrent_q": True, "online": False}  # see the module doc
+COMPILES_FROM = {"recurrent_q": 1, "online": REPLAY_FUSED_FROM}  # a job's episodes from which it compiles
 BUDGET = {"recurrent_q": 2000, "online": 400}  # agent-episodes a cell plays: ~1 min a cell eagerly at 1 run
 MIN_EPISODES = 10
 
@@ -95,8 +96,8 @@ def main() -> None:
             for runs in args.runs:
                 episodes = max(MIN_EPISODES, (args.budget or BUDGET[agent]) // runs)
                 for path in args.paths:
-                    if path == "compiled" and not COMPILES[agent]:
-                        continue
+                    if path == "compiled" and episodes < COMPILES_FROM[agent]:
+                        continue  # the eager path again (module doc)
                     row = job(agent, runs, episodes, path == "compiled", Path(tmp) / f"{agent}_{runs}_{path}")
                     rows.append(row)
                     print(

@@ -202,13 +202,11 @@ class TMazeRun:
 
     @cached_property
     def _nonfinite(self) -> dict[str, np.ndarray]:
-        return {}
+        """layer → (visits,) activations not all finite; once per run, every projection asks."""
+        return {layer: ~np.isfinite(self.junction[layer]).all(axis=1) for layer in self.layers}
 
     def nonfinite_visits(self, layer: str) -> np.ndarray:
-        """Visits whose activations are not all finite (a diverged actor); PCA leaves them out.
-        Computed once per layer: every (phase, run) projection asks for it."""
-        if layer not in self._nonfinite:
-            self._nonfinite[layer] = ~np.isfinite(self.junction[layer]).all(axis=1)  # (visits,)
+        """Visits whose activations are not all finite (a diverged actor); PCA leaves them out."""
         return self._nonfinite[layer]
 
     def projection(self, layer: str, phase: str, r: int) -> Projection | None:
