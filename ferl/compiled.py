@@ -34,6 +34,15 @@ _first_calls = [0.0]  # seconds this process has spent in compiled functions' fi
 # the dissertation's chunks (8 SGD steps of ≤ 10 actions); longer unrolls run in smaller chunks
 # (``unroll_chunk``) or eagerly.
 MAX_UNROLLED_STEPS = 80
+# Inductor's options on a CPU. ``cpp_wrapper``: the kernels are called from C++. Inductor inlines a
+# pointwise value into each of its readers until it has more than ``realize_reads_threshold``
+# (default 4) readers. An unrolled episode carries small per-run recurrences (the time step, done,
+# the cell) whose every step reads the step before, so inlined values nest step on step and writing
+# the kernels (its Scheduler.codegen) outgrows the unroll: the recurrent Q-learner's passive-maze
+# episode at T_max = 21 took 473 s to compile. Storing every value read more than once compiles it in
+# 83 s and runs it as fast; the matching maze's graphs compile and run as before (docs/performance.md,
+# "Why an unrolled episode compiled slowly").
+CPU_INDUCTOR_OPTIONS: dict[str, str | int | bool | Callable] = {"cpp_wrapper": True, "realize_reads_threshold": 1}
 
 
 def compile_seconds() -> float:
@@ -114,7 +123,7 @@ def compiled(fn, device: torch.device, what: str):
     compile rather than load from the cache prints one line saying so, with its time. Where fn
     cannot be compiled (an operation dynamo cannot trace, say, in a user's actor) it warns once
     and runs eagerly: compiling fails before the graph runs, so nothing has changed yet."""
-    options: dict[str, str | int | bool | Callable] = {"cpp_wrapper": True} if device.type == "cpu" else {}
+    options = dict(CPU_INDUCTOR_OPTIONS) if device.type == "cpu" else {}
     graph = torch.compile(fn, fullgraph=True, dynamic=False, options=options)
     first = True
     from torch._dynamo.exc import TorchDynamoException  # once here, not on every call
