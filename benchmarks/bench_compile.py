@@ -15,7 +15,6 @@ job's ``wall_time_s``. Prints a markdown table and merges it into benchmarks/res
 import argparse
 import json
 import os
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
@@ -23,6 +22,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.jobs import train_summary  # noqa: E402
 from benchmarks.report import save_results  # noqa: E402
 
 AGENT = [
@@ -46,11 +46,7 @@ def job(corridor: int, settings: str, out: Path) -> dict:
     command = [sys.executable, "-c", CHILD, settings, *AGENT, f"env.corridor_length={corridor}", f"hydra.run.dir={out}"]
     with tempfile.TemporaryDirectory() as cache:
         env = {**os.environ, "TORCHINDUCTOR_CACHE_DIR": cache}
-        done = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, env=env)
-    if done.returncode != 0:
-        tail = done.stderr.strip().splitlines()[-1:] or ["no output"]
-        raise SystemExit(f"bench_compile.py: corridor {corridor} with {settings} failed: {tail[0]}")
-    summary = json.loads((out / "summary.json").read_text())
+        summary = train_summary(command, out, f"bench_compile.py: corridor {corridor} with {settings}", env)
     return {
         "corridor": corridor,
         "settings": json.loads(settings),
@@ -64,11 +60,15 @@ def main() -> None:
     parser.add_argument("--corridors", type=int, nargs="+", default=[6, 20])
     parser.add_argument("--settings", nargs="+", default=["{}", '{"realize_reads_threshold": 4}'])
     args = parser.parse_args()
+    import torch._inductor.config as inductor_config
+
     for settings in args.settings:  # bad input: one line before any job
         try:
-            json.loads(settings)
+            unknown = [key for key in json.loads(settings) if not hasattr(inductor_config, key)]
         except json.JSONDecodeError as e:
             raise SystemExit(f"bench_compile.py: --settings {settings!r} is not JSON ({e})") from None
+        if unknown:
+            raise SystemExit(f"bench_compile.py: --settings {settings!r}: not an inductor option: {', '.join(unknown)}")
     rows = []
     print("| corridor L | T_max | settings | compile s | wall s |")
     print("| ---: | ---: | --- | ---: | ---: |")

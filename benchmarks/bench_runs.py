@@ -22,8 +22,6 @@ markdown table and merges it into benchmarks/results.json under "runs_scaling".
 """
 
 import argparse
-import json
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
@@ -31,6 +29,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.jobs import train_summary  # noqa: E402
 from benchmarks.report import save_results  # noqa: E402
 from ferl.trainers.online_episodes import REPLAY_FUSED_FROM  # noqa: E402
 
@@ -65,11 +64,7 @@ def job(agent: str, runs: int, episodes: int, compiled: bool, out: Path) -> dict
         f"compile={str(compiled).lower()}",
         f"hydra.run.dir={out}",
     ]
-    done = subprocess.run(command, cwd=ROOT, capture_output=True, text=True)
-    if done.returncode != 0:
-        tail = done.stderr.strip().splitlines()[-1:] or ["no output"]
-        raise SystemExit(f"bench_runs.py: {agent} at {runs} runs failed: {tail[0]}")
-    summary = json.loads((out / "summary.json").read_text())
+    summary = train_summary(command, out, f"bench_runs.py: {agent} at {runs} runs")
     return {
         "agent": agent,
         "runs": runs,

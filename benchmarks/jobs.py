@@ -1,6 +1,9 @@
 """A trainer set up from the real configs, with a run directory that writes no checkpoints: what the
-benchmarks time, phase by phase, without the disk."""
+benchmarks time, phase by phase, without the disk; and a whole ``train.py`` job in a subprocess,
+read back from its ``summary.json``."""
 
+import json
+import subprocess
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
@@ -34,3 +37,13 @@ def bench_job(overrides: list, device: str):
 def phase(trainer, name: str):
     """The trainer's phase of that name."""
     return next(p for p in trainer.phases if p.name == name)
+
+
+def train_summary(command: list[str], out: Path, what: str, env: dict | None = None) -> dict:
+    """Run one ``train.py`` job (``command``, its run directory ``out``) and return its summary;
+    a failed job ends the benchmark in one line naming ``what`` and its last error line."""
+    done = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, env=env)
+    if done.returncode != 0:
+        tail = done.stderr.strip().splitlines()[-1:] or ["no output"]
+        raise SystemExit(f"{what} failed: {tail[0]}")
+    return json.loads((out / "summary.json").read_text())

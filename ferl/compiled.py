@@ -39,8 +39,8 @@ MAX_UNROLLED_STEPS = 80
 # (default 4) readers. An unrolled episode carries small per-run recurrences (the time step, done,
 # the cell) whose every step reads the step before, so inlined values nest step on step and writing
 # the kernels (its Scheduler.codegen) outgrows the unroll: the recurrent Q-learner's passive-maze
-# episode at T_max = 21 took 473 s to compile. Storing every value read more than once compiles it in
-# 83 s and runs it as fast; the matching maze's graphs compile and run as before (docs/performance.md,
+# episode and replay step at T_max = 21 took 473 s to compile. Storing every value read more than
+# once compiles them in 83 s and runs them as fast; the matching maze's graphs compile and run as before (docs/performance.md,
 # "Why an unrolled episode compiled slowly").
 CPU_INDUCTOR_OPTIONS: dict[str, str | int | bool | Callable] = {"cpp_wrapper": True, "realize_reads_threshold": 1}
 
