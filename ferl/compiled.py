@@ -117,14 +117,33 @@ def unroll_chunk(steps_each: int, wanted: int) -> int:
     return max(1, min(wanted, MAX_UNROLLED_STEPS // max(steps_each, 1)))
 
 
-def compiled(fn, device: torch.device, what: str):
+def size_generic(x: torch.Tensor, first_dim: int) -> torch.Tensor:
+    """A copy of ``x`` whose sizes from ``first_dim`` on a compiled graph takes as symbols, not
+    constants: one graph then serves every size a configuration gives them. A copy, because a
+    graph generic in sizes is also generic in storage offsets, and a view's offset differs from
+    call to call; sizes 0 and 1 stay specialised (dynamo's rule)."""
+    x = x.clone()
+    for dim in range(first_dim, x.dim()):
+        torch._dynamo.maybe_mark_dynamic(x, dim)
+    return x
+
+
+def compiled(fn, device: torch.device, what: str, generic: Callable[[tuple], tuple] | None = None):
     """``fn`` as one graph per input shape (fullgraph: a graph break would silently bring back the
     per-operation overhead), its kernels called from C++ on a CPU. The first call that had to
     compile rather than load from the cache prints one line saying so, with its time. Where fn
     cannot be compiled (an operation dynamo cannot trace, say, in a user's actor) it warns once
-    and runs eagerly: compiling fails before the graph runs, so nothing has changed yet."""
+    and runs eagerly: compiling fails before the graph runs, so nothing has changed yet.
+
+    ``generic`` maps a call's arguments to the same arguments with some sizes marked generic
+    (``size_generic``): the graph is compiled for any value of those and for the given values of
+    every other size (no automatic dynamic shapes), so configurations that differ only in them
+    share one graph, compiled once (the floor's noise levels: docs/performance.md)."""
     options = dict(CPU_INDUCTOR_OPTIONS) if device.type == "cpu" else {}
-    graph = torch.compile(fn, fullgraph=True, dynamic=False, options=options)
+    graph = torch.compile(fn, fullgraph=True, dynamic=None if generic else False, options=options)
+    if generic is not None:
+        static = torch._dynamo.config.patch(automatic_dynamic_shapes=False)
+        graph = static(graph)
     first = True
     from torch._dynamo.exc import TorchDynamoException  # once here, not on every call
     from torch._dynamo.utils import counters
@@ -134,6 +153,8 @@ def compiled(fn, device: torch.device, what: str):
         # a call that traced a new graph (the first, or new shapes) is compiling time, not running
         graphs, misses = counters["stats"]["unique_graphs"], counters["inductor"]["fxgraph_cache_miss"]
         started = time.perf_counter()
+        if generic is not None:
+            args = generic(args)
         try:
             out = graph(*args)
         except TorchDynamoException as e:

@@ -101,3 +101,20 @@ def test_run_groups_do_not_change_a_run(compose_cfg, tmp_path, monkeypatch):
     assert pairs[0]["metrics"] == triples[0]["metrics"]
     for got, want in zip(pairs[1:], triples[1:]):
         np.testing.assert_array_equal(got, want)
+
+
+def test_one_graph_serves_every_noise_level(compose_cfg, tmp_path, monkeypatch):
+    """The floor's noisy pixels a step (round(noise · 784)) are a size of the chunk's inputs, and
+    the chunk is compiled generic in it (chunks.generic_inputs): a second noise level traces no new
+    graph, and that graph computes the second level as eagerly within the tolerance above."""
+    from torch._dynamo.utils import counters
+
+    monkeypatch.setattr(chunks, "MAX_CHUNK", 4)
+    run(compose_cfg, tmp_path, "first", "compile=true", "env.noise=0.125")
+    graphs = counters["stats"]["unique_graphs"]
+    compiled = run(compose_cfg, tmp_path, "second", "compile=true", "env.noise=0.25")
+    assert counters["stats"]["unique_graphs"] == graphs
+    eager = run(compose_cfg, tmp_path, "eager", "env.noise=0.25")
+    np.testing.assert_array_equal(compiled[1], eager[1])
+    np.testing.assert_allclose(compiled[2], eager[2], rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(compiled[3], eager[3], rtol=1e-4, atol=1e-5)

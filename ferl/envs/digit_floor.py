@@ -265,7 +265,9 @@ class DigitFloor(EnvironmentBase):
                 self.tile_position.index_select(0, self.tile), self.observation_size
             ).float()
         image = self.bank.index_select(0, self.tile_image.gather(1, self.tile.unsqueeze(1)).squeeze(1))
-        return image.scatter_(1, idx, values) if self.n_noisy else image
+        # the count from the input, not from self.n_noisy: a compiled chunk guards on each attribute
+        # it reads, and the noise level would then compile a graph of its own (ferl.trainers.chunks)
+        return image.scatter_(1, idx, values) if idx.shape[-1] else image
 
     def observe(self) -> torch.Tensor:
         """The current tile's image with fresh pixel noise (§3.4, Fig. 3.2)."""

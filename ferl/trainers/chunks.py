@@ -8,6 +8,7 @@ next chunks are drawn on a second thread while a chunk runs: the same draws from
 generator in the same order, so the results do not change.
 """
 
+import inspect
 import math
 import sys
 from concurrent.futures import Future
@@ -17,7 +18,7 @@ from typing import NamedTuple
 import torch
 
 from ferl.actors.td import td_step
-from ferl.compiled import compiled
+from ferl.compiled import compiled, size_generic
 
 MAX_CHUNK = 16  # steps per call of td_steps (a divisor of the logging and checkpoint intervals)
 
@@ -90,10 +91,19 @@ def td_steps_by_groups(steps, groups: list[slice]):
     return by_groups
 
 
+def generic_inputs(args: tuple) -> tuple:
+    """td_steps' arguments with the environment's inputs generic in every size after (step, run):
+    sizes that a configuration sets, such as the floor's noisy pixels a step (round(noise · 784),
+    §3.4), so that a sweep over the noise level compiles one graph, not one per level."""
+    fixed = len(inspect.signature(td_steps).parameters) - 1  # the arguments before *inputs
+    return (*args[:fixed], *(size_generic(x, 2) for x in args[fixed:]))
+
+
 def compiled_td_steps(n_runs: int, group_runs: int, device: torch.device):
-    """td_steps as one compiled graph per chunk (``ferl.compiled``); on a CPU run by groups of
-    ``group_runs`` runs (a smaller last group compiles a second graph)."""
-    steps = compiled(td_steps, device, "a chunk of TD steps")
+    """td_steps as one compiled graph per chunk (``ferl.compiled``), generic in the environment's
+    per-step input sizes (``generic_inputs``); on a CPU run by groups of ``group_runs`` runs (a
+    smaller last group compiles a second graph)."""
+    steps = compiled(td_steps, device, "a chunk of TD steps", generic=generic_inputs)
     if device.type != "cpu" or n_runs <= group_runs:
         return steps
     return td_steps_by_groups(steps, [slice(r, min(r + group_runs, n_runs)) for r in range(0, n_runs, group_runs)])
