@@ -110,8 +110,10 @@ def test_one_graph_serves_every_noise_level(compose_cfg, tmp_path, monkeypatch):
     from torch._dynamo.utils import counters
 
     monkeypatch.setattr(chunks, "MAX_CHUNK", 4)
+    before = counters["stats"]["unique_graphs"]
     run(compose_cfg, tmp_path, "first", "compile=true", "env.noise=0.125")
     graphs = counters["stats"]["unique_graphs"]
+    assert graphs > before  # the first level was compiled, not run eagerly after a failed trace
     compiled = run(compose_cfg, tmp_path, "second", "compile=true", "env.noise=0.25")
     assert counters["stats"]["unique_graphs"] == graphs
     eager = run(compose_cfg, tmp_path, "eager", "env.noise=0.25")

@@ -362,7 +362,9 @@ def test_analyze_a_sweep_with_damaged_runs_analyses_the_others(tmp_path, whole):
     assert result.returncode == 1, result.stderr[-3000:]
     assert "Traceback" not in result.stderr, result.stderr[-3000:]
     errors = [ln for ln in result.stderr.splitlines() if ln.startswith("analyze.py: error:")]
-    assert sorted(ln.split(":")[2].strip() for ln in errors) == [str(sweep / f"bad{i}") for i in range(len(damaged))]
+    assert sorted(ln.split(":")[2].strip() for ln in errors) == [str(sweep / f"bad{i}") for i in range(len(damaged))], (
+        result.stderr[-3000:]
+    )
     assert (sweep / "good" / "analysis" / "report.md").is_file()
     assert (sweep / "analysis" / "report.md").is_file()
 

@@ -61,6 +61,9 @@ def td_steps(actor, env, generator, s, a, F_sa, x_sa, alive, lrs, betas, uniform
     return TDChunk(s, a, F_sa, x_sa, torch.stack(rewards), torch.stack(deltas))
 
 
+TD_STEPS_FIXED = len(inspect.signature(td_steps).parameters) - 1  # td_steps' arguments before *inputs
+
+
 def td_steps_by_groups(steps, groups: list[slice]):
     """``steps`` (td_steps' signature) for one group of runs after another: temporal cache
     blocking. A group's weights stay in the CPU's caches for the whole chunk instead of every
@@ -95,8 +98,7 @@ def generic_inputs(args: tuple) -> tuple:
     """td_steps' arguments with the environment's inputs generic in every size after (step, run):
     sizes that a configuration sets, such as the floor's noisy pixels a step (round(noise · 784),
     §3.4), so that a sweep over the noise level compiles one graph, not one per level."""
-    fixed = len(inspect.signature(td_steps).parameters) - 1  # the arguments before *inputs
-    return (*args[:fixed], *(size_generic(x, 2) for x in args[fixed:]))
+    return (*args[:TD_STEPS_FIXED], *(size_generic(x, 2) for x in args[TD_STEPS_FIXED:]))
 
 
 def compiled_td_steps(n_runs: int, group_runs: int, device: torch.device):
