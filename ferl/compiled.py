@@ -121,7 +121,10 @@ def size_generic(x: torch.Tensor, first_dim: int) -> torch.Tensor:
     """A copy of ``x`` whose sizes from ``first_dim`` on a compiled graph takes as symbols, not
     constants: one graph then serves every size a configuration gives them. A copy, because a
     graph generic in sizes is also generic in storage offsets, and a view's offset differs from
-    call to call; sizes 0 and 1 stay specialised (dynamo's rule)."""
+    call to call; sizes 0 and 1 stay specialised (dynamo's rule). ``x`` itself where it has no such
+    size (no copy)."""
+    if x.dim() <= first_dim:
+        return x
     x = x.clone()
     for dim in range(first_dim, x.dim()):
         torch._dynamo.maybe_mark_dynamic(x, dim)
@@ -153,7 +156,7 @@ def compiled(fn, device: torch.device, what: str, generic: Callable[[tuple], tup
         # a call that traced a new graph (the first, or new shapes) is compiling time, not running
         graphs, misses = counters["stats"]["unique_graphs"], counters["inductor"]["fxgraph_cache_miss"]
         started = time.perf_counter()
-        if generic is not None:
+        if generic is not None and graph is not fn:  # after a failed trace: eager, no marks
             args = generic(args)
         try:
             out = graph(*args)
