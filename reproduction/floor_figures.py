@@ -17,9 +17,20 @@ from matplotlib.patches import Patch
 from scipy.cluster.hierarchy import dendrogram
 
 from ferl import stats
+from ferl.analysis.figures import fitted_title
+from ferl.analysis.layout import Space, colorbar, grid
 
 OPTIMAL_COLOR, OTHER_COLOR, GOAL_COLOR = "tab:orange", "tab:blue", "lightgray"
 PHASE_COLOR = {"before": "tab:gray", "after": "tab:red"}
+
+# The space of each figure below (``ferl.analysis.layout``), in inches.
+ONE_PANEL = Space(left=0.85, top=0.35)  # one titled panel with labelled axes
+IMAGES = Space(left=0.1, right=0.1, bottom=0.1, top=0.35, hspace=0.45)  # titled panels, no ticks
+WEIGHTS = IMAGES.but(colorbar=1.0)
+GREEDY = Space(left=0.85, bottom=1.2, top=0.35, wspace=0.2, hspace=0.65)  # the legend below
+MEDIAN = Space(left=0.85, top=0.35, wspace=0.2, colorbar=1.0)
+DENDROGRAMS = Space(left=0.75, bottom=0.35, top=0.3, wspace=0.55, hspace=0.6)
+HEATMAP = Space(left=0.85, top=0.1, colorbar=1.0)
 
 
 def _mosaic(tiles: np.ndarray, ncols: int, pad_x: int = 2, pad_y: int = 2) -> np.ndarray:
@@ -50,8 +61,9 @@ def weight_images(w_before: np.ndarray, w_after: np.ndarray, ncols: int = 10) ->
     """Fig. 3.5: observation→hidden weights (784, H) as 28×28 images, before over after."""
     n_hidden = w_before.shape[1]
     ncols = min(ncols, n_hidden)
-    fig = Figure(figsize=(1.0 * ncols + 1, 2.2 * -(-n_hidden // ncols) + 1), layout="constrained")
-    axes = fig.subplots(2, 1)
+    fig = Figure(figsize=(1.0 * ncols + 1, 2.2 * -(-n_hidden // ncols) + 1))
+    title = "Fig. 3.5: connection weights from observations\nto hidden nodes (run 0)"
+    axes = grid(fig, 2, 1, WEIGHTS, title)[:, 0]
     for ax, w, phase in zip(axes, (w_before, w_after), ("before", "after")):
         tiles = w.T.reshape(n_hidden, *_square(w.shape[0]))
         # Each unit is scaled to its own max |w| so that untrained (small) weights stay visible.
@@ -60,8 +72,7 @@ def weight_images(w_before: np.ndarray, w_after: np.ndarray, ncols: int = 10) ->
         im = ax.imshow(_mosaic(tiles, ncols), cmap="gray", vmin=-1, vmax=1)
         _no_ticks(ax)
         ax.set_title(f"{phase} training: hidden units 1–{n_hidden} (row-major)")
-    fig.colorbar(im, ax=list(axes), shrink=0.6, label="weight / max |weight| of the unit")
-    fig.suptitle("Fig. 3.5: connection weights from observations\nto hidden nodes (run 0)")
+    colorbar(fig, im, axes, WEIGHTS, shrink=0.6, label="weight / max |weight| of the unit")
     return fig
 
 
@@ -80,8 +91,8 @@ def greedy_count_grid(
     """
     n_runs, _, n_actions = counts.shape
     index = {c: k for k, c in enumerate(classes)}
-    fig = Figure(figsize=(8, 7), layout="constrained")
-    axes = fig.subplots(*arrangement.shape, sharey=True)
+    fig = Figure(figsize=(8, 7))
+    axes = grid(fig, *arrangement.shape, GREEDY, title, sharey=True)
     x = np.arange(n_actions)
     jitter = np.linspace(-0.2, 0.2, n_runs) if n_runs > 1 else np.zeros(1)
     for ax, name in zip(axes.flat, arrangement.flat):
@@ -107,11 +118,11 @@ def greedy_count_grid(
             Patch(color=OTHER_COLOR, label="other actions"),
             Patch(color=GOAL_COLOR, label="goal tile (no optimal action)"),
         ],
-        loc="outside lower center",
+        loc="lower center",
+        bbox_to_anchor=(0.5, 0.01),
         ncols=3,
         title=f"bars: mean over {n_runs} runs ± 1 s.d.; dots: single runs",
     )
-    fig.suptitle(title)
     return fig
 
 
@@ -119,8 +130,8 @@ def accuracy_vs_noise(
     noise_levels: np.ndarray, acc_before: np.ndarray, acc_after: np.ndarray, train_noise: float, chance: float
 ) -> Figure:
     """Fig. 3.6 (c)/(d) as a curve: greedy accuracy vs test noise, mean ± s.e.m. over runs."""
-    fig = Figure(figsize=(6.5, 4), layout="constrained")
-    ax = fig.add_subplot()
+    fig = Figure(figsize=(6.5, 4))
+    ax = grid(fig, 1, 1, ONE_PANEL)[0, 0]
     for phase, acc in (("before", acc_before), ("after", acc_after)):
         ax.errorbar(
             100 * noise_levels,
@@ -144,8 +155,9 @@ def accuracy_vs_noise(
 def noise_grid_heatmap(train: np.ndarray, test: np.ndarray, accuracy: np.ndarray, experiment: str) -> Figure:
     """Fig. 3.6 over every pair of noise levels: greedy accuracy after training (mean over
     runs) by training noise (rows) and test noise (columns); the diagonal is test = training."""
-    fig = Figure(figsize=(2.0 + 0.75 * len(test), 1.8 + 0.5 * len(train)), layout="constrained")
-    ax = fig.add_subplot()
+    fig = Figure(figsize=(2.4 + 0.75 * len(test), 1.8 + 0.5 * len(train)))
+    title = fitted_title(fig, f"Fig. 3.6: greedy accuracy after training, {experiment}, mean over runs")
+    ax = grid(fig, 1, 1, HEATMAP, title)[0, 0]
     im = ax.imshow(accuracy, vmin=0, vmax=1, cmap="viridis", aspect="auto")
     for (t, k), value in np.ndenumerate(accuracy):
         if np.isfinite(value):
@@ -154,8 +166,7 @@ def noise_grid_heatmap(train: np.ndarray, test: np.ndarray, accuracy: np.ndarray
     ax.set_yticks(range(len(train)), [f"{100 * x:g}" for x in train])
     ax.set_xlabel("test noise (% of pixels replaced by white noise)")
     ax.set_ylabel("training noise (% of pixels)")
-    ax.set_title(f"Fig. 3.6: greedy accuracy after training, {experiment}, mean over runs")
-    fig.colorbar(im, ax=ax, label="greedy accuracy (fraction optimal)")
+    colorbar(fig, im, ax, HEATMAP, label="greedy accuracy (fraction optimal)")
     return fig
 
 
@@ -192,23 +203,26 @@ def outlier_images(
 ) -> Figure:
     """Fig. 3.7: test images sorted by P(optimal action | z), before and after training."""
     nrows = -(-min(n_show, len(images)) // ncols)
-    fig = Figure(figsize=(ncols * 0.7 + 0.5, 2 * nrows * 0.85 + 1.2), layout="constrained")
-    axes = fig.subplots(2, 1)
+    fig = Figure(figsize=(ncols * 0.7 + 0.5, 2 * nrows * 0.85 + 1.2))
+    title = (
+        f'Fig. 3.7: outlier detection, test images of "{class_name}" (run 0)\n'
+        f"{min(n_show, len(images))} of {len(images)} spanning the sorted order"
+    )
+    axes = grid(fig, 2, 1, IMAGES, title)[:, 0]
     for ax, prob, phase in zip(axes, (prob_before, prob_after), ("(a) before", "(b) after")):
         _sorted_probe_panel(
             ax, images, prob, n_show, ncols, f"{phase} training: P(a = '{action_name}' | z), ascending row-major"
         )
-    fig.suptitle(
-        f'Fig. 3.7: outlier detection, test images of "{class_name}" (run 0)\n'
-        f"{min(n_show, len(images))} of {len(images)} spanning the sorted order"
-    )
     return fig
 
 
 def median_activation(med_before: np.ndarray, med_after: np.ndarray, classes: Sequence[str]) -> Figure:
     """Fig. 3.10: median hidden activation (footnote 6) per class, before and after."""
-    fig = Figure(figsize=(10, 0.3 * len(classes) + 2), layout="constrained")
-    axes = fig.subplots(1, 2, sharey=True)
+    fig = Figure(figsize=(10, 0.3 * len(classes) + 2))
+    axes = grid(
+        fig, 1, 2, MEDIAN, "Fig. 3.10: median activation of hidden nodes over the test images (run 0)", sharey=True
+    )
+    axes = axes[0]
     for ax, med, phase in zip(axes, (med_before, med_after), ("before", "after")):
         im = ax.imshow(med, cmap="viridis", vmin=0, vmax=1, aspect="auto")
         ax.set_yticks(range(len(classes)), [f'"{c}"' for c in classes])
@@ -216,8 +230,7 @@ def median_activation(med_before: np.ndarray, med_after: np.ndarray, classes: Se
         ax.set_xlabel("hidden unit k")
         ax.set_title(f"{phase} training")
     axes[0].set_ylabel("tile class")
-    fig.colorbar(im, ax=list(axes), label="median activation Σ_a P(h_k=1|z,a)P(a|z)")
-    fig.suptitle("Fig. 3.10: median activation of hidden nodes over the test images (run 0)")
+    colorbar(fig, im, axes, MEDIAN, label="median activation Σ_a P(h_k=1|z,a)P(a|z)")
     return fig
 
 
@@ -227,12 +240,11 @@ def _dendrogram(ax, linkage_matrix: np.ndarray, labels: Sequence[str]) -> None:
 
 def mfr_dendrogram(linkage_matrix: np.ndarray, labels: Sequence[str], title: str) -> Figure:
     """Figs. 3.11/3.13: hierarchical clustering of the MFR distance D of one run."""
-    fig = Figure(figsize=(6, 4), layout="constrained")
-    ax = fig.add_subplot()
+    fig = Figure(figsize=(6, 4))
+    ax = grid(fig, 1, 1, ONE_PANEL.but(top=0.1), title)[0, 0]
     _dendrogram(ax, linkage_matrix, labels)
     ax.set_xlabel("tile class")
     ax.set_ylabel("distance D = 2 − 2 cos(MFR_i, MFR_j)")
-    ax.set_title(title)
     return fig
 
 
@@ -242,8 +254,8 @@ def mfr_dendrogram_grid(
     """Figs. 3.11/3.13 for every run: one small dendrogram per run (None: a diverged run)."""
     ncols = min(ncols, len(linkages))
     nrows = -(-len(linkages) // ncols)
-    fig = Figure(figsize=(3 * ncols, 2.6 * nrows), layout="constrained")
-    axes = np.atleast_1d(fig.subplots(nrows, ncols, squeeze=False)).ravel()
+    fig = Figure(figsize=(3 * ncols, 2.6 * nrows))
+    axes = grid(fig, nrows, ncols, DENDROGRAMS, title).ravel()
     for r, ax in enumerate(axes):
         if r >= len(linkages):
             ax.set_axis_off()
@@ -265,14 +277,13 @@ def mfr_dendrogram_grid(
         ax.tick_params(labelsize="x-small")
     for ax in axes[::ncols]:
         ax.set_ylabel("distance D")
-    fig.suptitle(title)
     return fig
 
 
 def mi_dendrogram(linkage_matrix: np.ndarray, labels: Sequence[str], bins: int) -> Figure:
     """Fig. 3.12: classes clustered by pairwise pixel–label mutual information."""
-    fig = Figure(figsize=(6, 4), layout="constrained")
-    ax = fig.add_subplot()
+    fig = Figure(figsize=(6, 4))
+    ax = grid(fig, 1, 1, ONE_PANEL)[0, 0]
     _dendrogram(ax, linkage_matrix, labels)
     ax.set_xlabel("digit class (clean test images)")
     ax.set_ylabel(f"mean pixel mutual information I(Z_i; C) (nats, {bins} bins)")

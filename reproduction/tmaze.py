@@ -23,7 +23,7 @@ import numpy as np
 
 from ferl import stats
 from ferl.analysis.claims import LayerFigures, Numbering, caption
-from ferl.analysis.coding import nanmean, pca, subsampled_silhouette
+from ferl.analysis.coding import nanmean, nonfinite_rows, pca, subsampled_silhouette
 from ferl.analysis.generic import FIGURE_RUN
 from ferl.analysis.io import fmt, write_csv
 from ferl.analysis.records import OBSERVATION, REWARD, PredictorErrors, Run
@@ -203,7 +203,7 @@ class TMazeRun:
     @cached_property
     def _nonfinite(self) -> dict[str, np.ndarray]:
         """layer → (visits,) activations not all finite; once per run, every projection asks."""
-        return {layer: ~np.isfinite(self.junction[layer]).all(axis=1) for layer in self.layers}
+        return {layer: nonfinite_rows(self.junction[layer]) for layer in self.layers}
 
     def nonfinite_visits(self, layer: str) -> np.ndarray:
         """Visits whose activations are not all finite (a diverged actor); PCA leaves them out."""

@@ -18,8 +18,18 @@ from matplotlib.lines import Line2D
 from matplotlib.ticker import MaxNLocator
 
 from ferl.analysis.figures import band
+from ferl.analysis.layout import Space, colorbar, grid
 
 MARKER_SIZES = (6.0, 60.0)  # scatter area of the shortest / longest episode (Fig. 4.14b)
+# Rows of an image of junction visits drawn at most: ≥ 3 per pixel row of its panel, which shows
+# each pixel row's nearest visit either way; the rest only cost resampling time.
+IMAGE_ROWS = 2000
+MAX_WIDTH = 16.0  # inches: a layer of pixels (784 units) in a readable figure, not 180 inches wide
+
+# The space of each figure below (``ferl.analysis.layout``), in inches.
+ACTIVATIONS = Space(left=1.45, top=0.1, colorbar=0.95)  # two-line tick labels per condition
+PCA = Space(left=0.85, top=0.5, wspace=0.85)  # two-line panel titles
+ONE_PANEL = Space(left=0.85, top=0.35)
 
 
 def _condition_colors(n: int) -> list:
@@ -39,17 +49,18 @@ def junction_activations(
     acts, condition = acts[order], condition[order]
     present, counts = np.unique(condition, return_counts=True)  # sorted, as the rows are
     ends = np.cumsum(counts) - 0.5
-    fig = Figure(figsize=(max(7.0, 0.22 * acts.shape[1] + 2.5), 6), layout="constrained")
-    ax = fig.add_subplot()
-    im = ax.imshow(acts, aspect="auto", interpolation="nearest", cmap="viridis", vmin=0, vmax=1)
+    fig = Figure(figsize=(min(max(7.0, 0.22 * acts.shape[1] + 2.5), MAX_WIDTH), 6))
+    ax = grid(fig, 1, 1, ACTIVATIONS, title)[0, 0]
+    shown = np.linspace(0, len(acts) - 1, min(len(acts), IMAGE_ROWS)).round().astype(int)
+    extent = (-0.5, acts.shape[1] - 0.5, len(acts) - 0.5, -0.5)  # visit numbers, as without subsampling
+    im = ax.imshow(acts[shown], aspect="auto", interpolation="nearest", cmap="viridis", vmin=0, vmax=1, extent=extent)
     for b in ends[:-1]:
         ax.axhline(b, color="w", lw=1.5)
     ax.set_yticks(ends - counts / 2, [f"{condition_names[c]}\n{n} visits" for c, n in zip(present, counts)])
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_xlabel("unit")
     ax.set_ylabel(f"junction visits by {condition_title}, then episode ↓")
-    fig.colorbar(im, ax=ax, label="activation")
-    ax.set_title(title)
+    colorbar(fig, im, ax, ACTIVATIONS, label="activation")
     return fig
 
 
@@ -81,8 +92,8 @@ def junction_pca(
     ``panels`` holds (subtitle, scores (n, ≥2), condition (n,), steps_to_goal (n,)) per phase,
     ``explained`` (label, explained-variance ratio) per phase.
     """
-    fig = Figure(figsize=(15, 4.6), layout="constrained")
-    axes = fig.subplots(1, len(panels) + 1)
+    fig = Figure(figsize=(15, 4.6))
+    axes = grid(fig, 1, len(panels) + 1, PCA, title)[0]
     colors = np.array(_condition_colors(len(condition_names)))
     for ax, (subtitle, scores, condition, steps) in zip(axes, panels):
         ax.scatter(
@@ -111,7 +122,6 @@ def junction_pca(
     ax.set_ylabel("explained variance ratio")
     ax.set_title("contribution of each PC", fontsize="small")
     ax.legend(fontsize="x-small")
-    fig.suptitle(title)
     return fig
 
 
@@ -168,8 +178,8 @@ def reconstruction_error(
 ) -> Figure:
     """The RBM preprocessor's training (§5.3.2): reconstruction error per sweep, mean ± s.e.m.
     over runs, with the mean held-out error before and after training as points."""
-    fig = Figure(figsize=(7, 4.2), layout="constrained")
-    ax = fig.add_subplot()
+    fig = Figure(figsize=(7, 4.2))
+    ax = grid(fig, 1, 1, ONE_PANEL, title)[0, 0]
     sweeps = np.arange(1, len(mean) + 1)
     band(ax, sweeps, mean, sem, None)
     ax.plot([0, sweeps[-1]], held_out, "o", color="tab:red", label="held-out images: before / after training")
@@ -177,5 +187,4 @@ def reconstruction_error(
     ax.set_xlabel("sweep through the training images")
     ax.set_ylabel("mean squared reconstruction error")
     ax.set_title(f"mean ± s.e.m. over {n_runs} runs", fontsize="small")
-    fig.suptitle(title)
     return fig

@@ -47,7 +47,7 @@ def silhouette_loop(x: np.ndarray, labels: np.ndarray) -> float:
             continue
         a = d[own].mean()
         b = min(d[labels == c].mean() for c in set(labels.tolist()) if c != labels[i])
-        s.append((b - a) / max(a, b))
+        s.append((b - a) / max(a, b) if max(a, b) > 0 else 0.0)
     return float(np.mean(s))
 
 
@@ -57,6 +57,18 @@ def test_silhouette_matches_direct_loop():
     labels = np.repeat([0, 1, 2], [15, 15, 10])
     labels[-1] = 7  # a singleton cluster scores 0
     assert coding.silhouette_score(x, labels) == pytest.approx(silhouette_loop(x, labels), abs=1e-12)
+
+
+def test_silhouette_of_points_equal_up_to_rounding_is_that_of_equal_points():
+    """A converged memory visits a few states, the same state in two clusters: rounding noise in
+    their projection must not decide the score ((b − a) / max(a, b) of two rounding errors)."""
+    states = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.2]])
+    labels = np.repeat([0, 1, 2], 20)
+    exact = states[np.repeat([0, 0, 1], 20)]  # clusters 0 and 1 on one state: a = b = 0, s = 0
+    rounded = exact + np.random.default_rng(4).normal(0, 1e-13, exact.shape)
+    expected = silhouette_loop(exact, labels)
+    assert expected == pytest.approx(1 / 3)  # cluster 2's points score 1, the others 0
+    assert coding.silhouette_score(rounded, labels) == pytest.approx(expected, abs=1e-9)
 
 
 def test_silhouette_known_cases():
@@ -203,3 +215,25 @@ def test_a_maze_with_a_predictor_of_no_role_gets_no_claims_and_unnumbered_figure
         "junction_hidden_pca",
     ):
         assert (run_dir / "analysis" / f"{name}.png").is_file(), name
+
+
+@pytest.mark.parametrize("n, d", [(300, 6), (5, 12)])  # by XᵀX's eigenvectors; by SVD when n < d
+def test_pca_equals_the_svd_of_the_centred_data(n, d):
+    rng = np.random.default_rng(n)
+    x = rng.normal(size=(n, d)) * np.linspace(3.0, 0.5, d) + 2.0
+    scores, ratio = coding.pca(x, 3)
+    u, s, vt = np.linalg.svd(x - x.mean(axis=0), full_matrices=False)
+    largest = vt[np.arange(3), np.abs(vt[:3]).argmax(axis=1)]  # each PC's largest loading, made positive
+    np.testing.assert_allclose(scores, u[:, :3] * s[:3] * np.sign(largest), atol=1e-9)
+    np.testing.assert_allclose(ratio[: len(s)], s**2 / np.sum(s**2), atol=1e-12)
+    assert ratio.shape == (d,) and not ratio[len(s) :].any()
+
+
+@pytest.mark.parametrize("dtype", [np.float16, np.float32])
+def test_nonfinite_rows_equals_isfinite_all(dtype):
+    x = np.random.default_rng(0).normal(size=(50, 7)).astype(dtype)
+    x[3, 2], x[9, 0], x[17, 6], x[20] = np.nan, np.inf, -np.inf, np.finfo(dtype).max  # a full row of max: finite
+    x[30, 1], x[30, 2] = np.inf, -np.inf  # their sum is NaN: still non-finite
+    expected = ~np.isfinite(x).all(axis=1)
+    np.testing.assert_array_equal(coding.nonfinite_rows(x), expected)
+    assert expected.sum() == 4

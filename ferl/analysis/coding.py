@@ -143,7 +143,9 @@ def silhouette_score(points: np.ndarray, labels: np.ndarray) -> float:
     s_i = (b_i − a_i) / max(a_i, b_i), with a_i the mean distance of point i to the
     other members of its cluster and b_i the smallest mean distance to another
     cluster; s_i = 0 in a singleton cluster or where a_i = b_i = 0. NaN with fewer
-    than two labels.
+    than two labels. Distances below 10⁻⁹ of the points' scale count as 0: points equal up to
+    rounding (a converged memory visits a handful of states) are equal, so that their s_i does
+    not depend on the last bits of a projection ((b − a) / max(a, b) of two rounding errors).
     """
     x = np.asarray(points, dtype=np.float64)
     classes, idx = np.unique(np.asarray(labels), return_inverse=True)
@@ -151,7 +153,9 @@ def silhouette_score(points: np.ndarray, labels: np.ndarray) -> float:
         return float("nan")
     member = np.eye(len(classes))[idx]  # (n, k) one-hot
     counts = member.sum(axis=0)
-    sums = cdist(x, x) @ member  # (n, k) distance to each cluster
+    distance = cdist(x, x)
+    distance[distance <= 1e-9 * max(np.abs(x).max(initial=0.0), 1e-300)] = 0.0
+    sums = distance @ member  # (n, k) distance to each cluster
     rows = np.arange(len(x))
     own = counts[idx]
     a = sums[rows, idx] / np.maximum(own - 1, 1)
@@ -164,22 +168,39 @@ def silhouette_score(points: np.ndarray, labels: np.ndarray) -> float:
 
 
 def pca(x: np.ndarray, n_components: int = 3) -> tuple[np.ndarray, np.ndarray]:
-    """PCA by SVD of the centred data.
+    """PCA of the centred data X (n, d): the eigenvectors V of XᵀX (d × d, far cheaper than an
+    SVD of X when n ≫ d, as for junction visits); by SVD of X when n < d.
 
-    Returns the scores on the first ``n_components`` PCs, (n, n_components), zero where
-    there are fewer components (samples or units), and the explained-variance ratio
-    of every PC, one per unit (zeros past the rank).
+    Returns the scores XV on the first ``n_components`` PCs, (n, n_components), zero where
+    there are fewer components (samples or units), each PC's sign chosen so that its largest
+    loading is positive; and the explained-variance ratio of every PC, one per unit (zeros
+    past the rank).
     """
     x = np.asarray(x, dtype=np.float64)
-    u, s, _ = np.linalg.svd(x - x.mean(axis=0), full_matrices=False)
-    k = min(n_components, len(s))
+    x = x - x.mean(axis=0)
+    if len(x) >= x.shape[1]:
+        variance, v = np.linalg.eigh(x.T @ x)  # ascending
+        variance, v = np.clip(variance[::-1], 0.0, None), v[:, ::-1]
+    else:
+        _, s, vt = np.linalg.svd(x, full_matrices=False)
+        variance, v = s**2, vt.T
+    k = min(n_components, v.shape[1])
+    v = v[:, :k] * np.sign(v[np.abs(v[:, :k]).argmax(axis=0), np.arange(k)])
     scores = np.zeros((len(x), n_components))
-    scores[:, :k] = u[:, :k] * s[:k]
+    scores[:, :k] = x @ v
     ratio = np.zeros(x.shape[1])
-    total = np.sum(s**2)
+    total = variance.sum()
     if total > 0:
-        ratio[: len(s)] = s**2 / total
+        ratio[: len(variance)] = variance / total
     return scores, ratio
+
+
+def nonfinite_rows(x: np.ndarray) -> np.ndarray:
+    """(n,) True where a row of ``x`` (n, d) holds a NaN or ±inf. A row's sum in float64 is finite
+    exactly when all its entries are (no row of finite float16 or float32 values overflows it), and
+    is ~8× faster on a float16 record of 10⁵ visits × 804 units than ``~isfinite(x).all(axis=1)``."""
+    with np.errstate(invalid="ignore"):  # inf − inf: NaN, as it should be here
+        return ~np.isfinite(np.asarray(x).sum(axis=1, dtype=np.float64))
 
 
 def _subsample(n: int, size: int) -> np.ndarray:

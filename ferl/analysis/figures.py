@@ -14,6 +14,8 @@ from collections.abc import Sequence
 import numpy as np
 from matplotlib.figure import Figure
 
+from ferl.analysis.layout import TITLE_PT, Space, colorbar, grid
+
 
 def edges(centres: np.ndarray) -> np.ndarray:
     """Cell edges around sorted centres (pcolormesh), for unevenly logged epochs/episodes."""
@@ -24,15 +26,22 @@ def edges(centres: np.ndarray) -> np.ndarray:
     return np.concatenate([[2 * c[0] - mid[0]], mid, [2 * c[-1] - mid[-1]]])
 
 
-def fitted_suptitle(fig: Figure, title: str) -> None:
-    """``fig.suptitle(title)`` with its lines wrapped at spaces until it fits the figure's width. A
+def fitted_title(fig: Figure, title: str) -> str:
+    """``title`` with its lines wrapped at spaces until it fits the figure's width as its title. A
     figure sized for its panels (the prediction errors: one column per episode length) can be
     narrower than its title: with one length only, 3.1 inches against a title of 7."""
-    text, lines = fig.suptitle(title), title.splitlines()
+    text, lines = fig.suptitle(title, fontsize=TITLE_PT), title.splitlines()
     chars = max(map(len, lines))
     while text.get_window_extent().width > 0.98 * fig.bbox.width and chars > 12:
         chars = int(chars * 0.85)
         text.set_text("\n".join(textwrap.fill(line, chars, break_long_words=False) for line in lines))
+    return text.get_text()
+
+
+# The space of each figure below (``ferl.analysis.layout``), in inches.
+CURVES = Space(left=0.85, wspace=0.9, hspace=0.6, top=0.15)  # no panel titles
+TD_ERRORS = Space(left=0.85, wspace=0.9, colorbar=1.0)
+PREDICTION_ERRORS = Space(left=0.8, wspace=0.15, hspace=0.75, top=0.45, colorbar=1.3)
 
 
 def band(ax, x: np.ndarray, mean: np.ndarray, sem: np.ndarray, optimum: float | None, color: str = "tab:blue") -> None:
@@ -55,8 +64,9 @@ def learning_curves(
     """
     ncols = 2
     nrows = -(-(len(panels) + 1) // ncols)
-    fig = Figure(figsize=(11, 3.4 * nrows), layout="constrained")
-    axes = fig.subplots(nrows, ncols, squeeze=False, sharex=True).ravel()
+    fig = Figure(figsize=(11, 3.4 * nrows))
+    title = f"{title}\n{window}-point moving average, mean ± s.e.m. over {n_runs} runs; dotted: optimum"
+    axes = grid(fig, nrows, ncols, CURVES, title, sharex=True).ravel()
     for ax, (label, mean, sem, optimum) in zip(axes, panels):
         band(ax, x, mean, sem, optimum)
         ax.set_ylabel(label)
@@ -75,7 +85,6 @@ def learning_curves(
         axes[k].set_axis_off()
         axes[k - ncols].xaxis.set_tick_params(labelbottom=True)
         axes[k - ncols].set_xlabel(xlabel)
-    fig.suptitle(f"{title}\n{window}-point moving average, mean ± s.e.m. over {n_runs} runs; dotted: optimum")
     return fig
 
 
@@ -92,8 +101,9 @@ def td_errors(
     """Figs. 4.8/4.13/5.6/5.19(c–d): (a) moving average of the mean |δ|; (b) where recorded,
     the per-step δ of sampled episodes of one run (the dissertation's 1st run, run 0 here):
     ``sampled`` = (δ (episodes, steps), episode numbers)."""
-    fig = Figure(figsize=(12 if sampled is not None else 7, 4.2), layout="constrained")
-    axes = fig.subplots(1, 2 if sampled is not None else 1, squeeze=False).ravel()
+    fig = Figure(figsize=(12 if sampled is not None else 7, 4.2))
+    space = TD_ERRORS if sampled is not None else TD_ERRORS.but(colorbar=0.0)
+    axes = grid(fig, 1, 2 if sampled is not None else 1, space, title).ravel()
     band(axes[0], x, mean, sem, None)
     axes[0].set_xlabel(xlabel)
     axes[0].set_ylabel(f"mean |δ| ({window}-point moving average)")
@@ -108,8 +118,7 @@ def td_errors(
         axes[1].set_xlabel("step t of the episode (δ of the action at t)")
         axes[1].set_ylabel("episode")
         axes[1].set_title(f"(b) run 0, {len(episodes)} sampled episodes (blank: episode over)")
-        fig.colorbar(im, ax=axes[1], label="TD error δ")
-    fig.suptitle(title)
+        colorbar(fig, im, axes[1:], space, label="TD error δ")
     return fig
 
 
@@ -130,8 +139,8 @@ def prediction_errors(
     both = np.concatenate([train.ravel(), test.ravel()])
     vmax = float(np.nanpercentile(both, 99))
     extend = "max" if np.nanmax(both) > vmax else "neither"
-    fig = Figure(figsize=(1.6 * n_lengths + 1.5, 6), layout="constrained")
-    axes = fig.subplots(2, n_lengths, sharey=True, squeeze=False)
+    fig = Figure(figsize=(1.6 * n_lengths + 1.5, 6))
+    axes = grid(fig, 2, n_lengths, PREDICTION_ERRORS, fitted_title(fig, title), sharey=True)
     y_edges = edges(epochs)
     for row, (split, err) in enumerate((("train", train), ("test", test))):
         for k, T in enumerate(lengths):
@@ -142,6 +151,5 @@ def prediction_errors(
             if row == 1:
                 ax.set_xlabel("step t")
         axes[row, 0].set_ylabel("predictor epoch")
-    fig.colorbar(im, ax=axes, label=units, shrink=0.8, extend=extend)
-    fitted_suptitle(fig, title)
+    colorbar(fig, im, axes, PREDICTION_ERRORS, shrink=0.8, label=units, extend=extend)
     return fig

@@ -24,7 +24,7 @@ from ferl import stats
 from ferl.analysis import figures as figs
 from ferl.analysis.claims import Numbering, caption
 from ferl.analysis.coding import moving_average, nanmean
-from ferl.analysis.io import fmt, table_lines, write_csv
+from ferl.analysis.io import fmt, table_lines, write_csv, write_numbers
 from ferl.analysis.records import JOINT, OBSERVATION, REWARD, PredictorErrors, Run
 from ferl.analysis.report import RunAnalysis
 
@@ -129,14 +129,15 @@ def _curves_table(c: Curves, out: Path) -> str:
     first = next(iter(c.series))
     columns = [column for key in c.series for column in c.mean_sem(key)]
     columns += list(c.series[first])
-    write_csv(
+    write_numbers(
         out / "learning_curves.csv",
         [
             c.unit,
             *(f"{k}_ma{c.window}_{s}" for k in c.series for s in ("mean", "sem")),
             *(f"{first}_ma{c.window}_run_{r}" for r in range(c.n_runs)),
         ],
-        [(int(x), *(fmt(col[i]) for col in columns)) for i, x in enumerate(c.x)],
+        np.asarray(c.x).astype(np.int64),
+        np.stack(columns, axis=1),
     )
     return "learning_curves.csv"
 

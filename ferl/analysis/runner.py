@@ -192,16 +192,24 @@ def analyze_runs(found: list[Path], force: bool = False) -> list[RunOutcome]:
     drawing is most of the time, and the runs are independent); a run whose analysis is kept
     (unchanged since, ``ferl.analysis.cache``; not with ``force``) is not handed to a worker."""
     kept = {} if force else {r: o for r in found if (o := _safe_kept(r)) is not None}
-    stale = [r for r in found if r not in kept]
+    # The largest records first: no worker is left with the longest analysis at the end.
+    stale = sorted((r for r in found if r not in kept), key=_records_bytes, reverse=True)
     workers = min(os.cpu_count() or 1, len(stale))
     if workers < 2 or len(stale) < POOL_MIN_RUNS:
         done = [_safe_analyze_run(r, force=force) for r in stale]
     else:
         from joblib import Parallel, delayed  # loky's workers return the claims' functions too (cloudpickle)
 
-        done = Parallel(n_jobs=workers)(delayed(_safe_analyze_run)(r, REGISTRY.modules, force) for r in stale)
+        done = Parallel(n_jobs=workers, batch_size=1)(
+            delayed(_safe_analyze_run)(r, REGISTRY.modules, force) for r in stale
+        )
     by_run = kept | dict(zip(stale, done))
     return [by_run[r] for r in found]
+
+
+def _records_bytes(run_dir: Path) -> int:
+    """The size of a run's records, what its analysis reads (its time grows with it)."""
+    return sum(p.stat().st_size for p in (run_dir / "records").glob("*") if p.is_file())
 
 
 def _safe_kept(run_dir: Path) -> RunOutcome | None:
