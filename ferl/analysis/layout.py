@@ -3,7 +3,7 @@
 Matplotlib's constrained layout measures every text of a figure (tick labels, titles) in two
 passes before the figure is drawn, and the drawing measures them again. On the reproduction
 sweep those passes were ~28 % of the time ``analyze.py`` spends building and drawing figures
-(docs/performance.md, "Analysis"). The figures of a run have a known structure (a grid of panels,
+(docs/performance.md, "Fixed layouts, checked by a test"). The figures of a run have a known structure (a grid of panels,
 one or two lines of title, tick labels of a few characters, at most a colour bar at the right),
 so their space can be stated once here: a ``Space`` per kind of figure, in inches, so that it
 does not shrink or grow with the figure's size. Tick labels of matplotlib's default formatter stay
@@ -29,7 +29,7 @@ class Space:
     """Inches around a grid of panels: margins, gaps between panels, and a colour bar column.
 
     ``top`` is the room for the panels' own titles (the figure's title is added to it by
-    ``panels``); ``colorbar`` the width kept right of the panels for a bar, its ticks and label
+    ``grid``); ``colorbar`` the width kept right of the panels for a bar, its ticks and label
     (0: no bar).
     """
 
@@ -61,7 +61,7 @@ def grid(fig: Figure, nrows: int, ncols: int, space: Space, title: str = "", **s
     panel_h = (height - space.bottom - top - (nrows - 1) * space.hspace) / nrows
     if panel_w <= 0 or panel_h <= 0:
         raise ValueError(f"a {width:g} × {height:g} in figure has no room for {nrows} × {ncols} panels: {space}")
-    grid = fig.add_gridspec(
+    spec = fig.add_gridspec(
         nrows,
         ncols,
         left=space.left / width,
@@ -71,7 +71,7 @@ def grid(fig: Figure, nrows: int, ncols: int, space: Space, title: str = "", **s
         wspace=space.wspace / panel_w,
         hspace=space.hspace / panel_h,
     )
-    axes = grid.subplots(squeeze=False, **subplot_kw)
+    axes = spec.subplots(squeeze=False, **subplot_kw)
     if title:
         fig.suptitle(title, y=1 - PAD / height, va="top", fontsize=TITLE_PT)
     return axes

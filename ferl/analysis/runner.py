@@ -208,8 +208,12 @@ def analyze_runs(found: list[Path], force: bool = False) -> list[RunOutcome]:
 
 
 def _records_bytes(run_dir: Path) -> int:
-    """The size of a run's records, what its analysis reads (its time grows with it)."""
-    return sum(p.stat().st_size for p in (run_dir / "records").glob("*") if p.is_file())
+    """The size of a run's records, what its analysis reads (its time grows with it); 0 where
+    they cannot be read (its analysis reports that)."""
+    try:
+        return sum(p.stat().st_size for p in (run_dir / "records").glob("*") if p.is_file())
+    except OSError:
+        return 0
 
 
 def _safe_kept(run_dir: Path) -> RunOutcome | None:
