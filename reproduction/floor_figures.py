@@ -18,13 +18,12 @@ from scipy.cluster.hierarchy import dendrogram
 
 from ferl import stats
 from ferl.analysis.figures import fitted_title
-from ferl.analysis.layout import Space, colorbar, grid
+from ferl.analysis.layout import ONE_PANEL, Space, colorbar, grid
 
 OPTIMAL_COLOR, OTHER_COLOR, GOAL_COLOR = "tab:orange", "tab:blue", "lightgray"
 PHASE_COLOR = {"before": "tab:gray", "after": "tab:red"}
 
 # The space of each figure below (``ferl.analysis.layout``), in inches.
-ONE_PANEL = Space(left=0.85, top=0.35)  # one titled panel with labelled axes
 IMAGES = Space(left=0.1, right=0.1, bottom=0.1, top=0.35, hspace=0.45)  # titled panels, no ticks
 WEIGHTS = IMAGES.but(colorbar=1.0)
 GREEDY = Space(left=0.85, bottom=1.2, top=0.35, wspace=0.2, hspace=0.65)  # the legend below

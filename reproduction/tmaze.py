@@ -315,7 +315,7 @@ def _junction_figures(run: TMazeRun, layer: str, num: Numbering) -> dict[str, tu
     numbers = num.layer(run.layer_key(layer)) or LayerFigures("", "")
     out[f"junction_{layer}_activations"] = (
         figs.junction_activations(
-            j[layer][mine].astype(np.float64),
+            j[layer][mine],
             j["condition"][mine],
             j["episode"][mine],
             run.condition_names,

@@ -18,7 +18,7 @@ from matplotlib.lines import Line2D
 from matplotlib.ticker import MaxNLocator
 
 from ferl.analysis.figures import band
-from ferl.analysis.layout import Space, colorbar, grid
+from ferl.analysis.layout import ONE_PANEL, Space, colorbar, grid
 
 MARKER_SIZES = (6.0, 60.0)  # scatter area of the shortest / longest episode (Fig. 4.14b)
 # Rows of an image of junction visits drawn at most: ≥ 3 per pixel row of its panel, which shows
@@ -29,7 +29,6 @@ MAX_WIDTH = 16.0  # inches: a layer of pixels (784 units) in a readable figure, 
 # The space of each figure below (``ferl.analysis.layout``), in inches.
 ACTIVATIONS = Space(left=1.45, top=0.1, colorbar=0.95)  # two-line tick labels per condition
 PCA = Space(left=0.85, top=0.5, wspace=0.85)  # two-line panel titles
-ONE_PANEL = Space(left=0.85, top=0.35)
 
 
 def _condition_colors(n: int) -> list:
@@ -46,14 +45,15 @@ def junction_activations(
 ) -> Figure:
     """Figs. 4.14(a)/4.15(a)/4.17(a): every junction visit, sorted by condition then episode."""
     order = np.lexsort((episode, condition))
-    acts, condition = acts[order], condition[order]
     present, counts = np.unique(condition, return_counts=True)  # sorted, as the rows are
     ends = np.cumsum(counts) - 0.5
-    fig = Figure(figsize=(min(max(7.0, 0.22 * acts.shape[1] + 2.5), MAX_WIDTH), 6))
+    n, units = acts.shape
+    fig = Figure(figsize=(min(max(7.0, 0.22 * units + 2.5), MAX_WIDTH), 6))
     ax = grid(fig, 1, 1, ACTIVATIONS, title)[0, 0]
-    shown = np.linspace(0, len(acts) - 1, min(len(acts), IMAGE_ROWS)).round().astype(int)
-    extent = (-0.5, acts.shape[1] - 0.5, len(acts) - 0.5, -0.5)  # visit numbers, as without subsampling
-    im = ax.imshow(acts[shown], aspect="auto", interpolation="nearest", cmap="viridis", vmin=0, vmax=1, extent=extent)
+    shown = order[np.linspace(0, n - 1, min(n, IMAGE_ROWS)).round().astype(int)]  # only these rows are copied
+    extent = (-0.5, units - 0.5, n - 0.5, -0.5)  # visit numbers, as without subsampling
+    image = np.asarray(acts[shown], dtype=np.float64)
+    im = ax.imshow(image, aspect="auto", interpolation="nearest", cmap="viridis", vmin=0, vmax=1, extent=extent)
     for b in ends[:-1]:
         ax.axhline(b, color="w", lw=1.5)
     ax.set_yticks(ends - counts / 2, [f"{condition_names[c]}\n{n} visits" for c, n in zip(present, counts)])

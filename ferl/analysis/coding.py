@@ -154,7 +154,7 @@ def silhouette_score(points: np.ndarray, labels: np.ndarray) -> float:
     member = np.eye(len(classes))[idx]  # (n, k) one-hot
     counts = member.sum(axis=0)
     distance = cdist(x, x)
-    distance[distance <= 1e-9 * max(np.abs(x).max(initial=0.0), 1e-300)] = 0.0
+    distance[distance <= 1e-9 * np.abs(x).max(initial=0.0)] = 0.0
     sums = distance @ member  # (n, k) distance to each cluster
     rows = np.arange(len(x))
     own = counts[idx]

@@ -22,6 +22,7 @@ from matplotlib.figure import Figure
 TITLE_PT = 12.0  # the suptitle's font size ("large" at matplotlib's default 10 pt)
 LINE = 1.3  # line height / font size
 PAD = 0.08  # inches between the figure's edge and its title
+BAR = 0.15  # inches: a colour bar's width, and its gap to the panels
 
 
 @dataclass(frozen=True)
@@ -43,6 +44,9 @@ class Space:
 
     def but(self, **changes) -> Space:
         return replace(self, **changes)
+
+
+ONE_PANEL = Space(left=0.85, top=0.35)  # one panel with labelled axes and a one-line title
 
 
 def title_height(title: str, points: float = TITLE_PT) -> float:
@@ -83,9 +87,9 @@ def colorbar(fig: Figure, mappable, axes: np.ndarray, space: Space, shrink: floa
     width, _ = fig.get_size_inches()
     boxes = [ax.get_position() for ax in np.ravel(axes)]
     y0, y1 = min(b.y0 for b in boxes), max(b.y1 for b in boxes)
-    x0 = max(b.x1 for b in boxes) + 0.15 / width
+    x0 = max(b.x1 for b in boxes) + BAR / width
     h = (y1 - y0) * shrink
-    cax = fig.add_axes((x0, y0 + (y1 - y0 - h) / 2, 0.15 / width, h))
+    cax = fig.add_axes((x0, y0 + (y1 - y0 - h) / 2, BAR / width, h))
     return fig.colorbar(mappable, cax=cax, **kwargs)
 
 
