@@ -59,6 +59,18 @@ def test_silhouette_matches_direct_loop():
     assert coding.silhouette_score(x, labels) == pytest.approx(silhouette_loop(x, labels), abs=1e-12)
 
 
+def test_silhouette_of_repeated_points_matches_direct_loop():
+    """Repeated (point, label) pairs are scored once with their count: the same as every point."""
+    rng = np.random.default_rng(5)
+    states = rng.normal(size=(6, 3))
+    visit = rng.integers(0, 6, 90)
+    labels = np.where(visit < 3, 0, 1)
+    labels[::7] = 2  # some states under two labels, one state visited once
+    x = states[visit]
+    assert len(np.unique(np.column_stack([x, labels]), axis=0)) < 20
+    assert coding.silhouette_score(x, labels) == pytest.approx(silhouette_loop(x, labels), abs=1e-12)
+
+
 def test_silhouette_of_points_equal_up_to_rounding_is_that_of_equal_points():
     """A converged memory visits a few states, the same state in two clusters: rounding noise in
     their projection must not decide the score ((b − a) / max(a, b) of two rounding errors)."""

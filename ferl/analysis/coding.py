@@ -146,16 +146,23 @@ def silhouette_score(points: np.ndarray, labels: np.ndarray) -> float:
     than two labels. Distances below 10⁻⁹ of the points' scale count as 0: points equal up to
     rounding (a converged memory visits a handful of states) are equal, so that their s_i does
     not depend on the last bits of a projection ((b − a) / max(a, b) of two rounding errors).
+
+    Identical (point, label) pairs share one s_i, so the distances are taken between the m distinct
+    pairs only, each weighted by its count (m × m instead of n × n: a converged memory's visits are
+    a few distinct points). A duplicate of i adds 0 to i's own sum and 1 to its cluster's size.
     """
     x = np.asarray(points, dtype=np.float64)
     classes, idx = np.unique(np.asarray(labels), return_inverse=True)
     if len(classes) < 2:
         return float("nan")
-    member = np.eye(len(classes))[idx]  # (n, k) one-hot
+    idx = idx.ravel()
+    _, first, weight = np.unique(np.column_stack([x, idx]), axis=0, return_index=True, return_counts=True)
+    x, idx = x[first], idx[first]
+    member = np.eye(len(classes))[idx] * weight[:, None]  # (m, k) points of each cluster at each pair
     counts = member.sum(axis=0)
     distance = cdist(x, x)
     distance[distance <= 1e-9 * np.abs(x).max(initial=0.0)] = 0.0
-    sums = distance @ member  # (n, k) distance to each cluster
+    sums = distance @ member  # (m, k) summed distance to each cluster's n_c points
     rows = np.arange(len(x))
     own = counts[idx]
     a = sums[rows, idx] / np.maximum(own - 1, 1)
@@ -164,7 +171,7 @@ def silhouette_score(points: np.ndarray, labels: np.ndarray) -> float:
     b = to_other.min(axis=1)
     denom = np.maximum(a, b)
     s = np.where((own > 1) & (denom > 0), (b - a) / np.where(denom > 0, denom, 1.0), 0.0)
-    return float(s.mean())
+    return float(weight @ s / weight.sum())
 
 
 def pca(x: np.ndarray, n_components: int = 3) -> tuple[np.ndarray, np.ndarray]:
