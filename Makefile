@@ -44,21 +44,21 @@ test: $(STAMP)
 # probability (1/4)^5 · 1/2 ≈ 5·10⁻⁴, so balancing the lengths 6 … 10 needs ~50× Table 4.1's
 # 2 000 random episodes); then the sweep's aggregate tables, reproduction report, the README's
 # scorecard and docs/reproduction.md's claims table (analyze.py --readme), and the README's gallery.
+# The experiments first, REPRO_JOBS jobs at a time; then the other three sweeps at once
+# (ferl/run/together.py), the noise grid REPRO_JOBS at a time and the two small sweeps one at a time,
+# sharing the cores: one after another, a core idled through the one-job sweep and while each
+# sweep's last job ran alone (docs/performance.md, "Sweeps at once"). Each sweep's whole output goes
+# to <sweep>/sweep.log, its progress lines here.
 REPRO_JOBS  ?= 2
 EXPERIMENTS := table5_1_pixel,table4_2_digit,table5_1_bit,table4_1_regular,table4_1_matching,ch3_floor,ch3_coding_cw,ch3_coding_ccw,ch3_coding_noreward
 NOISE_GRID  := 0.0,0.125,0.25,0.375,0.5,0.625,0.75,0.875,1.0
 
 reproduce: $(STAMP)
 	@dir=outputs/reproduce/$$(date +%Y-%m-%d_%H-%M-%S); start=$$(date +%s); \
-	jobs="hydra/launcher=joblib hydra.launcher.n_jobs=$(REPRO_JOBS)"; \
-	echo "ferl: sweep 1/4: experiments" && \
-	$(PY) train.py -m experiment=$(EXPERIMENTS) $$jobs hydra.sweep.dir=$$dir/experiments && \
-	echo "ferl: sweep 2/4: noise_grid" && \
-	$(PY) train.py -m experiment=ch3_floor env.noise=$(NOISE_GRID) $$jobs hydra.sweep.dir=$$dir/noise_grid && \
-	echo "ferl: sweep 3/4: hidden_sizes" && \
-	$(PY) train.py -m experiment=ch3_coding_cw actor.n_hidden=10,40 $$jobs hydra.sweep.dir=$$dir/hidden_sizes && \
-	echo "ferl: sweep 4/4: long_corridor" && \
-	$(PY) train.py -m experiment=table4_1_regular env.corridor_length=6 trainer.n_sample=100000 $$jobs hydra.sweep.dir=$$dir/long_corridor && \
+	$(PY) -m ferl.run.together $$dir "experiments $(REPRO_JOBS) experiment=$(EXPERIMENTS)" && \
+	$(PY) -m ferl.run.together $$dir "noise_grid $(REPRO_JOBS) experiment=ch3_floor env.noise=$(NOISE_GRID)" \
+	  "hidden_sizes 1 experiment=ch3_coding_cw actor.n_hidden=10,40" \
+	  "long_corridor 1 experiment=table4_1_regular env.corridor_length=6 trainer.n_sample=100000" && \
 	echo $$(( $$(date +%s) - start )) > $$dir/train_wall_time_s && \
 	$(PY) analyze.py $$dir --readme README.md --readme docs/reproduction.md && \
 	$(PY) docs/figures/gallery.py $$dir --readme README.md && \

@@ -231,6 +231,18 @@ def test_a_write_error_without_a_file_name_is_named():
     assert "writing /r/records/episodes.npz (errno EFBIG)" in disk_line(temporary, Path("/r"))
 
 
+def test_a_stopped_job_crosses_a_process_boundary():
+    """A joblib worker's job that a signal stopped hands ``Interrupted`` to the launching process
+    pickled: it must arrive whole (it failed to unpickle, and the sweep ended in a traceback)."""
+    import pickle
+
+    from ferl.run.failures import Interrupted
+
+    where = "phase 'actor', episode 3"
+    back = pickle.loads(pickle.dumps(Interrupted(signal.SIGINT, where)))
+    assert (type(back), back.code, back.signum, back.where) == (Interrupted, 130, signal.SIGINT, where)
+
+
 def test_sighup_before_the_step_loop_one_line(tmp_path):
     """SIGHUP while the run is being set up (the lock is held: the directory is the run's; the
     MNIST floor is not yet stepping): one line saying what is left to resume from, exit 129, not

@@ -35,6 +35,11 @@ class Interrupted(SystemExit):
         super().__init__(128 + signum)
         self.signum, self.where = signum, where
 
+    def __reduce__(self):
+        # A joblib worker's job hands it to the launching process pickled; the default rebuilds
+        # it from ``args`` (the exit code alone), which this __init__ does not take.
+        return (type(self), (self.signum, self.where))
+
 
 @contextmanager
 def writing(path):

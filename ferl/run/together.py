@@ -1,0 +1,171 @@
+"""Several multiruns at once, their jobs sharing the machine's cores (``make reproduce``).
+
+    python -m ferl.run.together SWEEP_DIR "NAME JOBS OVERRIDE ..." ["NAME JOBS OVERRIDE ..." ...]
+
+runs ``train.py -m OVERRIDE ... hydra/launcher=joblib hydra.launcher.n_jobs=JOBS
+hydra.sweep.dir=SWEEP_DIR/NAME`` for every NAME, all at once. One sweep after another leaves cores
+idle: while a sweep's last job runs alone, and all through a sweep of one job. Started together,
+the sweeps' jobs fill each other's gaps (docs/performance.md, "Sweeps at once").
+
+Each sweep's whole output (Hydra's lines, the jobs' progress bars) goes to
+``SWEEP_DIR/NAME/sweep.log``; the terminal gets each sweep's ``ferl:`` lines (the jobs done and
+the time left, ``ferl.run.progress``; a job's errors), named by the sweep, and one line when a
+sweep ends. Exit 0 when every sweep succeeded; else one line per failed sweep naming its log,
+and 1. Ctrl-C reaches every job (they share the terminal's process group); the jobs stop as a
+single run does (docs/reliability.md), and this exits 130.
+"""
+
+from __future__ import annotations
+
+import os
+import shlex
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO
+
+from ferl.run.progress import duration
+
+PREFIX = "ferl: "
+LOG = "sweep.log"
+TRAIN = (sys.executable, "train.py")  # run from the repository's root, as the make targets are
+STOP_GRACE_S = 60.0  # after Ctrl-C, how long the jobs may take to write their checkpoints
+
+
+@dataclass(frozen=True)
+class Sweep:
+    """One multirun: its directory's name under the sweep directory, jobs at a time, overrides."""
+
+    name: str
+    jobs: int
+    overrides: tuple[str, ...]
+
+    @classmethod
+    def parse(cls, text: str) -> Sweep:
+        """``"NAME JOBS OVERRIDE ..."``; ValueError naming what is wrong."""
+        words = shlex.split(text)
+        if len(words) < 3:
+            raise ValueError(f"{text!r}: expected 'NAME JOBS OVERRIDE ...'")
+        name, jobs, *overrides = words
+        if not name or "/" in name or name.startswith("."):
+            raise ValueError(f"{text!r}: NAME must be a plain directory name, got {name!r}")
+        if not jobs.isdigit() or int(jobs) < 1:
+            raise ValueError(f"{text!r}: JOBS must be a whole number ≥ 1, got {jobs!r}")
+        return cls(name, int(jobs), tuple(overrides))
+
+    def command(self, train: tuple[str, ...], sweep_dir: Path) -> list[str]:
+        return [
+            *train,
+            "-m",
+            *self.overrides,
+            "hydra/launcher=joblib",
+            f"hydra.launcher.n_jobs={self.jobs}",
+            f"hydra.sweep.dir={sweep_dir / self.name}",
+        ]
+
+
+def shown(line: bytes) -> str | None:
+    """What a terminal would show of one line of output, if it is a ``ferl:`` line: the text after
+    its last carriage return (a progress bar redraws itself with ``\\r``, and a line printed while
+    a bar is drawn follows the bar's last state); None for any other line."""
+    text = line.decode(errors="replace").rstrip("\r\n").rsplit("\r", 1)[-1]
+    return text[len(PREFIX) :] if text.startswith(PREFIX) else None
+
+
+def _relay(name: str, pipe: IO[bytes], log: IO[bytes], lock: threading.Lock) -> None:
+    """Copy a sweep's output to its log as it comes (a progress bar's redraws too, which end in no
+    newline), and its ``ferl:`` lines to the terminal with its name."""
+    pending = b""  # the unfinished line, from its last carriage return on (all ``shown`` reads)
+    while chunk := pipe.read1(1 << 16):  # type: ignore[attr-defined]  # a BufferedReader (Popen.stdout)
+        log.write(chunk)
+        log.flush()
+        *lines, pending = (pending + chunk).split(b"\n")
+        pending = pending[pending.rfind(b"\r") + 1 :]
+        for line in lines:
+            text = shown(line)
+            if text is not None:
+                with lock:
+                    print(f"{PREFIX}{name}: {text}", flush=True)
+
+
+def run_together(sweep_dir: Path, sweeps: list[Sweep], train: tuple[str, ...] = TRAIN) -> int:
+    """Start every sweep, relay their output until all have ended; the exit status (module doc)."""
+    lock, start = threading.Lock(), time.monotonic()
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}  # a job's lines reach its log as they are printed
+    running = []
+    for sweep in sweeps:
+        out = sweep_dir / sweep.name
+        out.mkdir(parents=True, exist_ok=True)
+        log = open(out / LOG, "wb")  # noqa: SIM115 — closed when its sweep has ended
+        proc = subprocess.Popen(
+            sweep.command(train, sweep_dir), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env
+        )
+        assert proc.stdout is not None
+        relay = threading.Thread(target=_relay, args=(sweep.name, proc.stdout, log, lock), daemon=True)
+        relay.start()
+        running.append((sweep, proc, relay, log))
+    if len(sweeps) == 1:
+        head = f"sweep {sweeps[0].name} ({sweeps[0].jobs} jobs at a time); its whole output: {sweep_dir}/{sweeps[0].name}/{LOG}"
+    else:
+        shares = ", ".join(f"{s.name} ({s.jobs} at a time)" for s in sweeps)
+        head = f"{len(sweeps)} sweeps at once, sharing the cores: {shares}; each one's whole output: {sweep_dir}/NAME/{LOG}"
+    print(PREFIX + head, flush=True)
+    codes: dict[str, int] = {}
+    try:
+        while len(codes) < len(running):
+            for sweep, proc, relay, log in running:
+                if sweep.name in codes or proc.poll() is None:
+                    continue
+                relay.join()
+                log.close()
+                codes[sweep.name] = proc.returncode
+                how = "done" if proc.returncode == 0 else f"failed (exit {proc.returncode})"
+                with lock:
+                    print(f"{PREFIX}{sweep.name}: sweep {how} after {duration(time.monotonic() - start)}", flush=True)
+            time.sleep(0.2)
+    except KeyboardInterrupt:
+        _stop([proc for _, proc, _, _ in running])
+        print(f"{PREFIX}interrupted (SIGINT): every sweep stopped; what they wrote is kept", file=sys.stderr)
+        return 130
+    failed = [s for s in sweeps if codes[s.name] != 0]
+    for s in failed:
+        print(f"{PREFIX}error: sweep {s.name} failed; its output: {sweep_dir / s.name / LOG}", file=sys.stderr)
+    return 1 if failed else 0
+
+
+def _stop(procs: list[subprocess.Popen]) -> None:
+    """After Ctrl-C: the jobs got the same SIGINT; wait for them to stop, then terminate the rest."""
+    deadline = time.monotonic() + STOP_GRACE_S
+    for proc in procs:
+        try:
+            proc.wait(timeout=max(deadline - time.monotonic(), 0.1))
+        except subprocess.TimeoutExpired:
+            proc.terminate()
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = sys.argv[1:] if argv is None else argv
+    if len(args) < 2:
+        print("usage: python -m ferl.run.together SWEEP_DIR 'NAME JOBS OVERRIDE ...' ...", file=sys.stderr)
+        return 2
+    try:
+        sweeps = [Sweep.parse(a) for a in args[1:]]
+    except ValueError as e:
+        print(f"{PREFIX}error: {e}", file=sys.stderr)
+        return 2
+    names = [s.name for s in sweeps]
+    if len(set(names)) < len(names):
+        print(f"{PREFIX}error: two sweeps share a NAME: {' '.join(names)}", file=sys.stderr)
+        return 2
+    # Ctrl-C ends the sweeps' jobs (their own handlers) and this, also where a script that started
+    # it in the background left SIGINT ignored (the jobs install theirs either way).
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    return run_together(Path(args[0]), sweeps)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
