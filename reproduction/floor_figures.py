@@ -104,7 +104,7 @@ def greedy_count_grid(
         ]
         mean, sd, _ = zip(*(stats.mean_sd(counts[:, c, a]) for a in x))
         ax.bar(x, mean, yerr=sd, color=colors, capsize=2)
-        # One line of dots per panel, not one per action: the same pixels, a fifth of the artists.
+        # One line of dots per panel, not one per action: the same pixels, fewer artists to draw.
         ax.plot((x[None, :] + jitter[:, None]).ravel(), counts[:, c].ravel(), "k.", ms=2)
         ax.set_xticks(x, action_names)
         ax.set_title(f'"{name}"' + (" (goal)" if optimal_action[c] < 0 else ""))
