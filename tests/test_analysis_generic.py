@@ -236,3 +236,25 @@ def test_the_workers_of_a_parallel_analysis_see_the_registered_plug_ins(tmp_path
     assert serial.results and all(r.claim in ch3.CLAIMS for r in serial.results)
     for outcome in outcomes:
         assert [r.claim.text for r in outcome.results] == [r.claim.text for r in serial.results]
+
+
+def test_a_failed_run_is_one_write_to_stderr(tmp_path, monkeypatch):
+    """The pool's workers share stderr, which writes through: a run's error line must reach it in
+    one write, or another worker's line can land between the line and its newline."""
+    writes: list[str] = []
+
+    class Recorder:
+        def write(self, text: str) -> int:
+            writes.append(text)
+            return len(text)
+
+        def flush(self) -> None:
+            pass
+
+    (tmp_path / "summary.json").write_text("[]\n")  # damaged: a JSON array, not an object
+    monkeypatch.setattr("sys.stderr", Recorder())
+    outcome = runner._safe_analyze_run(tmp_path)
+    assert outcome.status.startswith("failed: ValueError: summary.json is damaged")
+    assert writes == [
+        f"analyze.py: error: {tmp_path}: ValueError: summary.json is damaged (a JSON list, not an object)\n"
+    ]

@@ -44,6 +44,8 @@ def test_shown_is_the_text_after_the_last_carriage_return_of_a_ferl_line():
     assert together.shown(b"ferl: error: phase 'actor': ...\r\n") == "error: phase 'actor': ..."
     assert together.shown(b"ferl: 1/2 jobs done\rbar 50%|#\n") is None  # the bar drawn over it
     assert together.shown(b"[HYDRA] Launching 9 jobs\n") is None
+    # one job's line after the other job's unfinished bar (both jobs of a sweep write to one pipe)
+    assert together.shown(b"\ractor:  40%|####  | 4/10 [00:01<00:01]ferl: x done in 3 s\n") == "x done in 3 s"
 
 
 def test_parse_names_what_is_wrong():

@@ -174,7 +174,9 @@ def _safe_analyze_run(run_dir: Path, plugins: Sequence[str] = (), force: bool = 
     try:
         return analyze_run(run_dir, force)
     except Exception as exc:  # noqa: BLE001 — any failure is reported per run
-        print(f"{PROG}: error: {run_dir}: {type(exc).__name__}: {exc}", file=sys.stderr)
+        # One write: the pool's workers share stderr, which writes through, and print() would
+        # write the line and its newline apart, letting another worker's line in between.
+        sys.stderr.write(f"{PROG}: error: {run_dir}: {type(exc).__name__}: {exc}\n")
         return RunOutcome(run_dir, "?", "?", f"failed: {type(exc).__name__}: {exc}")
 
 

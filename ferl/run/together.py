@@ -71,9 +71,11 @@ class Sweep:
 def shown(line: bytes) -> str | None:
     """What a terminal would show of one line of output, if it is a ``ferl:`` line: the text after
     its last carriage return (a progress bar redraws itself with ``\\r``, and a line printed while
-    a bar is drawn follows the bar's last state); None for any other line."""
+    a bar is drawn follows the bar's last state), from its ``ferl:`` on (a sweep's two jobs share
+    one pipe: one job's line can follow the other's unfinished bar); None for any other line."""
     text = line.decode(errors="replace").rstrip("\r\n").rsplit("\r", 1)[-1]
-    return text[len(PREFIX) :] if text.startswith(PREFIX) else None
+    start = text.find(PREFIX)
+    return None if start < 0 else text[start + len(PREFIX) :]
 
 
 def _relay(name: str, pipe: IO[bytes], log: IO[bytes], lock: threading.Lock) -> None:
