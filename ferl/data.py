@@ -234,3 +234,33 @@ def pixel_noise(rows: int, n_pixels: int, noise: float, generator: torch.Generat
     k = round(noise * n_pixels)
     values = torch.rand(rows, k, generator=generator, device=generator.device)
     return random_subsets(rows, n_pixels, k, generator), values
+
+
+def pixel_noise_draws(rows: int, n_pixels: int, noise: float, generator: torch.Generator):
+    """The random numbers of ``with_pixel_noise``: up to half the pixels noisy, ``pixel_noise``'s
+    positions and values of the k noisy pixels; above, the positions of the n − k clean pixels and
+    U(0, 1) values (rows, n) for every pixel. The complement of a uniformly random (n − k)-subset is
+    a uniformly random k-subset, so the noise has the same distribution from n − k draws of Floyd's
+    algorithm instead of k, whose cost grows faster than k (at 100 % noise: none)."""
+    positions, n_values = noise_draw_sizes(n_pixels, noise)
+    if n_values == positions:
+        return pixel_noise(rows, n_pixels, noise, generator)
+    values = torch.rand(rows, n_values, generator=generator, device=generator.device)
+    return random_subsets(rows, n_pixels, positions, generator), values
+
+
+def noise_draw_sizes(n_pixels: int, noise: float) -> tuple[int, int]:
+    """The positions and the values ``pixel_noise_draws`` draws per image: (k, k) for k =
+    round(noise·n) ≤ n/2 noisy pixels, else (n − k, n)."""
+    k = round(noise * n_pixels)
+    return (k, k) if 2 * k <= n_pixels else (n_pixels - k, n_pixels)
+
+
+def with_pixel_noise(images: torch.Tensor, idx: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+    """``images`` (rows, n) with the noise of ``pixel_noise_draws``, (rows, n): the values at the noisy
+    positions, or (where every pixel has a value) the images at the clean positions. Whether the
+    clean positions were drawn is read from the sizes, so that one compiled graph serves every
+    noise level up to half the pixels and one every level above."""
+    if values.shape[-1] > idx.shape[-1]:
+        return values.scatter(1, idx, images.gather(1, idx))
+    return images.scatter_(1, idx, values) if idx.shape[-1] else images

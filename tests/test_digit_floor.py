@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from ferl.data import MnistSplit, add_pixel_noise
+from ferl.data import MnistSplit, add_pixel_noise, pixel_noise, pixel_noise_draws, with_pixel_noise
 from ferl.envs.digit_floor import DigitFloor, optimal_policy, patch_rewards
 
 N, E, S, W = range(4)
@@ -117,6 +117,47 @@ def test_exact_noise_pixel_count(noise):
     changed = (noisy != clean).sum(1)
     assert (changed == round(noise * 784)).all()
     assert ((noisy[noisy != 2.0] >= 0) & (noisy[noisy != 2.0] <= 1)).all()
+
+
+@pytest.mark.parametrize("noise", [0.0, 0.125, 0.5])
+def test_floor_noise_up_to_half_is_drawn_as_before(noise):
+    """Up to half the pixels noisy, the floor draws the same numbers as ``pixel_noise`` (its random
+    stream, and so the reproduction's default floor, is unchanged)."""
+    got = pixel_noise_draws(30, 784, noise, torch.Generator().manual_seed(3))
+    want = pixel_noise(30, 784, noise, torch.Generator().manual_seed(3))
+    for g, w in zip(got, want):
+        assert torch.equal(g, w)
+
+
+@pytest.mark.parametrize("noise", [0.0, 0.125, 0.5, 0.5 + 1 / 784, 0.75, 1.0])
+def test_floor_noise_replaces_a_uniform_subset_of_exactly_k_pixels(noise):
+    """Either way of drawing (the noisy pixels up to half, the clean ones above) replaces exactly
+    k = round(noise · 784) pixels of every image by values in [0, 1), leaves the others as they
+    were, and replaces every pixel equally often: each pixel's count over 4 000 images is within
+    5 s.d. of the binomial mean 4 000 · k/784 (a pixel's count is Binomial(4000, k/784))."""
+    rows, n = 4000, 784
+    clean = torch.full((rows, n), 2.0)  # out of [0, 1], so a replaced pixel is recognisable
+    idx, values = pixel_noise_draws(rows, n, noise, torch.Generator().manual_seed(0))
+    noisy = with_pixel_noise(clean.clone(), idx, values)
+    k = round(noise * n)
+    replaced = noisy != 2.0
+    assert (replaced.sum(1) == k).all()
+    assert ((noisy[replaced] >= 0) & (noisy[replaced] < 1)).all()
+    p = k / n
+    counts = replaced.sum(0).double()
+    assert (counts - rows * p).abs().max() <= 5 * (rows * p * (1 - p)) ** 0.5 + 1e-9
+    if 0 < k:
+        assert abs(noisy[replaced].mean().item() - 0.5) < 0.01  # U(0, 1): s.e. of the mean ≤ 0.005
+
+
+@pytest.mark.parametrize("noise", [0.25, 0.75])
+def test_floor_noise_compiled_equals_eager(noise):
+    """``with_pixel_noise`` compiled with generic sizes (as the floor's chunk is) gives the eager
+    result exactly, on both sides of half the pixels."""
+    images = torch.rand(6, 784, generator=torch.Generator().manual_seed(1))
+    idx, values = pixel_noise_draws(6, 784, noise, torch.Generator().manual_seed(2))
+    compiled = torch.compile(with_pixel_noise, dynamic=True, fullgraph=True)
+    assert torch.equal(compiled(images.clone(), idx, values), with_pixel_noise(images.clone(), idx, values))
 
 
 def test_noise_is_fresh_at_every_observation():

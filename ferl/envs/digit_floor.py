@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from ferl.config.params import Allowed, ArgumentError, PositiveInt, UnitInterval, checked
-from ferl.data import MnistSplit, pixel_noise
+from ferl.data import MnistSplit, noise_draw_sizes, pixel_noise_draws, with_pixel_noise
 from ferl.envs.compass import ACTIONS
 from ferl.interfaces import EnvironmentBase
 from ferl.random_blocks import Blocks, steps_per_block
@@ -166,10 +166,10 @@ class DigitFloor(EnvironmentBase):
         self.lands_in_goal = as_tensor((position == GOAL)[next_tile].reshape(-1), torch.bool)
         self.non_goal_tiles = as_tensor(np.flatnonzero(position != GOAL), torch.long)
         self._build_floor(data, position)
-        self.n_noisy = round(noise * self.pixels)
         if true_state:
             self.observation_size = len(layout)
-        self.noise_blocks = Blocks(self._draw_noise, steps_per_block(n_runs * (2 * self.n_noisy + 1)))
+        self.noise_sizes = noise_draw_sizes(self.pixels, noise)  # positions and values a step, per run
+        self.noise_blocks = Blocks(self._draw_noise, steps_per_block(n_runs * (sum(self.noise_sizes) + 1)))
         self.tile = self._random_non_goal()
 
     @classmethod
@@ -209,12 +209,12 @@ class DigitFloor(EnvironmentBase):
 
     def _draw_noise(self, steps: int):
         """Noisy-pixel positions and values plus transport targets for ``steps`` future steps."""
-        idx, values = pixel_noise(steps * self.n_runs, self.pixels, self.noise, self.generator)
-        shape = (steps, self.n_runs, self.n_noisy)
+        idx, values = pixel_noise_draws(steps * self.n_runs, self.pixels, self.noise, self.generator)
         transport = self.non_goal_tiles[
             torch.randint(len(self.non_goal_tiles), (steps, self.n_runs), generator=self.generator, device=self.device)
         ]
-        return idx.view(shape), values.view(shape), transport
+        positions, n_values = self.noise_sizes
+        return idx.view(steps, self.n_runs, positions), values.view(steps, self.n_runs, n_values), transport
 
     def _build_floor(self, data: MnistSplit, position: np.ndarray) -> None:
         """Give every tile of every run its own image of its class (without replacement while the
@@ -265,9 +265,9 @@ class DigitFloor(EnvironmentBase):
                 self.tile_position.index_select(0, self.tile), self.observation_size
             ).float()
         image = self.bank.index_select(0, self.tile_image.gather(1, self.tile.unsqueeze(1)).squeeze(1))
-        # the count from the input, not from self.n_noisy: a compiled chunk guards on each attribute
-        # it reads, and the noise level would then compile a graph of its own (ferl.trainers.chunks)
-        return image.scatter_(1, idx, values) if idx.shape[-1] else image
+        # the sizes from the inputs, not from the noise level: a compiled chunk guards on each attribute
+        # it reads, and every noise level would then compile a graph of its own (ferl.trainers.chunks)
+        return with_pixel_noise(image, idx, values)
 
     def observe(self) -> torch.Tensor:
         """The current tile's image with fresh pixel noise (§3.4, Fig. 3.2)."""
