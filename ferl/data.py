@@ -260,7 +260,8 @@ def with_pixel_noise(images: torch.Tensor, idx: torch.Tensor, values: torch.Tens
     """``images`` (rows, n) with the noise of ``pixel_noise_draws``, (rows, n): the values at the noisy
     positions, or (where every pixel has a value) the images at the clean positions. Whether the
     clean positions were drawn is read from the sizes, so that one compiled graph serves every
-    noise level up to half the pixels and one every level above."""
+    noise level up to half the pixels and one every level above. Up to half, ``images`` itself is
+    written and returned: pass a tensor that may change."""
     if values.shape[-1] > idx.shape[-1]:
         return values.scatter(1, idx, images.gather(1, idx))
     return images.scatter_(1, idx, values) if idx.shape[-1] else images

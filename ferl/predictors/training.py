@@ -74,6 +74,7 @@ class PredictorBatch(TrainingBatchBase):
         self.y, self.a, self.lengths = y.contiguous(), a.contiguous(), lengths
         # the run of every row of the members stacked along the run axis (P·R, 1), as their memories
         self.rows = torch.arange(lengths.shape[0], device=lengths.device).repeat(len(predictors)).unsqueeze(1)
+        self.first_rows = self.rows * lengths.shape[1]  # of each row's run in the data's (run, sequence) axes flattened
         self.rs = [torch.where(valid, r, 0.0).contiguous() if r is not None else None for r in rs]
         self.chunk: Callable[..., None] | None = None  # sgd_steps compiled for chunks of CHUNK_STEPS steps (``fuse``)
         self.unroll_to: int | None = None
@@ -146,7 +147,7 @@ class PredictorBatch(TrainingBatchBase):
         members' memories are, and each member's targets (R, ·, T+1, ·) or None."""
         at = order[:, s]
         R, S = self.lengths.shape[0], at.shape[1]
-        rows = (self.rows * self.lengths.shape[1] + at).flatten()  # of the data's (run, sequence) axes flattened
+        rows = (self.first_rows + at).flatten()
 
         def take(x: torch.Tensor, steps: int, part: slice = slice(None)) -> torch.Tensor:
             # whole sequences by index_select, a copy of contiguous blocks: ~3× faster than x[runs, at]
