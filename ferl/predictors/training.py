@@ -72,9 +72,10 @@ class PredictorBatch(TrainingBatchBase):
         valid = valid_steps(lengths, y.shape[2]).unsqueeze(-1)
         # contiguous, so that a run's sequences are rows of one flattened view (``sequences``)
         self.y, self.a, self.lengths = y.contiguous(), a.contiguous(), lengths
-        # the run of every row of the members stacked along the run axis (P·R, 1), as their memories
-        self.rows = torch.arange(lengths.shape[0], device=lengths.device).repeat(len(predictors)).unsqueeze(1)
-        self.first_rows = self.rows * lengths.shape[1]  # of each row's run in the data's (run, sequence) axes flattened
+        # where each row's run starts in the data's (run, sequence) axes flattened, (P·R, 1): the
+        # members stacked along the run axis, as their memories are while training
+        runs = torch.arange(lengths.shape[0], device=lengths.device).repeat(len(predictors))
+        self.first_rows = (runs * lengths.shape[1]).unsqueeze(1)
         self.rs = [torch.where(valid, r, 0.0).contiguous() if r is not None else None for r in rs]
         self.chunk: Callable[..., None] | None = None  # sgd_steps compiled for chunks of CHUNK_STEPS steps (``fuse``)
         self.unroll_to: int | None = None
@@ -97,7 +98,7 @@ class PredictorBatch(TrainingBatchBase):
         share nothing: each run's parameters move by the gradient of its own loss alone."""
         p, P, R = self.lead, len(self.members), self.lengths.shape[0]
         order = torch.cat(orders) if P > 1 else orders[0]  # (P·R, N): the members' orders stacked
-        L = self.lengths[self.rows, order]
+        L = self.lengths.flatten()[self.first_rows + order]
         # the memories' parameters of all members in one (P·R, …) tensor each while training
         memory = (
             p.memory_parameters()
@@ -162,7 +163,7 @@ class PredictorBatch(TrainingBatchBase):
     def train_chunks(self, memory: list, params: list, order: torch.Tensor, steps, reward_steps, T: int) -> None:
         """The epoch's steps in compiled chunks of CHUNK_STEPS, every sequence unrolled to T actions,
         each chunk's sequences gathered as it starts: the whole epoch's, gathered at once, were
-        larger than the caches (the digit maze's 784 pixels: ~80 MB, 40 % of an epoch). The last
+        larger than the caches (the digit maze's 784 pixels: ~80 MB, half an epoch). The last
         chunk is filled with sequences of weight 0, whose gradients are exactly 0."""
         assert self.chunk is not None  # train_epoch calls this only once fused
         B, n = self.batch_size, steps.shape[1]
