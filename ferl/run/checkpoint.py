@@ -70,10 +70,13 @@ class Checkpoint:
         return torch.load(io.BytesIO(self.payload), map_location="cpu", weights_only=False)
 
 
-def encode(state: dict, identity: RunIdentity | None) -> bytes:
+def encode(state: dict, identity: RunIdentity | None) -> tuple[bytes, memoryview]:
+    """The file's bytes in two pieces: the fixed and the JSON header, then the payload. The payload
+    is torch.save's buffer itself, hashed and written where it lies: a run's records can make it
+    hundreds of MB, and each copy of it costs as much as writing it."""
     buffer = io.BytesIO()
     torch.save(state, buffer)
-    payload = buffer.getvalue()
+    payload = buffer.getbuffer()
     header = strict_dumps(
         {
             "format": FORMAT,
@@ -82,8 +85,9 @@ def encode(state: dict, identity: RunIdentity | None) -> bytes:
             "device": identity.device if identity else None,
         }
     ).encode()
-    digest = hashlib.sha256(header + payload).digest()
-    return FIXED.pack(MAGIC, FORMAT, len(header), len(payload), digest) + header + payload
+    digest = hashlib.sha256(header)
+    digest.update(payload)
+    return FIXED.pack(MAGIC, FORMAT, len(header), len(payload), digest.digest()) + header, payload
 
 
 def decode(path: Path, data: bytes, name: str | None = None) -> Checkpoint:
@@ -167,12 +171,13 @@ def write(directory: Path, state: dict, identity: RunIdentity | None) -> None:
     or a full disk leaves both earlier checkpoints as they were."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    data = encode(state, identity)
+    head, payload = encode(state, identity)
     last, previous = directory / LAST, directory / PREVIOUS
     fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{LAST}.", suffix=".tmp")
     try:
         with writing(last), os.fdopen(fd, "wb") as f:  # a full disk's error names last.pt
-            f.write(data)
+            f.write(head)
+            f.write(payload)
             f.flush()
             os.fsync(f.fileno())
         os.chmod(tmp, 0o644)

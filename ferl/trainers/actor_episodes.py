@@ -21,13 +21,13 @@ from tqdm import tqdm
 from ferl.actors.td import first_action, td_step
 from ferl.compiled import compiled, run_clock, unrolls
 from ferl.config.params import Positive, PositiveInt
-from ferl.interfaces import ActorViews, EndedEpisode
+from ferl.interfaces import EndedEpisode
 from ferl.messages import warn
 from ferl.predictors.heads import scaled
 from ferl.random_blocks import Blocks, steps_per_block
 from ferl.run.directory import CheckpointTimer
 from ferl.stats import final_metrics, sample_efficiency, solved_against
-from ferl.trainers.actor_logs import concat_records, log_actor, log_episodes, log_probes
+from ferl.trainers.actor_logs import concat_records, log_actor, log_episodes, log_probes, probe_visits
 from ferl.trainers.episodes import Step, discount_factors, discounted_return, observation_table, stacked
 from ferl.trainers.observations import log_observations
 from ferl.trainers.phased import Phase
@@ -247,7 +247,7 @@ class ActorEpisodes(Phase):
             "outcome": ep["outcome"],
             "lengths": ep["lengths"].clone(),
             "td": torch.where(ep["actives"], ep["deltas"], torch.nan),
-            "probes": self.probe_visits(job, k, ep),
+            "probes": probe_visits(job, k, ep),
             "trajectory": (ep["obs"], ep["actions"], ep["rewards"]),
             "states": ep["states"],  # (steps, R, S) the actor's state at every step
         }
@@ -341,31 +341,29 @@ class ActorEpisodes(Phase):
             job.env.max_steps,
         )
 
-    def probe_visits(self, job, k: int, ep: dict) -> dict | None:
-        """Activations at every probe visit of episode k after the action there was selected
-        (Figs. 4.14–4.19): memories, actor state and hidden nodes (where the actor shows them,
-        ``ActorViews``), with the episode's labels."""
-        step, run = ep["probes"].nonzero(as_tuple=True)
-        if len(run) == 0:
-            return None
-        views = isinstance(job.actor, ActorViews)
-        return {
-            "run": run.cpu(),
-            "episode": torch.full_like(run, k).cpu(),
-            "step": step.cpu(),
-            **{key: v[run].cpu() for key, v in job.env.labels().items()},
-            **{
-                f"memory_{name}": memory[step, run].half().cpu() for name, memory in zip(job.predictors, ep["memories"])
-            },
-            "state": ep["states"][step, run].half().cpu(),
-            **({"hidden": job.actor.hidden(ep["caches"][step, run]).half().cpu()} if views else {}),
-        }
+    def visit_states(self, job, visits: dict) -> dict:
+        """The probe records with the actor's state at every visit (visits, S) in the place of its
+        observation id: rebuilt as ``state`` built it, from the id and the memories recorded with
+        it, in float16 as they are (a float16 conversion is element-wise: the same numbers as the
+        state's). The phase and its checkpoints hold an id a visit, not S numbers: 784 pixels in
+        the digit mazes, where the state made the checkpoints hundreds of MB."""
+        ids = visits["observation"].to(job.device)
+        rows = ids if self.obs_offsets is None else ids + self.obs_offsets[visits["run"].to(job.device)]
+        observed = scaled(self.obs_rows.index_select(0, rows), self.row_gain).half().cpu()
+        memories = [visits[f"memory_{name}"] for name in job.predictors]
+        rebuilt = {}
+        for key, v in visits.items():  # in the records' order: the state where its id was
+            if key == "observation":
+                key, v = "state", torch.cat([observed, *memories], 1)
+            rebuilt[key] = v
+        return rebuilt
 
     def finish(self, job, state: dict) -> None:
         """Records, metrics, the final TensorBoard points; the phase's steps for the speed."""
         records = state["records"]
         log_actor(job, self.N)
-        probes = {key: v.numpy() for key, v in concat_records(state["probes"]).items()} if state["probes"] else {}
+        visits = self.visit_states(job, concat_records(state["probes"])) if state["probes"] else {}
+        probes = {key: v.numpy() for key, v in visits.items()}
         if probes:
             probes["steps_to_goal"] = records["steps"][probes["run"], probes["episode"]]
         sampled = np.asarray(list(range(0, self.N, self.td_sample_every)))

@@ -1,5 +1,6 @@
 """What the actor phase writes to TensorBoard (docs/records.md): run 0's weights, the moving
-averages of its episodes and the hidden activations at its probe visits in the projector."""
+averages of its episodes and the hidden activations at its probe visits in the projector; and
+what it keeps of every probe visit for ``probe.npz``."""
 
 import numpy as np
 import torch
@@ -53,6 +54,26 @@ def log_episodes(writer, window: int, rates: list, records: dict, done: int, lr:
         writer.add_scalar(f"actor/{name}_ma{window}", float(records[name][:, recent].mean()), done)
     writer.add_scalar("schedule/learning_rate", lr, done)
     writer.add_scalar("schedule/beta", beta, done)
+
+
+def probe_visits(job, k: int, ep: dict) -> dict | None:
+    """Activations at every probe visit of episode k after the action there was selected
+    (Figs. 4.14–4.19): memories, the observation's id (from which and the memories the phase
+    rebuilds the actor's state at its end, ``ActorEpisodes.visit_states``) and hidden nodes (where
+    the actor shows them, ``ActorViews``), with the episode's labels."""
+    step, run = ep["probes"].nonzero(as_tuple=True)
+    if len(run) == 0:
+        return None
+    views = isinstance(job.actor, ActorViews)
+    return {
+        "run": run.cpu(),
+        "episode": torch.full_like(run, k).cpu(),
+        "step": step.cpu(),
+        **{key: v[run].cpu() for key, v in job.env.labels().items()},
+        **{f"memory_{name}": memory[step, run].half().cpu() for name, memory in zip(job.predictors, ep["memories"])},
+        "observation": ep["obs"][step, run].cpu(),
+        **({"hidden": job.actor.hidden(ep["caches"][step, run]).half().cpu()} if views else {}),
+    }
 
 
 def concat_records(parts: list) -> dict:
