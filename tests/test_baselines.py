@@ -320,7 +320,7 @@ def test_an_actor_without_the_logging_views_records_no_hidden_activations():
     from types import SimpleNamespace
 
     from ferl.interfaces import ActorViews
-    from ferl.trainers.actor_episodes import ActorEpisodes
+    from ferl.trainers.actor_logs import probe_visits
 
     class Viewless:  # an actor as far as the probe records are concerned, without the views
         pass
@@ -331,16 +331,16 @@ def test_an_actor_without_the_logging_views_records_no_hidden_activations():
     ep = {
         "probes": probes,
         "memories": [torch.rand(steps, R, 3)],
-        "states": torch.rand(steps, R, S),
+        "obs": torch.randint(5, (steps + 1, R)),
         "caches": torch.rand(steps, R, H),
     }
     env = SimpleNamespace(labels=lambda: {"cue": torch.tensor([1, 0, 1])})
-    phase = ActorEpisodes.__new__(ActorEpisodes)
     seen = {}
     for actor in (Viewless(), RecurrentQActor(**SIZES, gamma=0.9, **schedules())):
-        seen[isinstance(actor, ActorViews)] = phase.probe_visits(
+        seen[isinstance(actor, ActorViews)] = probe_visits(
             SimpleNamespace(actor=actor, env=env, predictors={"m": None}), 7, ep
         )
     assert set(seen[True]) - set(seen[False]) == {"hidden"}
     assert seen[False]["run"].tolist() == [0, 2] and seen[False]["step"].tolist() == [1, 2]
+    assert torch.equal(seen[False]["observation"], ep["obs"][[1, 2], [0, 2]])
     assert torch.equal(seen[True]["hidden"], ep["caches"][[1, 2], [0, 2]].half())

@@ -346,7 +346,10 @@ class ActorEpisodes(Phase):
         observation id: rebuilt as ``state`` built it, from the id and the memories recorded with
         it, in float16 as they are (a float16 conversion is element-wise: the same numbers as the
         state's). The phase and its checkpoints hold an id a visit, not S numbers: 784 pixels in
-        the digit mazes, where the state made the checkpoints hundreds of MB."""
+        the digit mazes, where the state made the checkpoints hundreds of MB. Visits that hold
+        their states (a checkpoint of an earlier ferl) are kept as they are."""
+        if "observation" not in visits:
+            return visits
         ids = visits["observation"].to(job.device)
         rows = ids if self.obs_offsets is None else ids + self.obs_offsets[visits["run"].to(job.device)]
         observed = scaled(self.obs_rows.index_select(0, rows), self.row_gain).half().cpu()
