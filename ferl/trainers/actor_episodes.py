@@ -221,8 +221,13 @@ class ActorEpisodes(Phase):
 
     def state(self, job, obs_id: torch.Tensor, memories: list) -> torch.Tensor:
         """The actor's state (R, 1, S): the (processed) observation, then every predictor's memory."""
-        rows = obs_id if self.obs_offsets is None else obs_id + self.obs_offsets
-        return torch.cat([scaled(self.obs_rows.index_select(0, rows), self.row_gain), *memories], 1).unsqueeze(1)
+        return torch.cat([self.observed(obs_id, self.obs_offsets), *memories], 1).unsqueeze(1)
+
+    def observed(self, obs_id: torch.Tensor, offsets: torch.Tensor | None) -> torch.Tensor:
+        """The actor's rows (n, Y) of observation ids (n,), whose runs' parts of a per-run table
+        start at ``offsets`` (n,), or None for a table shared by the runs."""
+        rows = obs_id if offsets is None else obs_id + offsets
+        return scaled(self.obs_rows.index_select(0, rows), self.row_gain)
 
     def play_episode(self, job, k: int, lr: float, beta: float) -> dict:
         """Episode k of every run (``episode``), one compiled graph on the fast path, and what the
@@ -343,16 +348,15 @@ class ActorEpisodes(Phase):
 
     def visit_states(self, job, visits: dict) -> dict:
         """The probe records with the actor's state at every visit (visits, S) in the place of its
-        observation id: rebuilt as ``state`` built it, from the id and the memories recorded with
-        it, in float16 as they are (a float16 conversion is element-wise: the same numbers as the
-        state's). The phase and its checkpoints hold an id a visit, not S numbers: 784 pixels in
+        observation id: rebuilt as ``state`` built it (``observed``), from the id and the memories
+        recorded with it, in float16 as they are (a float16 conversion is element-wise: the same
+        numbers as the state's). The phase and its checkpoints hold an id a visit, not S numbers: 784 pixels in
         the digit mazes, where the state made the checkpoints hundreds of MB. Visits that hold
         their states (a checkpoint of an earlier ferl) are kept as they are."""
         if "observation" not in visits:
             return visits
-        ids = visits["observation"].to(job.device)
-        rows = ids if self.obs_offsets is None else ids + self.obs_offsets[visits["run"].to(job.device)]
-        observed = scaled(self.obs_rows.index_select(0, rows), self.row_gain).half().cpu()
+        offsets = None if self.obs_offsets is None else self.obs_offsets[visits["run"].to(job.device)]
+        observed = self.observed(visits["observation"].to(job.device), offsets).half().cpu()
         memories = [visits[f"memory_{name}"] for name in job.predictors]
         rebuilt = {}
         for key, v in visits.items():  # in the records' order: the state where its id was
