@@ -258,3 +258,26 @@ def test_a_failed_run_is_one_write_to_stderr(tmp_path, monkeypatch):
     assert writes == [
         f"analyze.py: error: {tmp_path}: ValueError: summary.json is damaged (a JSON list, not an object)\n"
     ]
+
+
+@pytest.mark.parametrize("enabled", [True, False])
+def test_a_runs_analysis_frees_its_figures_and_leaves_the_collector_as_it_found_it(tmp_path, enabled):
+    """The collector is paused while a run is analysed and run once at the end
+    (runner._collected_once): afterwards no figure of the run is left waiting to be collected,
+    and the collector is on or off as before."""
+    import gc
+
+    from matplotlib.figure import Figure
+
+    run = make_floor_run(tmp_path / "run", n_runs=2, steps=200)
+    before = {id(o) for o in gc.get_objects() if isinstance(o, Figure)}
+    was_enabled = gc.isenabled()
+    (gc.enable if enabled else gc.disable)()
+    try:
+        outcome = runner._safe_analyze_run(run, force=True)
+        assert gc.isenabled() is enabled
+        left = [o for o in gc.get_objects() if isinstance(o, Figure) and id(o) not in before]
+    finally:
+        (gc.enable if was_enabled else gc.disable)()
+    assert outcome.status == "analyzed" and len(outcome.figures) >= 5
+    assert left == []
