@@ -126,3 +126,14 @@ def test_a_kept_outcome_equals_the_drawn_one(sweep):
         (r.claim, r.measured.text, r.verdict) for r in drawn.results
     ]
     assert drawn.results and np.all([r.claim in REGISTRY.all_claims for r in kept.results])
+
+
+def test_a_run_never_analysed_is_not_hashed_to_be_kept(sweep, monkeypatch):
+    """Without a digest file there is nothing to keep: the records are not read for it (the
+    sweep's parent process asks this of every run before its pool starts)."""
+
+    def hashed(*_):
+        raise AssertionError("records hashed for a run without an analysis")
+
+    monkeypatch.setattr(cache, "inputs_digest", hashed)
+    assert runner._kept(sweep / "0") is None
