@@ -15,7 +15,7 @@ from __future__ import annotations
 import hashlib
 import importlib
 import json
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from functools import cache
 from pathlib import Path
 
@@ -93,13 +93,21 @@ def save(out: Path, outcome: RunOutcome, digest: str, tb_files: list[str]) -> No
     (out / DIGEST).write_text(digest + "\n")
 
 
-def load(run_dir: Path, out: Path, digest: str, tb_dir: Path, claims: Sequence[Claim]) -> RunOutcome | None:
+def load(
+    run_dir: Path, out: Path, digest: Callable[[], str], tb_dir: Path, claims: Sequence[Claim]
+) -> RunOutcome | None:
     """The run's outcome as its kept analysis recorded it, or None when the analysis must be made
-    again: another digest, a file missing or added, a TensorBoard log changed, or a judged claim
-    that no registered chapter holds any more (``claims``: every registered claim)."""
+    again: none kept, another digest, a file missing or added, a TensorBoard log changed, or a
+    judged claim that no registered chapter holds any more (``claims``: every registered claim).
+    ``digest`` gives the inputs' digest (``inputs_digest``); it is asked only where a digest was
+    kept to compare it with, since hashing the records is what a run never analysed need not pay."""
     try:
-        if (out / DIGEST).read_text().strip() != digest:
-            return None
+        kept_digest = (out / DIGEST).read_text().strip()
+    except (OSError, ValueError):
+        return None
+    if kept_digest != digest():
+        return None
+    try:
         record = json.loads((out / OUTCOME).read_text())
         judged = json.loads((out / CLAIMS).read_text())
     except (OSError, ValueError):

@@ -160,10 +160,11 @@ def analyze_run(run_dir: Path, force: bool = False) -> RunOutcome:
 def _kept(run_dir: Path, digest: str | None = None) -> RunOutcome | None:
     """The run's kept analysis (``ferl.analysis.cache``), said in one line; None: analyse it."""
     out = run_dir / "analysis"
-    if not (out / cache.DIGEST).is_file():  # never analysed, or cut short: no records to hash
-        return None
-    digest = digest or cache.inputs_digest(run_dir, REGISTRY)
-    kept = cache.load(run_dir, out, digest, run_dir / "tb" / "analysis", REGISTRY.all_claims)
+
+    def inputs_digest() -> str:
+        return digest or cache.inputs_digest(run_dir, REGISTRY)
+
+    kept = cache.load(run_dir, out, inputs_digest, run_dir / "tb" / "analysis", REGISTRY.all_claims)
     if kept is not None:
         print(
             f"{run_dir}: unchanged since its last analysis, kept ({len(kept.figures)} figures) -> {out / 'report.md'}"
