@@ -136,9 +136,11 @@ def run_table(out: Path, trains: dict, ppos: dict, jobs: int, only: str = "", fi
     return subprocess.run([sys.executable, str(ROOT / "analyze.py"), str(out)], cwd=ROOT).returncode
 
 
-def arguments(doc: str) -> argparse.Namespace:
+def arguments(doc: str, stages: tuple[str, ...] = ()) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     parser.add_argument("out", type=Path)
+    if stages:
+        parser.add_argument("--stage", choices=stages, default=stages[-1])
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument(
         "--only",
