@@ -29,18 +29,13 @@ stopped when given the same folder.
     python baselines/family.py outputs/family/NAME [--stage tune|test|all] [--jobs 2] [--only SUBSTRING,…]
 """
 
-import subprocess
 import sys
-import time
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import suites
 import yaml
-from side_by_side import ROOT, arguments, run_table
+from side_by_side import ROOT, arguments, run_commands, run_table
 from side_by_side import ppo_jobs as baselines_ppo_jobs
-
-from ferl.run.progress import duration
 
 TD_TO_MEMORY = 1.0  # λ: the value that moved the memory as far as the replay's own steps (docs/beyond.md)
 ALONE = ["trainer=algorithm1", "predictor=none"]  # the actor phase alone: the core is the actor's own
@@ -81,9 +76,14 @@ def tune_command(agent: str, out: Path) -> list[str]:
     ]
 
 
+def study_results(agent: str, out: Path) -> Path:
+    """Where an agent's finished study leaves its best values."""
+    return out / "tune" / agent / "optimization_results.yaml"
+
+
 def tuned(agent: str, out: Path) -> list[str]:
-    """The overrides an agent's finished study chose (its ``optimization_results.yaml``)."""
-    results = out / "tune" / agent / "optimization_results.yaml"
+    """The overrides an agent's finished study chose."""
+    results = study_results(agent, out)
     if not results.exists():
         sys.exit(f"family: {results} is missing: run --stage tune first")
     return [f"{key}={value}" for key, value in yaml.safe_load(results.read_text())["best_params"].items()]
@@ -105,30 +105,13 @@ def ppo_jobs() -> dict[str, list[str]]:
 
 
 def tune(out: Path, jobs: int, only: str) -> int:
-    """Every agent's study, ``jobs`` studies at a time, one line as each ends; 1 if any failed."""
-    todo = [
-        agent
+    """Every agent's study not yet finished, ``jobs`` studies at a time; 1 if any failed."""
+    todo = {
+        agent: tune_command(agent, out)
         for agent in AGENTS
-        if any(part in agent for part in only.split(","))
-        and not (out / "tune" / agent / "optimization_results.yaml").exists()
-    ]
-    (out / "tune").mkdir(parents=True, exist_ok=True)
-    started, failed = time.monotonic(), []
-
-    def study(agent: str) -> None:
-        with open(out / "tune" / f"{agent}.log", "w") as log:
-            code = subprocess.run(tune_command(agent, out), cwd=ROOT, stdout=log, stderr=subprocess.STDOUT).returncode
-        failed.extend([agent] if code else [])
-        print(
-            f"ferl: tuned {agent}{' (failed)' if code else ''}, {duration(time.monotonic() - started)} in all",
-            flush=True,
-        )
-
-    with ThreadPoolExecutor(jobs) as pool:
-        list(pool.map(study, todo))
-    if failed:
-        print(f"failed: {', '.join(failed)} (logs: {out}/tune/<agent>.log)")
-    return 1 if failed else 0
+        if any(part in agent for part in only.split(",")) and not study_results(agent, out).exists()
+    }
+    return 1 if run_commands(todo, out / "tune", jobs, what="studies") else 0
 
 
 def main() -> int:

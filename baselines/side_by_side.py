@@ -97,25 +97,16 @@ def command(name: str, args: list[str], out: Path, ppo: bool) -> list[str]:
     return [sys.executable, str(ROOT / "train.py"), *args, *resume, f"hydra.run.dir={run_dir}"]
 
 
-def run_table(out: Path, trains: dict, ppos: dict, jobs: int, only: str = "", first: int = 2) -> int:
-    """Run the jobs ``jobs`` at a time (train.py ones: ``trains``, RecurrentPPO ones: ``ppos``), the
-    ``first`` longest train.py jobs, then PPO's, then the rest; one progress line per finished job;
-    then analyze.py on ``out``. Jobs done already are skipped; exit status 1 if any failed."""
-    order = [*list(trains)[:first], *ppos, *list(trains)[first:]]
-    done = [n for n in order if (out / n.replace("/", "_") / "summary.json").exists()]
-    if done:
-        print(f"already done, not run again: {', '.join(done)}")
-    todo = [
-        (n, command(n, trains.get(n) or ppos[n], out, n in ppos))
-        for n in order
-        if any(part in n for part in only.split(",")) and n not in done
-    ]
-    out.mkdir(parents=True, exist_ok=True)
+def run_commands(todo: dict[str, list[str]], logs: Path, jobs: int, what: str = "jobs") -> list[str]:
+    """Run every named command, ``jobs`` at a time, each one's output in ``logs/<name>.log`` (``/``
+    as ``_``); one progress line as each ends. Returns the names of those that failed."""
+    logs.mkdir(parents=True, exist_ok=True)
     started, failed = time.monotonic(), []
     with ExitStack() as logs_open, ThreadPoolExecutor(jobs) as pool:  # the jobs end before their logs close
-        logs = {n: logs_open.enter_context(open(out / f"{n.replace('/', '_')}.log", "w")) for n, _ in todo}
+        files = {n: logs_open.enter_context(open(logs / f"{n.replace('/', '_')}.log", "w")) for n in todo}
         futures = {
-            pool.submit(subprocess.run, cmd, cwd=ROOT, stdout=logs[n], stderr=subprocess.STDOUT): n for n, cmd in todo
+            pool.submit(subprocess.run, cmd, cwd=ROOT, stdout=files[n], stderr=subprocess.STDOUT): n
+            for n, cmd in todo.items()
         }
         for count, future in enumerate(as_completed(futures), 1):
             name, elapsed = futures[future], time.monotonic() - started
@@ -125,13 +116,32 @@ def run_table(out: Path, trains: dict, ppos: dict, jobs: int, only: str = "", fi
             n_failed = f", {len(failed)} failed" if failed else ""
             eta = f"about {duration(left)} left" if count < len(todo) else f"sweep took {duration(elapsed)}"
             print(
-                f"ferl: {count}/{len(todo)} jobs done{n_failed} ({name}{' failed' if name in failed else ''}, "
+                f"ferl: {count}/{len(todo)} {what} done{n_failed} ({name}{' failed' if name in failed else ''}, "
                 f"{duration(elapsed)} in all); {eta}",
                 flush=True,
             )
+    if failed:
+        print(f"failed: {', '.join(failed)} (logs: {logs}/<name>.log)")
+    return failed
+
+
+def run_table(out: Path, trains: dict, ppos: dict, jobs: int, only: str = "", first: int = 2) -> int:
+    """Run the jobs ``jobs`` at a time (train.py ones: ``trains``, RecurrentPPO ones: ``ppos``), the
+    ``first`` longest train.py jobs, then PPO's, then the rest; one progress line per finished job;
+    then analyze.py on ``out``. Jobs done already are skipped; exit status 1 if any failed."""
+    order = [*list(trains)[:first], *ppos, *list(trains)[first:]]
+    done = [n for n in order if (out / n.replace("/", "_") / "summary.json").exists()]
+    if done:
+        print(f"already done, not run again: {', '.join(done)}")
+    todo = {
+        n: command(n, trains.get(n) or ppos[n], out, n in ppos)
+        for n in order
+        if any(part in n for part in only.split(",")) and n not in done
+    }
+    started = time.monotonic()
+    failed = run_commands(todo, out, jobs)
     (out / "train_wall_time_s").write_text(f"{round(time.monotonic() - started)}\n")
     if failed:
-        print(f"failed: {', '.join(failed)} (logs: {out}/<job>.log)")
         return 1
     return subprocess.run([sys.executable, str(ROOT / "analyze.py"), str(out)], cwd=ROOT).returncode
 

@@ -81,6 +81,8 @@ def agent(manifest) -> str:
     kind = manifest.actor.get("kind", "free_energy")
     if kind != "free_energy":
         parts.append(f"actor={kind}")
+    if kind == "recurrent_q":  # ``drqn`` is the GRU core with the linear head
+        parts.append(f"actor.head={manifest.actor.get('head')}")
     q = manifest.actor.get("q", "free_energy")
     if q != "free_energy":
         parts.append(f"actor.q={q}")
@@ -93,6 +95,8 @@ def agent(manifest) -> str:
         parts.append(f"memory={'+'.join(memories)}")
     if manifest.episodic and manifest.trainer.get("kind") != "phased":
         parts.append(f"trainer={manifest.trainer.get('kind')}")
+    if manifest.trainer.get("td_to_memory"):
+        parts.append(f"trainer.td_to_memory={manifest.trainer['td_to_memory']:g}")
     if manifest.trainer.get("curiosity"):
         parts.append(f"curiosity={manifest.trainer['curiosity']:g}")
     return ", ".join(parts) or DISSERTATION_AGENT
@@ -160,16 +164,13 @@ def finding(cells: Sequence[tuple[Entry, dict]]) -> str | None:
     if len(agents) < 2:
         return None
     (best, b), (second, c) = sorted(agents, key=lambda eh: ranking_key(eh[1]), reverse=True)[:2]
-    shared = [n for n in RANKING if n in b and n in c]
-    if not shared:
+    compared = difference(b, c)
+    if compared is None:
         return None
-    # the first metric on which the two differ (solved 0/10 against 0/10 says nothing)
-    metric = next((n for n in shared if b[n][0] != c[n][0]), shared[0])
-    name = lambda e: f"{e.agent} ({e.job.label})"  # noqa: E731
-    diff, sem = b[metric][0] - c[metric][0], float(np.hypot(b[metric][1], c[metric][1]))
+    metric, diff, sem = compared
     clear = "" if diff > 2 * sem else " — within two s.e.m.: no clear leader"
     text = (
-        f"**Best: {name(best)}**, {metric} {cell_text(metric, b[metric])}, ahead of {name(second)} "
+        f"**Best: {named(best)}**, {metric} {cell_text(metric, b[metric])}, ahead of {named(second)} "
         f"({cell_text(metric, c[metric])}) by {diff:.3f} ± {sem:.3f} (s.e.m. of the difference){clear}."
     )
     ours = ferl_agent([(e, h) for e, h in agents if metric in h])
@@ -177,13 +178,84 @@ def finding(cells: Sequence[tuple[Entry, dict]]) -> str | None:
         gap, gap_sem = b[metric][0] - ours[1][metric][0], float(np.hypot(b[metric][1], ours[1][metric][1]))
         rank = 1 + sum(ranking_key(h) > ranking_key(ours[1]) for _, h in agents)
         text += (
-            f" FERL ({name(ours[0])}): {cell_text(metric, ours[1][metric])}, "
+            f" FERL ({named(ours[0])}): {cell_text(metric, ours[1][metric])}, "
             f"{gap:.3f} ± {gap_sem:.3f} behind, rank {rank} of {len(agents)}."
         )
     oracle = [(e, h) for e, h in cells if e.agent.startswith(ORACLE) and metric in h]
     if oracle:
         text += f" Ceiling (oracle on the true state): {cell_text(metric, oracle[0][1][metric])}."
     return text
+
+
+def named(entry: Entry) -> str:
+    return f"{entry.agent} ({entry.job.label})"
+
+
+def difference(b: dict, c: dict) -> tuple[str, float, float] | None:
+    """``b`` − ``c`` on the first ranking metric both measured on which they differ (solved 0/10
+    against 0/10 says nothing), else the first they share, with the s.e.m. of the difference."""
+    shared = [n for n in RANKING if n in b and n in c and not np.isnan(b[n][0]) and not np.isnan(c[n][0])]
+    if not shared:
+        return None
+    metric = next((n for n in shared if b[n][0] != c[n][0]), shared[0])
+    return metric, b[metric][0] - c[metric][0], float(np.hypot(b[metric][1], c[metric][1]))
+
+
+def verdict(diff: float, sem: float, ahead: str, behind: str) -> str:
+    """Who leads by a difference, unless it is within two of its s.e.m."""
+    if abs(diff) <= 2 * sem:
+        return "within two s.e.m.: neither leads"
+    return f"{ahead} leads" if diff > 0 else f"{behind} leads"
+
+
+def head_finding(cells: Sequence[tuple[Entry, dict]]) -> list[str]:
+    """Per recurrent core that both ran: does the free-energy head (Q = −F, Eqs. 2.21–2.22, on the core's
+    state) beat the linear head (DRQN) of the same recurrent Q-learner, by how much?"""
+    cores: dict[str, dict[str, tuple[Entry, dict]]] = {}
+    for e, h in cells:
+        actor = e.job.manifest.actor
+        if "head" in actor:
+            cores.setdefault(str(actor.get("memory")), {}).setdefault(actor["head"], (e, h))
+    lines = []
+    for memory, heads in cores.items():
+        if "free_energy" in heads and "linear" in heads:
+            (_, f), (_, c) = heads["free_energy"], heads["linear"]
+            compared = difference(f, c)
+            if compared is not None:
+                metric, diff, sem = compared
+                lines.append(
+                    f"**Free-energy head against linear head** ({memory} core): {metric} "
+                    f"{cell_text(metric, f[metric])} against {cell_text(metric, c[metric])}, a difference "
+                    f"of {diff:+.3f} ± {sem:.3f} (s.e.m. of the difference): "
+                    f"{verdict(diff, sem, 'the free-energy head', 'the linear head')}."
+                )
+    return lines
+
+
+def free_energy_family(entry: Entry) -> bool:
+    """The dissertation's actor, whatever its memory, or a recurrent Q-learner with a free-energy
+    value form as its head."""
+    actor = entry.job.manifest.actor
+    return actor.get("kind", "free_energy") == "free_energy" or actor.get("head", "linear") != "linear"
+
+
+def family_finding(cells: Sequence[tuple[Entry, dict]]) -> str | None:
+    """The best agent of the free-energy family against the best of the others (the oracle aside)."""
+    agents = [(e, h) for e, h in cells if not e.agent.startswith(ORACLE)]
+    ours = [eh for eh in agents if free_energy_family(eh[0])]
+    others = [eh for eh in agents if not free_energy_family(eh[0])]
+    if not ours or not others:
+        return None
+    (best, b), (other, c) = (max(side, key=lambda eh: ranking_key(eh[1])) for side in (ours, others))
+    compared = difference(b, c)
+    if compared is None:
+        return None
+    metric, diff, sem = compared
+    return (
+        f"**Free-energy family:** its best, {named(best)}, {metric} {cell_text(metric, b[metric])}, against "
+        f"the best other agent, {named(other)}, {cell_text(metric, c[metric])}: {diff:+.3f} ± {sem:.3f} "
+        f"(s.e.m. of the difference), {verdict(diff, sem, 'the family', 'the other agent')}."
+    )
 
 
 def ferl_agent(cells: Sequence[tuple[Entry, dict]]):
@@ -267,9 +339,9 @@ def report(jobs: Sequence, out: Path, figures: dict, data_files: list) -> list[s
                 for e, h in cells
             ],
         )
-        best = finding(cells)
-        if best:
-            lines += ["", best]
+        for line in [finding(cells), *head_finding(cells), family_finding(cells)]:
+            if line:
+                lines += ["", line]
         rows += [
             (title(group), e.agent, e.job.variant, n, *map(fmt, h[n][:2]), h[n][2])
             for e, h in cells

@@ -20,6 +20,12 @@ MAZE = [
     "trainer.final_window=20",
     "trainer.log_every=20",
 ]
+RECURRENT_Q = ["trainer=algorithm1", "predictor=none", "actor=recurrent_q"]
+RANKED = ("solved", "final_correct_goal_rate", "final_discounted_return")
+
+
+def mean_sem(values):
+    return np.mean(values), np.std(values, ddof=1) / np.sqrt(len(values))
 
 
 @pytest.fixture(scope="module")
@@ -32,6 +38,10 @@ def sweep(tmp_path_factory):
         "maze_memoryless": ["experiment=table4_1_regular", *MAZE, "predictor=none"],
         "maze_mlp_q": ["experiment=table4_1_regular", *MAZE, "actor=mlp_q"],
         "maze_oracle": ["experiment=table4_1_regular", *MAZE, "actor=oracle", "predictor=none"],
+        **{
+            f"maze_{head}": ["experiment=table4_1_regular", *MAZE, *RECURRENT_Q, f"actor.head={head}"]
+            for head in ("linear", "free_energy")
+        },
         "matching": ["experiment=table4_1_matching", *MAZE],
     }
     return root, train_sweep(root, jobs)
@@ -47,6 +57,8 @@ def test_one_table_per_task_with_every_agent(sweep):
         "predictor=none",
         "actor=mlp_q",
         "oracle, actor=tabular_q, predictor=none",
+        "actor=drqn, predictor=none",
+        "actor=recurrent_q, actor.head=free_energy, predictor=none",
     }
     # the oracle's true-state view is the same task; the matching maze, run by one agent, has no table
     assert {r["task"] for r in rows} == {"digit_floor: ch3_floor", "tmaze: table4_1_regular"}
@@ -72,13 +84,16 @@ def test_only_the_dissertation_components_are_judged_by_its_claims(sweep):
 def test_the_finding_names_the_leader_among_the_agents_that_see_what_the_agent_sees(sweep):
     """The leader by (solved, correct-goal rate, return), the oracle aside, from summary.json."""
     root, summaries = sweep
-    agents = {"maze": "dissertation agent", "maze_memoryless": "predictor=none", "maze_mlp_q": "actor=mlp_q"}
+    agents = {
+        "maze": "dissertation agent",
+        "maze_memoryless": "predictor=none",
+        "maze_mlp_q": "actor=mlp_q",
+        "maze_linear": "actor=drqn, predictor=none",
+        "maze_free_energy": "actor=recurrent_q, actor.head=free_energy, predictor=none",
+    }
 
     def key(name):
-        return tuple(
-            np.mean(summaries[name]["metrics"][m])
-            for m in ("solved", "final_correct_goal_rate", "final_discounted_return")
-        )
+        return tuple(np.mean(summaries[name]["metrics"][m]) for m in RANKED)
 
     best = max(agents, key=key)
     report = (root / "analysis" / "report.md").read_text()
@@ -88,3 +103,24 @@ def test_the_finding_names_the_leader_among_the_agents_that_see_what_the_agent_s
     assert "Ceiling (oracle on the true state)" in line
     assert not dissertation_components(Manifest.load(root / "maze_oracle"))
     assert not dissertation_components(Manifest.load(root / "maze_mlp_q"))
+
+
+def test_the_free_energy_head_is_set_against_the_linear_head_on_the_same_core(sweep):
+    """The head line's difference and its s.e.m. from summary.json: the first ranking metric on
+    which the two heads differ; the family line names the better of FERL and the free-energy head."""
+    root, summaries = sweep
+    fe, lin = (summaries[f"maze_{head}"]["metrics"] for head in ("free_energy", "linear"))
+    metric = next((m for m in RANKED if np.mean(fe[m]) != np.mean(lin[m])), RANKED[0])
+    (f, f_sem), (c, c_sem) = mean_sem(fe[metric]), mean_sem(lin[metric])
+    report = (root / "analysis" / "report.md").read_text()
+    line = next(x for x in report.splitlines() if x.startswith("**Free-energy head against linear head** (gru core)"))
+    assert f"{metric} " in line and f"{f - c:+.3f} ± {np.hypot(f_sem, c_sem):.3f}" in line
+    leads = "neither" if abs(f - c) <= 2 * np.hypot(f_sem, c_sem) else ("free-energy" if f > c else "linear")
+    assert {"neither": "neither leads", "free-energy": "the free-energy head leads", "linear": "the linear head leads"}[
+        leads
+    ] in line
+    family = next(x for x in report.splitlines() if x.startswith("**Free-energy family:**"))
+    ours = ("maze", "maze_memoryless", "maze_free_energy")  # the free-energy actor, or the free-energy head
+    best = max(ours, key=lambda n: tuple(np.mean(summaries[n]["metrics"][m]) for m in RANKED))
+    label = {"maze": "dissertation agent", "maze_memoryless": "predictor=none", "maze_free_energy": "actor=recurrent_q"}
+    assert family.startswith(f"**Free-energy family:** its best, {label[best]}")
