@@ -93,7 +93,8 @@ def command(name: str, args: list[str], out: Path, ppo: bool) -> list[str]:
     run_dir = out / name.replace("/", "_")
     if ppo:
         return [sys.executable, str(ROOT / "baselines" / "recurrent_ppo.py"), *args, "--out", str(run_dir)]
-    resume = ["resume=true"] if run_dir.exists() else []  # an interrupted job continues from its checkpoint
+    # an interrupted job continues from its checkpoint; one stopped before its first starts anew
+    resume = ["resume=true"] if (run_dir / "checkpoints").exists() else []
     return [sys.executable, str(ROOT / "train.py"), *args, *resume, f"hydra.run.dir={run_dir}"]
 
 

@@ -74,3 +74,22 @@ def test_tuned_values_reach_every_job_of_their_agent(monkeypatch, tmp_path):
     (tmp_path / "tune" / "rq_linear" / "optimization_results.yaml").unlink()
     with pytest.raises(SystemExit, match=r"rq_linear/optimization_results\.yaml is missing"):
         family.tuned("rq_linear", tmp_path)
+
+
+@pytest.mark.parametrize("left", [None, "train.log", "checkpoints"])
+def test_a_job_run_again_is_one_that_train_py_accepts(monkeypatch, tmp_path, left):
+    """A comparison run again in its folder resumes a job only where it left checkpoints: a job
+    stopped before its first (its folder holds Hydra's log alone) starts anew, as the run
+    directory's own check requires."""
+    from ferl.run.directory import check_run_dir
+
+    monkeypatch.syspath_prepend(str(ROOT / "baselines"))
+    import side_by_side
+
+    run_dir = tmp_path / "matching_ferl"
+    if left is not None:
+        run_dir.mkdir()
+        (run_dir / left).mkdir() if left == "checkpoints" else (run_dir / left).write_text("")
+    resume = "resume=true" in side_by_side.command("matching/ferl", ["experiment=table4_1_matching"], tmp_path, False)
+    assert resume == (left == "checkpoints")
+    assert check_run_dir(run_dir, resume) is None
