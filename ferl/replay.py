@@ -37,3 +37,20 @@ def stored_episodes(replay: dict[str, torch.Tensor], index: torch.Tensor) -> dic
     """Run r's episodes at slots index[r] (R, n): every field (R, n, …)."""
     runs = torch.arange(index.shape[0], device=index.device).unsqueeze(1)
     return {key: value[runs, index] for key, value in replay.items()}
+
+
+def filled(replay: dict[str, torch.Tensor], stored: int) -> dict[str, torch.Tensor]:
+    """What a checkpoint keeps of a replay that has stored ``stored`` episodes per run: its first
+    min(stored, K) slots, copied (a view would save the whole storage). The empty slots of a
+    large replay are most of it: MiniGrid's (10 runs × 1 000 episodes × 246 steps × 980 bits)
+    took 9 GB in each checkpoint after 200 episodes."""
+    capacity = next(iter(replay.values())).shape[1]
+    return {key: value[:, : min(stored, capacity)].clone() for key, value in replay.items()}
+
+
+def refilled(saved: dict[str, torch.Tensor], capacity: int) -> dict[str, torch.Tensor]:
+    """The replay of ``capacity`` slots that ``filled`` saved, its empty slots zeros again."""
+    return {
+        key: torch.cat([value, value.new_zeros(value.shape[0], capacity - value.shape[1], *value.shape[2:])], 1)
+        for key, value in saved.items()
+    }

@@ -283,3 +283,25 @@ def test_the_free_energy_head_learns_to_remember_a_cue_through_its_core():
         agent.end_episode(ended, 0.0)
         correct += (last == cues).float()
     assert (correct >= 95).all(), correct
+
+
+@pytest.mark.parametrize("episodes", [3, 11])
+def test_a_checkpoint_keeps_only_the_replays_filled_slots_and_restores_it_whole(episodes):
+    """The checkpoint's replay holds the min(stored, K) slots that hold episodes, in storages of
+    their own size (not views of the whole replay); restored, the replay equals the one saved,
+    and the restored actor replays the same episodes and learns the same steps."""
+    K = 8
+    saved_actor, restored = actor(replay_episodes=K, seed=3), actor(replay_episodes=K, seed=3)
+    for k in range(episodes):
+        saved_actor.end_episode(ended(k), 0.01)
+    state = saved_actor.get_extra_state()
+    for key, value in state["replay"].items():
+        assert value.shape[1] == min(episodes, K), key
+        assert value.untyped_storage().nbytes() == value.numel() * value.element_size(), key
+    restored.load_state_dict(saved_actor.state_dict())
+    for key, value in saved_actor.replay.items():
+        assert torch.equal(restored.replay[key], value), key
+    for agent in (saved_actor, restored):
+        agent.end_episode(ended(100), 0.01)
+    for name in saved_actor.names:
+        assert torch.equal(getattr(restored, name), getattr(saved_actor, name)), name

@@ -37,7 +37,7 @@ from ferl.compiled import compiled
 from ferl.config.params import ArgumentError, NonNegative, NonNegativeInt, Positive, PositiveInt, checked
 from ferl.interfaces import EndedEpisode
 from ferl.predictors.transformer import Layers
-from ferl.replay import draw_episodes, new_replay, store_episode, stored_episodes
+from ferl.replay import draw_episodes, filled, new_replay, refilled, store_episode, stored_episodes
 
 HeadName = Literal["linear", "free_energy", "scaled_free_energy", "expected_energy"]  # q_heads.head's names
 MemoryName = Literal["gru", "lstm", "elman", "esn", "transformer"]  # recurrent_cores.CORES' names
@@ -309,12 +309,13 @@ class RecurrentQActor(SoftmaxActor):
     def get_extra_state(self) -> dict:
         """What a checkpoint needs beyond the buffers: the replay, the counters, the generator."""
         return {
-            "replay": self.replay,
+            "replay": None if self.replay is None else filled(self.replay, self.episodes),
             "episodes": self.episodes,
             "adam_steps": self.adam_steps,
             "generator": self.generator.get_state(),
         }
 
     def set_extra_state(self, state: dict) -> None:
-        self.replay, self.episodes, self.adam_steps = state["replay"], state["episodes"], state["adam_steps"]
+        saved, self.episodes, self.adam_steps = state["replay"], state["episodes"], state["adam_steps"]
+        self.replay = None if saved is None else refilled(saved, self.replay_episodes)
         self.generator.set_state(state["generator"])
