@@ -197,8 +197,11 @@ def difference(b: dict, c: dict) -> tuple[str, float, float] | None:
     shared = [n for n in RANKING if n in b and n in c and not np.isnan(b[n][0]) and not np.isnan(c[n][0])]
     if not shared:
         return None
-    metric = next((n for n in shared if b[n][0] != c[n][0]), shared[0])
-    return metric, b[metric][0] - c[metric][0], float(np.hypot(b[metric][1], c[metric][1]))
+    # means equal but for float32 rounding (a return of 1 in every episode of every run) are equal
+    same = {n: bool(np.isclose(b[n][0], c[n][0], rtol=1e-5, atol=1e-8)) for n in shared}
+    metric = next((n for n in shared if not same[n]), shared[0])
+    diff = 0.0 if same[metric] else b[metric][0] - c[metric][0]
+    return metric, diff, float(np.hypot(b[metric][1], c[metric][1]))
 
 
 def verdict(diff: float, sem: float, ahead: str, behind: str) -> str:

@@ -124,3 +124,20 @@ def test_the_free_energy_head_is_set_against_the_linear_head_on_the_same_core(sw
     best = max(ours, key=lambda n: tuple(np.mean(summaries[n]["metrics"][m]) for m in RANKED))
     label = {"maze": "dissertation agent", "maze_memoryless": "predictor=none", "maze_free_energy": "actor=recurrent_q"}
     assert family.startswith(f"**Free-energy family:** its best, {label[best]}")
+
+
+def test_means_equal_but_for_float32_rounding_name_no_leader():
+    """A return of 1 in every final episode of every run, summed in float32 (0.99999994 against
+    1.0, both s.e.m. 0): the finding compares on the first metric, finds no difference and names
+    no leader; a real difference on a later metric is the one compared."""
+    from reproduction.variants import difference, verdict
+
+    ones = {"solved": (1.0, 0.0, 10), "final_return": (1.0, 0.0, 10)}
+    rounded = {"solved": (1.0, 0.0, 10), "final_return": (float(np.float32(0.99999994)), 0.0, 10)}
+    metric, diff, sem = difference(ones, rounded)
+    assert (metric, diff, sem) == ("solved", 0.0, 0.0)
+    assert verdict(diff, sem, "a", "b") == "within two s.e.m.: neither leads"
+    behind = {"solved": (1.0, 0.0, 10), "final_return": (0.9, 0.03, 10)}
+    metric, diff, sem = difference(ones, behind)
+    assert metric == "final_return" and diff == pytest.approx(0.1) and sem == pytest.approx(0.03)
+    assert verdict(diff, sem, "a", "b") == "a leads"
