@@ -171,7 +171,7 @@ def finding(cells: Sequence[tuple[Entry, dict]]) -> str | None:
     clear = "" if diff > 2 * sem else " — within two s.e.m.: no clear leader"
     text = (
         f"**Best: {named(best)}**, {metric} {cell_text(metric, b[metric])}, ahead of {named(second)} "
-        f"({cell_text(metric, c[metric])}) by {diff:.3f} ± {sem:.3f} (s.e.m. of the difference){clear}."
+        f"({cell_text(metric, c[metric])}) by {gap_text(diff, sem)} (s.e.m. of the difference){clear}."
     )
     ours = ferl_agent([(e, h) for e, h in agents if metric in h])
     if ours is not None and ours[0] is not best:
@@ -179,7 +179,7 @@ def finding(cells: Sequence[tuple[Entry, dict]]) -> str | None:
         rank = 1 + sum(ranking_key(h) > ranking_key(ours[1]) for _, h in agents)
         text += (
             f" FERL ({named(ours[0])}): {cell_text(metric, ours[1][metric])}, "
-            f"{gap:.3f} ± {gap_sem:.3f} behind, rank {rank} of {len(agents)}."
+            f"{gap_text(gap, gap_sem)} behind, rank {rank} of {len(agents)}."
         )
     oracle = [(e, h) for e, h in cells if e.agent.startswith(ORACLE) and metric in h]
     if oracle:
@@ -202,6 +202,14 @@ def difference(b: dict, c: dict) -> tuple[str, float, float] | None:
     metric = next((n for n in shared if not same[n]), shared[0])
     diff = 0.0 if same[metric] else b[metric][0] - c[metric][0]
     return metric, diff, float(np.hypot(b[metric][1], c[metric][1]))
+
+
+def gap_text(diff: float, sem: float, sign: bool = False) -> str:
+    """A difference ± its s.e.m., to 3 decimals, or in 2 significant digits where 3 decimals would
+    show a difference of 0 that is not (−0.00019 ± 0.00006: 3 s.e.m.)."""
+    small = 0 < max(abs(diff), sem) < 0.0005
+    form = (".1e" if small else ".3f") if not sign else ("+.1e" if small else "+.3f")
+    return f"{diff:{form}} ± {sem:{'.1e' if small else '.3f'}}"
 
 
 def verdict(diff: float, sem: float, ahead: str, behind: str) -> str:
@@ -229,7 +237,7 @@ def head_finding(cells: Sequence[tuple[Entry, dict]]) -> list[str]:
                 lines.append(
                     f"**Free-energy head against linear head** ({memory} core): {metric} "
                     f"{cell_text(metric, f[metric])} against {cell_text(metric, c[metric])}, a difference "
-                    f"of {diff:+.3f} ± {sem:.3f} (s.e.m. of the difference): "
+                    f"of {gap_text(diff, sem, sign=True)} (s.e.m. of the difference): "
                     f"{verdict(diff, sem, 'the free-energy head', 'the linear head')}."
                 )
     return lines
@@ -256,7 +264,7 @@ def family_finding(cells: Sequence[tuple[Entry, dict]]) -> str | None:
     metric, diff, sem = compared
     return (
         f"**Free-energy family:** its best, {named(best)}, {metric} {cell_text(metric, b[metric])}, against "
-        f"the best other agent, {named(other)}, {cell_text(metric, c[metric])}: {diff:+.3f} ± {sem:.3f} "
+        f"the best other agent, {named(other)}, {cell_text(metric, c[metric])}: {gap_text(diff, sem, sign=True)} "
         f"(s.e.m. of the difference), {verdict(diff, sem, 'the family', 'the other agent')}."
     )
 
