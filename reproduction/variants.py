@@ -204,12 +204,11 @@ def difference(b: dict, c: dict) -> tuple[str, float, float] | None:
     return metric, diff, float(np.hypot(b[metric][1], c[metric][1]))
 
 
-def gap_text(diff: float, sem: float, sign: bool = False) -> str:
+def gap_text(diff: float, sem: float, sign: str = "") -> str:
     """A difference ± its s.e.m., to 3 decimals, or in 2 significant digits where 3 decimals would
-    show a difference of 0 that is not (−0.00019 ± 0.00006: 3 s.e.m.)."""
-    small = 0 < max(abs(diff), sem) < 0.0005
-    form = (".1e" if small else ".3f") if not sign else ("+.1e" if small else "+.3f")
-    return f"{diff:{form}} ± {sem:{'.1e' if small else '.3f'}}"
+    show a difference of 0 that is not (−0.00019 ± 0.00006: 3 s.e.m.); ``sign="+"`` signs it."""
+    digits = ".1e" if 0 < max(abs(diff), sem) < 0.0005 else ".3f"
+    return f"{diff:{sign}{digits}} ± {sem:{digits}}"
 
 
 def verdict(diff: float, sem: float, ahead: str, behind: str) -> str:
@@ -237,7 +236,7 @@ def head_finding(cells: Sequence[tuple[Entry, dict]]) -> list[str]:
                 lines.append(
                     f"**Free-energy head against linear head** ({memory} core): {metric} "
                     f"{cell_text(metric, f[metric])} against {cell_text(metric, c[metric])}, a difference "
-                    f"of {gap_text(diff, sem, sign=True)} (s.e.m. of the difference): "
+                    f"of {gap_text(diff, sem, sign='+')} (s.e.m. of the difference): "
                     f"{verdict(diff, sem, 'the free-energy head', 'the linear head')}."
                 )
     return lines
@@ -264,7 +263,7 @@ def family_finding(cells: Sequence[tuple[Entry, dict]]) -> str | None:
     metric, diff, sem = compared
     return (
         f"**Free-energy family:** its best, {named(best)}, {metric} {cell_text(metric, b[metric])}, against "
-        f"the best other agent, {named(other)}, {cell_text(metric, c[metric])}: {gap_text(diff, sem, sign=True)} "
+        f"the best other agent, {named(other)}, {cell_text(metric, c[metric])}: {gap_text(diff, sem, sign='+')} "
         f"(s.e.m. of the difference), {verdict(diff, sem, 'the family', 'the other agent')}."
     )
 
