@@ -27,7 +27,12 @@ from ferl.messages import warn
 CACHE_ENV = "TORCHINDUCTOR_CACHE_DIR"
 DEFAULT_CACHE = Path.home() / ".cache" / "ferl" / "inductor"
 _first_calls = [0.0]  # seconds this process has spent in compiled functions' first calls
-# Steps one compiled graph may unroll. Inductor's compile time grows faster than the graph: the
+# Steps one compiled graph plays: the recurrent Q-learner's replay BPTT and every episode of the
+# actor phase run in graphs of this many steps, called ⌈T / CHUNK_STEPS⌉ times with their state
+# carried, so that compiling costs the same at every T_max (benchmarks/bench_chunks.py measured
+# 4, 8 and 16 on the 2-core CPU: docs/performance.md, "Graphs of fixed size").
+CHUNK_STEPS = 8
+# Steps one compiled graph may unroll where a path still unrolls a whole sequence. Inductor's compile time grows faster than the graph: the
 # recurrent Q-learner's episode and replay graphs took ~95 s at T_max = 44 on the 2-core CPU and
 # were still compiling after 24 min at T_max = 101; an online replay step of an LSTM predictor
 # over 44 steps took ~120 s with another job on the second core (docs/performance.md). 80 keeps
@@ -115,6 +120,53 @@ def unroll_chunk(steps_each: int, wanted: int) -> int:
     """How many of ``wanted`` steps of ``steps_each`` unrolled steps one graph takes: as many as
     fit in MAX_UNROLLED_STEPS, at least one."""
     return max(1, min(wanted, MAX_UNROLLED_STEPS // max(steps_each, 1)))
+
+
+def chunk_count(steps: int, chunk: int | None = None) -> int:
+    """How many graphs of ``chunk`` (by default ``CHUNK_STEPS``) steps play ``steps`` steps (the
+    last one padded)."""
+    return -(-steps // (chunk or CHUNK_STEPS))
+
+
+def in_chunks(run_chunk: Callable, x: torch.Tensor, state, chunk: int | None = None) -> torch.Tensor:
+    """Outputs of every step of x (R, B, N, …) along dim 2, computed ``chunk`` steps at a time by
+    ``run_chunk(x_chunk, state) -> (out (R, B, chunk, …), state)`` from ``state`` (``chunk``: by
+    default ``CHUNK_STEPS``): the graph that
+    ``run_chunk`` compiles is the same for every N (the last chunk padded with zero inputs, whose
+    outputs are dropped; a recurrence runs forward, so they reach no earlier step). Each chunk is
+    a fresh contiguous tensor, so that its storage offset is 0 in every call. Under autograd the
+    chunks' compiled backwards chain through the carried state (BPTT over the whole sequence)."""
+    steps, chunk = x.shape[2], chunk or CHUNK_STEPS
+    if torch.is_grad_enabled() and isinstance(state, torch.Tensor):
+        # the later chunks' states require grad: so does the first's, or it would be a second graph
+        state = state.requires_grad_()
+    pad = chunk_count(steps, chunk) * chunk - steps
+    if pad:
+        x = torch.cat([x, x.new_zeros(*x.shape[:2], pad, *x.shape[3:])], 2)
+    outs = []
+    for t in range(0, steps + pad, chunk):
+        out, state = run_chunk(x[:, :, t : t + chunk].contiguous(), state)
+        outs.append(out)
+    return torch.cat(outs, 2)[:, :, :steps]
+
+
+def first_call_compiles(fn: Callable) -> Callable:
+    """``fn``, its first call counted whole as compiling time (``compile_seconds``): for a function
+    that runs compiled graphs under autograd, whose backward graphs are compiled by their first
+    backward call, outside ``compiled``'s timing of their forward."""
+    first = True
+
+    def call(*args):
+        nonlocal first
+        if not first:
+            return fn(*args)
+        first = False
+        before, started = _first_calls[0], time.perf_counter()
+        out = fn(*args)
+        _first_calls[0] = before + time.perf_counter() - started  # the graphs' own first calls are in it
+        return out
+
+    return call
 
 
 def size_generic(x: torch.Tensor, first_dim: int) -> torch.Tensor:

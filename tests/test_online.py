@@ -116,7 +116,7 @@ def test_curiosity_bonus_is_eta_times_the_observation_prediction_error():
     acts = torch.tensor([[0, 0], [2, 0]])
     state = p.initial_state()
     for t in range(2):
-        state = phase.steps[0](state, obs[:, t], acts[:, t])
+        state = phase.steps_on_ids[0](state, obs[:, t], acts[:, t])
     bonus = phase.reward_bonus(job, [state], obs[:, 2], None, torch.ones(2, dtype=torch.bool))  # exploration=none
     table = job.env.observation_table
     y, a = table[obs].unsqueeze(1), torch.nn.functional.one_hot(acts, 4).float().unsqueeze(1)

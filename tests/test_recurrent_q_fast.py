@@ -1,8 +1,8 @@
 """The recurrent Q-learner's fast path (ferl/actors/recurrent_q_fast.py, docs/performance.md): its
 replay step (torch.func.grad of the loss, then Adam with the step sizes as tensors) equals the
 eager reference ``adam_step`` (autograd.grad, the written-out Adam), and DRQN trained with
-``compile=true`` (the replay step and the whole episode each one compiled graph) takes the same
-actions as ``compile=false``, its returns and TD errors within float32 rounding. Resume and
+``compile=true`` (the replay's BPTT and the episodes in graphs of a fixed number of steps) takes
+the same actions as ``compile=false`` at every episode length, its returns and TD errors within float32 rounding. Resume and
 determinism of the compiled path: tests/test_tmaze_resume.py."""
 
 import numpy as np
@@ -45,6 +45,38 @@ def test_the_replay_step_equals_the_eager_adam_step(head, memory):
     assert any(moved)  # the steps moved the parameters (the comparison is not of untouched ones)
 
 
+@pytest.mark.parametrize("head,memory", [("linear", "gru"), ("free_energy", "lstm")])
+def test_the_compiled_replay_in_chunks_equals_the_eager_adam_step_at_every_length(head, memory):
+    """The fast path's replay step (``compile_updates``: the BPTT in compiled chunks of
+    CHUNK_STEPS steps, the Adam update compiled) against ``adam_step`` eagerly, two steps each at
+    T_max of 11, 51 and 201: episodes longer than a chunk, the last chunk padded, and one graph of
+    each kind for all three lengths (the chunks' shapes do not depend on T_max)."""
+    from torch._dynamo.utils import counters
+
+    from ferl import compiled as fast
+
+    torch._dynamo.reset()
+    graphs = []
+    for T in (11, 51, 201):
+        reference, compiled = actor(head, memory, seed=3), actor(head, memory, seed=3)
+        compiled.compile_updates(torch.device("cpu"))
+        for agent in (reference, compiled):
+            for name in agent.names:
+                getattr(agent, f"{name}_target").mul_(0.9)
+            with_replay(agent, padded_batch(T=T, B=3, seed=T))
+        for k in range(1, 3):
+            reference.adam_step(reference.sample(), 0.03)
+            compiled.adam_steps += 1
+            compiled.fast_update(compiled, compiled.draw(), *adam_scalars(0.03, k, torch.device("cpu")))
+        for name in reference.names:
+            torch.testing.assert_close(
+                getattr(compiled, name), getattr(reference, name), rtol=1e-4, atol=1e-6, msg=name
+            )
+        graphs.append(counters["stats"]["unique_graphs"])
+    assert T > 2 * fast.CHUNK_STEPS and T % fast.CHUNK_STEPS  # several chunks, the last one padded
+    assert graphs[0] > 0 and graphs[0] == graphs[-1]  # 51 and 201 compiled nothing new
+
+
 DRQN_TINY = (
     "experiment=table4_1_matching",
     "actor=drqn",
@@ -74,18 +106,40 @@ def test_compiled_drqn_equals_eager(tmp_path, capsys):
         np.testing.assert_allclose(fast[key], eager[key], rtol=1e-4, atol=1e-5, err_msg=key)
 
 
-def test_episodes_too_long_to_compile_run_eagerly_with_one_warning(tmp_path, capsys, monkeypatch):
-    """Episodes of more than MAX_UNROLLED_STEPS steps (patched down to 8; the matching maze's
-    T_max is 10): one warning naming T_max, nothing compiled, the eager run's numbers exactly."""
-    from ferl import compiled
+PASSIVE_TINY = (
+    "experiment=passive_tmaze",
+    "trainer=algorithm1",
+    "actor=drqn",
+    "predictor=none",
+    "n_runs=2",
+    "trainer.n_episodes=6",
+    "trainer.log_every=3",
+    "trainer.td_sample_every=2",
+    "trainer.final_window=3",
+    "actor.batch_episodes=2",
+)
 
-    monkeypatch.setattr(compiled, "MAX_UNROLLED_STEPS", 8)
-    tiny = (*DRQN_TINY, "trainer.n_episodes=20")
-    _, eager = episodes(tmp_path, "eager", "compile=false", tiny=tiny)
-    capsys.readouterr()
-    summary, long = episodes(tmp_path, "long", "compile=true", tiny=tiny)
-    lines = [line for line in capsys.readouterr().err.splitlines() if "too long to compile" in line]
-    assert len(lines) == 1 and "T_max = 10 " in lines[0]
-    assert summary["compile_time_s"] == 0
-    for key in ("discounted_return", "td_abs_mean", "steps"):
-        np.testing.assert_array_equal(long[key], eager[key], err_msg=key)
+
+@pytest.mark.parametrize("corridor", [10, 50, 200])
+def test_compiled_episodes_equal_eager_ones_at_every_length(tmp_path, capsys, corridor):
+    """The passive maze at T_max = L + 1 of 11, 51 and 201, longer than one graph's CHUNK_STEPS
+    steps (the last chunk padded past T_max): compile=true against compile=false, every graph
+    compiled (no warning that one runs eagerly), the same steps and goals in every episode of
+    every run, returns and TD errors within float32 rounding."""
+    from conftest import train_job, validated_config
+
+    def run(name: str, compile: bool) -> tuple[dict, dict]:
+        config = validated_config([*PASSIVE_TINY, f"env.corridor_length={corridor}", f"compile={compile}"])
+        summary = train_job(config, tmp_path / name)
+        with np.load(tmp_path / name / "records" / "episodes.npz") as ep:
+            return summary, dict(ep)
+
+    _, eager = run("eager", False)
+    summary, fast = run("fast", True)
+    assert "eagerly" not in capsys.readouterr().err
+    assert summary["compile_time_s"] > 0
+    assert eager["td_sampled"].shape[-1] == corridor + 1
+    for key in ("steps", "correct_goal"):
+        np.testing.assert_array_equal(fast[key], eager[key], err_msg=key)
+    for key in ("discounted_return", "terminal_reward", "td_abs_mean", "td_sampled"):
+        np.testing.assert_allclose(fast[key], eager[key], rtol=1e-4, atol=1e-5, err_msg=key)

@@ -49,6 +49,7 @@ class Core:
 
     name = ""
     gates = 1
+    parallel = False  # whether ``unroll`` runs every step at once (no loop over time to chunk)
 
     def __init__(self, n_in: int, n_hidden: int):
         self.n_in, self.n_hidden = n_in, n_hidden
@@ -87,14 +88,25 @@ class Core:
 
     def unroll(self, p: dict, x: torch.Tensor, readout: Callable = lambda h: h) -> torch.Tensor:
         """readout(h_t) of t = 0 … T stacked on dim 2, of inputs x (R, B, T+1, X), from the zero
-        state: h_t (R, B, T+1, H) by default. The readout (a head's Q) runs step by step on each
+        state: h_t (R, B, T+1, H) by default."""
+        return self.run(p, x, self.zero_state(x), readout)[0]
+
+    def zero_state(self, x: torch.Tensor) -> torch.Tensor:
+        """The state before an episode's first input, for inputs x (R, B, …): zeros (R, B, state size)."""
+        return x.new_zeros(*x.shape[:2], self.state_size)
+
+    def run(
+        self, p: dict, x: torch.Tensor, state: torch.Tensor, readout: Callable
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """readout(h_t) of every step of x (R, B, n, X) stacked on dim 2, from ``state``, and the
+        state after the last step: ``unroll`` from the zero state, or one chunk of a fixed-size
+        graph (``ferl.compiled.in_chunks``). The readout (a head's Q) runs step by step on each
         h_t as it comes, as DRQN's unroll did, so a head sees the same contiguous tensors."""
-        state = x.new_zeros(*x.shape[:2], self.state_size)
         out = []
         for t in range(x.shape[2]):
             state = self.step(p, x[:, :, t].contiguous(), state)
             out.append(readout(self.hidden(state)))
-        return torch.stack(out, 2)
+        return torch.stack(out, 2), state
 
 
 def drive(p: dict, x: torch.Tensor) -> torch.Tensor:
@@ -179,7 +191,7 @@ class TransformerCore(Core):
     holds h_t, the tokens n seen and every layer's keys and values; the zero state is the
     episode's start (n = 0, nothing cached), so the actor's zero state needs no special case."""
 
-    name = "transformer"
+    name, parallel = "transformer", True
 
     def __init__(self, n_in: int, n_hidden: int, context: int, layers: int = 1, heads: int = 1):
         super().__init__(n_in, n_hidden)

@@ -23,6 +23,7 @@ the lockstep episodes' pre-drawn streams stay as they are).
 """
 
 import math
+from collections.abc import Callable
 from typing import Literal
 
 import torch
@@ -31,9 +32,9 @@ from torch.nn import functional as nnf
 from ferl import rng
 from ferl.actors.q_heads import head as make_head
 from ferl.actors.recurrent_cores import CORES
-from ferl.actors.recurrent_q_fast import ADAM_BETAS, ADAM_EPS, adam_scalars, replay_step
+from ferl.actors.recurrent_q_fast import ADAM_BETAS, ADAM_EPS, adam_scalars, adam_update, replay_step
 from ferl.actors.softmax import SoftmaxActor, TDRule
-from ferl.compiled import compiled
+from ferl.compiled import compiled, first_call_compiles, in_chunks
 from ferl.config.params import ArgumentError, NonNegative, NonNegativeInt, Positive, PositiveInt, checked
 from ferl.interfaces import EndedEpisode
 from ferl.predictors.transformer import Layers
@@ -126,11 +127,24 @@ class RecurrentQActor(SoftmaxActor):
         self.generator = rng.generator(rng.child_seed(generators[0]))
         self.replay = None  # allocated by the first episode, whose length fixes T_max
         self.episodes = self.adam_steps = 0
-        self.fast_update = None  # the compiled replay step (compile_updates), or None: adam_step
+        # the fast path (compile_updates): the compiled chunk of the core's unroll, the loss, the
+        # Adam update; with fast_update None the replay steps are ``adam_step``'s
+        self.chunk: Callable | None = None
+        self.fast_update: Callable | None = None
+        self.replay_loss = self.loss
 
     def compile_updates(self, device: torch.device) -> None:
-        """On the fast path the replay steps run as one compiled graph (``replay_step``)."""
-        self.fast_update = compiled(replay_step, device, "a replay step")
+        """On the fast path the replay steps (``replay_step``) run through graphs of a fixed size:
+        a recurrent core's unroll in chunks (``unroll_chunk``), the transformer's whole loss (no
+        loop over time), and the Adam update (``ferl.actors.recurrent_q_fast``)."""
+        if self.core.parallel:
+            self.replay_loss = compiled(self.loss, device, "the replay's TD loss")
+        else:
+            self.chunk = compiled(self.unroll_chunk, device, "a chunk of the replay's BPTT")
+        adam = compiled(adam_update, device, "an Adam step")
+        self.fast_update = first_call_compiles(
+            lambda actor, index, step_size, root: replay_step(actor, index, step_size, root, adam)
+        )
 
     @classmethod
     def check_config(cls, args: dict) -> None:
@@ -193,7 +207,16 @@ class RecurrentQActor(SoftmaxActor):
     def unroll(self, p: dict, states: torch.Tensor, prev_actions: torch.Tensor) -> torch.Tensor:
         """Q of every step of episodes: states (R, B, T+1, S), prev_actions one-hot (R, B, T+1, nA)
         (zeros at t = 0) → (R, B, T+1, nA), from the zero state."""
-        return self.core.unroll(p, torch.cat([states, prev_actions], -1), lambda h: self.head.q(p, h))
+        x = torch.cat([states, prev_actions], -1)
+        if self.chunk is None:
+            return self.core.unroll(p, x, lambda h: self.head.q(p, h))
+        chunk = self.chunk
+        return in_chunks(lambda x_chunk, state: chunk(p, x_chunk, state), x, self.core.zero_state(x))
+
+    def unroll_chunk(self, p: dict, x: torch.Tensor, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Q of every step of inputs x (R, B, n, X) from the core's ``state`` (R, B, state size),
+        and the state after them: ``unroll``'s steps, a fixed number at a time on the fast path."""
+        return self.core.run(p, x, state, lambda h: self.head.q(p, h))
 
     @torch.no_grad()
     def evaluate(self, s: torch.Tensor):

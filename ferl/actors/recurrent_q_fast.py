@@ -1,10 +1,19 @@
-"""The recurrent Q-learner's replay step on the fast path (``ferl.compiled``; docs/performance.md):
-the gather of the replayed episodes, the BPTT gradient of the Huber TD loss and the Adam update
-of ``RecurrentQActor.adam_step`` as one graph. The gradient is ``torch.func.grad`` of the same
-``loss``, which dynamo traces into the graph (AOTAutograd writes its backward), so there is no
-second formulation of the loss; the step sizes enter as tensors, so that one graph serves every
-step. ``adam_step`` run eagerly is the reference (tests/test_recurrent_q_fast.py holds the two
-within float32 rounding).
+"""The recurrent Q-learner's replay step on the fast path (``ferl.compiled``; docs/performance.md,
+"Graphs of fixed size"): BPTT of the Huber TD loss through graphs whose size does not depend on
+the episodes' length.
+
+* A recurrent core (GRU, LSTM, Elman, echo state) unrolls its replayed episodes in compiled chunks
+  of ``ferl.compiled.CHUNK_STEPS`` steps of core and head (``RecurrentQActor.unroll_chunk``), the
+  state carried from chunk to chunk (``ferl.compiled.in_chunks``). Autograd chains the chunks'
+  compiled backward graphs, so the gradient is that of the same ``loss``: there is no second
+  formulation of it. The target network's unroll runs the same chunks without gradient.
+* The transformer's unroll has no loop over time (one causal mask over every token): its whole
+  loss is one graph, whose size does not depend on T either.
+* The Adam update (``adam_update``) is one small graph, the step sizes entering as tensors so that
+  one graph serves every step.
+
+``RecurrentQActor.adam_step`` run eagerly is the reference (tests/test_recurrent_q_fast.py holds
+the two within float32 rounding at T_max of 11, 51 and 201).
 """
 
 import math
@@ -26,15 +35,24 @@ def adam_scalars(lr: float, k: int, device: torch.device) -> tuple[torch.Tensor,
     )
 
 
-def replay_step(actor, index: torch.Tensor, step_size: torch.Tensor, root: torch.Tensor) -> None:
-    """One Adam step of every run on its replayed episodes at slots ``index`` (R, B), in place:
-    θ ← θ − step_size · m / (√v / root + ε) with the moments of ``actor.moments``."""
+def adam_update(actor, grads: tuple, step_size: torch.Tensor, root: torch.Tensor) -> None:
+    """θ ← θ − step_size · m / (√v / root + ε) for every trained parameter of ``actor`` and its
+    gradient in ``grads`` (in the order of ``actor.names``), with the moments of ``actor.moments``;
+    in place."""
+    for name, g in zip(actor.names, grads):
+        m, v = actor.moments(name, g)
+        getattr(actor, name).sub_(step_size * m / (v.sqrt() / root + ADAM_EPS))
+
+
+def replay_step(actor, index: torch.Tensor, step_size: torch.Tensor, root: torch.Tensor, update=adam_update) -> None:
+    """One Adam step of every run on its replayed episodes at slots ``index`` (R, B), in place: the
+    gradient of ``actor.replay_loss`` (``loss``, through the compiled chunks where the actor has
+    them) by autograd, then ``update`` (``adam_update``, compiled or not)."""
     assert actor.replay is not None
     batch = stored_episodes(actor.replay, index)
     p = actor.params()
-    trained = {name: p[name] for name in actor.names}
-    grads = torch.func.grad(lambda q: actor.loss({**p, **q}, batch))(trained)
+    trained = {name: p[name].detach().requires_grad_() for name in actor.names}
+    with torch.enable_grad():
+        grads = torch.autograd.grad(actor.replay_loss({**p, **trained}, batch), tuple(trained.values()))
     with torch.no_grad():
-        for name in actor.names:
-            m, v = actor.moments(name, grads[name])
-            getattr(actor, name).sub_(step_size * m / (v.sqrt() / root + ADAM_EPS))
+        update(actor, grads, step_size, root)

@@ -19,16 +19,16 @@ import torch
 from tqdm import tqdm
 
 from ferl.actors.td import first_action, td_step
-from ferl.compiled import compiled, run_clock, unrolls
+from ferl.compiled import run_clock
 from ferl.config.params import Positive, PositiveInt
 from ferl.interfaces import EndedEpisode
-from ferl.messages import warn
 from ferl.predictors.heads import scaled
 from ferl.random_blocks import Blocks, steps_per_block
 from ferl.run.directory import CheckpointTimer
 from ferl.stats import final_metrics, sample_efficiency, solved_against
 from ferl.trainers.actor_logs import concat_records, log_actor, log_episodes, log_probes, probe_visits
-from ferl.trainers.episodes import Step, discount_factors, discounted_return, observation_table, stacked
+from ferl.trainers.episodes import Carry, Step, discount_factors, observation_table, stacked
+from ferl.trainers.fused_episodes import FusedEpisodes
 from ferl.trainers.observations import log_observations
 from ferl.trainers.phased import Phase
 
@@ -183,37 +183,31 @@ class ActorEpisodes(Phase):
         self.observations = observation_table(job)
         table = self.observations.table
         ids = job.env.observation_table.shape[0]
-        self.steps = [self.memory_step(p, table, job.env.n_actions) for p in job.predictors.values()]
+        self.steps_on_ids = [self.memory_step(p, table, job.env.n_actions) for p in job.predictors.values()]
         # scaled once; an environment that discovers its observations fills the table in place, so
         # its rows are indexed live and scaled at each step (a gain of 1 costs nothing either way)
         rows = table.reshape(-1, table.shape[-1])
         live = job.env.discovers_observations
         self.obs_rows, self.row_gain = (rows, self.obs_scale) if live else (scaled(rows, self.obs_scale), 1.0)
         self.obs_offsets = torch.arange(job.R, device=job.device) * ids if table.dim() == 3 else None
-        self.discounts = discount_factors(job.actor.gamma, job.env.max_steps)
+        factors = discount_factors(job.actor.gamma, job.env.max_steps)
+        self.discount_table = torch.tensor(factors, dtype=torch.float64, device=job.device)
         self.fused = None
-        if job.fast and not unrolls(job.env.max_steps):
-            warn(
-                f"compile=true: episodes of T_max = {job.env.max_steps} steps are too long to compile as one "
-                "graph (ferl.compiled.MAX_UNROLLED_STEPS: the compile time outgrows the run); they and the "
-                "actor's updates run eagerly"
-            )
-        elif job.fast:  # what the actor learns after an episode, however the episodes are played
+        if job.fast:  # what the actor learns after an episode, however the episodes are played
             job.actor.compile_updates(job.device)
         if self.fuses(job):
             job.actor.prepare_for_compile()
-            self.fused = compiled(self.episode, job.device, "an episode")
+            self.fused = FusedEpisodes(self, job)
 
     def fuses(self, job) -> bool:
-        """Whether episodes run as one compiled graph (``ferl.compiled``): on the fast path, with an
-        environment whose steps are tensor operations (``traceable_steps``) and an actor that
-        chooses by one number a step (a Gibbs chain's sweeps, unrolled in every step of the
-        episode, would make the graph too large to compile in a run's time). An actor that steps a
-        memory in place (the recurrent Q-learner's buffers) is traced too: the graph writes the
-        buffers back when it returns."""
+        """Whether episodes run as compiled graphs of a fixed number of steps (``ferl.compiled``):
+        on the fast path, with an environment whose steps are tensor operations
+        (``traceable_steps``) and an actor that chooses by one number a step (a Gibbs chain's
+        sweeps, unrolled in every step, would make the graph too large to compile in a run's time).
+        An actor that steps a memory in place (the recurrent Q-learner's buffers) is traced too:
+        the graph writes the buffers back when it returns."""
         return (
             job.fast
-            and unrolls(job.env.max_steps)  # the graph unrolls every step
             and job.env.traceable_steps
             and job.actor.uniforms_per_action == 1
             and not job.exploration.active  # its hooks keep Python state (a step counter, counts)
@@ -230,23 +224,18 @@ class ActorEpisodes(Phase):
         return scaled(self.obs_rows.index_select(0, rows), self.row_gain)
 
     def play_episode(self, job, k: int, lr: float, beta: float) -> dict:
-        """Episode k of every run (``episode``), one compiled graph on the fast path, and what the
-        records keep of it: the outcome (len(outcome_names), R), the TD errors (steps, R), NaN where
-        a run had ended, the probe visits (or None), the trajectory: observation ids
-        (steps + 1, R), actions (steps, R) and raw rewards (steps, R), and the actor's states (steps, R, S)."""
+        """Episode k of every run (``episode``), in compiled chunks on the fast path
+        (``ferl.trainers.fused_episodes``), and what the records keep of it: the outcome
+        (len(outcome_names), R), the TD errors (steps, R), NaN where a run had ended, the probe
+        visits (or None), the trajectory: observation ids (steps + 1, R), actions (steps, R) and raw
+        rewards (steps, R), and the actor's states (steps, R, S)."""
         job.env.reset()
         (uniform,) = self.uniforms.next()  # (T_max + 1, R, 1, uniforms_per_action)
         job.exploration.begin_episode(job.generator, job.env.max_steps, k / self.N)  # its draws after the actor's
         if self.fused is None:
             ep = self.episode(job, lr, beta, uniform, True)
-        else:  # α and β as tensors, so that one graph serves every episode
-            ep = self.fused(
-                job,
-                torch.tensor(lr, device=job.device),
-                torch.as_tensor(beta, dtype=torch.float32, device=job.device),
-                uniform,
-                False,
-            )
+        else:
+            ep = self.fused.play(self, job, lr, beta, uniform)
         job.actor.end_episode(self.ended_episode(job, ep), lr)
         return {
             "outcome": ep["outcome"],
@@ -259,30 +248,50 @@ class ActorEpisodes(Phase):
 
     def episode(self, job, lr, beta, uniform, until_done: bool) -> dict:
         """An episode of every run from the reset environment, with SARSA(0) updates at every step
-        (``td_step``): observe → memories m_t (Eq. 4.3) → a' by Eq. (3.11) → δ → θ update
-        (Eq. 3.10); ``uniform`` (T_max + 1, R, 1, ``uniforms_per_action``) the action draws. Runs
-        whose episode has ended wait with δ = 0 and keep their parameters. ``until_done``: stop once every run has ended
-        (eager); else play all T_max steps, the ended ones masked: the same episode as one graph
-        of fixed shape. Returns per step, stacked (steps, R, …): probe and active masks, each
-        predictor's memory, the state and the cache of (s, a) at the visit, action, raw reward, δ,
-        observation ids (steps + 1); the last state, whether each run's episode terminated, and
-        the outcome (len(outcome_names), R)."""
+        (``steps``); ``uniform`` (T_max + 1, R, 1, ``uniforms_per_action``) the action draws.
+        ``until_done``: stop once every run has ended (eager); else play all T_max steps, the
+        ended ones masked. Returns ``ended``'s dict. The readable reference of the fast path, which
+        plays the same steps in graphs of a fixed number of them."""
+        obs = job.env.obs_id
+        carry = self.first(job, beta, uniform[0])
+        carry, steps, after = self.steps(job, carry, lr, beta, uniform[1:], self.discount_table, until_done)
+        return self.ended(job, carry, steps, torch.cat([obs.unsqueeze(0), after]))
+
+    def first(self, job, beta, uniform) -> Carry:
+        """Where an episode's TD steps start: m_0 (Eq. 4.1; it learns too when the predictors do),
+        the state s_0 and a_0 of every run (``first_action``) by the draws ``uniform`` (R, 1, ·)."""
         env, actor, predictors = job.env, job.actor, list(job.predictors.values())
         choose = job.exploration.choose if job.exploration.active else None  # directed exploration
-        m = [p.initial_state() for p in predictors]  # m_0 (Eq. 4.1): it learns too when the predictors do
+        m = [p.initial_state() for p in predictors]
         memories = [p.memory(x) for p, x in zip(predictors, m)]
         s = self.state(job, env.obs_id, memories)
-        a, F_sa, x_sa = first_action(actor, s, beta, job.generator, uniform[0], choose)
-        record, obs = [], [env.obs_id]
-        terminated_any = torch.zeros_like(env.done)
-        for t in range(env.max_steps):
+        a, F_sa, x_sa = first_action(actor, s, beta, job.generator, uniform, choose)
+        zeros = torch.zeros(env.done.shape, dtype=torch.float64, device=env.done.device)
+        return Carry(m, memories, s, a, F_sa, x_sa, torch.zeros_like(env.done), zeros)
+
+    def steps(self, job, carry: Carry, lr, beta, uniform, discounts, until_done: bool):
+        """len(``uniform``) steps of every run from ``carry``: observe → memories m_t (Eq. 4.3) →
+        a' by Eq. (3.11) → δ → θ update (Eq. 3.10) (``td_step``), with the draws ``uniform``
+        (n, R, 1, ·) and the discounts γ^t (n,) (float64) of the steps' times. Runs whose episode
+        has ended wait with δ = 0 and keep their parameters. The return R_0^γ = Σ_t γ^t r_(t+1)
+        (Eq. 2.37) accumulates in float64 step by step: a fixed order, so the recorded metric is
+        the same on every CPU, where a float32 product sums in its BLAS kernel's order (which
+        differs between AVX2 and AVX-512 in the ninth digit; docs/reliability.md). Returns the
+        carry after them, the steps stacked (``Step``, (n, R, …)) and the observation ids after
+        each step (n, R); with ``until_done``, fewer steps once every run has ended."""
+        env, actor, predictors = job.env, job.actor, list(job.predictors.values())
+        choose = job.exploration.choose if job.exploration.active else None
+        m, memories, s, a, F_sa, x_sa, terminated_any, ret = carry
+        record, obs = [], []
+        for t in range(len(uniform)):
             active = ~env.done
             visit = (env.probe & active, active, tuple(memories), s[:, 0], x_sa[:, 0])  # before the step
             obs_prev, action = env.obs_id, a.squeeze(1)
             r, terminated, _ = env.advance(action)
             terminated_any = terminated_any | terminated
+            ret = ret + discounts[t] * r.double()  # done runs got r = 0
             obs.append(env.obs_id)
-            m = [step(x, obs_prev, action) for step, x in zip(self.steps, m)]
+            m = [step(x, obs_prev, action) for step, x in zip(self.steps_on_ids, m)]
             memories = [p.memory(x) for p, x in zip(predictors, m)]
             s_next = self.state(job, env.obs_id, memories)
             bonus = self.reward_bonus(job, m, env.obs_id, s_next, active)
@@ -297,7 +306,7 @@ class ActorEpisodes(Phase):
                 lr,
                 beta,
                 job.generator,
-                uniform[t + 1],
+                uniform[t],
                 job.guard.alive,
                 (terminated | ~active).unsqueeze(1),
                 active.unsqueeze(1),
@@ -307,10 +316,19 @@ class ActorEpisodes(Phase):
             s = s_next
             if until_done and bool(env.done.all()):
                 break
-        ep, steps = stacked(record), env.t
+        carry = Carry(m, memories, s, a, F_sa, x_sa, terminated_any, ret)
+        return carry, stacked(record), torch.stack(obs)
+
+    def ended(self, job, carry: Carry, ep: Step, obs: torch.Tensor) -> dict:
+        """What an episode's ``steps`` played (``ep``, (steps, R, …); the observation ids ``obs``
+        (steps + 1, R)), as the phase keeps it: per step, stacked (steps, R, …), probe and active
+        masks, each predictor's memory, the state and the cache of (s, a) at the visit, action,
+        raw reward, δ, observation ids; the last state, whether each run's episode terminated, and
+        the outcome (len(outcome_names), R)."""
+        env, steps = job.env, job.env.t
         outcome = torch.stack(
             [  # in the order of outcome_names
-                discounted_return(self.discounts, ep.reward),  # done runs got r = 0
+                carry.discounted_return.float(),
                 steps.float(),
                 ep.reward.gather(0, (steps - 1).unsqueeze(0)).squeeze(0),  # terminal reward
                 ep.delta.abs().sum(0) / steps.clamp(min=1),
@@ -326,9 +344,9 @@ class ActorEpisodes(Phase):
             "actions": ep.action,
             "rewards": ep.reward,
             "deltas": ep.delta,
-            "obs": torch.stack(obs),
-            "last_state": s,
-            "terminated": terminated_any,
+            "obs": obs,
+            "last_state": carry.s,
+            "terminated": carry.terminated,
             "outcome": outcome,
             "lengths": steps,
         }

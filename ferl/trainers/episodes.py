@@ -205,20 +205,22 @@ def discount_factors(gamma: float, t_max: int) -> list[float]:
     return factors[:t_max]
 
 
-def discounted_return(discounts: list[float], rewards: torch.Tensor) -> torch.Tensor:
-    """R_0^γ = Σ_t γ^t r_(t+1) (Eq. 2.37) of each run, (R,) float32, from the rewards
-    (steps, R): accumulated in float64, step by step. A float32 product ``discounts @ rewards``
-    sums in the order its BLAS kernel chooses, which differs between CPUs (AVX2 or AVX-512, Intel
-    or AMD) in the ninth digit; this order is fixed, so the recorded metric is the same everywhere
-    (docs/reliability.md, "Determinism across machines")."""
-    total = torch.zeros(rewards.shape[1:], dtype=torch.float64, device=rewards.device)
-    for t in range(len(rewards)):
-        total = total + discounts[t] * rewards[t].double()
-    return total.float()
+class Carry(NamedTuple):
+    """What an episode of every run carries from one step to the next (``ActorEpisodes.steps``; a
+    NamedTuple, so that it crosses from one compiled chunk of steps to the next)."""
+
+    m: list  # every predictor's state m_t (Eq. 4.3)
+    memories: list  # every predictor's memory, read from m_t, (R, M) each
+    s: torch.Tensor  # (R, 1, S) the actor's state s_t
+    a: torch.Tensor  # (R, 1) the action a_t chosen at s_t
+    F_sa: torch.Tensor  # (R, 1) F(s_t, a_t)
+    x_sa: torch.Tensor  # (R, 1, ·) the actor's cache of (s_t, a_t)
+    terminated: torch.Tensor  # (R,) bool: the run's episode ended in a terminal state
+    discounted_return: torch.Tensor  # (R,) float64: Σ_t γ^t r_(t+1) so far (Eq. 2.37)
 
 
 class Step(NamedTuple):
-    """One step of an episode of every run, as ``ActorEpisodes.episode`` keeps it (a NamedTuple, so
+    """One step of an episode of every run, as ``ActorEpisodes.steps`` keeps it (a NamedTuple, so
     that it traces under torch.compile in the fused episode); ``stacked`` over the steps, each field
     gains a leading step axis."""
 

@@ -1,0 +1,66 @@
+"""The actor phase's episodes on the fast path (``ferl.compiled``; docs/performance.md, "Graphs of
+fixed size"): ``ActorEpisodes.episode``'s steps in compiled graphs of ``CHUNK_STEPS`` steps.
+
+An episode is the first action (eager: one step an episode, ``ActorEpisodes.first``) and
+n = ⌈T_max / ``CHUNK_STEPS``⌉ calls of one graph of ⌈T_max / n⌉ ≤ ``CHUNK_STEPS`` steps
+(``ActorEpisodes.steps``), the ``Carry`` handed from call to call; what the environment and the
+actor keep in place (positions, the recurrent Q-learner's memory, the weights the TD steps move) is
+written back by each graph as it returns. The graph's size does not grow with T_max, so neither
+does its compile time. Every call plays all its steps, the runs whose episode has ended masked (δ = 0, their parameters kept), as the eager
+reference does once every run has ended; the steps past T_max, which the last call pads with
+(every run has ended by then), are dropped. The eager ``ActorEpisodes.episode`` is the reference
+(tests/test_fast_path.py: the same actions, values within float32 rounding, at T_max of 11, 51
+and 201).
+"""
+
+import torch
+
+from ferl.compiled import chunk_count, compiled
+from ferl.trainers.episodes import Step
+
+
+class FusedEpisodes:
+    """The compiled chunk of steps of ``phase`` (an ``ActorEpisodes``) for
+    ``job``'s episodes of T_max steps, and the discounts and draws padded to whole chunks."""
+
+    def __init__(self, phase, job):
+        T_max = job.env.max_steps
+        # as few chunks as CHUNK_STEPS allows, as even as can be: T_max = 10 plays 2 × 5 steps, not
+        # 2 × 8 (the graph depends on T_max anyway: the environment's steps read it)
+        self.n_chunks = chunk_count(T_max)
+        self.T_max, self.chunk = T_max, chunk_count(T_max, self.n_chunks)
+        self.pad = self.n_chunks * self.chunk - T_max
+        self.discounts = torch.cat([phase.discount_table, phase.discount_table.new_zeros(self.pad)])
+        self.steps = compiled(phase.steps, job.device, f"a chunk of {self.chunk} steps of an episode")
+
+    def play(self, phase, job, lr: float, beta, uniform: torch.Tensor) -> dict:
+        """``phase.episode(job, lr, beta, uniform, False)`` in chunks: α and β as tensors, so that
+        one graph serves every episode; ``uniform`` (T_max + 1, R, 1, ·) padded with zeros for the
+        steps past T_max (the draws of runs that have ended choose nothing that is kept)."""
+        lr_t = torch.tensor(lr, device=job.device)
+        beta_t = torch.as_tensor(beta, dtype=torch.float32, device=job.device)
+        draws = torch.cat([uniform[1:], uniform.new_zeros(self.pad, *uniform.shape[1:])])
+        obs = [job.env.obs_id.unsqueeze(0)]
+        carry = phase.first(job, beta_t, uniform[0])  # once an episode: eager (a graph would cost its compiling)
+        parts = []
+        for c in range(self.n_chunks):
+            at = slice(c * self.chunk, (c + 1) * self.chunk)
+            carry, steps, after = self.steps(
+                job, carry, lr_t, beta_t, draws[at].clone(), self.discounts[at].clone(), False
+            )
+            parts.append(steps)
+            obs.append(after)
+        ep = joined(parts, self.T_max)
+        return phase.ended(job, carry, ep, torch.cat(obs)[: self.T_max + 1])
+
+
+def joined(parts: list[Step], steps: int) -> Step:
+    """The chunks' ``Step``s (n, R, …) as one of their first ``steps`` steps."""
+    if len(parts) == 1:
+        return Step._make(
+            tuple(m[:steps] for m in field) if isinstance(field, tuple) else field[:steps] for field in parts[0]
+        )
+    return Step._make(
+        tuple(torch.cat(m)[:steps] for m in zip(*field)) if isinstance(field[0], tuple) else torch.cat(field)[:steps]
+        for field in zip(*parts)
+    )
