@@ -11,7 +11,8 @@ FERL actor on the online trainer's LSTM predictor) on the passive T-maze at corr
 * ``cold``: ``compile=true`` with an empty ``TORCHINDUCTOR_CACHE_DIR`` (every graph compiled);
 * ``warm``: the same again on the cache the cold job filled.
 
-``--chunks`` sets ``ferl.compiled.CHUNK_STEPS`` in the job's process (the steps one graph plays).
+``--chunks`` sets ``ferl.compiled.EPISODE_CHUNK_STEPS`` in the job's process (the most steps one
+episode graph plays; the replay's chunks stay ``CHUNK_STEPS``).
 Prints a markdown table: the whole process's seconds (started to ended, Python's start and
 imports included), the job's ``wall_time_s`` and ``compile_time_s``, agent-steps/s (running, not
 compiling), the solved runs, and each graph's first compile as the job printed it ("ferl: compiled
@@ -44,9 +45,9 @@ AGENTS = {
     ],
     "ferl": ["experiment=passive_tmaze", "predictor.joint.memory=lstm"],
 }
-# the child: CHUNK_STEPS set, then train.py as ``python train.py`` would run it
+# the child: EPISODE_CHUNK_STEPS set, then train.py as ``python train.py`` would run it
 CHILD = (
-    "import runpy, sys; import ferl.compiled as c; c.CHUNK_STEPS = int(sys.argv[1]); "
+    "import runpy, sys; import ferl.compiled as c; c.EPISODE_CHUNK_STEPS = int(sys.argv[1]); "
     "sys.argv = ['train.py', *sys.argv[2:]]; runpy.run_path('train.py', run_name='__main__')"
 )
 COMPILED_LINE = re.compile(r"ferl: compiled (.+) in (\d+) s")

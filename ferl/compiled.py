@@ -27,11 +27,15 @@ from ferl.messages import warn
 CACHE_ENV = "TORCHINDUCTOR_CACHE_DIR"
 DEFAULT_CACHE = Path.home() / ".cache" / "ferl" / "inductor"
 _first_calls = [0.0]  # seconds this process has spent in compiled functions' first calls
-# Steps one compiled graph plays: the recurrent Q-learner's replay BPTT and every episode of the
-# actor phase run in graphs of this many steps, called ⌈T / CHUNK_STEPS⌉ times with their state
-# carried, so that compiling costs the same at every T_max (benchmarks/bench_chunks.py measured
-# 4, 8 and 16 on the 2-core CPU: docs/performance.md, "Graphs of fixed size").
+# Steps one compiled graph plays (docs/performance.md, "Graphs of fixed size"; measured by
+# benchmarks/bench_chunks.py on the 2-core CPU): such graphs are called ⌈T / K⌉ times with their
+# state carried, so that compiling costs the same at every T_max. The recurrent Q-learner's replay
+# BPTT runs chunks of CHUNK_STEPS steps of core and head (8: 4 ran ~35 % slower, 16 compiled
+# longer). An actor phase's episode runs chunks of at most EPISODE_CHUNK_STEPS steps of environment,
+# memories and actor, whose compile time grows by seconds a step (4: as fast a step as 8 or 16,
+# its graph compiled in about half 8's time; 1 or 2: 0.5–0.75 × the speed).
 CHUNK_STEPS = 8
+EPISODE_CHUNK_STEPS = 4
 # Steps one compiled graph may unroll where a path still unrolls a whole sequence. Inductor's compile time grows faster than the graph: the
 # recurrent Q-learner's episode and replay graphs took ~95 s at T_max = 44 on the 2-core CPU and
 # were still compiling after 24 min at T_max = 101; an online replay step of an LSTM predictor
@@ -128,18 +132,15 @@ def chunk_count(steps: int, chunk: int | None = None) -> int:
     return -(-steps // (chunk or CHUNK_STEPS))
 
 
-def in_chunks(run_chunk: Callable, x: torch.Tensor, state, chunk: int | None = None) -> torch.Tensor:
-    """Outputs of every step of x (R, B, N, …) along dim 2, computed ``chunk`` steps at a time by
-    ``run_chunk(x_chunk, state) -> (out (R, B, chunk, …), state)`` from ``state`` (``chunk``: by
-    default ``CHUNK_STEPS``): the graph that
+def in_chunks(run_chunk: Callable, x: torch.Tensor, state, chunk: int | None = None):
+    """Outputs of every step of x (R, B, N, …) along dim 2 (a tensor, or a tuple of them),
+    computed ``chunk`` (by default ``CHUNK_STEPS``) steps at a time by ``run_chunk(x_chunk, state)
+    -> (out, state)``, out (R, B, chunk, …) or a tuple of such, from ``state``: the graph that
     ``run_chunk`` compiles is the same for every N (the last chunk padded with zero inputs, whose
     outputs are dropped; a recurrence runs forward, so they reach no earlier step). Each chunk is
     a fresh contiguous tensor, so that its storage offset is 0 in every call. Under autograd the
     chunks' compiled backwards chain through the carried state (BPTT over the whole sequence)."""
     steps, chunk = x.shape[2], chunk or CHUNK_STEPS
-    if torch.is_grad_enabled() and isinstance(state, torch.Tensor):
-        # the later chunks' states require grad: so does the first's, or it would be a second graph
-        state = state.requires_grad_()
     pad = chunk_count(steps, chunk) * chunk - steps
     if pad:
         x = torch.cat([x, x.new_zeros(*x.shape[:2], pad, *x.shape[3:])], 2)
@@ -147,6 +148,8 @@ def in_chunks(run_chunk: Callable, x: torch.Tensor, state, chunk: int | None = N
     for t in range(0, steps + pad, chunk):
         out, state = run_chunk(x[:, :, t : t + chunk].contiguous(), state)
         outs.append(out)
+    if isinstance(outs[0], tuple):  # several outputs a step
+        return tuple(torch.cat(parts, 2)[:, :, :steps] for parts in zip(*outs))
     return torch.cat(outs, 2)[:, :, :steps]
 
 

@@ -77,6 +77,31 @@ def test_the_compiled_replay_in_chunks_equals_the_eager_adam_step_at_every_lengt
     assert graphs[0] > 0 and graphs[0] == graphs[-1]  # 51 and 201 compiled nothing new
 
 
+def test_the_transformers_compiled_replay_loss_and_gradient_equal_eager_ones():
+    """The transformer core has no loop over time: on the fast path its whole loss is one graph
+    (``compile_updates``). Its value and gradient at T_max = 11 against the eager ``loss``'s.
+    (Gradients, not Adam steps: the key bias's gradient is zero up to rounding, softmax being
+    blind to it, and Adam's m / √v turns rounding noise into steps of size α.)"""
+    torch._dynamo.reset()
+    agent = actor("linear", "transformer", seed=4, context=12, heads=2)
+    agent.compile_updates(torch.device("cpu"))
+    assert agent.chunk is None and agent.replay_loss != agent.loss  # the loss is compiled whole
+    batch = padded_batch(T=11, B=3, seed=2)
+    p = agent.params()
+
+    def value_and_gradient(loss):
+        trained = {name: p[name].detach().clone().requires_grad_() for name in agent.names}
+        value = loss({**p, **trained}, batch)
+        return value, torch.autograd.grad(value, tuple(trained.values()))
+
+    value, grads = value_and_gradient(agent.replay_loss)
+    eager_value, eager_grads = value_and_gradient(agent.loss)
+    torch.testing.assert_close(value, eager_value, rtol=1e-5, atol=1e-6)
+    for name, g, eager in zip(agent.names, grads, eager_grads):
+        torch.testing.assert_close(g, eager, rtol=1e-4, atol=1e-6, msg=name)
+    assert any(float(g.abs().max()) > 1e-3 for g in eager_grads)  # a gradient that is not all zero
+
+
 DRQN_TINY = (
     "experiment=table4_1_matching",
     "actor=drqn",

@@ -207,16 +207,31 @@ class RecurrentQActor(SoftmaxActor):
     def unroll(self, p: dict, states: torch.Tensor, prev_actions: torch.Tensor) -> torch.Tensor:
         """Q of every step of episodes: states (R, B, T+1, S), prev_actions one-hot (R, B, T+1, nA)
         (zeros at t = 0) → (R, B, T+1, nA), from the zero state."""
-        x = torch.cat([states, prev_actions], -1)
-        if self.chunk is None:
-            return self.core.unroll(p, x, lambda h: self.head.q(p, h))
-        chunk = self.chunk
-        return in_chunks(lambda x_chunk, state: chunk(p, x_chunk, state), x, self.core.zero_state(x))
+        return self.core.unroll(p, torch.cat([states, prev_actions], -1), lambda h: self.head.q(p, h))
 
-    def unroll_chunk(self, p: dict, x: torch.Tensor, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Q of every step of inputs x (R, B, n, X) from the core's ``state`` (R, B, state size),
-        and the state after them: ``unroll``'s steps, a fixed number at a time on the fast path."""
-        return self.core.run(p, x, state, lambda h: self.head.q(p, h))
+    def unroll_pair(self, p: dict, p_target: dict, states: torch.Tensor, prev_actions: torch.Tensor):
+        """``unroll`` under the online parameters p and, without gradient, under the target
+        network's: (Q, Q⁻), each (R, B, T+1, nA). On the fast path both run in the same compiled
+        chunks of steps (``unroll_chunk``), each carrying its own state."""
+        if self.chunk is None:
+            q = self.unroll(p, states, prev_actions)
+            with torch.no_grad():
+                return q, self.unroll(p_target, states, prev_actions)
+        x = torch.cat([states, prev_actions], -1)
+        zero = self.core.zero_state(x)
+        # the later chunks' online states require grad: so does the first's, or it would be a second graph
+        states_in = (zero.clone().requires_grad_(torch.is_grad_enabled()), zero)
+        chunk = self.chunk
+        return in_chunks(lambda x_chunk, state: chunk(p, p_target, x_chunk, state), x, states_in)
+
+    def unroll_chunk(self, p: dict, p_target: dict, x: torch.Tensor, state: tuple) -> tuple[tuple, tuple]:
+        """``unroll_pair``'s steps of inputs x (R, B, n, X) from the online and the target network's
+        ``state`` (each (R, B, state size)): (Q, Q⁻) of every step and the two states after them, a
+        fixed number of steps at a time on the fast path."""
+        q, online = self.core.run(p, x, state[0], lambda h: self.head.q(p, h))
+        with torch.no_grad():
+            q_target, target = self.core.run(p_target, x, state[1], lambda h: self.head.q(p_target, h))
+        return (q, q_target), (online, target)
 
     @torch.no_grad()
     def evaluate(self, s: torch.Tensor):
@@ -291,9 +306,9 @@ class RecurrentQActor(SoftmaxActor):
         T = actions.shape[-1]
         onehot = nnf.one_hot(actions, self.n_actions).to(states.dtype)  # (R, B, T, nA)
         prev = torch.cat([torch.zeros_like(onehot[:, :, :1]), onehot], 2)  # a_{t−1}, (R, B, T+1, nA)
-        q = self.unroll(p, states, prev)  # (R, B, T+1, nA)
+        q, q_target = self.unroll_pair(p, self.params("_target"), states, prev)  # (R, B, T+1, nA) each
         with torch.no_grad():
-            q_next = self.unroll(self.params("_target"), states, prev)[:, :, 1:].max(-1).values  # (R, B, T)
+            q_next = q_target[:, :, 1:].max(-1).values  # (R, B, T)
             t = torch.arange(T, device=states.device)
             valid = t < batch["lengths"].unsqueeze(-1)
             last = t == batch["lengths"].unsqueeze(-1) - 1

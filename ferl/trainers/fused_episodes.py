@@ -1,8 +1,8 @@
 """The actor phase's episodes on the fast path (``ferl.compiled``; docs/performance.md, "Graphs of
-fixed size"): ``ActorEpisodes.episode``'s steps in compiled graphs of ``CHUNK_STEPS`` steps.
+fixed size"): ``ActorEpisodes.episode``'s steps in compiled graphs of a few steps.
 
 An episode is the first action (eager: one step an episode, ``ActorEpisodes.first``) and
-n = ⌈T_max / ``CHUNK_STEPS``⌉ calls of one graph of ⌈T_max / n⌉ ≤ ``CHUNK_STEPS`` steps
+n = ⌈T_max / K⌉ calls of one graph of ⌈T_max / n⌉ ≤ K steps (K = ``EPISODE_CHUNK_STEPS``)
 (``ActorEpisodes.steps``), the ``Carry`` handed from call to call; what the environment and the
 actor keep in place (positions, the recurrent Q-learner's memory, the weights the TD steps move) is
 written back by each graph as it returns. The graph's size does not grow with T_max, so neither
@@ -15,6 +15,7 @@ and 201).
 
 import torch
 
+from ferl import compiled as fast
 from ferl.compiled import chunk_count, compiled
 from ferl.trainers.episodes import Step
 
@@ -25,9 +26,9 @@ class FusedEpisodes:
 
     def __init__(self, phase, job):
         T_max = job.env.max_steps
-        # as few chunks as CHUNK_STEPS allows, as even as can be: T_max = 10 plays 2 × 5 steps, not
-        # 2 × 8 (the graph depends on T_max anyway: the environment's steps read it)
-        self.n_chunks = chunk_count(T_max)
+        # as few chunks as EPISODE_CHUNK_STEPS allows, as even as can be: T_max = 9 plays 3 × 3
+        # steps, not 3 × 4 (the graph depends on T_max anyway: the environment's steps read it)
+        self.n_chunks = chunk_count(T_max, fast.EPISODE_CHUNK_STEPS)
         self.T_max, self.chunk = T_max, chunk_count(T_max, self.n_chunks)
         self.pad = self.n_chunks * self.chunk - T_max
         self.discounts = torch.cat([phase.discount_table, phase.discount_table.new_zeros(self.pad)])
