@@ -76,8 +76,9 @@ reproduce: $(STAMP)
 # BEYOND_PASSIVE_MEMORIES at memory lengths BEYOND_PASSIVE_CORRIDORS (BEYOND_PASSIVE_EPISODES
 # episodes, its experiment's other settings), and the same maze for the recurrent Q-learner, whose
 # memory is learnt for reward (actor=recurrent_q, its cores BEYOND_Q_MEMORIES, linear head, β's end
-# BEYOND_Q_BETA) at BEYOND_Q_CORRIDORS with BEYOND_Q_EPISODES episodes, eagerly (compile=false: its
-# episode at T_max = 51 compiled for longer than the eager job runs, docs/performance.md). Each curve job has BEYOND_RUNS runs, BEYOND_LONG_RUNS
+# BEYOND_Q_BETA) at BEYOND_Q_CORRIDORS with BEYOND_Q_EPISODES episodes, compiled in graphs of a
+# few steps whose compile time does not grow with T_max (docs/performance.md, "Graphs of fixed
+# size"). Each curve job has BEYOND_RUNS runs, BEYOND_LONG_RUNS
 # from corridor BEYOND_LONG_FROM on. Then the sweep's report with its "beyond" section. A reduced
 # version: e.g. make beyond BEYOND_PASSIVE_CORRIDORS="5 10" BEYOND_PASSIVE_MEMORIES=lstm,gru BEYOND_RUNS=2.
 BEYOND_EFFICIENCY        ?= table5_1_pixel,table5_1_bit,table4_1_matching
@@ -135,7 +136,7 @@ beyond: $(STAMP)
 	for c in $(BEYOND_Q_CORRIDORS); do \
 	  n=$$((n + 1)); echo "ferl: sweep $$n/$(BEYOND_SWEEPS): passive_q_curve/corridor_$$c"; \
 	  $(PY) train.py -m experiment=passive_tmaze trainer=algorithm1 predictor=none actor=recurrent_q actor.head=linear \
-	    actor.memory=$(BEYOND_Q_MEMORIES) actor.beta.end=$(BEYOND_Q_BETA) env.corridor_length=$$c compile=false \
+	    actor.memory=$(BEYOND_Q_MEMORIES) actor.beta.end=$(BEYOND_Q_BETA) env.corridor_length=$$c \
 	    trainer.n_episodes=$(BEYOND_Q_EPISODES) n_runs=$$(runs $$c) $$jobs \
 	    hydra.sweep.dir=$$dir/passive_q_curve/corridor_$$c || exit 1; \
 	done && \

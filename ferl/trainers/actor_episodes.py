@@ -27,7 +27,7 @@ from ferl.random_blocks import Blocks, steps_per_block
 from ferl.run.directory import CheckpointTimer
 from ferl.stats import final_metrics, sample_efficiency, solved_against
 from ferl.trainers.actor_logs import concat_records, log_actor, log_episodes, log_probes, probe_visits
-from ferl.trainers.episodes import Carry, Step, discount_factors, observation_table, stacked
+from ferl.trainers.episodes import Carry, Step, discount_factors, observation_table, played, returned, stacked
 from ferl.trainers.fused_episodes import FusedEpisodes
 from ferl.trainers.observations import log_observations
 from ferl.trainers.phased import Phase
@@ -250,12 +250,12 @@ class ActorEpisodes(Phase):
         """An episode of every run from the reset environment, with SARSA(0) updates at every step
         (``steps``); ``uniform`` (T_max + 1, R, 1, ``uniforms_per_action``) the action draws.
         ``until_done``: stop once every run has ended (eager); else play all T_max steps, the
-        ended ones masked. Returns ``ended``'s dict. The readable reference of the fast path, which
+        ended ones masked. Returns ``played``'s dict. The readable reference of the fast path, which
         plays the same steps in graphs of a fixed number of them."""
         obs = job.env.obs_id
         carry = self.first(job, beta, uniform[0])
         carry, steps, after = self.steps(job, carry, lr, beta, uniform[1:], self.discount_table, until_done)
-        return self.ended(job, carry, steps, torch.cat([obs.unsqueeze(0), after]))
+        return played(job.env, carry, steps, torch.cat([obs.unsqueeze(0), after]))
 
     def first(self, job, beta, uniform) -> Carry:
         """Where an episode's TD steps start: m_0 (Eq. 4.1; it learns too when the predictors do),
@@ -274,9 +274,7 @@ class ActorEpisodes(Phase):
         a' by Eq. (3.11) → δ → θ update (Eq. 3.10) (``td_step``), with the draws ``uniform``
         (n, R, 1, ·) and the discounts γ^t (n,) (float64) of the steps' times. Runs whose episode
         has ended wait with δ = 0 and keep their parameters. The return R_0^γ = Σ_t γ^t r_(t+1)
-        (Eq. 2.37) accumulates in float64 step by step: a fixed order, so the recorded metric is
-        the same on every CPU, where a float32 product sums in its BLAS kernel's order (which
-        differs between AVX2 and AVX-512 in the ninth digit; docs/reliability.md). Returns the
+        (Eq. 2.37) accumulates in float64 step by step (``returned``). Returns the
         carry after them, the steps stacked (``Step``, (n, R, …)) and the observation ids after
         each step (n, R); with ``until_done``, fewer steps once every run has ended."""
         env, actor, predictors = job.env, job.actor, list(job.predictors.values())
@@ -289,7 +287,7 @@ class ActorEpisodes(Phase):
             obs_prev, action = env.obs_id, a.squeeze(1)
             r, terminated, _ = env.advance(action)
             terminated_any = terminated_any | terminated
-            ret = ret + discounts[t] * r.double()  # done runs got r = 0
+            ret = returned(ret, discounts[t], r)  # done runs got r = 0
             obs.append(env.obs_id)
             m = [step(x, obs_prev, action) for step, x in zip(self.steps_on_ids, m)]
             memories = [p.memory(x) for p, x in zip(predictors, m)]
@@ -318,38 +316,6 @@ class ActorEpisodes(Phase):
                 break
         carry = Carry(m, memories, s, a, F_sa, x_sa, terminated_any, ret)
         return carry, stacked(record), torch.stack(obs)
-
-    def ended(self, job, carry: Carry, ep: Step, obs: torch.Tensor) -> dict:
-        """What an episode's ``steps`` played (``ep``, (steps, R, …); the observation ids ``obs``
-        (steps + 1, R)), as the phase keeps it: per step, stacked (steps, R, …), probe and active
-        masks, each predictor's memory, the state and the cache of (s, a) at the visit, action,
-        raw reward, δ, observation ids; the last state, whether each run's episode terminated, and
-        the outcome (len(outcome_names), R)."""
-        env, steps = job.env, job.env.t
-        outcome = torch.stack(
-            [  # in the order of outcome_names
-                carry.discounted_return.float(),
-                steps.float(),
-                ep.reward.gather(0, (steps - 1).unsqueeze(0)).squeeze(0),  # terminal reward
-                ep.delta.abs().sum(0) / steps.clamp(min=1),
-                *(v.float() for v in env.outcomes().values()),
-            ]
-        )
-        return {
-            "probes": ep.probe,
-            "actives": ep.active,
-            "memories": ep.memories,
-            "states": ep.state,
-            "caches": ep.cache,
-            "actions": ep.action,
-            "rewards": ep.reward,
-            "deltas": ep.delta,
-            "obs": obs,
-            "last_state": carry.s,
-            "terminated": carry.terminated,
-            "outcome": outcome,
-            "lengths": steps,
-        }
 
     def ended_episode(self, job, ep: dict) -> EndedEpisode:
         """The episode that ``episode`` played, as the actor's ``end_episode`` takes it (laid out

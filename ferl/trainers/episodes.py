@@ -205,6 +205,25 @@ def discount_factors(gamma: float, t_max: int) -> list[float]:
     return factors[:t_max]
 
 
+def discounted_return(discounts: list[float], rewards: torch.Tensor) -> torch.Tensor:
+    """R_0^γ = Σ_t γ^t r_(t+1) (Eq. 2.37) of each run, (R,) float32, from the rewards
+    (steps, R) and the discounts γ^t (``discount_factors``): accumulated in float64, step by step
+    (``returned``), as an episode's steps accumulate it (``ActorEpisodes.steps``)."""
+    total = torch.zeros(rewards.shape[1:], dtype=torch.float64, device=rewards.device)
+    for t in range(len(rewards)):
+        total = returned(total, discounts[t], rewards[t])
+    return total.float()
+
+
+def returned(total: torch.Tensor, discount, reward: torch.Tensor) -> torch.Tensor:
+    """The return so far (R,) float64 after one more reward (R,) at discount γ^t: a float64 sum in
+    a fixed order, so the recorded metric is the same on every CPU. A float32 product
+    ``discounts @ rewards`` sums in the order its BLAS kernel chooses, which differs between CPUs
+    (AVX2 or AVX-512, Intel or AMD) in the ninth digit (docs/reliability.md, "Determinism across
+    machines")."""
+    return total + discount * reward.double()
+
+
 class Carry(NamedTuple):
     """What an episode of every run carries from one step to the next (``ActorEpisodes.steps``; a
     NamedTuple, so that it crosses from one compiled chunk of steps to the next)."""
@@ -240,3 +259,36 @@ def stacked(steps: list[Step]) -> Step:
         tuple(torch.stack(m) for m in zip(*field)) if isinstance(field[0], tuple) else torch.stack(field)
         for field in zip(*steps)
     )
+
+
+def played(env, carry: Carry, ep: Step, obs: torch.Tensor) -> dict:
+    """What an episode's ``ActorEpisodes.steps`` played in ``env`` (``ep``, (steps, R, …); the
+    observation ids ``obs`` (steps + 1, R); the ``carry`` after the last step), as the phase keeps
+    it: per step, stacked (steps, R, …), probe and active masks, each predictor's memory, the
+    state and the cache of (s, a) at the visit, action, raw reward, δ, observation ids; the last
+    state, whether each run's episode terminated, and the outcome (len(outcome_names), R)."""
+    steps = env.t
+    outcome = torch.stack(
+        [  # in the order of outcome_names
+            carry.discounted_return.float(),
+            steps.float(),
+            ep.reward.gather(0, (steps - 1).unsqueeze(0)).squeeze(0),  # terminal reward
+            ep.delta.abs().sum(0) / steps.clamp(min=1),
+            *(v.float() for v in env.outcomes().values()),
+        ]
+    )
+    return {
+        "probes": ep.probe,
+        "actives": ep.active,
+        "memories": ep.memories,
+        "states": ep.state,
+        "caches": ep.cache,
+        "actions": ep.action,
+        "rewards": ep.reward,
+        "deltas": ep.delta,
+        "obs": obs,
+        "last_state": carry.s,
+        "terminated": carry.terminated,
+        "outcome": outcome,
+        "lengths": steps,
+    }

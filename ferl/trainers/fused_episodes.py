@@ -17,7 +17,7 @@ import torch
 
 from ferl import compiled as fast
 from ferl.compiled import chunk_count, compiled
-from ferl.trainers.episodes import Step
+from ferl.trainers.episodes import Step, played
 
 
 class FusedEpisodes:
@@ -52,7 +52,7 @@ class FusedEpisodes:
             parts.append(steps)
             obs.append(after)
         ep = joined(parts, self.T_max)
-        return phase.ended(job, carry, ep, torch.cat(obs)[: self.T_max + 1])
+        return played(job.env, carry, ep, torch.cat(obs)[: self.T_max + 1])
 
 
 def joined(parts: list[Step], steps: int) -> Step:
