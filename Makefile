@@ -36,7 +36,7 @@ test: $(STAMP)
 	$(PY) -m mypy             # types: pyproject.toml [tool.mypy]
 	$(PY) -m pytest -n 2 -q
 
-# The whole dissertation: the nine experiments of CONTRACT §3 (the set of `experiment=glob(*)`,
+# The whole dissertation: the nine experiments of docs/reproduction.md (the set of `experiment=glob(*)`,
 # listed longest first so that the parallel jobs finish together), the training-noise grid of
 # Fig. 3.6 (ch3_floor at 9 training levels; each run tests all 9 levels) and the hidden sizes of
 # Fig. 3.13 (ch3_coding_cw with 10 and 40 hidden; 20 is in the first sweep), the long regular
@@ -164,7 +164,7 @@ variants: $(STAMP)
 	$(PY) analyze.py $$dir && \
 	echo "  variants in $$(( $$(date +%s) - start )) s; report: $$dir/analysis/report.md"
 
-# Baselines side by side (issue 4/8; CONTRACT §3): the dissertation's agent, memoryless FERL, the
+# Baselines side by side (docs/beyond.md, "Baselines side by side"): the dissertation's agent, memoryless FERL, the
 # feed-forward Q-network on the same predictors (actor=mlp_q), a DRQN-style recurrent Q-learner and
 # the oracle on the true state, on the floor, the matching maze (Algorithms 1 and 2), the pixel maze
 # and the corridor-20 regular maze, 10 runs each, REPRO_JOBS at a time; RecurrentPPO (sb3-contrib)
@@ -180,7 +180,7 @@ baselines: $(BASELINES_STAMP)
 	$(PY) baselines/side_by_side.py $$dir --jobs $(REPRO_JOBS) && \
 	echo "  baselines in $$(( $$(date +%s) - start )) s; report: $$dir/analysis/report.md"
 
-# Issue 5/8: ferl's agents on third-party POMDPs through env=gymnasium: POPGym's RepeatPrevious,
+# ferl's agents on third-party POMDPs through env=gymnasium (docs/beyond.md, "Outside POMDPs"): POPGym's RepeatPrevious,
 # CountRecall, Autoencode and MineSweeper (Easy) and MiniGrid's MemoryS7, FERL online, MLP-Q,
 # memoryless FERL, DRQN and RecurrentPPO, 10 runs each, REPRO_JOBS at a time (the `suites` and
 # `baselines` extras); then one table and one learning-curve figure per environment in the report.

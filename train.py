@@ -1,4 +1,4 @@
-"""Train n_runs independent runs at once (CONTRACT §2): compose, check, set up, train, report.
+"""Train n_runs independent runs at once (docs/usage.md, "Training"): compose, check, set up, train, report.
 
     python train.py [experiment=NAME] [group=option ...] [key=value ...]
     python train.py -m experiment=ch3_floor seed=0,10 env.noise=0.125,0.5
@@ -41,7 +41,7 @@ except KeyboardInterrupt:
 
 
 def fail(message: str, run_path: Path) -> None:
-    """One line, exit code 2, and no run directory left behind (CONTRACT §6)."""
+    """One line, exit code 2, and no run directory left behind (docs/reliability.md)."""
     discard_if_new(run_path)
     print(f"ferl: error: {message}", file=sys.stderr)
     sys.exit(2)

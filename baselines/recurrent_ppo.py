@@ -3,7 +3,7 @@ reference baseline for the "Agents side by side" table.
 
 Why: every agent ferl trains is built from the dissertation's parts (RBM actors, Elman or gated
 predictors). A standard deep-RL learner with memory, trained end to end on the same registered
-Gymnasium ids (CONTRACT §5), tells how hard a task is outside that family. The learner is
+Gymnasium ids (docs/usage.md, "Environments for other agents"), tells how hard a task is outside that family. The learner is
 sb3-contrib's RecurrentPPO with ``MlpLstmPolicy`` (Raffin et al. 2021, JMLR 22(268): an LSTM
 actor-critic trained by PPO on the sequences of each rollout), the policy-gradient counterpart of
 Hausknecht & Stone (2015)'s deep recurrent Q-network (DRQN).
@@ -29,13 +29,13 @@ is written.
 
 One run = one seed s = seed + r: its own model (``RecurrentPPO(seed=s)``) and ``--n-envs``
 environments seeded s·n_envs … s·n_envs + n_envs − 1, so that no two runs share a signal sequence.
-Runs go one after the other, not as a batch dimension as train.py's do (CONTRACT §2): the learner
+Runs go one after the other, not as a batch dimension as train.py's do (docs/usage.md, "Training"): the learner
 is sb3's. A run trains for ``--steps`` environment steps summed over its environments, rounded up
 to whole rollouts (PPO_KWARGS n_steps × n_envs). ``--gamma`` is PPO's discount and that of the
 recorded discounted returns (0.95, the T-mazes'; POPGym's own PPO used 0.99).
 
 ``--out`` becomes a run directory that analyze.py reads like a train.py run of the same task
-(docs/records.md): ``summary.json`` (CONTRACT §2), ``records/run.json`` whose ``env`` is the one
+(docs/records.md): ``summary.json`` (docs/records.md), ``records/run.json`` whose ``env`` is the one
 ferl's runs describe (the maze's or ``GymnasiumEnv``'s ``describe()``, so the analysis groups
 this run with ferl's runs of the same task), ``records/episodes.npz``, the trained models in
 ``checkpoints/``, and ``.hydra/overrides.yaml`` with this script's settings in Hydra's override
@@ -357,7 +357,7 @@ def episode_records(task: Task, runs: list[dict]) -> tuple[dict, np.ndarray]:
 def metrics(
     task: Task, records: dict, env_steps: np.ndarray, steps_total: list[int], optimal: dict, window: int
 ) -> dict:
-    """CONTRACT §2's episodic metrics by ferl's own functions, over the last ``window`` episodes;
+    """The episodic metrics of ``summary.json`` (docs/records.md) by ferl's own functions, over the last ``window`` episodes;
     the step counts on the vector environment's clock (module doc): all steps taken and, given an
     optimum, those when the first solved window closed."""
     optimum = solved_against(optimal)

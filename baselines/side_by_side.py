@@ -1,8 +1,8 @@
-"""Every agent on every task of the baselines comparison (issue 4/8; `make baselines`), ``--jobs``
+"""Every agent on every task of the baselines comparison (docs/beyond.md, "Baselines side by side"; `make baselines`), ``--jobs``
 at a time, then ``analyze.py`` on the folder: its report's "Agents side by side" section has, per
 task, every agent's table row, the finding of which leads, and one learning-curve figure.
 
-Agents (CONTRACT §2 ``actor``, ``predictor``): the dissertation's FERL agent; memoryless FERL
+Agents (``actor``, ``predictor``; docs/usage.md): the dissertation's FERL agent; memoryless FERL
 (``predictor=none``); the recurrent-model architecture with a feed-forward Q-network
 (``actor=mlp_q``); a DRQN-style recurrent Q-learner (``actor=drqn predictor=none``, episodic tasks
 only); the oracle (``actor=oracle predictor=none``: tabular Q on the true state); and, where
@@ -12,7 +12,7 @@ Tasks: the digit floor (``ch3_floor``; its agent has no memory, so memoryless FE
 itself, and DRQN needs episodes), the matching T-maze (``table4_1_matching`` with Algorithm 1's
 joint predictor and ``table5_1_bit`` with Algorithm 2's separate predictors: one task, two FERL
 and two MLP-Q agents; the agents without predictors are the same for both and run once), the
-pixel T-maze (``table5_1_pixel``) and the corridor-20 regular T-maze of issue 2/8 as `make beyond`
+pixel T-maze (``table5_1_pixel``) and the corridor-20 regular T-maze of docs/beyond.md ("Directed exploration") as `make beyond`
 runs it (T_max 44, 2 000 episodes for every agent; the agents with predictors trained online:
 Algorithm 1's random walks almost never reach a goal 20 cells away, so its collection cannot
 balance the episode lengths).

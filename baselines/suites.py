@@ -1,8 +1,8 @@
-"""ferl's agents on third-party POMDPs (issue 5/8; `make suites`): every agent on every environment
+"""ferl's agents on third-party POMDPs (docs/beyond.md, "Outside POMDPs"; `make suites`): every agent on every environment
 of the suites, ``--jobs`` at a time, then ``analyze.py`` on the folder; its report's "Agents side
 by side" section has one table and one learning-curve figure per environment.
 
-Environments (CONTRACT §3 experiments, each through ``env=gymnasium``): POPGym's RepeatPreviousEasy,
+Environments (experiments of conf/experiment/, each through ``env=gymnasium``): POPGym's RepeatPreviousEasy,
 CountRecallEasy, AutoencodeEasy and MineSweeperEasy (Morad et al., ICLR 2023) and MiniGrid's
 MemoryS7 (Chevalier-Boisvert et al. 2023). Agents: FERL trained online (§5.4) on an LSTM predictor
 (the experiments' own config), the same with the MLP Q-network (``actor=mlp_q``), memoryless FERL

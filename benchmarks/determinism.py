@@ -1,4 +1,4 @@
-"""Why the same eager run can end with other numbers on a CPU with AVX-512 (issue 24/8, item 5).
+"""Why the same eager run can end with other numbers on a CPU with AVX-512 (docs/reliability.md, "Determinism across machines").
 
     python benchmarks/determinism.py                     # the kernels and settings, ~2 min
     python benchmarks/determinism.py --emulate-avx512 experiment=table5_1_pixel [override ...]
