@@ -1,7 +1,7 @@
 """Graphs of a fixed number of steps against the horizon: one ``train.py`` job per cell.
 
     python benchmarks/bench_chunks.py [--corridors 10 50 200 1000] [--episodes 1000] [--modes eager cold warm]
-                                      [--chunks 8] [--agent recurrent_q]
+                                      [--chunks 4] [--agent recurrent_q]
 
 Each cell runs the recurrent Q-learner (GRU core, linear head; ``--agent ferl``: the dissertation's
 FERL actor on the online trainer's LSTM predictor) on the passive T-maze at corridor L
@@ -20,10 +20,8 @@ compiling), the solved runs, and each graph's first compile as the job printed i
 """
 
 import argparse
-import json
 import os
 import re
-import subprocess
 import sys
 import tempfile
 import time
@@ -32,17 +30,11 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.jobs import PASSIVE_Q, train_summary  # noqa: E402
 from benchmarks.report import save_results  # noqa: E402
 
 AGENTS = {
-    "recurrent_q": [
-        "experiment=passive_tmaze",
-        "trainer=algorithm1",
-        "actor=recurrent_q",
-        "predictor=none",
-        "actor.head=linear",
-        "actor.memory=gru",
-    ],
+    "recurrent_q": PASSIVE_Q,
     "ferl": ["experiment=passive_tmaze", "predictor.joint.memory=lstm"],
 }
 # the child: EPISODE_CHUNK_STEPS set, then train.py as ``python train.py`` would run it
@@ -58,15 +50,10 @@ def job(agent: str, corridor: int, episodes: int, mode: str, chunk: int, out: Pa
     overrides = [*AGENTS[agent], f"env.corridor_length={corridor}", f"trainer.n_episodes={episodes}"]
     overrides += [f"compile={mode != 'eager'}", f"hydra.run.dir={out}"]
     env = {**os.environ, "TORCHINDUCTOR_CACHE_DIR": str(cache)}
+    command, stderr = [sys.executable, "-c", CHILD, str(chunk), *overrides], []
     started = time.perf_counter()
-    done = subprocess.run(
-        [sys.executable, "-c", CHILD, str(chunk), *overrides], cwd=ROOT, capture_output=True, text=True, env=env
-    )
+    summary = train_summary(command, out, f"bench_chunks.py: {agent} L={corridor} {mode}", env, stderr)
     process_s = time.perf_counter() - started
-    if done.returncode != 0:
-        tail = done.stderr.strip().splitlines()[-1:] or ["no output"]
-        raise SystemExit(f"bench_chunks.py: {agent} L={corridor} {mode} failed: {tail[0]}")
-    summary = json.loads((out / "summary.json").read_text())
     return {
         "agent": agent,
         "corridor": corridor,
@@ -79,7 +66,7 @@ def job(agent: str, corridor: int, episodes: int, mode: str, chunk: int, out: Pa
         "compile_time_s": summary.get("compile_time_s", 0.0),
         "agent_steps_per_s": summary["agent_steps_per_s"],
         "solved": int(sum(summary["metrics"].get("solved", []))),
-        "graphs": [(what, int(s)) for what, s in COMPILED_LINE.findall(done.stderr)],
+        "graphs": [(what, int(s)) for what, s in COMPILED_LINE.findall(stderr[0])],
     }
 
 
@@ -89,7 +76,7 @@ def main() -> None:
     parser.add_argument("--corridors", type=int, nargs="+", default=[10, 50, 200, 1000])
     parser.add_argument("--episodes", type=int, default=1000)
     parser.add_argument("--modes", nargs="+", choices=["eager", "cold", "warm"], default=["eager", "cold", "warm"])
-    parser.add_argument("--chunks", type=int, nargs="+", default=[8])
+    parser.add_argument("--chunks", type=int, nargs="+", default=[4])
     args = parser.parse_args()
     if "warm" in args.modes and "cold" not in args.modes:
         raise SystemExit("bench_chunks.py: --modes warm needs cold before it (the cache it fills)")

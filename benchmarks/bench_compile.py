@@ -22,18 +22,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.jobs import train_summary  # noqa: E402
+from benchmarks.jobs import PASSIVE_Q, train_summary  # noqa: E402
 from benchmarks.report import save_results  # noqa: E402
 
-AGENT = [
-    "experiment=passive_tmaze",
-    "trainer=algorithm1",
-    "actor=recurrent_q",
-    "predictor=none",
-    "actor.head=linear",
-    "actor.memory=gru",
-    "trainer.n_episodes=20",
-]
+AGENT = [*PASSIVE_Q, "trainer.n_episodes=20"]
 # the child: ferl's options updated, then train.py as ``python train.py`` would run it
 CHILD = (
     "import json, runpy, sys; import ferl.compiled as c; c.CPU_INDUCTOR_OPTIONS.update(json.loads(sys.argv[1])); "

@@ -39,11 +39,28 @@ def phase(trainer, name: str):
     return next(p for p in trainer.phases if p.name == name)
 
 
-def train_summary(command: list[str], out: Path, what: str, env: dict | None = None) -> dict:
+# The recurrent Q-learner (GRU core, linear head) on the passive T-maze: the agent whose compile
+# time the benchmarks follow against T_max (bench_compile.py, bench_chunks.py)
+PASSIVE_Q = [
+    "experiment=passive_tmaze",
+    "trainer=algorithm1",
+    "actor=recurrent_q",
+    "predictor=none",
+    "actor.head=linear",
+    "actor.memory=gru",
+]
+
+
+def train_summary(
+    command: list[str], out: Path, what: str, env: dict | None = None, stderr: list | None = None
+) -> dict:
     """Run one ``train.py`` job (``command``, its run directory ``out``) and return its summary;
-    a failed job ends the benchmark in one line naming ``what`` and its last error line."""
+    a failed job ends the benchmark in one line naming ``what`` and its last error line. The
+    job's standard error is appended to ``stderr`` if given."""
     done = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, env=env)
     if done.returncode != 0:
         tail = done.stderr.strip().splitlines()[-1:] or ["no output"]
         raise SystemExit(f"{what} failed: {tail[0]}")
+    if stderr is not None:
+        stderr.append(done.stderr)
     return json.loads((out / "summary.json").read_text())

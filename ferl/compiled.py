@@ -36,12 +36,13 @@ _first_calls = [0.0]  # seconds this process has spent in compiled functions' fi
 # its graph compiled in about half 8's time; 1 or 2: 0.5–0.75 × the speed).
 CHUNK_STEPS = 8
 EPISODE_CHUNK_STEPS = 4
-# Steps one compiled graph may unroll where a path still unrolls a whole sequence. Inductor's compile time grows faster than the graph: the
-# recurrent Q-learner's episode and replay graphs took ~95 s at T_max = 44 on the 2-core CPU and
-# were still compiling after 24 min at T_max = 101; an online replay step of an LSTM predictor
-# over 44 steps took ~120 s with another job on the second core (docs/performance.md). 80 keeps
-# the dissertation's chunks (8 SGD steps of ≤ 10 actions); longer unrolls run in smaller chunks
-# (``unroll_chunk``) or eagerly.
+# Steps one compiled graph may unroll where a path still unrolls a whole sequence (the predictors'
+# BPTT, the online trainer's replay). Inductor's compile time grows faster than the graph: the
+# recurrent Q-learner's unrolled episode and replay graphs took ~95 s at T_max = 44 on the 2-core
+# CPU and were still compiling after 24 min at T_max = 101; an online replay step of an LSTM
+# predictor over 44 steps took ~120 s with another job on the second core (docs/performance.md).
+# 80 keeps the dissertation's chunks (8 SGD steps of ≤ 10 actions); longer unrolls run in smaller
+# chunks (``unroll_chunk``) or eagerly.
 MAX_UNROLLED_STEPS = 80
 # Inductor's options on a CPU. ``cpp_wrapper``: the kernels are called from C++. Inductor inlines a
 # pointwise value into each of its readers until it has more than ``realize_reads_threshold``

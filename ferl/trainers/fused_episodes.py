@@ -6,9 +6,9 @@ n = ⌈T_max / K⌉ calls of one graph of ⌈T_max / n⌉ ≤ K steps (K = ``EPI
 (``ActorEpisodes.steps``), the ``Carry`` handed from call to call; what the environment and the
 actor keep in place (positions, the recurrent Q-learner's memory, the weights the TD steps move) is
 written back by each graph as it returns. The graph's size does not grow with T_max, so neither
-does its compile time. Every call plays all its steps, the runs whose episode has ended masked (δ = 0, their parameters kept), as the eager
-reference does once every run has ended; the steps past T_max, which the last call pads with
-(every run has ended by then), are dropped. The eager ``ActorEpisodes.episode`` is the reference
+does its compile time. Every call plays all its steps, the runs whose episode has ended masked
+(δ = 0, their parameters kept), as the eager reference does once every run has ended; the steps
+past T_max, which the last call pads with (every run has ended by then), are dropped. The eager ``ActorEpisodes.episode`` is the reference
 (tests/test_fast_path.py: the same actions, values within float32 rounding, at T_max of 11, 51
 and 201).
 """
@@ -21,8 +21,8 @@ from ferl.trainers.episodes import Step, played
 
 
 class FusedEpisodes:
-    """The compiled chunk of steps of ``phase`` (an ``ActorEpisodes``) for
-    ``job``'s episodes of T_max steps, and the discounts and draws padded to whole chunks."""
+    """The compiled chunk of steps of ``phase`` (an ``ActorEpisodes``) for ``job``'s episodes of
+    T_max steps, and the discounts and draws padded to whole chunks."""
 
     def __init__(self, phase, job):
         T_max = job.env.max_steps
@@ -31,7 +31,10 @@ class FusedEpisodes:
         self.n_chunks = chunk_count(T_max, fast.EPISODE_CHUNK_STEPS)
         self.T_max, self.chunk = T_max, chunk_count(T_max, self.n_chunks)
         self.pad = self.n_chunks * self.chunk - T_max
-        self.discounts = torch.cat([phase.discount_table, phase.discount_table.new_zeros(self.pad)])
+        # each chunk's discounts γ^t, the same in every episode: sliced once, each its own tensor
+        # (storage offset 0, as every call's inputs are)
+        discounts = torch.cat([phase.discount_table, phase.discount_table.new_zeros(self.pad)])
+        self.discounts = [part.clone() for part in discounts.split(self.chunk)]
         self.steps = compiled(phase.steps, job.device, f"a chunk of {self.chunk} steps of an episode")
 
     def play(self, phase, job, lr: float, beta, uniform: torch.Tensor) -> dict:
@@ -44,11 +47,9 @@ class FusedEpisodes:
         obs = [job.env.obs_id.unsqueeze(0)]
         carry = phase.first(job, beta_t, uniform[0])  # once an episode: eager (a graph would cost its compiling)
         parts = []
-        for c in range(self.n_chunks):
+        for c, discounts in enumerate(self.discounts):
             at = slice(c * self.chunk, (c + 1) * self.chunk)
-            carry, steps, after = self.steps(
-                job, carry, lr_t, beta_t, draws[at].clone(), self.discounts[at].clone(), False
-            )
+            carry, steps, after = self.steps(job, carry, lr_t, beta_t, draws[at].clone(), discounts, False)
             parts.append(steps)
             obs.append(after)
         ep = joined(parts, self.T_max)
@@ -57,10 +58,6 @@ class FusedEpisodes:
 
 def joined(parts: list[Step], steps: int) -> Step:
     """The chunks' ``Step``s (n, R, …) as one of their first ``steps`` steps."""
-    if len(parts) == 1:
-        return Step._make(
-            tuple(m[:steps] for m in field) if isinstance(field, tuple) else field[:steps] for field in parts[0]
-        )
     return Step._make(
         tuple(torch.cat(m)[:steps] for m in zip(*field)) if isinstance(field[0], tuple) else torch.cat(field)[:steps]
         for field in zip(*parts)
