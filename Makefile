@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup run test bench reproduce beyond variants baselines suites figures clean
+.PHONY: setup run test test-compat bench reproduce beyond beyond-full variants baselines suites suites-reference figures clean
 
 setup: $(STAMP)
 
@@ -50,13 +50,19 @@ test: $(STAMP)
 # sweep's last job ran alone (docs/performance.md, "Sweeps at once"). Each sweep's whole output goes
 # to <sweep>/sweep.log, its progress lines here.
 REPRO_JOBS  ?= 2
+# The sweep folder of the target being made (docs/sweeps.md, "Resuming a sweep"): a new
+# outputs/<target>/<date>_<time>/ with its sweep.json (start, commit), or RESUME=<that folder> of an
+# interrupted sweep of the same target: its finished jobs are kept, interrupted ones resume from their
+# checkpoints, the others start; the analysis runs once at the end. RESUMING: ferl.run.together's flag.
+SWEEP_DIR = dir=$$($(PY) -m ferl.run.sweepdir $@ "$(RESUME)") || exit 2
+RESUMING  = $(if $(RESUME),--resume)
 EXPERIMENTS := table5_1_pixel,table4_2_digit,table5_1_bit,table4_1_regular,table4_1_matching,ch3_floor,ch3_coding_cw,ch3_coding_ccw,ch3_coding_noreward
 NOISE_GRID  := 0.0,0.125,0.25,0.375,0.5,0.625,0.75,0.875,1.0
 
 reproduce: $(STAMP)
-	@dir=outputs/reproduce/$$(date +%Y-%m-%d_%H-%M-%S); start=$$(date +%s); \
-	$(PY) -m ferl.run.together $$dir "experiments $(REPRO_JOBS) experiment=$(EXPERIMENTS)" && \
-	$(PY) -m ferl.run.together $$dir "noise_grid $(REPRO_JOBS) experiment=ch3_floor env.noise=$(NOISE_GRID)" \
+	@$(SWEEP_DIR); start=$$(date +%s); \
+	$(PY) -m ferl.run.together $(RESUMING) $$dir "experiments $(REPRO_JOBS) experiment=$(EXPERIMENTS)" && \
+	$(PY) -m ferl.run.together $(RESUMING) $$dir "noise_grid $(REPRO_JOBS) experiment=ch3_floor env.noise=$(NOISE_GRID)" \
 	  "hidden_sizes 1 experiment=ch3_coding_cw actor.n_hidden=10,40" \
 	  "long_corridor 1 experiment=table4_1_regular env.corridor_length=6 trainer.n_sample=100000" && \
 	echo $$(( $$(date +%s) - start )) > $$dir/train_wall_time_s && \
@@ -79,8 +85,10 @@ reproduce: $(STAMP)
 # BEYOND_Q_BETA) at BEYOND_Q_CORRIDORS with BEYOND_Q_EPISODES episodes, compiled in graphs of a
 # few steps whose compile time does not grow with T_max (docs/performance.md, "Graphs of fixed
 # size"). Each curve job has BEYOND_RUNS runs, BEYOND_LONG_RUNS
-# from corridor BEYOND_LONG_FROM on. Then the sweep's report with its "beyond" section. A reduced
+# from corridor BEYOND_LONG_FROM on. Every sweep runs through ferl/run/together.py (its whole output
+# in <sweep>/sweep.log). Then the sweep's report with its "beyond" section. A reduced
 # version: e.g. make beyond BEYOND_PASSIVE_CORRIDORS="5 10" BEYOND_PASSIVE_MEMORIES=lstm,gru BEYOND_RUNS=2.
+# `make beyond-full`: the same recipe with the full memory curves (below), into outputs/beyond_full/.
 BEYOND_EFFICIENCY        ?= table5_1_pixel,table5_1_bit,table4_1_matching
 BEYOND_EPISODES          ?= 2000
 BEYOND_ETA               ?= 0.1
@@ -90,8 +98,8 @@ BEYOND_LONG_FROM         ?= 200
 BEYOND_CORRIDORS         ?= 50 20 10 5 3
 MEMORIES                 ?= elman,lstm,gru,esn,transformer
 BEYOND_EXPLORATION       ?= ez_greedy
-# The new curves' defaults fit hours, not days, on 2 cores (docs/beyond.md, "Memory curves", gives
-# the full lists' command and its cost)
+# The new curves' defaults fit hours, not days, on 2 cores; `make beyond-full` runs the full lists
+# (docs/beyond.md, "Memory curves", gives their cost)
 BEYOND_EXPLORE_CORRIDORS ?= 20 10
 BEYOND_EXPLORE_MEMORIES  ?= lstm,gru
 BEYOND_PASSIVE_CORRIDORS ?= 50 20 10
@@ -103,46 +111,54 @@ BEYOND_Q_EPISODES        ?= 10000
 BEYOND_Q_BETA            ?= 30
 BEYOND_SWEEPS = $(shell echo $$(($(if $(BEYOND_EFFICIENCY),2,0) + $(words $(BEYOND_CORRIDORS) $(BEYOND_EXPLORE_CORRIDORS) $(BEYOND_PASSIVE_CORRIDORS) $(BEYOND_Q_CORRIDORS)))))
 
-beyond: $(STAMP)
-	@dir=outputs/beyond/$$(date +%Y-%m-%d_%H-%M-%S); start=$$(date +%s); \
-	jobs="hydra/launcher=joblib hydra.launcher.n_jobs=$(REPRO_JOBS)"; \
+# The full memory curves: the passive maze at L = 500 … 10 and the active maze at corridors 50 … 5,
+# with and without directed exploration, each with every memory (MEMORIES), 10 000 passive episodes;
+# no sample-efficiency sweeps. Target-specific: any of them set on the command line wins.
+beyond-full: BEYOND_EFFICIENCY        =
+beyond-full: BEYOND_CORRIDORS         = 50 20 10 5
+beyond-full: BEYOND_EXPLORE_CORRIDORS = 50 20 10 5
+beyond-full: BEYOND_EXPLORE_MEMORIES  = $(MEMORIES)
+beyond-full: BEYOND_PASSIVE_CORRIDORS = 500 200 100 50 20 10
+beyond-full: BEYOND_PASSIVE_MEMORIES  = $(MEMORIES)
+beyond-full: BEYOND_PASSIVE_EPISODES  = 10000
+
+beyond beyond-full: $(STAMP)
+	@$(SWEEP_DIR); start=$$(date +%s); \
+	sweep() { $(PY) -m ferl.run.together $(RESUMING) $$dir/$$1 "$$2 $(REPRO_JOBS) $$3"; }; \
 	runs() { if [ $$1 -ge $(BEYOND_LONG_FROM) ]; then echo $(BEYOND_LONG_RUNS); else echo $(BEYOND_RUNS); fi; }; \
 	n=0; if [ -n "$(BEYOND_EFFICIENCY)" ]; then n=2; \
 	  echo "ferl: sweep 1/$(BEYOND_SWEEPS): phased" && \
-	  $(PY) train.py -m experiment=$(BEYOND_EFFICIENCY) $$jobs hydra.sweep.dir=$$dir/phased && \
+	  sweep . phased "experiment=$(BEYOND_EFFICIENCY)" && \
 	  echo "ferl: sweep 2/$(BEYOND_SWEEPS): online" && \
-	  $(PY) train.py -m experiment=$(BEYOND_EFFICIENCY) trainer=online trainer.curiosity=0,$(BEYOND_ETA) \
-	    $$jobs hydra.sweep.dir=$$dir/online || exit 1; \
+	  sweep . online "experiment=$(BEYOND_EFFICIENCY) trainer=online trainer.curiosity=0,$(BEYOND_ETA)" || exit 1; \
 	fi; \
 	for c in $(BEYOND_CORRIDORS); do \
 	  n=$$((n + 1)); echo "ferl: sweep $$n/$(BEYOND_SWEEPS): memory_length/corridor_$$c"; \
-	  $(PY) train.py -m experiment=table4_1_regular trainer=online predictor.joint.memory=$(MEMORIES) \
+	  sweep memory_length corridor_$$c "experiment=table4_1_regular trainer=online predictor.joint.memory=$(MEMORIES) \
 	    env.corridor_length=$$c env.max_steps=$$((2 * c + 4)) trainer.n_episodes=$(BEYOND_EPISODES) \
-	    trainer.replay_sample=16 n_runs=$$(runs $$c) $$jobs hydra.sweep.dir=$$dir/memory_length/corridor_$$c || exit 1; \
+	    trainer.replay_sample=16 n_runs=$$(runs $$c)" || exit 1; \
 	done && \
 	for c in $(BEYOND_EXPLORE_CORRIDORS); do \
 	  n=$$((n + 1)); echo "ferl: sweep $$n/$(BEYOND_SWEEPS): exploration_curve/corridor_$$c"; \
-	  $(PY) train.py -m experiment=table4_1_regular trainer=online predictor.joint.memory=$(BEYOND_EXPLORE_MEMORIES) \
-	    exploration=$(BEYOND_EXPLORATION) env.corridor_length=$$c env.max_steps=$$((2 * c + 4)) \
-	    trainer.n_episodes=$(BEYOND_EPISODES) trainer.replay_sample=16 n_runs=$$(runs $$c) $$jobs \
-	    hydra.sweep.dir=$$dir/exploration_curve/corridor_$$c || exit 1; \
+	  sweep exploration_curve corridor_$$c "experiment=table4_1_regular trainer=online \
+	    predictor.joint.memory=$(BEYOND_EXPLORE_MEMORIES) exploration=$(BEYOND_EXPLORATION) \
+	    env.corridor_length=$$c env.max_steps=$$((2 * c + 4)) trainer.n_episodes=$(BEYOND_EPISODES) \
+	    trainer.replay_sample=16 n_runs=$$(runs $$c)" || exit 1; \
 	done && \
 	for c in $(BEYOND_PASSIVE_CORRIDORS); do \
 	  n=$$((n + 1)); echo "ferl: sweep $$n/$(BEYOND_SWEEPS): passive_curve/corridor_$$c"; \
-	  $(PY) train.py -m experiment=passive_tmaze predictor.joint.memory=$(BEYOND_PASSIVE_MEMORIES) \
-	    env.corridor_length=$$c trainer.n_episodes=$(BEYOND_PASSIVE_EPISODES) n_runs=$$(runs $$c) $$jobs \
-	    hydra.sweep.dir=$$dir/passive_curve/corridor_$$c || exit 1; \
+	  sweep passive_curve corridor_$$c "experiment=passive_tmaze predictor.joint.memory=$(BEYOND_PASSIVE_MEMORIES) \
+	    env.corridor_length=$$c trainer.n_episodes=$(BEYOND_PASSIVE_EPISODES) n_runs=$$(runs $$c)" || exit 1; \
 	done && \
 	for c in $(BEYOND_Q_CORRIDORS); do \
 	  n=$$((n + 1)); echo "ferl: sweep $$n/$(BEYOND_SWEEPS): passive_q_curve/corridor_$$c"; \
-	  $(PY) train.py -m experiment=passive_tmaze trainer=algorithm1 predictor=none actor=recurrent_q actor.head=linear \
-	    actor.memory=$(BEYOND_Q_MEMORIES) actor.beta.end=$(BEYOND_Q_BETA) env.corridor_length=$$c \
-	    trainer.n_episodes=$(BEYOND_Q_EPISODES) n_runs=$$(runs $$c) $$jobs \
-	    hydra.sweep.dir=$$dir/passive_q_curve/corridor_$$c || exit 1; \
+	  sweep passive_q_curve corridor_$$c "experiment=passive_tmaze trainer=algorithm1 predictor=none \
+	    actor=recurrent_q actor.head=linear actor.memory=$(BEYOND_Q_MEMORIES) actor.beta.end=$(BEYOND_Q_BETA) \
+	    env.corridor_length=$$c trainer.n_episodes=$(BEYOND_Q_EPISODES) n_runs=$$(runs $$c)" || exit 1; \
 	done && \
 	echo $$(( $$(date +%s) - start )) > $$dir/train_wall_time_s && \
 	$(PY) analyze.py $$dir && \
-	echo "  beyond in $$(( $$(date +%s) - start )) s; report: $$dir/analysis/report.md"
+	echo "  $@ in $$(( $$(date +%s) - start )) s; report: $$dir/analysis/report.md"
 
 # Beyond the dissertation (§5.4, II): the dissertation's agent beside its variants, each task run
 # by every agent with 10 runs: the actor's value forms (actor.q) on the floor, the matching maze
@@ -175,23 +191,57 @@ $(BASELINES_STAMP): $(STAMP)
 	$(PY) -m pip install --quiet -e '.[baselines]'
 	touch $@
 baselines: $(BASELINES_STAMP)
-	@dir=outputs/baselines/$$(date +%Y-%m-%d_%H-%M-%S); start=$$(date +%s); \
+	@$(SWEEP_DIR); start=$$(date +%s); \
 	echo "ferl: sweep 1/1: side_by_side (every agent on every task, $(REPRO_JOBS) at a time)" && \
 	$(PY) baselines/side_by_side.py $$dir --jobs $(REPRO_JOBS) && \
 	echo "  baselines in $$(( $$(date +%s) - start )) s; report: $$dir/analysis/report.md"
 
 # ferl's agents on third-party POMDPs through env=gymnasium (docs/beyond.md, "Outside POMDPs"): POPGym's RepeatPrevious,
 # CountRecall, Autoencode and MineSweeper (Easy) and MiniGrid's MemoryS7, FERL online, MLP-Q,
-# memoryless FERL, DRQN and RecurrentPPO, 10 runs each, REPRO_JOBS at a time (the `suites` and
-# `baselines` extras); then one table and one learning-curve figure per environment in the report.
+# memoryless FERL and DRQN, 10 runs each, REPRO_JOBS at a time (the `suites` and `baselines` extras);
+# then one table and one learning-curve figure per environment in the report, with RecurrentPPO's rows
+# from the newest `make suites-reference` (copied in; the report names its folder, date and commit, or
+# says there is none). `make suites-reference`: RecurrentPPO alone on the same environments, into
+# outputs/suites_reference/<date>_<time>/ with its sweep.json (date, commit); no report of its own.
 SUITES_STAMP := $(VENV)/.installed-suites
 $(SUITES_STAMP): $(STAMP)
 	$(PY) -m pip install --quiet -e '.[suites,baselines]'
 	touch $@
 suites: $(SUITES_STAMP)
-	@dir=outputs/suites/$$(date +%Y-%m-%d_%H-%M-%S); start=$$(date +%s); \
+	@$(SWEEP_DIR); start=$$(date +%s); \
 	$(PY) baselines/suites.py $$dir --jobs $(REPRO_JOBS) && \
 	echo "  suites in $$(( $$(date +%s) - start )) s; report: $$dir/analysis/report.md"
+
+suites-reference: $(SUITES_STAMP)
+	@$(SWEEP_DIR); start=$$(date +%s); \
+	$(PY) baselines/suites.py $$dir --reference --jobs $(REPRO_JOBS) && \
+	echo "  suites-reference in $$(( $$(date +%s) - start )) s: $$dir (make suites' reports read the newest)"
+
+# ferl inside a user's own torch (docs/usage.md, "Installing into your own stack"): for each torch of
+# COMPAT_TORCH, by default the oldest that pyproject.toml admits and the newest pip offers here (2.14.1,
+# the cap of /etc/xdg/pip), a throwaway venv under a temp dir (removed after) with that torch, then
+# `pip install -e .` (which must keep it: checked), then the suite's fast part, COMPAT_TESTS: the
+# numerics of the RBM, actor and predictors against their references, the compiled fast path against
+# eager, and the set-up checks. The golden numbers (tests/test_golden.py) are exact only under the torch
+# that made them, 2.13.0 (`make test`), and are left out: under another torch the learning results
+# agree in distribution, not bit for bit. COMPAT_TORCH=2.14.1 runs one leg.
+COMPAT_TORCH ?= 2.8.0 2.14.1
+COMPAT_TESTS ?= tests/test_rbm.py tests/test_actor.py tests/test_predictor.py tests/test_cpu_kernels.py \
+                tests/test_numpy_reference.py tests/test_schedules.py tests/test_compile.py tests/test_fast_path.py \
+                tests/test_env_options.py
+test-compat:
+	@for v in $(COMPAT_TORCH); do \
+	  tmp=$$(mktemp -d -t ferl-compat-XXXXXX); venv=$$tmp/venv; start=$$(date +%s); \
+	  echo "ferl: test-compat: torch $$v in $$venv"; \
+	  $(PYTHON) -m venv $$venv && \
+	  $$venv/bin/python -m pip install --quiet torch==$$v && \
+	  $$venv/bin/python -m pip install --quiet -e . pytest hypothesis && \
+	  $$venv/bin/python -c "import sys, torch; v = torch.__version__.split('+')[0]; \
+	    sys.exit(None if v == '$$v' else f'ferl: test-compat: pip install -e . replaced torch $$v by {v}')" && \
+	  $$venv/bin/python -m pytest -q -p no:cacheprovider $(COMPAT_TESTS); status=$$?; \
+	  rm -rf $$tmp; echo "ferl: test-compat: torch $$v: exit $$status in $$(( $$(date +%s) - start )) s"; \
+	  [ $$status -eq 0 ] || exit $$status; \
+	done
 
 bench: $(STAMP)
 	$(PY) benchmarks/bench_floor.py

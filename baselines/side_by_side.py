@@ -17,9 +17,10 @@ runs it (T_max 44, 2 000 episodes for every agent; the agents with predictors tr
 Algorithm 1's random walks almost never reach a goal 20 cells away, so its collection cannot
 balance the episode lengths).
 
-A job whose run directory already holds a ``summary.json`` is not run again, and an interrupted
-ferl job resumes from its checkpoint (``resume=true``), so an interrupted comparison continues
-where it stopped when given the same folder.
+A job whose run directory already holds its finished run is kept, and an interrupted ferl job
+resumes from its checkpoint (``resume=true``; ``ferl.run.jobs``), so an interrupted comparison
+continues where it stopped when given the same folder (``make baselines RESUME=<folder>``). An
+interrupted RecurrentPPO job cannot resume: it is set aside (``<folder>.interrupted``) and starts again.
 
     python baselines/side_by_side.py outputs/baselines/NAME [--jobs 2] [--only SUBSTRING,…]
 """
@@ -29,11 +30,9 @@ import importlib.util
 import subprocess
 import sys
 import time
-from concurrent.futures import ThreadPoolExecutor, as_completed
-from contextlib import ExitStack
 from pathlib import Path
 
-from ferl.run.progress import duration
+from ferl.run.jobs import DONE, RESUMED, TODO, JobError, job_state, run_commands, states_line
 
 ROOT = Path(__file__).resolve().parents[1]
 FLOOR = ["experiment=ch3_floor"]
@@ -98,58 +97,63 @@ def command(name: str, args: list[str], out: Path, ppo: bool) -> list[str]:
     return [sys.executable, str(ROOT / "train.py"), *args, *resume, f"hydra.run.dir={run_dir}"]
 
 
-def run_commands(todo: dict[str, list[str]], logs: Path, jobs: int, what: str = "jobs") -> list[str]:
-    """Run every named command, ``jobs`` at a time, each one's output in ``logs/<name>.log`` (``/``
-    as ``_``); one progress line as each ends. Returns the names of those that failed."""
-    logs.mkdir(parents=True, exist_ok=True)
-    started, failed = time.monotonic(), []
-    with ExitStack() as logs_open, ThreadPoolExecutor(jobs) as pool:  # the jobs end before their logs close
-        files = {n: logs_open.enter_context(open(logs / f"{n.replace('/', '_')}.log", "w")) for n in todo}
-        futures = {
-            pool.submit(subprocess.run, cmd, cwd=ROOT, stdout=files[n], stderr=subprocess.STDOUT): n
-            for n, cmd in todo.items()
-        }
-        for count, future in enumerate(as_completed(futures), 1):
-            name, elapsed = futures[future], time.monotonic() - started
-            if future.result().returncode != 0:
-                failed.append(name)
-            left = elapsed / count * (len(todo) - count)  # the jobs so far, `jobs` at a time
-            n_failed = f", {len(failed)} failed" if failed else ""
-            eta = f"about {duration(left)} left" if count < len(todo) else f"sweep took {duration(elapsed)}"
-            print(
-                f"ferl: {count}/{len(todo)} {what} done{n_failed} ({name}{' failed' if name in failed else ''}, "
-                f"{duration(elapsed)} in all); {eta}",
-                flush=True,
-            )
-    if failed:
-        print(f"failed: {', '.join(failed)} (logs: {logs}/<name>.log)")
-    return failed
+def set_aside(run_dir: Path) -> None:
+    """Rename an interrupted RecurrentPPO job (recurrent_ppo.py starts a run anew and never writes
+    into a folder that holds one) to ``<name>.interrupted[-k]``: kept, and out of the job's way."""
+    aside, k = run_dir.with_name(f"{run_dir.name}.interrupted"), 1
+    while aside.exists():
+        aside, k = run_dir.with_name(f"{run_dir.name}.interrupted-{k}"), k + 1
+    run_dir.rename(aside)
+    print(f"ferl: {run_dir.name} was interrupted; RecurrentPPO starts it again (what it wrote: {aside})", flush=True)
 
 
-def run_table(out: Path, trains: dict, ppos: dict, jobs: int, only: str = "", first: int = 2) -> int:
+def run_table(
+    out: Path,
+    trains: dict,
+    ppos: dict,
+    jobs: int,
+    only: str = "",
+    first: int = 2,
+    before_analysis=None,
+    analyze: bool = True,
+) -> int:
     """Run the jobs ``jobs`` at a time (train.py ones: ``trains``, RecurrentPPO ones: ``ppos``), the
     ``first`` longest train.py jobs, then PPO's, then the rest; one progress line per finished job;
-    then analyze.py on ``out``. Jobs done already are skipped; exit status 1 if any failed."""
+    then ``before_analysis(out)`` where given and analyze.py on ``out`` (unless not ``analyze``). Jobs done already are kept,
+    interrupted ones resume (``ferl.run.jobs``); exit status 1 if any failed, 2 if a job's folder
+    holds another run."""
     order = [*list(trains)[:first], *ppos, *list(trains)[first:]]
-    done = [n for n in order if (out / n.replace("/", "_") / "summary.json").exists()]
-    if done:
-        print(f"already done, not run again: {', '.join(done)}")
-    todo = {
-        n: command(n, trains.get(n) or ppos[n], out, n in ppos)
-        for n in order
-        if any(part in n for part in only.split(",")) and n not in done
-    }
+    chosen = [n for n in order if any(part in n for part in only.split(","))]
+    try:  # a train.py job's overrides are checked against its run's; PPO's .hydra/ holds its own settings
+        states = {n: job_state(out / n.replace("/", "_"), trains.get(n)) for n in chosen}
+    except JobError as e:
+        print(f"ferl: error: {e}", file=sys.stderr)
+        return 2
+    for name in (n for n in ppos if states.get(n) == RESUMED):  # PPO does not resume: it starts again
+        states[name] = TODO
+        set_aside(out / name.replace("/", "_"))
+    if any(s != TODO for s in states.values()):
+        print(f"ferl: resuming {out}: {states_line(list(states.values()))}", flush=True)
+    todo = {n: command(n, trains.get(n) or ppos[n], out, n in ppos) for n in chosen if states[n] != DONE}
     started = time.monotonic()
     failed = run_commands(todo, out, jobs)
     (out / "train_wall_time_s").write_text(f"{round(time.monotonic() - started)}\n")
     if failed:
         return 1
+    if not analyze:
+        return 0
+    if before_analysis is not None:
+        before_analysis(out)
     return subprocess.run([sys.executable, str(ROOT / "analyze.py"), str(out)], cwd=ROOT).returncode
 
 
-def arguments(doc: str, stages: tuple[str, ...] = ()) -> argparse.Namespace:
+def arguments(doc: str, stages: tuple[str, ...] = (), flags: dict[str, str] | None = None) -> argparse.Namespace:
+    """The scripts' command line: the folder, ``--stage`` where there are ``stages``, ``--jobs``,
+    ``--only`` and the yes/no ``flags`` (name → help)."""
     parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     parser.add_argument("out", type=Path)
+    for flag, text in (flags or {}).items():
+        parser.add_argument(flag, action="store_true", help=text)
     if stages:
         parser.add_argument("--stage", choices=stages, default=stages[-1])
     parser.add_argument("--jobs", type=int, default=2)

@@ -7,19 +7,26 @@ CountRecallEasy, AutoencodeEasy and MineSweeperEasy (Morad et al., ICLR 2023) an
 MemoryS7 (Chevalier-Boisvert et al. 2023). Agents: FERL trained online (§5.4) on an LSTM predictor
 (the experiments' own config), the same with the MLP Q-network (``actor=mlp_q``), memoryless FERL
 (``predictor=none``) and DRQN (``actor=drqn predictor=none``), both under Algorithm 1's actor
-phase alone, and, where sb3-contrib is installed (``.[baselines]``), RecurrentPPO on the same
-encoded observations, at POPGym's own discount 0.99, for the environment steps the ferl agents
-took (3 runs on MiniGrid, ``PPO_RUNS``: the budget). Every agent gets the same number of episodes
-(``EPISODES``). There is no oracle: a
+phase alone. Every agent gets the same number of episodes (``EPISODES``). There is no oracle: a
 third-party environment does not expose its state.
 
+RecurrentPPO (sb3-contrib, ``.[baselines]``) on the same encoded observations, at POPGym's own
+discount 0.99, for the environment steps the ferl agents took (3 runs on MiniGrid, ``PPO_RUNS``:
+the budget), is a reference of its own (``--reference``, `make suites-reference`): a sweep of ferl's
+agents copies the newest reference's jobs in before its analysis, and its report names that
+reference's folder, date and commit (``reference.py``).
+
     python baselines/suites.py outputs/suites/NAME [--jobs 2] [--only SUBSTRING,…]
+    python baselines/suites.py outputs/suites_reference/NAME --reference [--jobs 2]
 """
 
 import importlib.util
 import sys
 
-from side_by_side import arguments, run_table
+import reference
+from side_by_side import ROOT, arguments, run_table
+
+REFERENCES = ROOT / "outputs" / "suites_reference"  # make suites-reference's sweeps
 
 # experiment → (episodes per run, environment steps per episode for PPO's budget: the fixed
 # episode length, or MiniGrid's mean over the ferl agents' episodes at this budget, rounded)
@@ -57,7 +64,6 @@ def ppo_jobs() -> dict[str, list[str]]:
         print("sb3-contrib is not installed (pip install -e '.[baselines]'): no RecurrentPPO reference")
         return {}
     from hydra import compose, initialize_config_dir
-    from side_by_side import ROOT
 
     jobs = {}
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
@@ -81,8 +87,12 @@ def ppo_jobs() -> dict[str, list[str]]:
 
 
 def main() -> int:
-    args = arguments(__doc__)
-    return run_table(args.out, train_jobs(), ppo_jobs(), args.jobs, args.only, first=0)  # PPO's are the longest
+    args = arguments(__doc__, flags={"--reference": "RecurrentPPO's reference alone (make suites-reference)"})
+    if args.reference:
+        ppos = ppo_jobs()
+        return run_table(args.out, {}, ppos, args.jobs, args.only, first=0, analyze=False) if ppos else 1
+    copy_reference = lambda out: reference.copy_newest(out, REFERENCES)  # noqa: E731
+    return run_table(args.out, train_jobs(), {}, args.jobs, args.only, first=0, before_analysis=copy_reference)
 
 
 if __name__ == "__main__":

@@ -36,13 +36,12 @@ _first_calls = [0.0]  # seconds this process has spent in compiled functions' fi
 # its graph compiled in about half 8's time; 1 or 2: 0.5–0.75 × the speed).
 CHUNK_STEPS = 8
 EPISODE_CHUNK_STEPS = 4
-# Steps one compiled graph may unroll where a path still unrolls a whole sequence (the predictors'
-# BPTT, the online trainer's replay). Inductor's compile time grows faster than the graph: the
-# recurrent Q-learner's unrolled episode and replay graphs took ~95 s at T_max = 44 on the 2-core
-# CPU and were still compiling after 24 min at T_max = 101; an online replay step of an LSTM
-# predictor over 44 steps took ~120 s with another job on the second core (docs/performance.md).
-# 80 keeps the dissertation's chunks (8 SGD steps of ≤ 10 actions); longer unrolls run in smaller
-# chunks (``unroll_chunk``) or eagerly.
+# Steps one compiled graph of whole SGD steps of the predictors' BPTT may unroll (sequences of at
+# most ``ferl.predictors.training.TIME_CHUNKED_FROM`` steps; longer ones train in chunks of time
+# steps). Inductor's compile time grows faster than the graph: the recurrent Q-learner's unrolled
+# episode and replay graphs took ~95 s at T_max = 44 on the 2-core CPU and were still compiling
+# after 24 min at T_max = 101 (docs/performance.md). 80 keeps the dissertation's chunks (8 SGD
+# steps of ≤ 10 actions); longer sequences take fewer steps a graph (``unroll_chunk``).
 MAX_UNROLLED_STEPS = 80
 # Inductor's options on a CPU. ``cpp_wrapper``: the kernels are called from C++. Inductor inlines a
 # pointwise value into each of its readers until it has more than ``realize_reads_threshold``
@@ -114,11 +113,6 @@ def fast_path(wanted: bool, device: torch.device) -> bool:
         warn(f"compile=true: {reason}; running eagerly (slower, the same steps; compile=false silences this)")
         return False
     return True
-
-
-def unrolls(steps: int) -> bool:
-    """Whether one graph may unroll ``steps`` steps (``MAX_UNROLLED_STEPS``)."""
-    return steps <= MAX_UNROLLED_STEPS
 
 
 def unroll_chunk(steps_each: int, wanted: int) -> int:

@@ -7,6 +7,7 @@ reward-free condition of §3.5.3 is the floor's ``reward_condition`` "none".
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 
 import numpy as np
 
@@ -36,6 +37,10 @@ OUTLIER_GAIN = (0.2, 0.05)  # rise of the median P(optimal | "1")
 SELECTIVITY_GAIN = (2.0, 1.0)  # class selectivity after ÷ before
 PAIR_RUNS = 0.6  # share of runs in which a pair must cluster
 LOW_ACTIVATION = 0.1  # median activation counted as "very low"
+# The jobs (experiments) that the sections describe: a sweep judges their claims there. §3.5.3's
+# floor has noise tiles "N" in place of the "5"s (Fig. 3.8); CW is its default condition
+# (Figs. 3.10(b), 3.11(a), 3.13 compare with it), the reward-free one Figs. 3.10(d), 3.11(c).
+FLOOR_JOB, CODING_JOB, NO_REWARD_JOB = "ch3_floor", "ch3_coding_cw", "ch3_coding_noreward"
 
 
 def _near_optimal(run: FloorRun) -> Measured | None:
@@ -197,7 +202,7 @@ def _every_or_on_average(value: tuple[bool, bool]) -> str:
 SAME_ACTION_PAIRS_SOURCE = "§3.5.3, Figs. 3.11(a)/(b), 3.13"
 
 
-CLAIMS: list[Claim] = [
+_CLAIMS: list[Claim] = [
     Claim(
         "Despite the observation noise the agent performs at a nearly optimal level "
         "at the end of training (upper bound 8 reward/step).",
@@ -285,6 +290,15 @@ CLAIMS: list[Claim] = [
         _every_or_on_average,
     ),
 ]
+
+
+def _job(source: str, text: str) -> str:
+    if not source.startswith("§3.5.3"):
+        return FLOOR_JOB  # §3.5.1–§3.5.2
+    return NO_REWARD_JOB if text.startswith("Without reward") else CODING_JOB
+
+
+CLAIMS: list[Claim] = [replace(c, experiment=_job(c.source, c.text)) for c in _CLAIMS]
 
 
 def applies(manifest: Manifest) -> bool:

@@ -10,6 +10,8 @@ those roles. §5.3.1 is the matching maze with bit observations, §5.3.2 with no
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 from ferl.analysis.claims import (
     Chapter,
     Claim,
@@ -28,25 +30,27 @@ from reproduction.scope import dissertation_algorithm
 from reproduction.tmaze import ENV_KIND, TMazeRun
 from reproduction.tmaze_claims import (
     CORRECT_GOAL,
-    EARLY_EPOCHS,
-    EARLY_SHARE,
     ERROR_DROP,
-    GENERALISATION,
-    MOST_VARIANCE,
     SEPARATED,
+    SEPARATED_AFTER_TEXT,
+    SEPARATED_IN_BOTH_TEXT,
     SOLVED_RUNS,
-    TD_DECREASE,
+    TD_TEXT,
     Applies,
     correct_goal,
+    learning_text,
     learns_and_generalises,
     phase_means,
     predictor_learns,
+    separated_after_learning,
     separated_in_both,
     separates_more,
     separation_claim,
     solved,
-    td_decreases,
+    td_falls,
+    td_falls_in_all_runs,
     variance_claim,
+    with_note,
 )
 
 MOST_RUNS_SOLVED = (0.8, 0.5)  # share of runs ``solved``: "8 of 10" near-optimal (§5.3.1)
@@ -54,7 +58,9 @@ HIGH_CORRECT_GOAL = (0.8, 0.6)  # final correct-goal rate, mean over runs: "high
 NOISY_ERROR_DROP = 0.9  # final ÷ initial error of the pixel observation predictor,
 # whose noisy targets keep a high baseline (Fig. 5.17a)
 NOT_SEPARATED = SEPARATED[1]  # initial-signal silhouette under which a memory "does not"
-CLASS_STRUCTURE = (0.9, 0.5)  # class silhouette on PC1–3, processed ÷ raw images
+# nearest-centroid accuracy above chance, processed ÷ raw images; the stricter rule (a note):
+# the class silhouette on PC1–3, processed ÷ raw, at the same limits
+CLASS_STRUCTURE = (0.9, 0.5)
 RECONSTRUCTION_DROP = (0.5, 0.9)  # held-out reconstruction error, after ÷ before training
 
 PANELS = {OBSERVATION: "(a)", REWARD: "(b)"}  # Figs. 5.2/5.17: (a) Eq. 5.1, (b) Eq. 5.2
@@ -131,17 +137,26 @@ def _positive_return(run: TMazeRun) -> Measured:
 
 def _good_but_never_optimal(run: TMazeRun) -> Measured:
     rate, runs_solved = run.metric("final_correct_goal_rate"), run.metric("solved")
+    steps = run.metric("final_steps_to_goal")
+    # Figs. 5.19(a–b) plot the average over the runs: it stays short of the optimum
+    short = bool(rate.mean() < 1.0 and steps.mean() > run.optimal_steps)
     return Measured(
-        (rate.mean(), int(runs_solved.sum())),
+        (rate.mean(), short, int(runs_solved.sum())),
         f"final correct-goal rate {mean_sd_text(rate)}; final steps to the goal "
-        f"{mean_sd_text(run.metric('final_steps_to_goal'))}, optimum "
-        f"{run.optimal_steps:g}; {int(runs_solved.sum())}/{len(runs_solved)} "
-        "runs solved",
+        f"{mean_sd_text(steps)}, optimum {run.optimal_steps:g}; "
+        f"{int(runs_solved.sum())}/{len(runs_solved)} runs solved",
     )
 
 
-def _high_but_never_optimal(value: tuple[float, int]) -> str:
-    rate, n_solved = value
+def _high_but_never_optimal(value: tuple[float, bool, int]) -> str:
+    """ "The average number of steps … and the average terminal reward … improved toward their
+    theoretical optimal values; however, they never reached these values": the run average."""
+    rate, short, _ = value
+    return held_only_if(at_least(*HIGH_CORRECT_GOAL)(rate), short)
+
+
+def _no_run_optimal(value: tuple[float, bool, int]) -> str:
+    rate, _, n_solved = value
     return held_only_if(at_least(*HIGH_CORRECT_GOAL)(rate), n_solved == 0)
 
 
@@ -149,14 +164,19 @@ def _class_structure_kept(run: TMazeRun) -> Measured | None:
     pre = run.preprocessing
     if pre is None:
         return None
-    raw, processed = pre.silhouettes
-    # Without class structure in the raw images (silhouette ≤ 0) there is none to keep.
-    ratio = processed.mean() / raw if raw > 0 else float("nan")
+    raw, processed = pre.class_accuracy
+    chance = 1 / len(pre.class_names)
+    # Without class structure in the raw images (accuracy at chance) there is none to keep.
+    ratio = (processed.mean() - chance) / (raw - chance) if raw > chance else float("nan")
+    raw_sil, processed_sil = pre.silhouettes
+    sil_ratio = processed_sil.mean() / raw_sil if raw_sil > 0 else float("nan")
     return Measured(
         ratio,
-        f"silhouette of the {len(pre.class_names)} digit classes on PC1–3: "
-        f"raw images {raw:.2f}, processed {mean_sd_text(processed)}; "
-        f"processed ÷ raw {ratio:.2f}",
+        f"nearest-class-centroid accuracy (leave one out, all units) of the {len(pre.class_names)} digit "
+        f"classes: raw images {raw:.3f}, processed {mean_sd_text(processed)}, chance {chance:.2f}; above "
+        f"chance, processed ÷ raw {ratio:.2f}; stricter rule (silhouette on PC1–3, raw {raw_sil:.2f}, "
+        f"processed {processed_sil.mean():.3f}, ratio {sil_ratio:.2f} ≥ {CLASS_STRUCTURE[0]:g}, partly ≥ "
+        f"{CLASS_STRUCTURE[1]:g}): {at_least(*CLASS_STRUCTURE)(sil_ratio)}",
     )
 
 
@@ -181,37 +201,27 @@ _MEMORY_TEXT = (
     "phase, else partly"
 )
 _STATE_TEXT = at_least_text("silhouette of the conditions in both phases", SEPARATED)
+_NEVER_OPTIMAL_TEXT = (
+    "; held needs the run averages short of the optimum (correct-goal rate < 1, steps > 3), else partly"
+)
 _HIDDEN_TEXT = (
     at_least_text("silhouette of the conditions, last phase", SEPARATED)
     + "; at most partly unless above the first phase"
 )
-_VARIANCE_TEXT = at_least_text("variance share, last phase, mean over runs", MOST_VARIANCE)
-
-
-def _learning_text(drop: float) -> str:
-    return (
-        f"held: final ≤ {drop:g} × initial training error, ≥ {EARLY_SHARE:.0%} of the drop "
-        f"within the first {EARLY_EPOCHS:.0%} of the epochs (where logged), final test ≤ "
-        f"{GENERALISATION:g} × train and longer T ≤ {GENERALISATION:g} × trained T (where "
-        "recorded); partly: the drop alone"
-    )
 
 
 def _td_claim(applies: Applies, source: str) -> Claim:
-    return threshold_claim(
+    return Claim(
         "The TD error decreases over the episodes in all runs.",
         source,
-        only(applies, td_decreases),
-        TD_DECREASE,
-        "last ÷ first final-window mean |δ|, worst run",
-        upper=True,
+        only(applies, td_falls),
+        td_falls_in_all_runs,
+        TD_TEXT,
     )
 
 
 def _predictor_claim(applies: Applies, role: str, text: str, source: str, drop: float = ERROR_DROP) -> Claim:
-    return Claim(
-        text, source, only(applies, predictor_learns(role, drop)), learns_and_generalises, _learning_text(drop)
-    )
+    return Claim(text, source, only(applies, predictor_learns(role, drop)), learns_and_generalises, learning_text(drop))
 
 
 def _memory_claim(applies: Applies, source: str) -> Claim:
@@ -225,7 +235,7 @@ def _memory_claim(applies: Applies, source: str) -> Claim:
     )
 
 
-CLAIMS: list[Claim] = [
+_BIT_CLAIMS: list[Claim] = [
     threshold_claim(
         "The matching T-maze is solved near-optimally: 8 of 10 runs reach the "
         "optimal performance, two converge to sub-optimal ones.",
@@ -262,12 +272,13 @@ CLAIMS: list[Claim] = [
     separation_claim(
         _BIT,
         "state",
-        separated_in_both,
+        separated_after_learning,
         "The four conditions are separately represented in the actor's state nodes.",
         "§5.3.1, Fig. 5.9",
-        _STATE_TEXT,
+        SEPARATED_AFTER_TEXT,
+        (separated_in_both, SEPARATED_IN_BOTH_TEXT),
     ),
-    variance_claim(_BIT, "state", 3, "§5.3.1, Fig. 5.10(a)", criterion=_VARIANCE_TEXT),
+    variance_claim(_BIT, "state", 3, "§5.3.1, Fig. 5.10(a)"),
     separation_claim(
         _BIT,
         "hidden",
@@ -276,7 +287,9 @@ CLAIMS: list[Claim] = [
         "§5.3.1, Figs. 5.11–5.12",
         _HIDDEN_TEXT,
     ),
-    variance_claim(_BIT, "hidden", 3, "§5.3.1, Fig. 5.13(a)", criterion=_VARIANCE_TEXT),
+    variance_claim(_BIT, "hidden", 3, "§5.3.1, Fig. 5.13(a)"),
+]
+_PIXEL_CLAIMS: list[Claim] = [
     threshold_claim(
         "The RBM preprocessor preserves the distribution of each digit class: the "
         "classes stay as separate in the processed observations as in the raw "
@@ -284,7 +297,7 @@ CLAIMS: list[Claim] = [
         "§5.3.2, Figs. 5.15(a)/5.16(a)",
         _class_structure_kept,
         CLASS_STRUCTURE,
-        "processed ÷ raw silhouette",
+        "nearest-centroid accuracy above chance, processed ÷ raw",
     ),
     threshold_claim(
         "Training the RBM preprocessor (contrastive divergence, CD-3) lowers its reconstruction error.",
@@ -316,10 +329,9 @@ CLAIMS: list[Claim] = [
         "Steps to the goal and terminal reward improve toward their optimal values but never "
         "reach them, because of the noise in the observations.",
         "§5.3.2, Fig. 5.19(a–b)",
-        only(_PIXEL, _good_but_never_optimal),
+        only(_PIXEL, with_note(_good_but_never_optimal, _no_run_optimal, "no run solved")),
         _high_but_never_optimal,
-        at_least_text("final correct-goal rate, mean over runs", HIGH_CORRECT_GOAL)
-        + "; held needs no run solved, else partly",
+        at_least_text("final correct-goal rate, mean over runs", HIGH_CORRECT_GOAL) + _NEVER_OPTIMAL_TEXT,
     ),
     _td_claim(_PIXEL, "§5.3.2, Fig. 5.19(c)"),
     _memory_claim(_PIXEL, "§5.3.2, Figs. 5.20–5.21"),
@@ -331,7 +343,7 @@ CLAIMS: list[Claim] = [
         "§5.3.2, Figs. 5.22–5.23",
         _STATE_TEXT,
     ),
-    variance_claim(_PIXEL, "state", 3, "§5.3.2, Fig. 5.23(a)", criterion=_VARIANCE_TEXT),
+    variance_claim(_PIXEL, "state", 3, "§5.3.2, Fig. 5.23(a)"),
     separation_claim(
         _PIXEL,
         "hidden",
@@ -342,7 +354,12 @@ CLAIMS: list[Claim] = [
         "§5.3.2, Figs. 5.24–5.25(a)",
         _HIDDEN_TEXT,
     ),
-    variance_claim(_PIXEL, "hidden", 2, "§5.3.2, Fig. 5.25(b)", criterion=_VARIANCE_TEXT),
+    variance_claim(_PIXEL, "hidden", 2, "§5.3.2, Fig. 5.25(b)"),
+]
+# The jobs (experiments) that §5.3.1 and §5.3.2 describe: a sweep judges their claims there.
+BIT_JOB, PIXEL_JOB = "table5_1_bit", "table5_1_pixel"
+CLAIMS: list[Claim] = [replace(c, experiment=BIT_JOB) for c in _BIT_CLAIMS] + [
+    replace(c, experiment=PIXEL_JOB) for c in _PIXEL_CLAIMS
 ]
 
 

@@ -4,13 +4,14 @@ from __future__ import annotations
 
 from ferl.analysis.claims import HELD, NOT_HELD, PARTLY, VERDICTS, Claim, Measured
 from ferl.analysis.sweep import Sweep
-from reproduction.ch3 import SAME_ACTION_PAIRS_SOURCE
+from reproduction.ch3 import CODING_JOB, SAME_ACTION_PAIRS_SOURCE
 
 
 def _hidden_size_verdicts(sweep: Sweep) -> Measured | None:
     """The same-action-pair claim judged in jobs of one experiment that differ only in
-    ``actor.n_hidden`` (the first such set with two sizes or more)."""
-    for experiment in dict.fromkeys(j.experiment for j in sweep.jobs):
+    ``actor.n_hidden`` (the first such set with two sizes or more; §3.5.3's job first)."""
+    experiments = dict.fromkeys(j.experiment for j in sweep.jobs)
+    for experiment in sorted(experiments, key=lambda name: name != CODING_JOB):
         for by_size in sweep.varying(experiment, "actor", "n_hidden"):
             found = {int(n): job.verdict(SAME_ACTION_PAIRS_SOURCE) for n, job in by_size.items()}
             found = {n: r.verdict for n, r in found.items() if r is not None}

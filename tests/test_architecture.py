@@ -5,6 +5,7 @@ trainers or analysis, analysis imports no model, and ferl never imports the diss
 class of its own."""
 
 import ast
+import re
 import sys
 from pathlib import Path
 
@@ -173,6 +174,52 @@ def test_import_scan_finds_every_form(tmp_path, monkeypatch):
     assert imported_modules("ferl.pkg.a") == {"ferl.pkg", "ferl.pkg.b", "ferl.pkg.c", "ferl.pkg.d", "ferl.pkg.e"}
     assert reachable("ferl.pkg.d") == {"ferl", "ferl.pkg", "ferl.pkg.e"}
     assert reachable("ferl.pkg.c") == {"ferl", "ferl.pkg"}
+
+
+def trainer_files() -> dict[str, Path]:
+    """Module name → file of every module of ferl.trainers."""
+    return {f"ferl.trainers.{p.stem}": p for p in (FERL / "trainers").glob("*.py") if p.stem != "__init__"}
+
+
+def test_trainers_import_no_circle_and_handoffs_lie_below_the_phases():
+    """docs/architecture.md, "Trainers": the trainers' modules import one another without a
+    circle (every import, also those under TYPE_CHECKING or inside a function), and the hand-offs
+    (``ferl.trainers.handoffs``) import no other trainer module: they lie below the phases."""
+    modules = trainer_files()
+    edges = {m: {n for n in imported_modules(m) if n in modules and n != m} for m in modules}
+    assert edges["ferl.trainers.handoffs"] == set()
+    # a depth-first search; a module met again on the current path closes a circle
+    state: dict[str, int] = {}  # 1: on the path, 2: done
+
+    def visit(module: str, path: list[str]) -> None:
+        state[module] = 1
+        for n in sorted(edges[module]):
+            assert state.get(n) != 1, " → ".join([*path, module, n])
+            if n not in state:
+                visit(n, [*path, module])
+        state[module] = 2
+
+    for module in sorted(modules):
+        if module not in state:
+            visit(module, [])
+
+
+def test_circle_search_sees_a_circle(tmp_path, monkeypatch):
+    """The search above finds a circle through a TYPE_CHECKING import (one that missed it would
+    pass vacuously)."""
+    package = tmp_path / "ferl" / "trainers"
+    package.mkdir(parents=True)
+    for path in (tmp_path / "ferl" / "__init__.py", package / "__init__.py"):
+        path.write_text("")
+    (package / "handoffs.py").write_text("")
+    (package / "a.py").write_text("from ferl.trainers.b import x\n")
+    (package / "b.py").write_text(
+        "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from ferl.trainers.a import y\n"
+    )
+    monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
+    monkeypatch.setattr(sys.modules[__name__], "FERL", tmp_path / "ferl")
+    with pytest.raises(AssertionError, match=re.escape("ferl.trainers.a → ferl.trainers.b → ferl.trainers.a")):
+        test_trainers_import_no_circle_and_handoffs_lie_below_the_phases()
 
 
 def test_analysis_reads_records_not_models():

@@ -181,6 +181,53 @@ def test_fused_bptt_of_autograd_memories_equals_their_eager_epoch(monkeypatch, m
         torch.testing.assert_close(compiled, eager, rtol=1e-10, atol=1e-10)
 
 
+# the online trainer on an LSTM predictor, 2 runs of the regular maze's short episodes
+ONLINE_LSTM = (
+    "experiment=table4_1_regular",
+    "trainer=online",
+    "predictor.joint.memory=lstm",
+    "n_runs=2",
+    "env.max_steps=6",
+)
+
+
+def test_online_episodes_compiled_equal_eager_in_one_graph(tmp_path, monkeypatch):
+    """The online trainer's episodes compiled in chunks of steps (EPISODES_FUSED_FROM patched down
+    to this run's 30 episodes; the replay eager), β_k following the predictor's error and the
+    curiosity η_k annealed from episode to episode, against compile=false: the same actions in
+    every episode, returns and TD errors within float32 rounding, and one graph of steps for every
+    episode (β_k and η_k are tensors, the predictor's weights read as the replay leaves them)."""
+    from torch._dynamo.utils import counters
+
+    from ferl.trainers import online_episodes
+
+    monkeypatch.setattr(online_episodes, "EPISODES_FUSED_FROM", 30)
+    tiny = (
+        *ONLINE_LSTM,
+        "trainer.n_episodes=30",
+        "trainer.replay_sample=4",
+        "trainer.curiosity=0.5",
+        "trainer.log_every=10",
+        "trainer.td_sample_every=10",
+        "trainer.final_window=10",
+    )
+    _, eager = episodes(tmp_path, "eager", "compile=false", tiny=tiny)
+    torch._dynamo.reset()
+    counters.clear()
+    summary, fused = episodes(tmp_path, "fused", "compile=true", tiny=tiny)
+    assert summary["compile_time_s"] > 0
+    # the chunk of steps (max_steps 6: 2 calls of 3 steps) and the FERL actor's update graphs
+    # (``compile_updates``), each traced once, whatever β_k, η_k and the weights were
+    assert counters["stats"]["unique_graphs"] <= 3, dict(counters["stats"])
+    for key in ("steps", "correct_goal", "condition"):
+        np.testing.assert_array_equal(fused[key], eager[key], err_msg=key)
+    for key in ("discounted_return", "td_abs_mean", "td_sampled"):
+        np.testing.assert_allclose(fused[key], eager[key], rtol=1e-4, atol=1e-5, err_msg=key)
+    with np.load(tmp_path / "fused" / "records" / "online.npz") as online:
+        k = np.arange(30)  # η_k = η · max(0, 1 − k / (0.5 N)) did change from episode to episode
+        np.testing.assert_allclose(online["curiosity"][0], 0.5 * np.maximum(0, 1 - k / 15), rtol=1e-6)
+
+
 def test_online_replay_compiled_equals_eager(tmp_path, monkeypatch):
     """The online trainer with an LSTM predictor, its replay's BPTT compiled (REPLAY_FUSED_FROM
     patched down to this run's 40 episodes) against compile=false: the same actions in every
@@ -189,11 +236,7 @@ def test_online_replay_compiled_equals_eager(tmp_path, monkeypatch):
 
     monkeypatch.setattr(online_episodes, "REPLAY_FUSED_FROM", 40)
     tiny = (
-        "experiment=table4_1_regular",
-        "trainer=online",
-        "predictor.joint.memory=lstm",
-        "n_runs=2",
-        "env.max_steps=6",
+        *ONLINE_LSTM,
         "trainer.n_episodes=40",
         "trainer.replay_sample=8",
         "trainer.log_every=20",

@@ -6,7 +6,8 @@ The statistics are checked against numpy over the same rewards; the head's resca
 outputs before and after; the whole route against the delayed-recall environment of
 tests/outside_env.py at its native scale (rewards −0.1 and ±1, ``env.reward_scale=1``), which FERL
 trained online does not learn without the normalisation (2/10 runs at the optimum, 9/10 with it:
-docs/beyond.md).
+docs/beyond.md). A constant reward (CartPole's +1 a step), whose σ vanishes, is learnt as without
+the normalisation: the same runs, step for step.
 """
 
 import sys
@@ -38,6 +39,21 @@ NATIVE = [
     "trainer.log_every=500",
     "trainer.checkpoint_every=100000",
     "n_runs=3",
+]
+
+
+# CartPole: +1 at every step, a constant reward; a thermometer code per entry of its Box
+CONSTANT = [
+    "experiment=popgym_repeat_previous_easy",
+    "env.id=CartPole-v1",
+    "env.thresholds=[[-1,0,1],[-1,0,1],[-0.1,0,0.1],[-1,0,1]]",
+    "env.reward_scale=1",
+    "env.optimal_return=null",
+    "actor.gamma=0.9",
+    "trainer.n_episodes=40",
+    "trainer.log_every=20",
+    "trainer.checkpoint_every=100000",
+    "n_runs=2",
 ]
 
 
@@ -90,3 +106,37 @@ def test_native_scale_delayed_recall_is_learnt_online(tmp_path):
     final = np.array(summary["metrics"]["final_return"])
     assert summary["optimal"]["return"] == pytest.approx(0.8)
     assert (final >= 0.95 * 0.8).sum() >= 2, final
+
+
+def test_rewards_that_have_not_varied_are_not_divided_by_their_vanishing_sigma():
+    """Equal rewards: the identity, (μ, σ) = (0, 1), whatever their value; the first reward that
+    differs switches to the standardised reward with the head's outputs preserved."""
+    p = predictor(
+        memory="lstm", n_runs=2, n_obs=4, n_actions=2, reward_output="linear", n_reward=1, reward_norm="popart"
+    )
+    lengths = torch.tensor([[4, 2, 3], [1, 4, 4]])
+    constant = torch.tensor([1.0, 48.0]).view(2, 1, 1).expand(2, 3, 4)
+    p.observe_rewards(constant, lengths)
+    mu, sigma = p.reward_stats.moments()
+    assert mu.tolist() == [0.0, 0.0] and sigma.tolist() == [1.0, 1.0]
+    torch.testing.assert_close(normalised(p.reward_stats, constant), constant, rtol=0, atol=0)
+    y, a = torch.rand(2, 3, 5, 4).round(), torch.nn.functional.one_hot(torch.randint(2, (2, 3, 4)), 2).float()
+    before = p.forward_sequences(y, a, lengths)[1]  # in the environment's units while (μ, σ) = (0, 1)
+    p.observe_rewards(constant + torch.tensor([0.5, -3.0]).view(2, 1, 1), lengths)
+    mu, sigma = p.reward_stats.moments()
+    assert (sigma > 0.1).all()  # now standardised: σ of the rewards seen, as numpy has it
+    np.testing.assert_allclose(sigma.numpy()[0], np.std([1.0] * 9 + [1.5] * 9), rtol=1e-5)
+    after = p.forward_sequences(y, a, lengths)[1] * sigma.view(2, 1, 1, 1) + mu.view(2, 1, 1, 1)
+    torch.testing.assert_close(after, before, rtol=1e-4, atol=1e-3)
+
+
+def test_a_constant_reward_is_learnt_as_without_normalisation(tmp_path):
+    """PopArt on CartPole's constant reward: the runs and their prediction errors are those of
+    ``reward_norm=none`` (the same seeds), not errors of ~1/σ that exploration would then chase."""
+    runs, errors = {}, {}
+    for norm in ("popart", "none"):
+        runs[norm] = train_job(compose_config([*CONSTANT, f"predictor.joint.reward_norm={norm}"]), tmp_path / norm)
+        errors[norm] = np.load(tmp_path / norm / "records" / "online.npz")["prediction_error"]
+    assert np.isfinite(errors["none"]).all() and errors["none"].shape == (2, 40)
+    np.testing.assert_allclose(errors["popart"], errors["none"], rtol=1e-5, atol=1e-6)
+    assert runs["popart"]["metrics"]["final_return"] == runs["none"]["metrics"]["final_return"]

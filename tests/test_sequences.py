@@ -3,7 +3,8 @@
 import torch
 
 from ferl.envs.tmaze import TMaze
-from ferl.trainers.episodes import Episodes, balance_and_split, collect_random_episodes
+from ferl.trainers.episodes import balance_and_split, collect_random_episodes
+from ferl.trainers.handoffs import Episodes
 
 
 def collect(R=3, n=600, copies=50, seed=0):

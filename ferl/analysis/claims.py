@@ -40,6 +40,9 @@ class Claim:
     measure: Callable[[Any], Measured | None]  # None: the run has no data for this claim
     rule: Callable[[Any], str]
     criterion: str = ""  # the rule in words, for the report
+    # The job that the publication's section describes, as runs record their experiment
+    # (summary.json): a sweep judges the claim on it where it has one ("": no preference).
+    experiment: str = ""
 
 
 @dataclass(frozen=True)

@@ -33,6 +33,7 @@ from ferl.analysis.dispatch import REGISTRY, import_plugins
 from ferl.analysis.io import write_json
 from ferl.analysis.records import MANIFEST, Manifest, Run
 from ferl.analysis.report import RunAnalysis, RunOutcome, jobs_table, write_run_report
+from ferl.run.sweepdir import NOTES
 
 PROG = "analyze.py"
 POOL_MIN_RUNS = 4  # a pool's workers take a few seconds to start: fewer runs are analyzed in turn
@@ -296,7 +297,9 @@ def analyze_sweep(sweep_dir: Path, pages: Sequence[Path] = (), force: bool = Fal
         wall["training wall time (make reproduce / make beyond)"] = float(train_wall.read_text())
     wall["sum of the jobs' wall_time_s"] = sum(float(j.summary.get("wall_time_s", 0)) for j in jobs)
     wall["analysis wall time"] = time.perf_counter() - start
-    lines = sw.report_lines(sweep, analysis, rows, out, wall, REGISTRY.claims_heading) + findings
+    lines = sw.report_lines(sweep, analysis, rows, out, wall, REGISTRY.claims_heading)
+    notes = sweep_dir / NOTES  # a launcher's lines for the report (baselines/reference.py: where PPO's rows come from)
+    lines += (["", *notes.read_text().splitlines()] if notes.is_file() else []) + findings
     lines += ["", "## Jobs", ""] + jobs_table(sweep_dir, out, outcomes + skipped)
     (out / "report.md").write_text("\n".join(lines) + "\n")
     if pages and REGISTRY.pages is not None:

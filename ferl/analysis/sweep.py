@@ -5,8 +5,9 @@ Every job keeps its own ``analysis/`` (docs/records.md, "Analysis"); the sweep's
 * ``metrics.csv`` and one table per experiment: mean ± s.e.m. over runs of every
   ``summary.json`` metric, one column per variant of the experiment (a variant is a job's
   overrides besides ``experiment=…``; none = the setting of the experiment's YAML);
-* the claims report: one row per claim the jobs judged, judged on the job that runs the
-  experiment as its YAML does (the fewest overrides), the verdicts of the other jobs beside it,
+* the claims report: one row per claim the jobs judged, judged on the job of the experiment
+  the claim names (``Claim.experiment``, the one its section describes) that runs it as its YAML
+  does (the fewest overrides), the verdicts of the other jobs beside it,
   and the claims only a comparison of jobs can judge (``Registry.sweep_claims``);
 * the sections that plug-ins register (``ferl.analysis.dispatch.Registry.sweep_sections``).
 
@@ -179,15 +180,18 @@ class ReportRow:
 def reproduction_rows(
     jobs: Sequence[Job], sweep_results: Sequence[ClaimResult], order: Sequence[Claim]
 ) -> list[ReportRow]:
-    """One row per claim, in the given order (the publication's): the job with the fewest
-    overrides judges it (ties: sweep order)."""
+    """One row per claim, in the given order (the publication's): a job of the experiment the
+    claim names judges it where the sweep has one, of those the one with the fewest overrides
+    (ties: sweep order)."""
     answered: dict[tuple[str, str], list[tuple[Job, ClaimResult]]] = {}
     for job in jobs:
         for r in job.outcome.results:
             answered.setdefault((r.claim.text, r.claim.source), []).append((job, r))
     rows = []
     for found in answered.values():
-        primary = min(range(len(found)), key=lambda k: len(found[k][0].overrides))
+        named = found[0][1].claim.experiment
+        ranks = [(bool(named) and job.experiment != named, len(job.overrides)) for job, _ in found]
+        primary = min(range(len(found)), key=ranks.__getitem__)
         job, result = found[primary]
         rows.append(ReportRow(result, job, tuple(f for k, f in enumerate(found) if k != primary)))
     rows += [ReportRow(r, None, ()) for r in sweep_results]
@@ -208,6 +212,8 @@ def claims_rows_markdown(rows: Sequence[ReportRow], out: Path, links: bool = Tru
         else:
             name = row.job.label
             job = f"[{name}]({_link(row.job.run_dir / 'analysis' / 'report.md', out)})" if links else name
+            if r.claim.experiment and row.job.experiment != r.claim.experiment:
+                job += f" (not the section's `{r.claim.experiment}`: it did not judge the claim)"
         others = "; ".join(f"{j.label}: {o.verdict}" for j, o in row.others) or "—"
         cells.append([r.claim.text, r.claim.source, r.measured.text, f"**{r.verdict}**", job, others])
     return table_lines(["claim", "source", "measured", "verdict", "job", "other jobs"], cells)

@@ -7,20 +7,31 @@ observation space needs a declared encoding into {0, 1}^O:
 * ``onehot``: a ``Discrete(n)`` value as n bits with one on; ``MultiDiscrete`` as one such group per
   entry; ``MultiBinary`` as its own bits; ``Tuple`` and ``Dict`` of these as their parts' groups
   in order (a ``Dict``'s keys sorted, as Gymnasium orders them).
-* ``thresholds``: a ``Box`` value x as the bits [x_i > θ_j] for every entry i and threshold θ_j of
-  ``thresholds`` (a thermometer code: k thresholds give k + 1 levels per entry).
+* ``thresholds``: a ``Box`` value x as the bits [x_i > θ_ij] for every entry i (in C order) and
+  threshold θ_ij of its list, a thermometer code: k_i increasing thresholds give k_i + 1 levels.
+  ``thresholds`` is one list shared by every entry, ``[θ_1, …]``, or one list per entry,
+  ``[[θ_11, …], [θ_21, …], …]``, so entries of different ranges each get thresholds of their own;
+  entry i then takes k_i bits, and the code has Π_i (k_i + 1) distinct values.
 * ``minigrid``: MiniGrid's symbolic view, a dict whose ``image`` is (7, 7, 3) (object, colour,
   state) indices per cell, as one one-hot group of each per cell (Chevalier-Boisvert et al. 2023,
   ``minigrid.core.constants``); the ``direction`` and ``mission`` entries are left out, as the
   egocentric view already turns with the agent and a task's mission is fixed.
-* ``auto``: ``minigrid`` for such a dict, ``onehot`` where every part is discrete; anything else
-  has no encoding and is refused naming the space.
+* ``auto``: ``minigrid`` for such a dict, ``onehot`` where every part is discrete, ``thresholds``
+  for a ``Box`` when ``thresholds`` are given; anything else has no encoding and is refused
+  naming the space.
+
+Everything about an encoding is checked when it is built, before a run starts (docs/usage.md,
+"Training"): thresholds that are not numbers, not increasing, a list per entry whose count is not
+the Box's entries, thresholds given to an encoding that takes none (``BadThresholds``). The number
+of distinct codes an encoding can give (``distinct_codes``) is known for ``onehot`` and
+``thresholds`` (not for ``minigrid``), so the table of observations can be sized to it.
 
 An encoding is a ``gymnasium.ObservationWrapper`` (``BinaryObservation``), so the same code serves
 ferl's vector of environments and any outside learner given the wrapped environment.
 """
 
-from collections.abc import Callable, Iterable
+import math
+from collections.abc import Callable, Iterable, Sequence
 from typing import Literal, get_args
 
 import gymnasium
@@ -37,6 +48,11 @@ Encoder = Callable[[object], np.ndarray]  # one observation → uint8 bits (O,)
 
 class NoEncoding(ValueError):
     """The observation space has no encoding of the kind asked for (the message names the space)."""
+
+
+class BadThresholds(NoEncoding):
+    """``thresholds`` cannot encode the observation space (the message says why): a fault of
+    ``env.thresholds`` rather than of ``env.encoding``."""
 
 
 def onehot_encoder(space) -> tuple[Encoder, int]:
@@ -72,16 +88,77 @@ def onehot_encoder(space) -> tuple[Encoder, int]:
     )
 
 
-def thresholds_encoder(space, thresholds) -> tuple[Encoder, int]:
-    """(encoder, bits) of a ``Box``: [x_i > θ_j] for every entry i, threshold j (module docstring)."""
+def threshold_lists(space, thresholds) -> list[np.ndarray]:
+    """The increasing thresholds of every entry of the ``Box`` (C order): the shared list
+    repeated, or the lists given one per entry (module docstring); BadThresholds otherwise."""
     if not isinstance(space, spaces.Box):
         raise NoEncoding(f"{space} is not a Box: env.encoding=thresholds encodes Box observations")
+    entries = int(np.prod(space.shape))
     if not thresholds:
-        raise NoEncoding(f"{space} needs env.thresholds (a list of numbers) for env.encoding=thresholds")
-    theta = np.asarray(thresholds, np.float64)
-    return (lambda x: (np.asarray(x, np.float64).reshape(-1, 1) > theta).astype(np.uint8).reshape(-1)), int(
-        np.prod(space.shape)
-    ) * len(theta)
+        raise BadThresholds(
+            f"{space} needs thresholds for env.encoding=thresholds: [θ_1, …] shared by its "
+            f"{entries} entries, or one such list per entry"
+        )
+    nested = [isinstance(t, Sequence) and not isinstance(t, str) for t in thresholds]
+    if any(nested) and not all(nested):
+        raise BadThresholds("mixes numbers and lists: give one list of numbers, or one list per entry")
+    lists = [list(t) for t in thresholds] if all(nested) else [list(thresholds)] * entries
+    if len(lists) != entries:
+        raise BadThresholds(
+            f"gives {len(lists)} lists, one per entry, but {space} has {entries} entries (shape {space.shape})"
+        )
+    out = []
+    for i, theta in enumerate(lists):
+        where = f"entry {i}'s list {theta}" if all(nested) else f"{theta}"
+        if not theta or not all(isinstance(t, (int, float)) and not isinstance(t, bool) for t in theta):
+            raise BadThresholds(f"{where} is not a non-empty list of numbers")
+        values = np.asarray(theta, np.float64)
+        if not np.isfinite(values).all() or (np.diff(values) <= 0).any():
+            raise BadThresholds(f"{where} is not finite and increasing (a thermometer code: θ_1 < θ_2 < …)")
+        out.append(values)
+    return out
+
+
+def thresholds_encoder(space, thresholds) -> tuple[Encoder, int]:
+    """(encoder, bits) of a ``Box``: [x_i > θ_ij] for every entry i, threshold j (module docstring)."""
+    lists = threshold_lists(space, thresholds)
+    entry = np.repeat(np.arange(len(lists)), [len(theta) for theta in lists])  # the entry of every bit
+    theta = np.concatenate(lists)
+    return (lambda x: (np.asarray(x, np.float64).reshape(-1)[entry] > theta).astype(np.uint8)), len(theta)
+
+
+def fixed_bits(space, thresholds) -> list[tuple[int, float]]:
+    """(entry, θ) of every threshold outside its entry's bounds [low_i, high_i): a bit that never
+    changes (θ ≥ high_i: always 0; θ < low_i: always 1), what a list shared by entries of different
+    ranges gives."""
+    low, high = np.asarray(space.low, np.float64).reshape(-1), np.asarray(space.high, np.float64).reshape(-1)
+    return [
+        (i, float(t))
+        for i, theta in enumerate(threshold_lists(space, thresholds))
+        for t in theta
+        if t >= high[i] or t < low[i]
+    ]
+
+
+def distinct_codes(space, encoding: str, thresholds=()) -> int | None:
+    """How many distinct codes ``encoding`` can give for ``space`` (None: not known in advance,
+    MiniGrid's view): a bound on the distinct observations a run can meet."""
+    encoding = resolved(space, encoding, thresholds)
+    if encoding == "thresholds":
+        return math.prod(len(theta) + 1 for theta in threshold_lists(space, thresholds))
+    if encoding == "minigrid":
+        return None
+    if isinstance(space, spaces.Discrete):
+        return int(space.n)
+    if isinstance(space, spaces.MultiDiscrete):
+        return math.prod(int(n) for n in space.nvec.reshape(-1))
+    if isinstance(space, spaces.MultiBinary):
+        return 2 ** int(np.prod(space.shape))
+    if isinstance(space, (spaces.Tuple, spaces.Dict)):
+        parts = space.spaces.values() if isinstance(space, spaces.Dict) else space.spaces
+        counts = [distinct_codes(part, "onehot") for part in parts]
+        return None if None in counts else math.prod(c for c in counts if c is not None)
+    return None
 
 
 def is_minigrid(space) -> bool:
@@ -105,23 +182,39 @@ def minigrid_encoder(space) -> tuple[Encoder, int]:
     return encode, cells * width
 
 
+def resolved(space, encoding: str, thresholds=()) -> str:
+    """The encoding that ``encoding`` names for ``space`` (``auto``: the module docstring's choice)."""
+    if encoding != "auto":
+        return encoding
+    return (
+        "minigrid" if is_minigrid(space) else "thresholds" if isinstance(space, spaces.Box) and thresholds else "onehot"
+    )
+
+
 def encoder_for(space, encoding: str, thresholds=()) -> tuple[Encoder, int]:
-    """The encoder of ``space`` that ``encoding`` names (``auto``: the module docstring's choice)."""
-    if encoding == "auto":
-        if is_minigrid(space):
-            return minigrid_encoder(space)
-        try:
-            return onehot_encoder(space)
-        except NoEncoding:
-            raise NoEncoding(
-                f"{space} has no automatic encoding: a Box needs env.encoding=thresholds with "
-                f"env.thresholds=[...]; other spaces are not supported"
-            ) from None
-    if encoding == "onehot":
-        return onehot_encoder(space)
-    if encoding == "thresholds":
+    """The encoder of ``space`` that ``encoding`` names (``auto``: the module docstring's choice);
+    thresholds given to an encoding that takes none are refused."""
+    chosen = resolved(space, encoding, thresholds)
+    if chosen == "thresholds":
         return thresholds_encoder(space, thresholds)
-    return minigrid_encoder(space)
+    if chosen == "minigrid":
+        made = minigrid_encoder(space)
+    else:
+        try:
+            made = onehot_encoder(space)
+        except NoEncoding:
+            if encoding != "auto":
+                raise
+            raise NoEncoding(
+                f"{space} has no automatic encoding: a Box needs env.thresholds=[...] "
+                f"(one list, or one per entry); other spaces are not supported"
+            ) from None
+    if thresholds:
+        raise BadThresholds(
+            f"are given, but env.encoding={encoding} encodes {space} without them; "
+            f"thresholds encode a Box (env.encoding=thresholds or auto)"
+        )
+    return made
 
 
 class BinaryObservation(gymnasium.ObservationWrapper):

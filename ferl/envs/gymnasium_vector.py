@@ -5,7 +5,12 @@ R runs are one ``gymnasium.vector`` environment (``SyncVectorEnv``; ``AsyncVecto
 later episode continues its own random stream. Each run's observations are encoded as bits
 (``ferl.envs.encodings``) and given ids in order of first sight: the table of an episodic
 environment (``EpisodicEnvironment``) that grows in place as observations are discovered
-(``discovers_observations``), up to ``max_observations`` rows.
+(``discovers_observations``), up to ``max_observations`` rows. Where the encoding's number of
+distinct codes is known (``distinct_codes``: one-hot and thresholds), the table is sized to it
+(``max_observations: null``) and a smaller ``max_observations`` is refused at set-up, since a run
+could outgrow it (docs/beyond.md, "Outside POMDPs"); only a count too large for a table
+(``TABLE_BYTES``), where ``max_observations`` is the user's bound, or an unknown one (MiniGrid's
+view; 4096 rows unless set) can still overflow mid-run.
 
 Episodes follow ferl's lockstep (``ferl.trainers.actor_episodes``): every run starts episode k
 together, and a run whose episode has ended waits, with reward 0, until all have. The vector
@@ -42,10 +47,21 @@ import torch
 from gymnasium import spaces
 
 from ferl import rng
-from ferl.config.params import ConfigError, Positive, PositiveInt, checked
+from ferl.config.params import ConfigError, Positive, PositiveInt, checked, plain
 from ferl.envs.boundary import DETAIL, FAULT, Guarded
-from ferl.envs.encodings import BinaryObservation, Encoding, NoEncoding
+from ferl.envs.encodings import (
+    BadThresholds,
+    BinaryObservation,
+    Encoding,
+    NoEncoding,
+    distinct_codes,
+    fixed_bits,
+)
 from ferl.interfaces import EpisodicEnvironmentBase
+from ferl.messages import warn
+
+TABLE_BYTES = 256 * 2**20  # the largest table of observations sized to its code count unasked
+UNKNOWN_ROWS = 4096  # max_observations: null where the count of codes is not known in advance
 
 
 class EnvironmentFault(RuntimeError):
@@ -91,11 +107,34 @@ def default_max_steps(env) -> int | None:
     return None
 
 
+def table_rows(env_id: str, codes: int | None, bits: int, asked: int | None) -> int:
+    """The rows of the observation table (module docstring): ``asked`` where it holds every code
+    the encoding can give or that count is unknown or too large for a table; null: the count, or
+    ``UNKNOWN_ROWS``. ConfigError naming env.max_observations where a run could outgrow it."""
+    fits = codes is not None and codes * bits * 4 <= TABLE_BYTES
+    if codes is None:
+        return asked or UNKNOWN_ROWS
+    size = f"{codes} rows of {bits} bits ({codes * bits * 4 / 2**20:.1f} MiB)"
+    if asked is None and not fits:
+        raise ConfigError(
+            f"env.max_observations: the encoding of {env_id!r} can give {codes} distinct observations, "
+            f"more than a table sized to them holds ({TABLE_BYTES // 2**20} MiB); use fewer thresholds, "
+            f"or set env.max_observations to the most a run meets (a run that meets more stops)"
+        )
+    if asked is not None and fits and asked < codes:
+        raise ConfigError(
+            f"env.max_observations={asked}: the encoding of {env_id!r} can give {codes} distinct "
+            f"observations, so a run could outgrow the table; set it to null (sized to them: {size}) or ≥ {codes}"
+        )
+    return asked if asked is not None else codes
+
+
 class GymnasiumEnv(EpisodicEnvironmentBase):
     """R runs of the Gymnasium environment ``id`` (module docstring). Arguments: ``kwargs`` for
     ``gymnasium.make``; ``encoding`` of the observations (``ferl.envs.encodings``) with its
     ``thresholds``; ``max_steps`` T_max (null: the id's own); ``vectorization``; ``max_observations``
-    the table's rows; ``success_threshold`` and ``optimal_return`` (null: none stated)."""
+    the table's rows (null: sized to the encoding's codes, module docstring); ``success_threshold``
+    and ``optimal_return`` (null: none stated)."""
 
     task = "gymnasium"
     discovers_observations = True  # the observation table grows as observations are seen
@@ -114,7 +153,7 @@ class GymnasiumEnv(EpisodicEnvironmentBase):
         thresholds: list | None = None,
         max_steps: PositiveInt | None = None,
         vectorization: Literal["sync", "async"] = "sync",
-        max_observations: PositiveInt = 4096,
+        max_observations: PositiveInt | None = None,
         success_threshold: float | None = None,
         optimal_return: float | None = None,
         reward_scale: Positive = 1.0,
@@ -122,7 +161,7 @@ class GymnasiumEnv(EpisodicEnvironmentBase):
     ):
         del generator  # the environments draw from their own seeded generators
         self.n_runs, self.id, self.kwargs, self.device = n_runs, id, dict(kwargs or {}), torch.device(device)
-        self.encoding, self.thresholds = encoding, list(thresholds or ())
+        self.encoding, self.thresholds = encoding, list(plain(thresholds) or ())  # plain lists: JSON, pickles
         probe = make(id, self.kwargs)
         try:
             self.sizes = action_sizes(probe.action_space, id)
@@ -132,6 +171,11 @@ class GymnasiumEnv(EpisodicEnvironmentBase):
                     spaces.MultiBinary, BinaryObservation(probe, encoding, self.thresholds).observation_space
                 )
                 observation_size = cast(int, encoded.n)  # MultiBinary(size): an int
+                codes = distinct_codes(probe.observation_space, encoding, self.thresholds)
+                box = isinstance(probe.observation_space, spaces.Box) and self.thresholds
+                fixed = fixed_bits(probe.observation_space, self.thresholds) if box else []
+            except BadThresholds as e:
+                raise ConfigError(f"env.thresholds: {e}") from None
             except NoEncoding as e:
                 raise ConfigError(f"env.encoding: the observation space of {id!r}: {e}") from None
             limit = max_steps or default_max_steps(probe)
@@ -139,7 +183,17 @@ class GymnasiumEnv(EpisodicEnvironmentBase):
             probe.close()
         if limit is None:
             raise ConfigError(f"env.max_steps: {id!r} states no episode limit; set env.max_steps (T_max)")
+        # said at the first episode, once set-up has passed (a refusal stays one line)
+        self.unused_bits = (
+            f"env.thresholds: {len(fixed)} of the {observation_size} bits never change, their thresholds outside "
+            f"the bounds of entries {sorted({i for i, _ in fixed})} of {id!r}'s observations (one list per "
+            f"entry: [[θ_11, …], [θ_21, …], …])"
+            if fixed
+            else ""
+        )
         self.max_steps, self.observation_size = limit, int(observation_size)
+        self.distinct_codes = codes
+        max_observations = table_rows(id, codes, int(observation_size), max_observations)
         self.n_actions = int(np.prod(self.sizes))
         self.action_names = (
             [str(i) for i in range(self.n_actions)]
@@ -198,6 +252,9 @@ class GymnasiumEnv(EpisodicEnvironmentBase):
     # ---- episodes -----------------------------------------------------------------------------
     def reset(self) -> torch.Tensor:
         """Every run's next episode (run r seeded with seed + r at the first one)."""
+        if self.unused_bits:
+            warn(self.unused_bits)
+            self.unused_bits = ""
         bits, info = self.vector.reset(seed=None if self.seeded else self.seeds)
         self.seeded = True
         self.episode += 1
@@ -286,8 +343,11 @@ class GymnasiumEnv(EpisodicEnvironmentBase):
             "id": self.id,
             "kwargs": self.kwargs,
             "encoding": self.encoding,
+            "thresholds": self.thresholds,
             "vectorization": self.vectorization,
             "observation_size": self.observation_size,
+            "distinct_codes": self.distinct_codes,  # null: not known in advance
+            "max_observations": self.observation_table.shape[0],
             "n_actions": self.n_actions,
             "action_names": self.action_names,
             "max_steps": self.max_steps,

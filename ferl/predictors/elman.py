@@ -20,8 +20,8 @@ the number of actions T of each sequence; steps beyond a sequence's length are m
 
 import torch
 
-from ferl.predictors.heads import affine, baddbmm, linear, scaled
-from ferl.predictors.recurrent import RecurrentPredictor, members_heads
+from ferl.predictors.heads import affine, baddbmm, linear, members_heads, scaled
+from ferl.predictors.recurrent import RecurrentPredictor
 
 MEMORY_PARAMETERS = ("W_my", "W_ma", "W_mm", "b_m", "b_init")
 
@@ -166,3 +166,19 @@ class ElmanPredictor(RecurrentPredictor):
     def unroll(self, y: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
         """Memories m_0 … m_T (R, B, T+1, M) of padded sequences y (R, B, T+1, Y), a (R, B, T, A)."""
         return unroll(self.memory_parameters(), self.gains, y, a)
+
+    time_chunks = True  # sequence_start and run_steps split the unroll (ferl.predictors.training.chunked_bptt)
+
+    def sequence_start(self, params: list, y: torch.Tensor, a: torch.Tensor) -> tuple:
+        """The drive of every step of Eq. (4.3) (R, B, T, M) and m_0 = σ_{β_m}(b_init) (Eq. 4.1),
+        (R, B, M), as the state and as the memory."""
+        m_0 = torch.sigmoid(scaled(params[4], self.beta_m)).unsqueeze(1).expand(-1, y.shape[1], -1)
+        return memory_drive(params, self.gains, y[:, :, :-1], a), m_0, m_0
+
+    def run_steps(self, params: list, x: torch.Tensor, state: torch.Tensor) -> tuple:
+        """m_t of Eq. (4.3) for the steps of drives x (R, B, n, M) from m = ``state``: (R, B, n, M), and the last."""
+        m = []
+        for drive_t in x.unbind(2):
+            state = recur(params[2], self.beta_m, drive_t, state)
+            m.append(state)
+        return torch.stack(m, 2), state

@@ -96,19 +96,29 @@ class GatedPredictor(RecurrentPredictor):
     def unroll_with(self, params: list, y: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
         """h_0 … h_T (R, B, T+1, M) of padded sequences y (R, B, T+1, Y), a (R, B, T, A) under
         memory parameters ``params`` (leaves of autograd while training)."""
+        x, state, h_0 = self.sequence_start(params, y, a)
+        h, _ = self.run_steps(params, x, state)
+        return torch.cat([h_0.unsqueeze(2), h], 2)
+
+    def sequence_start(self, params: list, y: torch.Tensor, a: torch.Tensor) -> tuple:
+        """The drive W u_{t−1} + b of every step (R, B, T, G·M), the state h_0 (and c_0) = 0 and h_0."""
         R, B = y.shape[:2]
-        x = self.drive(params, y[:, :, :-1], a)  # (R, B, T, G·M)
         state = torch.zeros(R, B, self.state_size(), dtype=y.dtype, device=y.device)
-        h = [state[..., : self.memory_size]]
+        return self.drive(params, y[:, :, :-1], a), state, state[..., : self.memory_size]
+
+    def run_steps(self, params: list, x: torch.Tensor, state: torch.Tensor) -> tuple:
+        """h_t of the steps of drives x (R, B, n, G·M) from ``state``, (R, B, n, M), and the state after them."""
+        h = []
         for x_t in x.unbind(2):
             state = self.cell(params, x_t, state)
             h.append(state[..., : self.memory_size])
-        return torch.stack(h, 2)
+        return torch.stack(h, 2), state
 
     def unroll(self, y: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
         return self.unroll_with(self.memory_parameters(), y, a)
 
     traceable_bptt = True  # autograd_bptt is tensor operations and torch.func: PredictorBatch.fuse compiles it
+    time_chunks = True  # sequence_start and run_steps split the unroll (ferl.predictors.training.chunked_bptt)
     bptt = staticmethod(autograd_bptt)
 
 

@@ -289,3 +289,17 @@ class OutputHeads(PredictorBase, nn.Module):
         norm: dict[str, str] = {} if self.reward_stats is None else {"reward_norm": "popart"}
         bits = {"reward_bits": self.W_rm.shape[-2]} if self.reward_output == "bits" else {}  # N^r, the environment's
         return {"predicts_observation": self.predict_obs, "reward_output": self.reward_output, **norm, **bits}
+
+
+def members_heads(members: list, m, y, rs: list, steps, reward_steps) -> tuple[list, torch.Tensor]:
+    """Every member's output heads' gradients (``OutputHeads.head_gradients``, members stacked
+    along the run axis of m (P·R, B, T+1, M), y, steps and reward_steps; rs[k] member k's targets)
+    and ∂J/∂m over all of them (P·R, B, T+1, M): the heads' part of a batch's BPTT."""
+    R = y.shape[0] // len(members)
+    heads, dm = [], []
+    for k, member in enumerate(members):
+        part = slice(k * R, (k + 1) * R)
+        g, d = member.head_gradients(m[part], y[part], rs[k], steps[part], reward_steps[part])
+        heads += g
+        dm.append(d)
+    return heads, torch.cat(dm) if len(dm) > 1 else dm[0]

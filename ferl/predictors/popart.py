@@ -18,12 +18,21 @@ rescaled so that its prediction in the environment's units, σ ẑ + μ, is unch
     W'_rm = (σ / σ') W_rm,    b'_r = (σ b_r + μ − μ') / σ'
 
 Off (``reward_norm=none``, the default) the head learns the raw reward, as the dissertation's.
+
+A reward that has not varied: while the rewards seen have a standard deviation below ``RELATIVE_SIGMA``
+of their root mean square (every reward equal so far, as CartPole's +1 a step), (μ, σ) are (0, 1),
+so the head learns the raw reward, as with ``reward_norm=none``. Dividing by the vanishing σ instead
+(or by a fixed floor under it) would turn the zero filler of the targets' first step, or the first
+reward that differs, into targets ~1/σ from the rest, whose squared error swamps the memory's and
+the exploration that follows it (docs/beyond.md, "Reward scale"). The switch to the standardised
+reward, once the rewards vary, is a change of (μ, σ) as any other: the head is rescaled (Eq. 8).
 """
 
 import torch
 from torch import nn
 
-SIGMA_FLOOR = 1e-4  # σ of a run whose rewards have all been equal so far is not 0
+SIGMA_FLOOR = 1e-4  # σ of rewards that vary, but only in their fourth decimal, is not below this
+RELATIVE_SIGMA = 1e-3  # rewards whose σ is below this fraction of their r.m.s. have not varied (module docstring)
 
 
 class RewardStatistics(nn.Module):
@@ -41,10 +50,14 @@ class RewardStatistics(nn.Module):
         self.register_buffer("m2", torch.zeros(n_runs, dtype=torch.float64))
 
     def moments(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """(μ, σ) per run, float32 (R,): (0, 1) before any reward, σ ≥ ``SIGMA_FLOOR``."""
-        seen = self.count > 0
-        sigma = torch.where(seen, (self.m2 / self.count.clamp(min=1)).sqrt().clamp(min=SIGMA_FLOOR), 1.0)
-        return self.mean.float(), sigma.float()
+        """(μ, σ) per run, float32 (R,): the rewards' mean and standard deviation (σ ≥
+        ``SIGMA_FLOOR``) once they have varied; (0, 1), the identity, before any reward and while
+        they have not (module docstring)."""
+        variance = self.m2 / self.count.clamp(min=1)
+        sigma = variance.sqrt()
+        varied = (self.count > 0) & (sigma > RELATIVE_SIGMA * (self.mean.square() + variance).sqrt())
+        mu = torch.where(varied, self.mean, 0.0)
+        return mu.float(), torch.where(varied, sigma.clamp(min=SIGMA_FLOOR), 1.0).float()
 
     @torch.no_grad()
     def update(self, rewards: torch.Tensor, mask: torch.Tensor) -> None:

@@ -21,7 +21,7 @@ from torch import nn
 
 from ferl import rng
 from ferl.config.params import ArgumentError, NonNegative, NonNegativeInt, Positive, PositiveInt, checked
-from ferl.predictors.heads import OutputHeads, RewardOutput, clean, valid_steps
+from ferl.predictors.heads import OutputHeads, RewardOutput, clean, members_heads, valid_steps
 from ferl.predictors.popart import RewardStatistics
 from ferl.predictors.training import PredictorBatch
 
@@ -51,6 +51,21 @@ class RecurrentPredictor(OutputHeads):
     kind = ""
     uses_beta_m = False  # β_m is the gain of the Elman memory's sigmoid (Eq. 4.3); others keep it 1
     traceable_bptt = False  # True where ``bptt`` is tensor operations only: PredictorBatch.fuse compiles it
+    # True where ``sequence_start`` and ``run_steps`` split the memory's unroll into a start and
+    # steps that carry a state: then BPTT runs in compiled chunks of a fixed number of steps
+    # (``ferl.predictors.training.chunked_bptt``)
+    time_chunks = False
+
+    def sequence_start(self, params: list, y: torch.Tensor, a: torch.Tensor) -> tuple:
+        """What the memory's steps start from, for padded sequences y (R, B, T+1, Y), a (R, B, T, A)
+        under memory parameters ``params``: every step's input (R, B, T, ·), computed at once, the
+        state before the first step (R, B, S) and the memory m_0 (R, B, M). Where ``time_chunks``."""
+        raise NotImplementedError
+
+    def run_steps(self, params: list, x: torch.Tensor, state: torch.Tensor) -> tuple:
+        """The memories after each of the steps of inputs x (R, B, n, ·) from ``state`` (R, B, n, M),
+        and the state after the last. Where ``time_chunks``."""
+        raise NotImplementedError
 
     @staticmethod
     def bptt(members: list, memory: list, y, a, rs: list, steps, reward_steps) -> list:
@@ -203,20 +218,6 @@ def autograd_bptt(members: list, memory: list, y, a, rs: list, steps, reward_ste
     m, pull = torch.func.vjp(lambda *params: lead.unroll_with(list(params), y, a), *memory)[:2]  # outer no_grad ignored
     heads, dm = members_heads(members, m, y, rs, steps, reward_steps)
     return list(pull(dm)) + heads
-
-
-def members_heads(members: list, m, y, rs: list, steps, reward_steps) -> tuple[list, torch.Tensor]:
-    """Every member's output heads' gradients (``OutputHeads.head_gradients``, members stacked
-    along the run axis of m (P·R, B, T+1, M), y, steps and reward_steps; rs[k] member k's targets)
-    and ∂J/∂m over all of them (P·R, B, T+1, M): the heads' part of a batch's BPTT."""
-    R = y.shape[0] // len(members)
-    heads, dm = [], []
-    for k, member in enumerate(members):
-        part = slice(k * R, (k + 1) * R)
-        g, d = member.head_gradients(m[part], y[part], rs[k], steps[part], reward_steps[part])
-        heads += g
-        dm.append(d)
-    return heads, torch.cat(dm) if len(dm) > 1 else dm[0]
 
 
 def memory_class(name: str):

@@ -15,25 +15,31 @@ from collections.abc import Callable
 import torch
 import torch.nn.functional as F
 
-from ferl.compiled import compiled, unroll_chunk
+from ferl.compiled import compiled, in_chunks, unroll_chunk
 from ferl.interfaces import TrainingBatchBase
-from ferl.predictors.heads import clean, valid_steps
+from ferl.predictors.heads import clean, members_heads, valid_steps
 
 # SGD steps per compiled chunk: 8 at T = 7 compiles in ~40 s (16: ~80 s) and leaves the call's
 # guards and launch ~1/8 of an update; fewer where the sequences are long (``unroll_chunk``)
 CHUNK_STEPS = 8
+# Sequences longer than this train by BPTT in compiled chunks of time steps (``chunked_bptt``),
+# one graph for every length, where the memory splits its unroll (``time_chunks``): a graph of
+# whole SGD steps unrolls every step, and its compile time grows with the length
+# (docs/performance.md, "Graphs of fixed size")
+TIME_CHUNKED_FROM = 16
 
 
 def sgd_steps(
-    members: list, memory: list, params: list, y, a, rs: list, steps, reward_steps, lr: float, B: int
+    members: list, memory: list, params: list, y, a, rs: list, steps, reward_steps, lr: float, B: int, bptt=None
 ) -> None:
     """Plain SGD steps θ ← θ − α ∇_θ J, one on every B consecutive sequences of y (R', K·B, T+1, Y),
     a, rs[k], steps and reward_steps (the weight of every step in its update's loss), for the
     members stacked along the run axis (``PredictorBatch``); ``memory`` their memory parameters,
-    ``params`` everything trained (memory first), updated in place."""
+    ``params`` everything trained (memory first), updated in place. ``bptt``: the gradients, by
+    default the members' class's ``bptt``."""
     for i in range(0, y.shape[1], B):
         s = slice(i, i + B)
-        grads = type(members[0]).bptt(
+        grads = (bptt or type(members[0]).bptt)(
             members,
             memory,
             y[:, s],
@@ -43,6 +49,35 @@ def sgd_steps(
             reward_steps[:, s],
         )
         torch._foreach_add_(params, grads, alpha=-lr)
+
+
+def memory_steps(predictor, params: list, x: torch.Tensor, state: torch.Tensor) -> tuple:
+    """``predictor.run_steps``: the function that one graph of time steps compiles (``chunked_bptt``)."""
+    return predictor.run_steps(params, x, state)
+
+
+@functools.cache
+def compiled_memory_steps(device: torch.device) -> Callable[..., tuple]:
+    """``memory_steps`` compiled once per device, for chunks of ``ferl.compiled.CHUNK_STEPS`` steps."""
+    return compiled(memory_steps, device, "a chunk of time steps of BPTT")
+
+
+def chunked_bptt(steps_fn: Callable, members: list, memory: list, y, a, rs: list, steps, reward_steps) -> list:
+    """The gradients that the members' class's ``bptt`` gives (the same arguments), for a memory
+    that splits its unroll (``time_chunks``): the memory's steps run in chunks of a fixed number of
+    steps (``ferl.compiled.in_chunks`` calling ``steps_fn``: ``memory_steps`` or its compiled
+    graph), the state carried from chunk to chunk; the heads' part is written out
+    (``members_heads``, Eqs. 2.57–2.62), which gives ∂J/∂m_t, and autograd takes it back through
+    the chunks (their compiled backward graphs) to the memory's parameters (BPTT, §2.4.1). The
+    graph of a chunk is the same for every sequence length."""
+    lead = members[0]
+    with torch.enable_grad():
+        leaves = [q.detach().requires_grad_() for q in memory]
+        x, state, m_0 = lead.sequence_start(leaves, y, a)
+        m_t = in_chunks(lambda x_chunk, carried: steps_fn(lead, leaves, x_chunk, carried), x, state)
+        m = torch.cat([m_0.unsqueeze(2), m_t], 2)  # m_0 … m_T (R', B, T+1, M)
+    heads, dm = members_heads(members, m.detach(), y, rs, steps, reward_steps)
+    return list(torch.autograd.grad(m, leaves, dm)) + heads
 
 
 @functools.cache
@@ -78,6 +113,7 @@ class PredictorBatch(TrainingBatchBase):
         self.first_rows = (runs * lengths.shape[1]).unsqueeze(1)
         self.rs = [torch.where(valid, r, 0.0).contiguous() if r is not None else None for r in rs]
         self.chunk: Callable[..., None] | None = None  # sgd_steps compiled for chunks of CHUNK_STEPS steps (``fuse``)
+        self.time_chunk: Callable[..., tuple] | None = None  # memory_steps compiled, where time_chunks (``fuse``)
         self.unroll_to: int | None = None
 
     def fuse(self, device: torch.device, unroll_to: int | None = None) -> None:
@@ -86,9 +122,14 @@ class PredictorBatch(TrainingBatchBase):
         longest training sequence (or ``unroll_to`` actions: one graph for batches whose longest
         sequence varies, as the online trainer's replays), the shorter ones masked, and a short
         last chunk is filled with sequences of weight 0, whose gradients are exactly 0: the same
-        steps as eager, up to the rounding of the generated kernels (tests/test_fast_path.py)."""
+        steps as eager, up to the rounding of the generated kernels (tests/test_fast_path.py).
+        Sequences longer than TIME_CHUNKED_FROM, of a memory that splits its unroll, train step by
+        step instead, by BPTT in compiled chunks of time steps (``chunked_bptt``), each sequence cut
+        to the longest of its step: one graph for every length."""
         if type(self.lead).traceable_bptt:
             self.chunk, self.unroll_to = compiled_chunk(device), unroll_to
+        if type(self.lead).time_chunks:
+            self.time_chunk = compiled_memory_steps(device)
 
     @torch.no_grad()
     def train_epoch(self, orders: list) -> None:
@@ -115,10 +156,14 @@ class PredictorBatch(TrainingBatchBase):
             scale = scale / chunk.bincount()[chunk]
         steps = valid_steps(L, self.y.shape[2]) * scale.unsqueeze(-1)
         reward_steps = steps * (torch.arange(self.y.shape[2], device=L.device) > 0)
-        if self.chunk is not None:
-            T = self.unroll_to if self.unroll_to is not None else int(L.max())
+        fused = self.chunk is not None or self.time_chunk is not None
+        T = (self.unroll_to if self.unroll_to is not None else int(L.max())) if fused else 0
+        in_time = self.time_chunk is not None and T > TIME_CHUNKED_FROM
+        if self.chunk is not None and not in_time:
             self.train_chunks(memory, params, order, steps, reward_steps, T)
         else:
+            # in chunks of time steps (long sequences, fused) or the class's own (eager)
+            bptt = functools.partial(chunked_bptt, self.time_chunk) if self.time_chunk and in_time else None
             y, a, rs = self.sequences(order, slice(None), self.y.shape[2] - 1)
             # T of every step: the longest sequence of its B positions over all runs, read once (one
             # host sync per epoch); it trims the padding all runs and sequences of the step share
@@ -136,6 +181,7 @@ class PredictorBatch(TrainingBatchBase):
                     reward_steps[:, s, : T + 1],
                     p.lr,
                     B,
+                    bptt,
                 )
         if P > 1:
             for k, member in enumerate(self.members):

@@ -1,6 +1,6 @@
 """Several multiruns at once, their jobs sharing the machine's cores (``make reproduce``).
 
-    python -m ferl.run.together SWEEP_DIR "NAME JOBS OVERRIDE ..." ["NAME JOBS OVERRIDE ..." ...]
+    python -m ferl.run.together [--resume] SWEEP_DIR "NAME JOBS OVERRIDE ..." ["NAME JOBS OVERRIDE ..." ...]
 
 runs ``train.py -m OVERRIDE ... hydra/launcher=joblib hydra.launcher.n_jobs=JOBS
 hydra.sweep.dir=SWEEP_DIR/NAME`` for every NAME, all at once. One sweep after another leaves cores
@@ -13,6 +13,14 @@ the time left, ``ferl.run.progress``; a job's errors), named by the sweep, and o
 sweep ends. Exit 0 when every sweep succeeded; else one line per failed sweep naming its log,
 and 1. Ctrl-C reaches every job (they share the terminal's process group); the jobs stop as a
 single run does (docs/reliability.md), and this exits 130.
+
+``--resume`` continues the sweeps of an earlier, interrupted launch into the same SWEEP_DIR
+(docs/sweeps.md, "Resuming a sweep"): each sweep's jobs, numbered as Hydra numbers them, are kept
+where done, resumed from their checkpoints where interrupted, started where not
+(``ferl.run.jobs``), each as ``train.py OVERRIDE ... [resume=true] hydra.run.dir=<its job folder>``,
+JOBS at a time, its output in ``SWEEP_DIR/NAME/<job folder>.log``; one line per sweep says how many
+jobs are done, to do and resumed, then one per finished job. A job folder that holds another run
+stops everything before any job starts (one line, exit 2).
 """
 
 from __future__ import annotations
@@ -28,6 +36,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO
 
+from ferl.run.jobs import DONE, RESUMED, JobError, job_dir, job_state, run_commands, states_line, sweep_jobs
 from ferl.run.progress import duration
 
 PREFIX = "ferl: "
@@ -139,6 +148,61 @@ def run_together(sweep_dir: Path, sweeps: list[Sweep], train: tuple[str, ...] = 
     return 1 if failed else 0
 
 
+def resume_commands(sweep_dir: Path, sweep: Sweep, train: tuple[str, ...] = TRAIN) -> tuple[dict, list[str]]:
+    """The commands of the sweep's jobs not done yet (job folder name → command) and every job's
+    state; JobError where a job folder holds another run."""
+    todo, states = {}, []
+    for number, job in enumerate(sweep_jobs(sweep.overrides)):
+        run_dir = job_dir(sweep_dir / sweep.name, number, job)
+        states.append(state := job_state(run_dir, job))
+        if state != DONE:
+            todo[run_dir.name] = [
+                *train,
+                *job,
+                *(["resume=true"] if state == RESUMED else []),
+                f"hydra.run.dir={run_dir}",
+            ]
+    return todo, states
+
+
+def resume_together(sweep_dir: Path, sweeps: list[Sweep], train: tuple[str, ...] = TRAIN) -> int:
+    """``--resume``: every sweep's remaining jobs, the sweeps at once (module doc); the exit status."""
+    try:
+        plans = [(sweep, *resume_commands(sweep_dir, sweep, train)) for sweep in sweeps]
+    except JobError as e:
+        print(f"{PREFIX}error: {e}", file=sys.stderr)
+        return 2
+    for sweep, _, states in plans:
+        print(f"{PREFIX}{sweep.name}: resuming {sweep_dir / sweep.name}: {states_line(states)}", flush=True)
+    failed: dict[str, list[str]] = {}
+    threads = [
+        threading.Thread(
+            target=lambda s=sweep, t=todo: failed.update(
+                {s.name: run_commands(t, sweep_dir / s.name, s.jobs, label=f"{s.name}: ")}
+            ),
+            daemon=True,
+        )
+        for sweep, todo, _ in plans
+        if todo
+    ]
+    try:
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            while thread.is_alive():
+                thread.join(0.2)
+    except KeyboardInterrupt:  # the jobs got the same SIGINT and stop as a run does
+        print(f"{PREFIX}interrupted (SIGINT): what the jobs wrote is kept; --resume continues", file=sys.stderr)
+        return 130
+    for name, names in failed.items():
+        for job in names:
+            print(
+                f"{PREFIX}error: sweep {name}: job {job} failed; its output: {sweep_dir / name / job}.log",
+                file=sys.stderr,
+            )
+    return 1 if any(failed.values()) else 0
+
+
 def _stop(procs: list[subprocess.Popen]) -> None:
     """After Ctrl-C: the jobs got the same SIGINT; wait for them to stop, then terminate the rest."""
     deadline = time.monotonic() + STOP_GRACE_S
@@ -151,8 +215,10 @@ def _stop(procs: list[subprocess.Popen]) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else argv
+    resume = bool(args) and args[0] == "--resume"
+    args = args[1:] if resume else args
     if len(args) < 2:
-        print("usage: python -m ferl.run.together SWEEP_DIR 'NAME JOBS OVERRIDE ...' ...", file=sys.stderr)
+        print("usage: python -m ferl.run.together [--resume] SWEEP_DIR 'NAME JOBS OVERRIDE ...' ...", file=sys.stderr)
         return 2
     try:
         sweeps = [Sweep.parse(a) for a in args[1:]]
@@ -166,7 +232,7 @@ def main(argv: list[str] | None = None) -> int:
     # Ctrl-C ends the sweeps' jobs (their own handlers) and this, also where a script that started
     # it in the background left SIGINT ignored (the jobs install theirs either way).
     signal.signal(signal.SIGINT, signal.default_int_handler)
-    return run_together(Path(args[0]), sweeps)
+    return (resume_together if resume else run_together)(Path(args[0]), sweeps)
 
 
 if __name__ == "__main__":

@@ -10,35 +10,13 @@ rewards (R, N, T_max), lengths (R, N) — the same N for every run, so training 
 An id stands for the (processed) observation in ``ObservationTable``.
 """
 
-from dataclasses import dataclass
-from typing import Annotated, NamedTuple
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
 
-from ferl.config.params import Allowed, ConfigError, PositiveInt
-from ferl.trainers.handoffs import SplitEpisodes
-from ferl.trainers.phased import Phase
-
-
-@dataclass
-class Episodes:
-    """Whole episodes per run, padded to T_max: what the random collection of Algorithms 1–2 gives
-    the predictors (§4.2) and what replay stores."""
-
-    obs: torch.Tensor  # (R, N, Tmax+1) observation ids y_0 … y_T
-    actions: torch.Tensor  # (R, N, Tmax) action indices a_0 … a_{T−1}
-    rewards: torch.Tensor  # (R, N, Tmax) rewards r_1 … r_T
-    lengths: torch.Tensor  # (R, N) T, number of actions
-
-    def select(self, index: torch.Tensor) -> "Episodes":
-        """Per-run subset: index (R, n) into the episode axis."""
-
-        def take(x):
-            shape = index.shape + x.shape[2:]
-            return x.gather(1, index.view(*index.shape, *([1] * (x.dim() - 2))).expand(shape))
-
-        return Episodes(take(self.obs), take(self.actions), take(self.rewards), take(self.lengths))
+from ferl.config.params import ConfigError
+from ferl.trainers.handoffs import Episodes  # also the name older checkpoints unpickle it by
 
 
 @torch.no_grad()
@@ -119,60 +97,6 @@ class ObservationTable:
     def observations(self, ids: torch.Tensor) -> torch.Tensor:
         """As ``lookup`` for padded episodes: the padding id −1 gives zeros."""
         return torch.where((ids >= 0).unsqueeze(-1), self.lookup(ids.clamp(min=0)), 0.0)
-
-
-class CollectEpisodes(Phase):
-    """Algorithm 1's data (§4.3.1): ``n_sample`` random-policy episodes per run, balanced over the
-    lengths T_min … T_max and split ``train_fraction`` / rest into training and test data (handed
-    to the next phases as ``job.outputs.episodes``, with the steps they took, ``random_steps``). ``collect_batch`` episodes are stepped at
-    once (speed only: the draws do not depend on it)."""
-
-    name = "collect"
-
-    def __init__(
-        self,
-        n_sample: PositiveInt,
-        collect_batch: PositiveInt,
-        train_fraction: Annotated[float, Allowed(lambda x: 0 < x < 1, "in (0, 1)")],
-    ):
-        self.n_sample, self.collect_batch, self.train_fraction = n_sample, collect_batch, train_fraction
-
-    def applies(self, job) -> bool:
-        """The random episodes are the predictors' data: a memoryless agent (``predictor=none``) acts at once."""
-        return bool(job.predictors)
-
-    def prepare(self, job) -> None:
-        job.prepared.episodes_per_run = self.n_sample  # the size of the next phases' data
-        if job.env.discovers_observations:
-            raise ConfigError(
-                f"trainer: Algorithm 1's predictors learn from episodes collected beforehand, on ids of a fixed "
-                f"observation table, and {job.env.task} environments discover their observations as they "
-                f"run: use trainer=online, or predictor=none"
-            )
-
-    def copies(self, job) -> int:
-        """Environment copies per run stepped at once (``collect_batch`` episodes in all)."""
-        return max(1, min(self.n_sample, self.collect_batch // job.R))
-
-    def run_bytes(self, job) -> int:
-        """The peak of ``run`` beyond what the job holds (``ferl.run.footprint``'s hook): the
-        collected rounds, their stack and the episodes kept, each (obs, actions int64, rewards
-        float32, length int64) padded to T_max."""
-        copies = self.copies(job)
-        collected = job.R * copies * -(-self.n_sample // copies)
-        return (2 * collected + job.R * self.n_sample) * episode_bytes(job.env.max_steps)
-
-    def run(self, job, state) -> None:
-        env = job.make_env(job.R * self.copies(job))
-        episodes = collect_random_episodes(env, self.n_sample, job.R, job.generator)
-        job.outputs.random_steps = episodes.lengths.sum(1).cpu().numpy()  # env steps the data cost each run
-        train, test, (n_train, n_test) = balance_and_split(
-            episodes, job.env.optimal_steps, job.env.max_steps, self.train_fraction, job.generator
-        )
-        job.outputs.episodes = SplitEpisodes(train, test, n_train, n_test)
-        job.writer.add_scalar("collect/train_sequences", train.lengths.shape[1], 0)
-        job.writer.add_scalar("collect/test_sequences", test.lengths.shape[1], 0)
-        job.writer.add_scalar("collect/train_per_length", n_train, 0)
 
 
 def episode_bytes(t_max: int) -> int:

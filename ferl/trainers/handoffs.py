@@ -11,13 +11,29 @@ named for what it is, with its shape.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
-if TYPE_CHECKING:
-    from ferl.trainers.episodes import Episodes
+
+@dataclass
+class Episodes:
+    """Whole episodes per run, padded to T_max: what the random collection of Algorithms 1–2 gives
+    the predictors (§4.2) and what replay stores."""
+
+    obs: torch.Tensor  # (R, N, Tmax+1) observation ids y_0 … y_T
+    actions: torch.Tensor  # (R, N, Tmax) action indices a_0 … a_{T−1}
+    rewards: torch.Tensor  # (R, N, Tmax) rewards r_1 … r_T
+    lengths: torch.Tensor  # (R, N) T, number of actions
+
+    def select(self, index: torch.Tensor) -> Episodes:
+        """Per-run subset: index (R, n) into the episode axis."""
+
+        def take(x):
+            shape = index.shape + x.shape[2:]
+            return x.gather(1, index.view(*index.shape, *([1] * (x.dim() - 2))).expand(shape))
+
+        return Episodes(take(self.obs), take(self.actions), take(self.rewards), take(self.lengths))
 
 
 @dataclass

@@ -38,7 +38,7 @@ parameters also take a step down −λ Σ_t δ_t Q(s_t, a_t) through the memory 
 import numpy as np
 import torch
 
-from ferl.compiled import run_clock, unrolls
+from ferl.compiled import run_clock
 from ferl.config.params import ConfigError, Momentum, NonNegative, PositiveInt, UnitInterval
 from ferl.config.swaps import chosen
 from ferl.exploration import added
@@ -46,13 +46,19 @@ from ferl.predictors.popart import observe_rewards
 from ferl.predictors.recurrent import lookup_step
 from ferl.replay import draw_episodes, store_episode, stored_episodes
 from ferl.trainers.actor_episodes import ActorEpisodes
-from ferl.trainers.episodes import Episodes, episode_tensors
+from ferl.trainers.episodes import episode_tensors
+from ferl.trainers.handoffs import Episodes
 from ferl.trainers.memory_td import check_td_to_memory, td_to_memory
 
 # The replay's BPTT compiles for runs of this many episodes or more: an LSTM's replay step at
 # T_max = 44 took 0.21 s eager and 0.08 s compiled after ~120 s of compiling (10 runs, 64 replayed
 # episodes, another job on the second core), so shorter runs stay eager (docs/performance.md)
 REPLAY_FUSED_FROM = 5000
+# Its episodes compile for runs of this many episodes or more, in graphs of a few steps
+# (``ferl.trainers.fused_episodes``): an LSTM predictor's episode at T_max = 44 took 0.050 s eager
+# and 0.006 s compiled after 25 s of compiling from an empty cache (10 runs, one thread), repaid
+# after ~600 episodes (docs/performance.md, "Graphs of fixed size")
+EPISODES_FUSED_FROM = 1000
 
 
 class OnlineEpisodes(ActorEpisodes):
@@ -77,7 +83,7 @@ class OnlineEpisodes(ActorEpisodes):
         self.K, self.n_replay, self.replay_batch = replay_episodes, replay_sample, replay_batch_size
         self.tau, self.ema, self.eta, self.anneal = beta_error_ratio, error_ema, curiosity, curiosity_anneal
         self.td_to_memory = td_to_memory
-        self.eta_now = 0.0
+        self.eta_now: torch.Tensor  # η_k, a 0-dim tensor that begin_episode fills (one graph serves every k)
         self.beta_now: torch.Tensor  # β_k per run (R, 1, 1): set by begin_episode
 
     def prepare(self, job) -> None:
@@ -90,6 +96,7 @@ class OnlineEpisodes(ActorEpisodes):
         if self.td_to_memory > 0:
             check_td_to_memory(job, self.td_to_memory)
         super().prepare(job)
+        self.eta_now = torch.zeros((), device=job.device)
         self.fused_replay = self.fuses_replay(job)
         groups: dict = {}
         for p in job.predictors.values():
@@ -114,16 +121,17 @@ class OnlineEpisodes(ActorEpisodes):
         }
 
     def fuses(self, job) -> bool:
-        """Eager: β and the curiosity η change from episode to episode, and compiling an episode
-        with live predictors costs more than it saves at these budgets (an LSTM at T_max = 44:
-        522 s of compiling, with two other jobs on the 2 cores, to save ~0.05 s an episode)."""
-        return False
+        """As the actor phase's episodes (``ActorEpisodes.fuses``), for runs of at least
+        EPISODES_FUSED_FROM episodes: β_k and η_k are tensors (one graph serves every episode), and
+        the live predictors' steps read their weights as the replay leaves them."""
+        return super().fuses(job) and self.N >= EPISODES_FUSED_FROM
 
     def fuses_replay(self, job) -> bool:
-        """Whether the replay's BPTT steps run as compiled graphs (one SGD step of T_max actions
-        each at long T_max, ``ferl.compiled.unroll_chunk``): on the fast path, for runs of at least
-        REPLAY_FUSED_FROM episodes, the ones whose saving repays the compiling (module constant)."""
-        return job.fast and self.N >= REPLAY_FUSED_FROM and unrolls(job.env.max_steps)
+        """Whether the replay's BPTT steps run as compiled graphs (``PredictorBatch.fuse``: graphs
+        of whole SGD steps over short episodes, of a fixed number of time steps over long ones): on
+        the fast path, for runs of at least REPLAY_FUSED_FROM episodes, the ones whose saving
+        repays the compiling (module constant)."""
+        return job.fast and self.N >= REPLAY_FUSED_FROM
 
     def memory_step(self, predictor, table: torch.Tensor, n_actions: int):
         """The predictor's step with its current weights (they learn between episodes)."""
@@ -131,7 +139,7 @@ class OnlineEpisodes(ActorEpisodes):
 
     def begin_episode(self, job, k: int, state: dict):
         """β_k per run (R, 1, 1) from the error so far, and η_k (module docstring)."""
-        self.eta_now = self.eta * max(0.0, 1.0 - k / (self.anneal * self.N)) if self.anneal > 0 else self.eta
+        self.eta_now.fill_(self.eta * max(0.0, 1.0 - k / (self.anneal * self.N)) if self.anneal > 0 else self.eta)
         base = job.actor.inverse_temperature(k / self.N)
         if state["error_first"] is None:
             self.beta_now = torch.zeros(job.R, 1, 1, device=job.device)
@@ -145,7 +153,7 @@ class OnlineEpisodes(ActorEpisodes):
         """η_k e^y_t: the observation prediction error at the new observation (module docstring),
         plus the directed exploration's bonus (``ActorEpisodes.reward_bonus``)."""
         explore = super().reward_bonus(job, states, obs_id, s_next, active)
-        if self.eta_now == 0:
+        if self.eta == 0:  # curiosity off (η_k = 0 for every k)
             return explore
         y = self.observations.lookup(obs_id)
         errors = [p.observation_error(x, y) for p, x in zip(job.predictors.values(), states)]
@@ -171,7 +179,7 @@ class OnlineEpisodes(ActorEpisodes):
         online = state["online"]
         online["prediction_error"][:, k] = error.cpu().numpy()
         online["beta"][:, k] = self.beta_now.flatten().cpu().numpy()  # the β episode k acted with
-        online["curiosity"][:, k] = self.eta_now
+        online["curiosity"][:, k] = float(self.eta_now)
         observe_rewards(
             job.predictors.values(), ep.rewards, ep.lengths
         )  # once per new episode, after its held-out error
@@ -195,7 +203,7 @@ class OnlineEpisodes(ActorEpisodes):
         for members in self.groups:
             rs = [p.reward_targets(job.env.reward_values, sample.rewards) for p in members]
             batch = type(members[0]).training_batch(members, y, a, rs, lengths, self.replay_batch, summed=True)
-            if self.fused_replay:  # one graph for every replay: each unrolls T_max actions
+            if self.fused_replay:  # one graph for every replay: short episodes unrolled to T_max
                 batch.fuse(job.device, unroll_to=job.env.max_steps)
             batch.train_epoch([order] * len(members))
         state["predictor_time"] += run_clock() - started

@@ -1,0 +1,118 @@
+"""A sweep's jobs one by one (docs/sweeps.md, "Resuming a sweep"): the jobs of a multirun, which of
+them a resumed sweep keeps, continues or starts, and commands run a few at a time.
+
+A job's state, from its run directory: **done** when it holds a ``summary.json`` that reads as one
+(a dict with ``metrics``) and whose ``.hydra/overrides.yaml`` holds the job's overrides (``resume=…``
+aside): it is kept; **resumed** when it holds ``checkpoints/`` and no summary: ``resume=true``
+continues it; **to do** otherwise (no folder, or one whose run stopped before its first checkpoint).
+A summary that does not read, or that of other overrides, is another run's: ``JobError``, and
+nothing is run into it.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import time
+from concurrent.futures import ThreadPoolExecutor, as_completed
+from contextlib import ExitStack
+from pathlib import Path
+
+from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+from hydra.core.override_parser.overrides_parser import OverridesParser
+from omegaconf import DictConfig, OmegaConf
+
+from ferl.run.progress import duration
+
+ROOT = Path(__file__).resolve().parents[2]
+DONE, RESUMED, TODO = "done", "resumed", "to do"
+
+
+class JobError(ValueError):
+    """A job's directory holds what a resumed sweep must not run into (the message is one line)."""
+
+
+def sweep_jobs(overrides: list[str] | tuple[str, ...]) -> list[list[str]]:
+    """The jobs of ``train.py -m OVERRIDES`` in Hydra's basic sweeper's order (job ``i`` is
+    ``hydra.job.num`` = i), each as its task overrides (Hydra's own, ``hydra…``, left out)."""
+    parsed = OverridesParser.create().parse_overrides(list(overrides))
+    (jobs,) = BasicSweeper.split_arguments(parsed, None)
+    return [[o for o in job if not o.startswith(("hydra.", "hydra/"))] for job in jobs]
+
+
+def default_experiment() -> str:
+    """conf/config.yaml's ``experiment`` default."""
+    defaults = OmegaConf.load(ROOT / "conf" / "config.yaml").defaults
+    return next(str(d["experiment"]) for d in defaults if isinstance(d, DictConfig) and "experiment" in d)
+
+
+def job_dir(sweep_dir: Path, number: int, job: list[str]) -> Path:
+    """The job's run directory, as conf/config.yaml's ``hydra.sweep.subdir`` names it:
+    ``<job number>_<experiment>``."""
+    experiment = next((o.split("=", 1)[1] for o in job if o.startswith("experiment=")), None)
+    return sweep_dir / f"{number}_{experiment or default_experiment()}"
+
+
+def _without_resume(overrides) -> list[str]:
+    return sorted(str(o) for o in overrides if not str(o).startswith("resume="))
+
+
+def job_state(run_dir: Path, overrides: list[str] | None = None) -> str:
+    """``DONE``, ``RESUMED`` or ``TODO`` (module doc); ``overrides`` None: the summary alone is
+    checked (a run whose ``.hydra/`` holds other settings than its command line, RecurrentPPO's)."""
+    summary = run_dir / "summary.json"
+    if not summary.exists():
+        return RESUMED if (run_dir / "checkpoints").is_dir() else TODO
+    try:
+        ok = isinstance(data := json.loads(summary.read_text()), dict) and "metrics" in data
+    except (OSError, ValueError):
+        ok = False
+    if not ok:
+        raise JobError(f"{summary} does not read as a run's summary: not resumed; move that run away first")
+    if overrides is not None:
+        saved_file = run_dir / ".hydra" / "overrides.yaml"
+        saved = OmegaConf.to_container(OmegaConf.load(saved_file)) if saved_file.is_file() else None
+        saved = saved if isinstance(saved, list) else None
+        if saved is None or _without_resume(saved) != _without_resume(overrides):
+            raise JobError(
+                f"{run_dir} holds a finished run of other overrides ({' '.join(saved or ['none recorded'])}), "
+                f"not this sweep's job ({' '.join(overrides)}): is this the sweep of the same command?"
+            )
+    return DONE
+
+
+def states_line(states: list[str]) -> str:
+    """``3 jobs done (kept), 2 to do, 1 of them resumed from its checkpoint``."""
+    done, todo = states.count(DONE), len(states) - states.count(DONE)
+    return f"{done} jobs done (kept), {todo} to do, {states.count(RESUMED)} of them resumed from their checkpoints"
+
+
+def run_commands(
+    todo: dict[str, list[str]], logs: Path, jobs: int, what: str = "jobs", label: str = "", cwd: Path = ROOT
+) -> list[str]:
+    """Run every named command, ``jobs`` at a time, each one's output in ``logs/<name>.log`` (``/``
+    as ``_``); one progress line as each ends (``label`` before it). Returns the names of those
+    that failed."""
+    logs.mkdir(parents=True, exist_ok=True)
+    started, failed = time.monotonic(), []
+    with ExitStack() as logs_open, ThreadPoolExecutor(jobs) as pool:  # the jobs end before their logs close
+        files = {n: logs_open.enter_context(open(logs / f"{n.replace('/', '_')}.log", "w")) for n in todo}
+        futures = {
+            pool.submit(subprocess.run, cmd, cwd=cwd, stdout=files[n], stderr=subprocess.STDOUT): n
+            for n, cmd in todo.items()
+        }
+        for count, future in enumerate(as_completed(futures), 1):
+            name, elapsed = futures[future], time.monotonic() - started
+            if future.result().returncode != 0:
+                failed.append(name)
+            left = elapsed / count * (len(todo) - count)  # the jobs so far, `jobs` at a time
+            n_failed = f", {len(failed)} failed" if failed else ""
+            eta = f"about {duration(left)} left" if count < len(todo) else f"sweep took {duration(elapsed)}"
+            print(
+                f"ferl: {label}{count}/{len(todo)} {what} done{n_failed} ({name}{' failed' if name in failed else ''}, "
+                f"{duration(elapsed)} in all); {eta}",
+                flush=True,
+            )
+    if failed:
+        print(f"ferl: {label}failed: {', '.join(failed)} (logs: {logs}/<name>.log)", flush=True)
+    return failed
