@@ -15,7 +15,7 @@ from collections.abc import Callable
 import torch
 import torch.nn.functional as F
 
-from ferl.compiled import compiled, in_chunks, unroll_chunk
+from ferl.compiled import MAX_UNROLLED_STEPS, compiled, in_chunks, unroll_chunk
 from ferl.interfaces import TrainingBatchBase
 from ferl.predictors.heads import clean, members_heads, valid_steps
 
@@ -23,10 +23,12 @@ from ferl.predictors.heads import clean, members_heads, valid_steps
 # guards and launch ~1/8 of an update; fewer where the sequences are long (``unroll_chunk``)
 CHUNK_STEPS = 8
 # Sequences longer than this train by BPTT in compiled chunks of time steps (``chunked_bptt``),
-# one graph for every length, where the memory splits its unroll (``time_chunks``): a graph of
-# whole SGD steps unrolls every step, and its compile time grows with the length
-# (docs/performance.md, "Graphs of fixed size")
-TIME_CHUNKED_FROM = 16
+# one graph for every length, where the memory splits its unroll (``time_chunks``); up to it, in
+# graphs of whole SGD steps, every step unrolled (``MAX_UNROLLED_STEPS`` a graph). The chunks compile
+# in ~6 s at any length, the unrolled SGD step in ~96 s at 21 steps, but the chunks ran an online
+# replay 2.7 × slower once compiled (docs/performance.md, "The online trainer's episodes and its
+# replay over long sequences"), so they take only the lengths that one graph may not unroll
+TIME_CHUNKED_FROM = MAX_UNROLLED_STEPS
 
 
 def sgd_steps(
