@@ -206,16 +206,18 @@ def test_the_solved_share_rule_is_eight_in_ten():
     assert [point(*x).ok for x in ((8, 10), (7, 10), (4, 5), (3, 5))] == [True, False, True, False]
 
 
+# a stub Python: records its arguments; as ``ferl.run.sweepdir`` it names the sweep folder
 STUB = """#!/bin/sh
 echo "$@" >> "$CALLS"
-for a in "$@"; do case $a in hydra.sweep.dir=*) mkdir -p "${a#hydra.sweep.dir=}";; esac; done
+if [ "$2" = ferl.run.sweepdir ]; then mkdir -p sweep && echo sweep; fi
 """
 
 
 @pytest.mark.skipif(shutil.which("make") is None, reason="no make")
 def test_make_beyond_runs_each_curve_from_its_variables(tmp_path):
-    """`make beyond` with a stub Python: one train.py call per corridor of each list, with its
-    memories, exploration, episodes and runs (fewer from BEYOND_LONG_FROM on), then analyze.py."""
+    """`make beyond` with a stub Python: the sweep folder named (``ferl.run.sweepdir``), one sweep
+    (``ferl.run.together``) per corridor of each list, with its memories, exploration, episodes and
+    runs (fewer from BEYOND_LONG_FROM on), then analyze.py."""
     stub = tmp_path / "py"
     stub.write_text(STUB)
     stub.chmod(0o755)
@@ -280,9 +282,11 @@ def test_make_beyond_runs_each_curve_from_its_variables(tmp_path):
             *["actor.memory=gru", "actor.beta.end=9", "env.corridor_length=60", "trainer.n_episodes=77", "n_runs=3"],
         }
     )
-    assert len(calls) == len(want) + 1 and calls[-1] >= {"analyze.py"}
+    assert calls[0] >= {"-m", "ferl.run.sweepdir", "beyond"}
+    calls = calls[1:]
+    assert len(calls) == len(want) + 1 and calls[-1] >= {"analyze.py", "sweep"}
     for got, expected in zip(calls, want):
-        assert expected <= got and "train.py" in got and "-m" in got
+        assert expected <= got and {"-m", "ferl.run.together"} <= got
     assert (
         "sweep 5/6: passive_curve/corridor_300" in done.stdout
         and "sweep 6/6: passive_q_curve/corridor_60" in done.stdout
