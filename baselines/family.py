@@ -24,7 +24,9 @@ Two stages, each in its own folder under ``out``:
   of which agent leads and a learning-curve figure per task.
 
 A study or job that has finished is not run again, so an interrupted stage continues where it
-stopped when given the same folder.
+stopped when given the same folder: a study's finished trials are kept in its ``study.db`` and its
+interrupted trial runs again (docs/sweeps.md, "The study database"); ``optimization_results.yaml``
+is written when the whole study is over.
 
     python baselines/family.py outputs/family/NAME [--stage tune|test|all] [--jobs 2] [--only SUBSTRING,…]
 """
@@ -77,7 +79,7 @@ def tune_command(agent: str, out: Path) -> list[str]:
 
 
 def study_results(agent: str, out: Path) -> Path:
-    """Where an agent's finished study leaves its best values."""
+    """Where an agent's finished study leaves its best values (the sweeper writes it at the end only)."""
     return out / "tune" / agent / "optimization_results.yaml"
 
 

@@ -75,7 +75,7 @@ from ferl.envs.encodings import ENCODINGS, BinaryObservation
 from ferl.envs.gymnasium_vector import GymnasiumEnv, make
 from ferl.envs.tmaze import TMaze
 from ferl.run.directory import RunDir, check_run_dir
-from ferl.stats import FINAL_WINDOW, final_metrics, sample_efficiency, solved_against
+from ferl.stats import FINAL_WINDOW, final_metrics, has_goal, sample_efficiency, solved_against
 
 PROG = "recurrent_ppo.py"
 GAMMA = 0.95  # the T-mazes' discount (§4.3.1): returns comparable with ferl's runs and optimum
@@ -288,7 +288,7 @@ def gymnasium_task(args) -> Task:
     records = {**COMMON_RECORDS, "return": np.float32, **({"success": bool} if threshold is not None else {})}
     return Task(
         env,
-        gymnasium_maker(args, env.max_steps),
+        gymnasium_maker(args, env.max_steps, env.thresholds),  # typed, or derived at its set-up (a Box)
         None,
         records,
         rates=["success"] if threshold is not None else [],
@@ -297,11 +297,11 @@ def gymnasium_task(args) -> Task:
     )
 
 
-def gymnasium_maker(args, max_steps: int) -> Callable[[], gymnasium.Env]:
+def gymnasium_maker(args, max_steps: int, thresholds: list) -> Callable[[], gymnasium.Env]:
     """One environment as ferl's GymnasiumEnv plays it: its episodes cut after ``max_steps`` (a
     ``TimeLimit`` where the registration states no limit, or a longer one), its observations the
-    bits ferl's agents see."""
-    env_id, kwargs, encoding, thresholds = args.env_id, args.env_kwargs, args.encoding, args.thresholds
+    bits ferl's agents see (``thresholds``: GymnasiumEnv's own, derived where a Box had none)."""
+    env_id, kwargs, encoding = args.env_id, args.env_kwargs, args.encoding
 
     def make_one():
         env = make(env_id, kwargs)
@@ -361,7 +361,8 @@ def metrics(
     the step counts on the vector environment's clock (module doc): all steps taken and, given an
     optimum, those when the first solved window closed."""
     optimum = solved_against(optimal)
-    result = {**final_metrics(records, optimum, window, task.rates, task.averages), "env_steps_total": steps_total}
+    finals = final_metrics(records, optimum, window, task.rates, task.averages, goal=has_goal(optimal))
+    result = {**finals, "env_steps_total": steps_total}
     if optimum is not None:
         solved = sample_efficiency(records, np.zeros(len(env_steps), np.int64), optimum, window, task.rates)
         closing = solved["episodes_to_solve"]

@@ -136,12 +136,18 @@ def sample_efficiency(
 
 
 def final_metrics(
-    episodes: dict, optimum: tuple[str, float] | None, window: int, rates: list, averages: Sequence[str] = ()
+    episodes: dict,
+    optimum: tuple[str, float] | None,
+    window: int,
+    rates: list,
+    averages: Sequence[str] = (),
+    goal: bool = True,
 ) -> dict:
     """The episodic metrics of summary.json over the last ``window`` episodes, one value per run:
-    discounted return, steps, the rate of every boolean outcome (``final_correct_goal_rate``), the
-    mean of every float one (``final_return``) and its best window mean over all episodes
-    (``best_return``) and, given an optimum, solved."""
+    discounted return, steps to the goal (``goal``: an environment that has one, ``has_goal``), the
+    rate of every boolean outcome (``final_correct_goal_rate``), the mean of every float one
+    (``final_return``) and its best window mean over all episodes (``best_return``) and, given an
+    optimum, solved."""
     last = slice(-window, None)
 
     def final(name: str) -> np.ndarray:
@@ -153,7 +159,7 @@ def final_metrics(
     rate = {name: final(name) for name in rates}
     metrics = {
         "final_discounted_return": final("discounted_return").tolist(),
-        "final_steps_to_goal": final("steps").tolist(),
+        **({"final_steps_to_goal": final("steps").tolist()} if goal else {}),
         **{f"final_{name}_rate": values.tolist() for name, values in rate.items()},
         **{f"final_{name}": final(name).tolist() for name in averages},
         # the best window mean over the training: POPGym's "mean maximum episodic return" (MMER,
@@ -167,6 +173,13 @@ def final_metrics(
         key, best = optimum
         metrics["solved"] = meets_solved(final(key), rate, best).astype(int).tolist()
     return metrics
+
+
+def has_goal(optimal: dict) -> bool:
+    """Whether an environment's episodes end at a goal, which it states by the optimal steps to
+    reach it (the T-mazes' ``steps_to_goal``): only then is an episode's length a
+    ``final_steps_to_goal``. A Gymnasium task states none (a CartPole's episode ends by falling)."""
+    return optimal.get("steps_to_goal") is not None
 
 
 def solved_against(optimal: dict) -> tuple[str, float] | None:

@@ -8,9 +8,10 @@ what differs from the dissertation's components: the oracle's view, the actor's 
 baselines: ``mlp_q``, ``drqn``, ``tabular_q``, an external ``recurrent_ppo``) and value form
 (``actor.q``), a preprocessor other than the RBM, no predictor where the dissertation has one
 (``predictor=none``), predictor memories other than Elman, a trainer other than the phased
-algorithms, curiosity. A task gets a table (the headline metrics of its summary, mean ± s.e.m.
-over runs), the finding of which agent leads it, and one learning-curve figure with every
-agent's mean ± s.e.m. when it was run by at least two agents.
+algorithms, curiosity, an inverse temperature β that stays 0 (a random policy). A task gets a
+table (the headline metrics of its summary, mean ± s.e.m. over runs), the finding of which agent
+leads it, and one learning-curve figure with every agent's mean ± s.e.m. when it was run by at
+least two agents.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from ferl.analysis.sweep import Job, metric_values
 from ferl.run.jsonio import strict_dumps
 
 DISSERTATION_AGENT = "dissertation agent"
+RANDOM_POLICY = "β=0 (random policy)"  # an agent whose inverse temperature stays 0 (``random_policy``)
 # The metrics a task's row shows, in this order, where its summaries have them (docs/records.md).
 HEADLINES = (
     "solved",
@@ -99,7 +101,17 @@ def agent(manifest) -> str:
         parts.append(f"trainer.td_to_memory={manifest.trainer['td_to_memory']:g}")
     if manifest.trainer.get("curiosity"):
         parts.append(f"curiosity={manifest.trainer['curiosity']:g}")
+    if random_policy(manifest):
+        parts.append(RANDOM_POLICY)
     return ", ".join(parts) or DISSERTATION_AGENT
+
+
+def random_policy(manifest) -> bool:
+    """β = 0 from the first episode to the last (run.json's ``actor.beta``): the softmax picks
+    actions uniformly at random, whatever the agent learnt; a run recorded before ``beta`` was
+    is taken as not."""
+    beta = manifest.actor.get("beta") or {}
+    return beta.get("start") == 0 and beta.get("end") == 0
 
 
 def task_key(manifest) -> str:

@@ -38,6 +38,8 @@ def trailing_means(values: np.ndarray, window: int) -> np.ndarray:
 
 
 def test_a_run_of_an_unknown_task_gets_the_generic_figures_and_no_claims(tmp_path):
+    """A task of one's own: a plain "Report", no claims section and no word of the dissertation
+    (its claims and chapters do not speak to it)."""
     run_dir = make_toy_run(tmp_path / "toy", n_episodes=300, n_epochs=5)
     result = analyze(run_dir)
     assert result.returncode == 0, result.stderr
@@ -46,9 +48,9 @@ def test_a_run_of_an_unknown_task_gets_the_generic_figures_and_no_claims(tmp_pat
         ["learning_curves", "td_errors", "prediction_errors_world"],
         ["summary.csv", "learning_curves.csv", "prediction_errors_world.csv", "claims.json"],
     )
-    assert report.startswith("# toy_experiment (task `toy`)")
-    assert "No dissertation claim applies to this run." in report
-    assert "no chapter's model matches this run" in report and "Fig. " not in report
+    assert report.startswith("# Report: toy_experiment (task `toy`)")
+    assert "## Claims" not in report and "claim applies" not in report
+    assert "dissertation" not in report and "chapter" not in report and "Fig. " not in report
     assert json.loads((run_dir / "analysis" / "claims.json").read_text()) == []
     assert event_files(run_dir)
 
@@ -194,7 +196,7 @@ def test_ferl_alone_gives_the_generic_analysis_and_takes_a_plug_in(tmp_path, mon
     report = (run_dir / "analysis" / "report.md").read_text()
     assert outcome.status == "analyzed" and outcome.results == []
     assert {name for name, _ in outcome.figures} == generic_figures
-    assert "No claim applies to this run." in report
+    assert "## Claims" not in report  # no chapter is registered: no claims section at all
     assert "dissertation" not in report and "Fig. 3." not in report
 
     def floor_analysis(run, num, out):

@@ -40,6 +40,19 @@ def test_local_links_resolve(page):
     assert broken == []
 
 
+def test_the_repository_cites_its_docs_not_the_contract():
+    """The contract is the outside's list of promises, not a page of the repository: train.py, the
+    Makefile, the code and docs/ point a reader to docs/ pages, never to the contract's sections."""
+    cited = [ROOT / "train.py", ROOT / "analyze.py", ROOT / "Makefile", *PAGES, README]
+    cited += [p for folder in ("ferl", "reproduction", "baselines", "conf") for p in (ROOT / folder).rglob("*.*")]
+    citing = [
+        str(p.relative_to(ROOT))
+        for p in cited
+        if p.suffix in ("", ".py", ".md", ".yaml") and re.search(r"CONTRACT|contract's §", p.read_text())
+    ]
+    assert citing == []
+
+
 def test_the_gallery_shows_the_files_make_figures_writes():
     shown = {Path(link).name for link in local_links(README) if link.startswith("docs/figures/")}
     assert shown == {name for name, _, _ in gallery.GALLERY}

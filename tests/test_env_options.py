@@ -28,6 +28,9 @@ GYMNASIUM_BAD = {
     "encoding": (["env.encoding=minigrid"], "not MiniGrid"),
     # one list per entry: four are needed
     "thresholds": (["env.thresholds=[[0.0],[0.0]]"], "4 entries"),
+    # derived thresholds (env.thresholds=auto): their count per entry, the sample they come from
+    "bits_per_entry": (["env.thresholds=auto", "env.bits_per_entry=0"], "≥ 1"),
+    "sample_steps": (["env.thresholds=auto", "env.sample_steps=1"], "a sample that can vary"),
     "max_steps": (["env.max_steps=0"], ""),
     "vectorization": (["env.vectorization=fork"], ""),
     # 6^4 = 1296 codes known at set-up: a table of 100 rows could overflow mid-run

@@ -179,6 +179,7 @@ def cue_run(tmp_path_factory):
     run_dir = tmp_path_factory.mktemp("cue") / "run"
     result = run_train(*RUN, f"hydra.run.dir={run_dir}", env=ENV)
     assert result.returncode == 0, result.stderr[-3000:]
+    (run_dir.parent / "stderr.txt").write_text(result.stderr)  # the progress bars
     return run_dir
 
 
@@ -188,6 +189,11 @@ def test_trains_and_analyses_end_to_end(cue_run):
     assert summary["task"] == manifest["task"] == "gymnasium" and manifest["env"]["id"] == CUE
     metrics = summary["metrics"]
     assert {"final_return", "env_steps_total", "solved"} <= set(metrics)
+    # β's schedule as the config gives it, for analysis to tell a random policy (β = 0) apart
+    beta = compose_config(RUN).actor.beta
+    assert manifest["actor"]["beta"] == {"start": beta.start, "end": beta.end}
+    # named for what the environment records: it has no goal, so no steps to one
+    assert "final_steps_to_goal" not in metrics and "steps_to_goal" not in summary["optimal"]
     assert metrics["env_steps_total"] == [3000] * 3  # 1 000 episodes of 3 steps
     episodes = np.load(cue_run / "records" / "episodes.npz")
     np.testing.assert_allclose(episodes["return"][:, -200:].mean(1), metrics["final_return"], rtol=1e-6)
@@ -198,6 +204,23 @@ def test_trains_and_analyses_end_to_end(cue_run):
     )
     assert result.returncode == 0, result.stderr[-2000:]
     assert "learning_curves" in {p.stem for p in (cue_run / "analysis").glob("*.png")}
+    # a task of one's own: a plain report, no claims section, no word of the dissertation
+    report = (cue_run / "analysis" / "report.md").read_text()
+    assert report.startswith("# Report: popgym_repeat_previous_easy (task `gymnasium`)")
+    assert "## Claims" not in report and "dissertation" not in report and "steps_to_goal" not in report
+
+
+def test_the_progress_bar_names_the_discounted_and_the_undiscounted_return(cue_run):
+    """The bar's discounted return is `disc_return_ma200`; the undiscounted one, what
+    `final_return` reports, is `return_ma200` beside it (×5 reward scale aside, their last values
+    are the records' means over the last 200 episodes)."""
+    last = (cue_run.parent / "stderr.txt").read_text().replace("\r", "\n").splitlines()
+    bar = [line for line in last if "disc_return_ma200=" in line][-1]  # tqdm: [time, rate, postfix]
+    postfix = bar[bar.index("disc_return_ma200=") :].rstrip().rstrip("]")
+    shown = dict(item.split("=") for item in postfix.split(", "))
+    episodes = np.load(cue_run / "records" / "episodes.npz")
+    assert float(shown["disc_return_ma200"]) == pytest.approx(episodes["discounted_return"][:, -200:].mean(), abs=1e-3)
+    assert float(shown["return_ma200"]) == pytest.approx(episodes["return"][:, -200:].mean(), abs=1e-3)
 
 
 def test_same_seed_same_numbers_sync_and_async(tmp_path):
@@ -243,7 +266,8 @@ def test_sigterm_then_resume_equals_uninterrupted(tmp_path, cue_run):
         ("env.id=outside_env:Nope-v0", "env.id"),
         ("env.id=nowhere:Cue-v0", "env.id"),
         ("env.id=Pendulum-v1", "action space Box"),
-        ("env.id=CartPole-v1", "observation space"),
+        # a Box has no one-hot code (with no encoding named, its thresholds are derived: tests/test_box_encodings.py)
+        ("env.id=CartPole-v1 env.encoding=onehot", "observation space"),
         # Algorithm 1's predictors need the observation table before the episodes
         (f"env.id={CUE} trainer=algorithm1", "trainer=online, or predictor=none"),
     ],

@@ -15,6 +15,7 @@ import pytest
 
 from conftest import ROOT, TINY, assert_same_tb_log, eager, run_train
 from ferl.run import checkpoint
+from ferl.run.jobs import job_dir, sweep_jobs
 
 # our conf/hydra/launcher/*.yaml extend the plugins' configs of the same name (see tests/test_sweeps.py)
 pytestmark = pytest.mark.filterwarnings(
@@ -28,8 +29,8 @@ JOB = [*(a for a in TINY if not a.startswith("trainer.steps=")), "trainer.steps=
 SIGNAL_S = 30  # submitit's local controller signals a job 30 s (its signal_delay_s) before timeout_min=1
 
 
-def summary(job_dir: Path) -> dict:
-    return json.loads((job_dir / "summary.json").read_text())
+def summary(run_dir: Path) -> dict:
+    return json.loads((run_dir / "summary.json").read_text())
 
 
 def start(out: Path, *overrides: str, env: dict | None = None) -> subprocess.Popen:
@@ -74,9 +75,17 @@ def direct(tmp_path_factory) -> dict:
     return summaries
 
 
+def launched_jobs(sweep: Path, *overrides: str) -> list[Path]:
+    """The folders Hydra names the jobs of ``train.py -m OVERRIDES`` (compile=false added, as
+    run_train does): ``<job number>_ch3_floor+<overrides>`` (ferl.run.subdir)."""
+    return [job_dir(sweep, n, job) for n, job in enumerate(sweep_jobs(eager(overrides)))]
+
+
 def assert_jobs_are_the_direct_runs(sweep: Path, direct: dict) -> None:
-    jobs = sorted(sweep.glob("*_ch3_floor"))
-    assert [j.name for j in jobs] == [f"{n}_ch3_floor" for n in range(len(SEEDS))]
+    jobs = sorted(sweep.glob("*_ch3_floor*"))
+    # the folders the launcher's workers named are the ones a resumed sweep looks for
+    assert jobs == launched_jobs(sweep, *JOB, f"seed={','.join(map(str, SEEDS))}")
+    assert [j.name.split("+")[0] for j in jobs] == [f"{n}_ch3_floor" for n in range(len(SEEDS))]
     for job, seed in zip(jobs, SEEDS):
         got = summary(job)
         assert got["seeds"] == [seed, seed + 1]
@@ -110,17 +119,17 @@ def test_submitit_local_job_array(tmp_path, direct):
         with open(folder / f"{job_id}_0_result.pkl", "rb") as f:
             outcome, job_return = pickle.load(f)
         assert outcome == "success" and job_return.status.name == "COMPLETED"
-        job_dir = Path(job_return.hydra_cfg.hydra.runtime.output_dir)
-        assert job_dir.parent == sweep and job_return.hydra_cfg.hydra.job.id == job_id
+        run_dir = Path(job_return.hydra_cfg.hydra.runtime.output_dir)
+        assert run_dir.parent == sweep and job_return.hydra_cfg.hydra.job.id == job_id
         log = (folder / f"{job_id}_0_log.out").read_text()
-        assert f"summary:     {job_dir / 'summary.json'}" in log and "Job completed successfully" in log
+        assert f"summary:     {run_dir / 'summary.json'}" in log and "Job completed successfully" in log
         assert "continuing_td: 100%" in (folder / f"{job_id}_0_log.err").read_text()  # the progress bar
-        done.add(job_dir.name)
-    assert done == {f"{n}_ch3_floor" for n in range(len(SEEDS))}
+        done.add(run_dir)
+    assert done == set(launched_jobs(sweep, *JOB, f"seed={','.join(map(str, SEEDS))}"))
 
 
-def checkpointed_step(job_dir: Path) -> int:
-    progress = checkpoint.read(job_dir / "checkpoints" / "last.pt").state()["progress"]
+def checkpointed_step(run_dir: Path) -> int:
+    progress = checkpoint.read(run_dir / "checkpoints" / "last.pt").state()["progress"]
     return (progress["partial"].get("continuing_td") or {}).get("step", 0)
 
 
@@ -138,7 +147,7 @@ def test_submitit_timeout_checkpoints_and_the_resubmitted_job_ends_as_uninterrup
 
     steps = training_steps(direct[0])
     whole, sweep = tmp_path / "whole", tmp_path / "sweep"
-    job, reference = sweep / "0_ch3_floor", None
+    reference = None
     try:
         for attempt in range(3):
             args = [
@@ -151,6 +160,7 @@ def test_submitit_timeout_checkpoints_and_the_resubmitted_job_ends_as_uninterrup
                 "trainer.log_every=1000",
                 f"trainer.checkpoint_every={steps}",
             ]  # no periodic checkpoint inside training: only the signal's
+            (job,) = launched_jobs(sweep, *args)
             reference = start(whole, *args, f"hydra.run.dir={whole}")  # meanwhile, beside the submitit job
             cut = run_train(
                 "-m",
@@ -180,7 +190,7 @@ def test_submitit_timeout_checkpoints_and_the_resubmitted_job_ends_as_uninterrup
             "resume=true",
             *args,
             f"hydra.sweep.dir={sweep}",
-            "hydra.sweep.subdir=0_ch3_floor",
+            f"hydra.sweep.subdir={job.name}",
             timeout=300,
         )
         assert resumed.returncode == 0, resumed.stderr[-3000:]

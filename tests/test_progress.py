@@ -134,6 +134,9 @@ def test_joblib_multirun_prints_one_line_per_job(tmp_path):
     assert len(lines) == 2, result.stdout
     assert lines[0].startswith("ferl: 1/2 jobs done (") and lines[0].endswith(" left")
     assert lines[1].startswith("ferl: 2/2 jobs done (") and "; sweep took " in lines[1]
-    assert {line.split("(")[1].split(",")[0] for line in lines} == {"0_ch3_coding_cw", "1_ch3_coding_cw"}
+    # each line names the job's folder: its number, experiment and overrides (ferl.run.subdir)
+    named = {line.split("(")[1].split(",")[0] for line in lines}
+    assert {name.split("+")[0] for name in named} == {"0_ch3_coding_cw", "1_ch3_coding_cw"}
+    assert named == {p.name for p in sweep.glob("*_ch3_coding_cw+*")}
     events = [json.loads(line) for line in (sweep / FILE).read_text().splitlines()]
     assert [e["event"] for e in events].count("end") == 2 and events[0]["jobs"] == 2

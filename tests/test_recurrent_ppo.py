@@ -225,7 +225,7 @@ def test_gymnasium_records_are_episodes_of_the_environment(cue):
     [
         (["--env-id", "Pendulum-v1"], "action space Box"),
         (["--env-id", "outside_env:Nope-v0"], "--env-id"),
-        (["--env-id", "CartPole-v1"], "--encoding"),
+        (["--env-id", "CartPole-v1", "--encoding", "onehot"], "--encoding"),  # a Box: no one-hot code
         (["--env-id", "ferl/TMaze-v0", "--optimal-return", "1"], "Gymnasium ids"),
     ],
 )

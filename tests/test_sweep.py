@@ -12,6 +12,7 @@ import pytest
 import yaml
 
 import reproduction
+from ferl.analysis import runner
 from ferl.analysis import sweep as sw
 from ferl.analysis.claims import HELD, NOT_HELD, PARTLY, Claim, ClaimResult, Measured, evaluate
 from ferl.analysis.report import RunOutcome
@@ -19,7 +20,7 @@ from reproduction import ch3, ch4, noise_grid, published
 from reproduction.floor import FloorRun
 from reproduction.sweep_claims import SWEEP_CLAIMS
 from reproduction.tmaze import TMazeRun
-from synthetic_runs import load_run, make_floor_run, make_tmaze_run
+from synthetic_runs import load_run, make_floor_run, make_tmaze_run, make_toy_run
 
 REPO = Path(__file__).resolve().parents[1]
 LEVELS = ["0", "0.5", "1"]
@@ -82,10 +83,10 @@ def test_aggregate_is_mean_and_sem_over_runs(tmp_path):
     )
     rows = {(r.experiment, r.variant, r.metric): r for r in sw.aggregate([a, b])}
 
-    reward = rows["floor", sw.DISSERTATION_SETTING, "reward_per_step_last10pct"]
+    reward = rows["floor", sw.BASE_SETTING, "reward_per_step_last10pct"]
     assert (reward.mean, reward.n) == (3.0, 3)
     assert reward.sem == pytest.approx(math.sqrt(7.0) / math.sqrt(3))  # s.d. √7 (ddof 1)
-    acc = rows["floor", sw.DISSERTATION_SETTING, "greedy_accuracy/0.5"]
+    acc = rows["floor", sw.BASE_SETTING, "greedy_accuracy/0.5"]
     assert acc.mean == pytest.approx(0.6) and acc.sem == pytest.approx(0.1)
     solved = rows["maze", "env.corridor_length=6", "solved"]
     assert solved.mean == 0.75 and solved.sem == pytest.approx(0.25)
@@ -97,6 +98,25 @@ def test_aggregate_is_mean_and_sem_over_runs(tmp_path):
     assert set(tables) == {"floor", "maze"}
     assert "| solved | 0.75 ± 0.25 |" in tables["maze"]
     assert "| reward_per_step_last10pct | 3 ± 1.5 |" in tables["floor"]
+
+
+def test_a_sweep_of_ones_own_task_is_a_report_without_the_dissertation(tmp_path):
+    """A sweep whose runs no chapter speaks to (a task of one's own) is a plain "Report": no claims
+    section, its job without overrides not "as in the dissertation"; a dissertation run in the
+    sweep makes it the reproduction report again, that job "as in the dissertation"."""
+    own = make_toy_run(tmp_path / "own" / "0_toy_experiment")
+    runner.analyze_sweep(own.parent)
+    report = (own.parent / "analysis" / "report.md").read_text()
+    assert report.startswith(f"# Report: sweep `{own.parent}`")
+    assert "## Claims" not in report and "**claims**" not in report
+    assert "dissertation" not in report and f"`{sw.BASE_SETTING}`" in report
+
+    make_floor_run(tmp_path / "own" / "1_ch3_floor")
+    runner.analyze_sweep(own.parent)
+    report = (own.parent / "analysis" / "report.md").read_text()
+    assert report.startswith(f"# Reproduction report: sweep `{own.parent}`")
+    assert "## Claims of the dissertation" in report
+    assert "`as in the dissertation` — [1_ch3_floor]" in report and "`no overrides` — [0_toy_experiment]" in report
 
 
 def test_noise_grid_from_jobs_that_differ_only_in_training_noise(tmp_path):

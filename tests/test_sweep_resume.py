@@ -4,6 +4,7 @@ RESUME; baselines' run_table keeps its finished jobs likewise."""
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -12,6 +13,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from hydra.core.override_parser.overrides_parser import OverridesParser
 
 from conftest import ROOT, TINY, eager
 from ferl.run import sweepdir, together
@@ -37,8 +39,52 @@ def test_jobs_are_numbered_as_hydra_numbers_them():
         ["experiment=table4_1_regular", "seed=1", "actor.n_hidden=10"],
         ["experiment=table4_1_regular", "seed=1", "actor.n_hidden=20"],
     ]
-    assert job_dir(Path("s"), 3, jobs[3]) == Path("s/3_table4_1_regular")
+    # named by the overrides but the seed (conf/config.yaml's exclude_keys), numbered first
+    assert job_dir(Path("s"), 3, jobs[3]) == Path("s/3_table4_1_regular+actor.n_hidden-20")
     assert job_dir(Path("s"), 0, ["seed=0"]) == Path("s/0_ch3_floor")  # conf/config.yaml's default
+
+
+@pytest.mark.parametrize(
+    "job",
+    [
+        ["experiment=table4_1_regular", "seed=3", "predictor.joint.memory=lstm", "resume=true"],
+        ["experiment=none", "env=tmaze", "predictor=joint", "actor=ferl_tmaze", "trainer=algorithm1"],
+        ["data=mnist_idx", "data.root=/data/mnist files", "env.noise=0.5", "trainer.test_noise_levels=[0.0,0.5]"],
+        [  # more than 80 characters of overrides: cut, and ended by a digest of them
+            "actor.n_hidden=39",
+            "actor.gamma=0.8",
+            "env.noise=0.25",
+            "trainer.log_every=10",
+            "trainer.steps=30000",
+            "trainer.checkpoint_every=1000",
+        ],
+    ],
+)
+def test_a_jobs_folder_is_the_one_hydra_names(compose_cfg, job):
+    """job_dir (what a resumed sweep looks for) is the folder Hydra's hydra.sweep.subdir gives the
+    job: its number, experiment (`experiment=none`: its env) and overrides, every character one a
+    folder name and Hydra's unquoted `hydra.run.dir=` take, and at most ~100 characters long."""
+    from hydra.core.hydra_config import HydraConfig
+    from omegaconf import open_dict
+
+    cfg = compose_cfg(job)
+    with open_dict(cfg):
+        cfg.hydra.job.num = 12
+    HydraConfig.instance().set_config(cfg)
+    name = str(cfg.hydra.sweep.subdir)
+    assert job_dir(Path("s"), 12, eager(job)) == Path("s") / name
+    assert re.fullmatch(r"12_[A-Za-z0-9_]+(\+[A-Za-z0-9._+-]+)?", name) and len(name) <= 100, name
+    assert "seed" not in name and "resume" not in name and "compile" not in name
+    OverridesParser.create().parse_overrides([f"hydra.run.dir=s/{name}"])  # the resumed job's own command
+
+
+def test_a_sweep_launched_before_the_overrides_named_the_folders_still_resumes(tmp_path):
+    """Its jobs' folders are `<number>_<experiment>`: where only such a folder exists, it is the job's."""
+    job = ["experiment=ch3_floor", "env.noise=0.5"]
+    (tmp_path / "0_ch3_floor").mkdir()
+    assert job_dir(tmp_path, 0, job) == tmp_path / "0_ch3_floor"
+    (tmp_path / "0_ch3_floor+env.noise-0.5").mkdir()
+    assert job_dir(tmp_path, 0, job) == tmp_path / "0_ch3_floor+env.noise-0.5"
 
 
 def test_each_job_is_kept_resumed_or_started(tmp_path):

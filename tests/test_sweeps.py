@@ -12,10 +12,11 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.utils import get_class, instantiate
 from omegaconf import OmegaConf
 
-from conftest import TINY, run_train
+from conftest import TINY, eager, run_train
 from ferl.config.hydra_glue import jobs_per_machine, optimized_value, summary_table
 from ferl.config.params import ConfigError
 from ferl.config.validate import validate
+from ferl.run.jobs import job_dir, sweep_jobs
 
 # our conf/hydra/launcher/*.yaml extend the plugins' configs of the same name (ferl.config.hydra_glue
 # silences Hydra's notice about that; pytest resets warning filters for each test)
@@ -73,8 +74,12 @@ def test_joblib_multirun_runs_both_jobs(tmp_path):
     assert result.returncode == 0, result.stderr[-2000:]
     assert "Joblib.Parallel(n_jobs=2" in result.stdout + result.stderr
     assert "ConfigStore schema" not in result.stderr  # our launcher config on top of the plugin's, quietly
-    jobs = sorted(sweep.glob("*_ch3_coding_cw"))
-    assert [j.name for j in jobs] == ["0_ch3_coding_cw", "1_ch3_coding_cw"]
+    jobs = sorted(sweep.glob("*_ch3_coding_cw*"))
+    # named by their overrides (the seed aside), as ferl.run.jobs finds them to resume the sweep
+    named = sweep_jobs(eager([*TINY, "experiment=ch3_coding_cw", "seed=0,10"]))
+    assert jobs == [job_dir(sweep, n, job) for n, job in enumerate(named)]
+    assert jobs[0].name.startswith("0_ch3_coding_cw+n_runs-2+trainer.") and "seed" not in jobs[0].name
+    assert jobs[0].name.split("+", 1)[1] == jobs[1].name.split("+", 1)[1]
     seeds = [json.loads((j / "summary.json").read_text())["seeds"] for j in jobs]
     assert seeds == [[0, 1], [10, 11]]
     assert result.stdout.count("mean ± s.d.") == 2 and "greedy_accuracy/0.125" in result.stdout
@@ -105,8 +110,10 @@ def test_optuna_search_config_composes(compose_cfg):
     cfg = compose_cfg(["hparams_search=matching_optuna"])
     sweeper = cfg.hydra.sweeper
     assert cfg.hydra.runtime.choices.experiment == "table4_1_matching" and cfg.hydra.runtime.choices.env == "tmaze"
-    assert sweeper._target_.endswith("OptunaSweeper") and sweeper.direction == "maximize"
+    assert sweeper._target_.endswith("FerlOptunaSweeper") and sweeper.direction == "maximize"
+    assert get_class(sweeper._target_) and get_class(sweeper.sampler._target_)  # Optuna ≥ 4 installed
     assert sweeper.sampler.seed is not None and sweeper.n_trials > 0
+    assert sweeper.storage == "sqlite"  # the study in <sweep dir>/study.db (tests/test_study_storage.py)
     assert cfg.optimized_metric == "final_discounted_return"
     for key in sweeper.params:  # the search space names keys that the experiment has
         assert OmegaConf.select(cfg, key) is not None, key
@@ -127,18 +134,15 @@ def test_optuna_sweep_maximises_main_return_value(tmp_path):
         timeout=300,
     )
     assert result.returncode == 0, result.stderr[-2000:]
+    jobs = [next(sweep.glob(f"{i}_table4_1_matching*")) for i in range(2)]  # the folder may name overrides
     means = [
         sum(m) / len(m)
-        for m in (
-            json.loads((sweep / f"{i}_table4_1_matching" / "summary.json").read_text())["metrics"][
-                "final_discounted_return"
-            ]
-            for i in range(2)
-        )
+        for m in (json.loads((job / "summary.json").read_text())["metrics"]["final_discounted_return"] for job in jobs)
     ]
     best = yaml.safe_load((sweep / "optimization_results.yaml").read_text())
     assert best["best_value"] == pytest.approx(max(means), rel=1e-6)
     assert set(best["best_params"]) == {"actor.lr.value", "actor.beta.end"}
+    assert best["n_complete"] == 2 and (sweep / "study.db").is_file()
 
 
 def test_optimized_value_is_the_mean_over_runs():

@@ -78,7 +78,7 @@ def test_only_the_dissertation_components_are_judged_by_its_claims(sweep):
     assert dissertation_components(Manifest.load(root / "floor_fe"))
     assert not dissertation_components(Manifest.load(root / "floor_ee"))
     claims = (root / "floor_ee" / "analysis" / "report.md").read_text()
-    assert "No dissertation claim applies" in claims
+    assert "## Claims" not in claims and "no chapter's model matches this run" in claims
 
 
 def test_the_finding_names_the_leader_among_the_agents_that_see_what_the_agent_sees(sweep):
@@ -124,6 +124,22 @@ def test_the_free_energy_head_is_set_against_the_linear_head_on_the_same_core(sw
     best = max(ours, key=lambda n: tuple(np.mean(summaries[n]["metrics"][m]) for m in RANKED))
     label = {"maze": "dissertation agent", "maze_memoryless": "predictor=none", "maze_free_energy": "actor=recurrent_q"}
     assert family.startswith(f"**Free-energy family:** its best, {label[best]}")
+
+
+def test_a_random_policy_is_not_labelled_as_memoryless_ferl():
+    """β = 0 throughout (run.json's actor.beta) is its own agent: without it, a β = 0 run and
+    memoryless FERL were both `predictor=none`. A run recorded before `beta` keeps its label."""
+    from reproduction.variants import RANDOM_POLICY, agent
+
+    def memoryless(**actor):
+        env = {"kind": "tmaze", "episodic": True}
+        trainer = {"kind": "phased"}
+        return Manifest("tmaze", "x", trainer, env, None, {}, {"kind": "free_energy", **actor})
+
+    assert agent(memoryless(beta={"start": 0.0, "end": 10.0})) == "predictor=none"
+    assert agent(memoryless()) == "predictor=none"
+    assert agent(memoryless(beta={"start": 0.0, "end": 0.0})) == f"predictor=none, {RANDOM_POLICY}"
+    assert RANDOM_POLICY == "β=0 (random policy)"
 
 
 def test_means_equal_but_for_float32_rounding_name_no_leader():

@@ -324,7 +324,7 @@ def analyze(run: Run, num: Numbering, out: Path) -> RunAnalysis:
     """The generic figures, data files, header and summary table of any run."""
     c = curves(run)
     analysis = RunAnalysis(
-        f"{run.experiment} (task `{run.task}`)",
+        f"Report: {run.experiment} (task `{run.task}`)",  # a plug-in's environment analysis may retitle it
         _header(run, c),
         [("Summary", _summary_section(run, out))],
         data_files=["summary.csv"],

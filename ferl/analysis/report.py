@@ -25,6 +25,9 @@ class RunAnalysis:
     figures: dict[str, tuple[Figure, str]] = field(default_factory=dict)  # name → (fig, caption)
     data_files: list[str] = field(default_factory=list)
     results: list[ClaimResult] = field(default_factory=list)
+    # whether a registered publication's claims speak to the run (its chapter applies): only then
+    # has the report a claims section, so that a run of one's own task meets no one's claims
+    claims_apply: bool = False
 
     def add(self, other: RunAnalysis) -> None:
         """Append another analysis' parts of the same run (its title is dropped)."""
@@ -58,13 +61,14 @@ def claims_table(results: Sequence[ClaimResult], reference: str = "") -> list[st
 
 
 def write_run_report(path: Path, analysis: RunAnalysis, reference: str = "") -> None:
-    """``analysis/report.md`` of one run: header, tables, claims (of ``reference``), figure and data
-    links."""
+    """``analysis/report.md`` of one run: header, tables, claims (of ``reference``, where they
+    apply), figure and data links."""
     lines = [f"# {analysis.title}", ""]
     lines += [f"- **{key}**: {value}" for key, value in analysis.header]
     for title, body in analysis.sections:
         lines += ["", f"## {title}", ""] + body
-    lines += ["", "## Claims", ""] + claims_table(analysis.results, reference)
+    if analysis.claims_apply or analysis.results:
+        lines += ["", "## Claims", ""] + claims_table(analysis.results, reference)
     lines += ["", "## Figures", ""]
     lines += [f"- [{name}.png]({name}.png) — {caption}" for name, (_, caption) in analysis.figures.items()]
     lines += ["", "## Data", ""] + [f"- [{name}]({name})" for name in analysis.data_files]

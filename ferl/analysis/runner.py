@@ -107,7 +107,10 @@ def run_analysis(run: Run, out: Path) -> RunAnalysis:
     chapter = REGISTRY.chapter_of(run.manifest)
     num = chapter.numbering(run.manifest) if chapter else Numbering()
     analysis = generic.analyze(run, num, out)
-    if REGISTRY.reference:
+    analysis.claims_apply = chapter is not None
+    # Where the reference has nothing to say on the task (an environment it did not register, a
+    # user's own), the report does not mention it at all.
+    if REGISTRY.reference and (chapter or run.manifest.env_kind in REGISTRY.environments):
         analysis.header.append(
             (
                 REGISTRY.reference,
@@ -271,11 +274,13 @@ def analyze_sweep(sweep_dir: Path, pages: Sequence[Path] = (), force: bool = Fal
     found = runs.find_runs(sweep_dir)
     skipped = report_unfinished(sweep_dir)
     outcomes = analyze_runs(found, force)
-    jobs = [sw.Job(o, summary) for o in outcomes if (summary := _read_summary(o.run_dir)) is not None]
+    jobs = [_job(o, summary) for o in outcomes if (summary := _read_summary(o.run_dir)) is not None]
     sweep = sw.Sweep(sweep_dir, jobs)
     out = _fresh(sweep_dir / "analysis")
-    analysis = sw.analyze_sweep(sweep, out, REGISTRY.sweep_title)
     rows = sw.reproduction_rows(jobs, evaluate(REGISTRY.sweep_claims, sweep), REGISTRY.claim_order)
+    # a sweep of no run that the reference speaks to is a plain "Report", without a claims section
+    reproduces = bool(rows) or any(job.reference for job in jobs)
+    analysis = sw.analyze_sweep(sweep, out, REGISTRY.sweep_title if reproduces else sw.PLAIN_TITLE)
     findings = [line for section in REGISTRY.sweep_sections for line in section(sweep, out, analysis)]
     publish_figures(analysis.figures, out, out / "tb")
     write_json(
@@ -297,7 +302,7 @@ def analyze_sweep(sweep_dir: Path, pages: Sequence[Path] = (), force: bool = Fal
         wall["training wall time (make reproduce / make beyond)"] = float(train_wall.read_text())
     wall["sum of the jobs' wall_time_s"] = sum(float(j.summary.get("wall_time_s", 0)) for j in jobs)
     wall["analysis wall time"] = time.perf_counter() - start
-    lines = sw.report_lines(sweep, analysis, rows, out, wall, REGISTRY.claims_heading)
+    lines = sw.report_lines(sweep, analysis, rows, out, wall, REGISTRY.claims_heading if reproduces else None)
     notes = sweep_dir / NOTES  # a launcher's lines for the report (baselines/reference.py: where PPO's rows come from)
     lines += (["", *notes.read_text().splitlines()] if notes.is_file() else []) + findings
     lines += ["", "## Jobs", ""] + jobs_table(sweep_dir, out, outcomes + skipped)
@@ -310,6 +315,15 @@ def analyze_sweep(sweep_dir: Path, pages: Sequence[Path] = (), force: bool = Fal
         f"({sw.verdict_counts(rows)}) -> {out / 'report.md'}"
     )
     return outcomes
+
+
+def _job(outcome: RunOutcome, summary: dict) -> sw.Job:
+    """A sweep's job, with the reference its run reproduces: where a registered chapter applies to
+    what it recorded (then a job without overrides runs "as in the dissertation")."""
+    job = sw.Job(outcome, summary)
+    if job.manifest is not None and REGISTRY.chapter_of(job.manifest) is not None:
+        job.reference = REGISTRY.reference
+    return job
 
 
 def report_unfinished(sweep_dir: Path) -> list[RunOutcome]:

@@ -30,7 +30,8 @@ from ferl.analysis.records import Manifest
 from ferl.analysis.report import RunAnalysis, RunOutcome
 
 SCALARS = ("wall_time_s", "agent_steps_per_s")  # summary.json figures besides ``metrics``
-DISSERTATION_SETTING = "as in the dissertation"  # the variant of a job without overrides
+BASE_SETTING = "no overrides"  # the variant of a job without overrides, of no reference's model
+PLAIN_TITLE = "Report"  # a sweep's title where no job reproduces a reference (ferl.analysis.runner)
 TRAIN_WALL_TIME = "train_wall_time_s"  # written by ``make reproduce``
 
 
@@ -49,6 +50,9 @@ class Job:
 
     outcome: RunOutcome
     summary: dict
+    # the work whose model the run follows ("dissertation": a registered chapter applies to it), ""
+    # for none; set by ferl.analysis.runner, which knows the registry
+    reference: str = ""
 
     @property
     def run_dir(self) -> Path:
@@ -64,7 +68,9 @@ class Job:
 
     @property
     def variant(self) -> str:
-        return " ".join(self.overrides) or DISSERTATION_SETTING
+        """The job's overrides; without any, its experiment's own setting: "as in the
+        dissertation" only where the run follows the dissertation's model (``reference``)."""
+        return " ".join(self.overrides) or (f"as in the {self.reference}" if self.reference else BASE_SETTING)
 
     @property
     def label(self) -> str:
@@ -243,18 +249,17 @@ def report_lines(
     rows: Sequence[ReportRow],
     out: Path,
     wall: dict[str, float],
-    claims_heading: str = "Claims",
+    claims_heading: str | None = "Claims",
 ) -> list[str]:
-    """``analysis/report.md`` of a sweep: timing, claims, per-experiment tables, every figure."""
+    """``analysis/report.md`` of a sweep: timing, claims (none without ``claims_heading``: a sweep
+    no reference speaks to), per-experiment tables, every figure."""
     lines = [f"# {analysis.title}", ""]
     lines += [f"- **{k}**: {v:.0f} s" for k, v in wall.items()]
-    lines += [
-        f"- **jobs**: {len(sweep.jobs)}; **claims**: {len(rows)} ({verdict_counts(rows)})",
-        "",
-        f"## {claims_heading}",
-        "",
-    ]
-    lines += claims_rows_markdown(rows, out)
+    if claims_heading is None:
+        lines.append(f"- **jobs**: {len(sweep.jobs)}")
+    else:
+        lines += [f"- **jobs**: {len(sweep.jobs)}; **claims**: {len(rows)} ({verdict_counts(rows)})", ""]
+        lines += [f"## {claims_heading}", ""] + claims_rows_markdown(rows, out)
     tables = experiment_tables(aggregate(sweep.jobs))
     lines += [
         "",

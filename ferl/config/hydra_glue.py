@@ -3,7 +3,8 @@ for any other error of a run (its phase), the device, the metric that main() ret
 sweeper, and the final summary table.
 
 Imported by train.py; joblib's worker processes import it too (main() refers to it), so the
-resolver and the warning filter below are in place wherever a job's config is composed.
+resolvers (below, and ``ferl.run.subdir``'s job folder) and the warning filter are in place
+wherever a job's config is composed.
 """
 
 import io
@@ -19,6 +20,7 @@ from pathlib import Path
 import torch
 from omegaconf import OmegaConf
 
+import ferl.run.subdir  # noqa: F401 — registers the resolver that names a multirun job's folder
 from ferl.config.params import ConfigError
 from ferl.run.failures import (
     Interrupted,

@@ -11,14 +11,16 @@ observation space needs a declared encoding into {0, 1}^O:
   threshold θ_ij of its list, a thermometer code: k_i increasing thresholds give k_i + 1 levels.
   ``thresholds`` is one list shared by every entry, ``[θ_1, …]``, or one list per entry,
   ``[[θ_11, …], [θ_21, …], …]``, so entries of different ranges each get thresholds of their own;
-  entry i then takes k_i bits, and the code has Π_i (k_i + 1) distinct values.
+  entry i then takes k_i bits (an empty list: the entry is left out), and the code has
+  Π_i (k_i + 1) distinct values. ``auto`` (or none given) derives one list per entry from the
+  space's bounds or a random-policy sample (``ferl.envs.derived``), where the environment can be
+  played: ``ferl.envs.gymnasium_vector`` derives them and hands the lists here.
 * ``minigrid``: MiniGrid's symbolic view, a dict whose ``image`` is (7, 7, 3) (object, colour,
   state) indices per cell, as one one-hot group of each per cell (Chevalier-Boisvert et al. 2023,
   ``minigrid.core.constants``); the ``direction`` and ``mission`` entries are left out, as the
   egocentric view already turns with the agent and a task's mission is fixed.
 * ``auto``: ``minigrid`` for such a dict, ``onehot`` where every part is discrete, ``thresholds``
-  for a ``Box`` when ``thresholds`` are given; anything else has no encoding and is refused
-  naming the space.
+  for a ``Box``; anything else has no encoding and is refused naming the space.
 
 Everything about an encoding is checked when it is built, before a run starts (docs/usage.md,
 "Training"): thresholds that are not numbers, not increasing, a list per entry whose count is not
@@ -107,11 +109,15 @@ def threshold_lists(space, thresholds) -> list[np.ndarray]:
         raise BadThresholds(
             f"gives {len(lists)} lists, one per entry, but {space} has {entries} entries (shape {space.shape})"
         )
+    if not any(lists):  # an empty list leaves its entry out; all empty would leave no bits
+        raise BadThresholds("are all empty lists: at least one entry needs a threshold")
     out = []
     for i, theta in enumerate(lists):
         where = f"entry {i}'s list {theta}" if all(nested) else f"{theta}"
-        if not theta or not all(isinstance(t, (int, float)) and not isinstance(t, bool) for t in theta):
-            raise BadThresholds(f"{where} is not a non-empty list of numbers")
+        if (not theta and not all(nested)) or not all(
+            isinstance(t, (int, float)) and not isinstance(t, bool) for t in theta
+        ):
+            raise BadThresholds(f"{where} is not a list of numbers")
         values = np.asarray(theta, np.float64)
         if not np.isfinite(values).all() or (np.diff(values) <= 0).any():
             raise BadThresholds(f"{where} is not finite and increasing (a thermometer code: θ_1 < θ_2 < …)")
@@ -206,8 +212,8 @@ def encoder_for(space, encoding: str, thresholds=()) -> tuple[Encoder, int]:
             if encoding != "auto":
                 raise
             raise NoEncoding(
-                f"{space} has no automatic encoding: a Box needs env.thresholds=[...] "
-                f"(one list, or one per entry); other spaces are not supported"
+                f"{space} has no automatic encoding: a Box needs thresholds (env.thresholds=auto "
+                f"derives them, or [...]: one list, or one per entry); other spaces are not supported"
             ) from None
     if thresholds:
         raise BadThresholds(

@@ -39,7 +39,8 @@ step; its environment is never stepped again, in this process or a resumed one. 
 ``on_fault`` (the class used directly) the fault raises ``EnvironmentFault``.
 """
 
-from typing import Literal, cast
+import logging
+from typing import Annotated, Literal, cast
 
 import gymnasium
 import numpy as np
@@ -47,8 +48,9 @@ import torch
 from gymnasium import spaces
 
 from ferl import rng
-from ferl.config.params import ConfigError, Positive, PositiveInt, checked, plain
+from ferl.config.params import ConfigError, Positive, PositiveInt, at_least, checked, plain
 from ferl.envs.boundary import DETAIL, FAULT, Guarded
+from ferl.envs.derived import Derived, derived_once, derives, unused_bits
 from ferl.envs.encodings import (
     BadThresholds,
     BinaryObservation,
@@ -118,7 +120,7 @@ def table_rows(env_id: str, codes: int | None, bits: int, asked: int | None) -> 
     if asked is None and not fits:
         raise ConfigError(
             f"env.max_observations: the encoding of {env_id!r} can give {codes} distinct observations, "
-            f"more than a table sized to them holds ({TABLE_BYTES // 2**20} MiB); use fewer thresholds, "
+            f"more than a table sized to them holds ({TABLE_BYTES // 2**20} MiB); use fewer thresholds (or env.bits_per_entry), "
             f"or set env.max_observations to the most a run meets (a run that meets more stops)"
         )
     if asked is not None and fits and asked < codes:
@@ -150,7 +152,9 @@ class GymnasiumEnv(EpisodicEnvironmentBase):
         id: str,
         kwargs: dict | None = None,
         encoding: Encoding = "auto",
-        thresholds: list | None = None,
+        thresholds: list | Literal["auto"] | None = None,
+        bits_per_entry: PositiveInt = 8,
+        sample_steps: Annotated[int, at_least(2, "a sample that can vary")] = 1000,
         max_steps: PositiveInt | None = None,
         vectorization: Literal["sync", "async"] = "sync",
         max_observations: PositiveInt | None = None,
@@ -161,12 +165,20 @@ class GymnasiumEnv(EpisodicEnvironmentBase):
     ):
         del generator  # the environments draw from their own seeded generators
         self.n_runs, self.id, self.kwargs, self.device = n_runs, id, dict(kwargs or {}), torch.device(device)
-        self.encoding, self.thresholds = encoding, list(plain(thresholds) or ())  # plain lists: JSON, pickles
+        self.encoding, given = encoding, plain(thresholds)
+        self.thresholds: list = [] if given == "auto" else list(given or ())  # plain lists: JSON, pickles
+        self.derived: Derived | None = None  # the thresholds derived at set-up (ferl.envs.derived)
         probe = make(id, self.kwargs)
         try:
             self.sizes = action_sizes(probe.action_space, id)
             self.action_space = probe.action_space
+            limit = max_steps or default_max_steps(probe)
+            if limit is None:
+                raise ConfigError(f"env.max_steps: {id!r} states no episode limit; set env.max_steps (T_max)")
             try:
+                if derives(probe.observation_space, encoding, given):
+                    self.derived = derived_once(probe, [id, self.kwargs], bits_per_entry, sample_steps, limit)
+                    self.thresholds = self.derived.thresholds
                 encoded = cast(
                     spaces.MultiBinary, BinaryObservation(probe, encoding, self.thresholds).observation_space
                 )
@@ -178,19 +190,12 @@ class GymnasiumEnv(EpisodicEnvironmentBase):
                 raise ConfigError(f"env.thresholds: {e}") from None
             except NoEncoding as e:
                 raise ConfigError(f"env.encoding: the observation space of {id!r}: {e}") from None
-            limit = max_steps or default_max_steps(probe)
         finally:
             probe.close()
-        if limit is None:
-            raise ConfigError(f"env.max_steps: {id!r} states no episode limit; set env.max_steps (T_max)")
         # said at the first episode, once set-up has passed (a refusal stays one line)
-        self.unused_bits = (
-            f"env.thresholds: {len(fixed)} of the {observation_size} bits never change, their thresholds outside "
-            f"the bounds of entries {sorted({i for i, _ in fixed})} of {id!r}'s observations (one list per "
-            f"entry: [[θ_11, …], [θ_21, …], …])"
-            if fixed
-            else ""
-        )
+        self.unused_bits = unused_bits(id, fixed, int(observation_size), self.derived)
+        # derived thresholds stated at the first episode: the run's log (train.log); records/run.json has them too
+        self.stated = self.derived.stated(id) if self.derived is not None else ""
         self.max_steps, self.observation_size = limit, int(observation_size)
         self.distinct_codes = codes
         max_observations = table_rows(id, codes, int(observation_size), max_observations)
@@ -252,6 +257,9 @@ class GymnasiumEnv(EpisodicEnvironmentBase):
     # ---- episodes -----------------------------------------------------------------------------
     def reset(self) -> torch.Tensor:
         """Every run's next episode (run r seeded with seed + r at the first one)."""
+        if self.stated:
+            logging.getLogger(__name__).info(self.stated)
+            self.stated = ""
         if self.unused_bits:
             warn(self.unused_bits)
             self.unused_bits = ""
@@ -344,6 +352,7 @@ class GymnasiumEnv(EpisodicEnvironmentBase):
             "kwargs": self.kwargs,
             "encoding": self.encoding,
             "thresholds": self.thresholds,
+            **({"derived": self.derived.describe()} if self.derived is not None else {}),
             "vectorization": self.vectorization,
             "observation_size": self.observation_size,
             "distinct_codes": self.distinct_codes,  # null: not known in advance

@@ -18,11 +18,13 @@ from concurrent.futures import ThreadPoolExecutor, as_completed
 from contextlib import ExitStack
 from pathlib import Path
 
+from hydra._internal.config_loader_impl import get_overrides_dirname
 from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import DictConfig, OmegaConf
 
 from ferl.run.progress import duration
+from ferl.run.subdir import job_folder
 
 ROOT = Path(__file__).resolve().parents[2]
 DONE, RESUMED, TODO = "done", "resumed", "to do"
@@ -40,17 +42,45 @@ def sweep_jobs(overrides: list[str] | tuple[str, ...]) -> list[list[str]]:
     return [[o for o in job if not o.startswith(("hydra.", "hydra/"))] for job in jobs]
 
 
+def _config_yaml() -> DictConfig:
+    config = OmegaConf.load(ROOT / "conf" / "config.yaml")
+    assert isinstance(config, DictConfig)
+    return config
+
+
+def default_choice(group: str) -> str:
+    """conf/config.yaml's default option of a config group (``experiment``, ``env``)."""
+    defaults = _config_yaml().defaults
+    return next(str(d[group]) for d in defaults if isinstance(d, DictConfig) and group in d)
+
+
 def default_experiment() -> str:
     """conf/config.yaml's ``experiment`` default."""
-    defaults = OmegaConf.load(ROOT / "conf" / "config.yaml").defaults
-    return next(str(d["experiment"]) for d in defaults if isinstance(d, DictConfig) and "experiment" in d)
+    return default_choice("experiment")
+
+
+def _choice(job: list[str], group: str) -> str:
+    return next((o.split("=", 1)[1] for o in job if o.startswith(f"{group}=")), None) or default_choice(group)
+
+
+def override_dirname(job: list[str]) -> str:
+    """``hydra.job.override_dirname`` of a job with these overrides, as Hydra writes it with
+    conf/config.yaml's separators and excluded keys (Hydra's own function on the same parse)."""
+    settings = _config_yaml().hydra.job.config.override_dirname
+    parsed = OverridesParser.create().parse_overrides(list(job))
+    return get_overrides_dirname(parsed, list(settings.exclude_keys), settings.item_sep, settings.kv_sep)
 
 
 def job_dir(sweep_dir: Path, number: int, job: list[str]) -> Path:
     """The job's run directory, as conf/config.yaml's ``hydra.sweep.subdir`` names it:
-    ``<job number>_<experiment>``."""
-    experiment = next((o.split("=", 1)[1] for o in job if o.startswith("experiment=")), None)
-    return sweep_dir / f"{number}_{experiment or default_experiment()}"
+    ``<job number>_<experiment>+<overrides>`` (``ferl.run.subdir``; ``experiment=none``: the env's
+    name). A sweep launched before the overrides were in the name has ``<job number>_<experiment>``:
+    where only that folder exists, it is the job's, so that such a sweep still resumes."""
+    experiment = _choice(job, "experiment")
+    name = _choice(job, "env") if experiment == "none" else experiment  # conf/experiment/none.yaml
+    named = sweep_dir / job_folder(number, name, override_dirname(job))
+    earlier = sweep_dir / job_folder(number, name)
+    return earlier if not named.exists() and earlier.is_dir() else named
 
 
 def _without_resume(overrides) -> list[str]:

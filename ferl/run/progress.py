@@ -26,6 +26,7 @@ from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
+import ferl.run.subdir  # noqa: F401 — the resolver of hydra.sweep.subdir, which job_name reads
 from ferl.run.jsonio import strict_dumps
 
 FILE = "progress.jsonl"  # one JSON object a line: the sweep's start, then each job's start and end
@@ -141,7 +142,7 @@ def sweep_file(config: DictConfig) -> Path:
 
 
 def job_name(config: DictConfig) -> str:
-    """The job's folder inside the sweep folder (``hydra.sweep.subdir``, e.g. ``2_table4_1_matching``)."""
+    """The job's folder inside the sweep folder (``hydra.sweep.subdir``, e.g. ``2_table4_1_matching+actor.n_hidden-40``)."""
     return str(OmegaConf.select(config, "hydra.sweep.subdir", default=None) or config.hydra.job.num)
 
 

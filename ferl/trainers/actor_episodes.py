@@ -25,8 +25,15 @@ from ferl.interfaces import EndedEpisode
 from ferl.predictors.heads import scaled
 from ferl.random_blocks import Blocks, steps_per_block
 from ferl.run.directory import CheckpointTimer
-from ferl.stats import final_metrics, sample_efficiency, solved_against
-from ferl.trainers.actor_logs import concat_records, log_actor, log_episodes, log_probes, probe_visits
+from ferl.stats import final_metrics, has_goal, sample_efficiency, solved_against
+from ferl.trainers.actor_logs import (
+    concat_records,
+    log_actor,
+    log_episodes,
+    log_probes,
+    probe_visits,
+    progress_postfix,
+)
 from ferl.trainers.episodes import Carry, Step, discount_factors, observation_table, played, returned, stacked
 from ferl.trainers.fused_episodes import FusedEpisodes
 from ferl.trainers.observations import log_observations
@@ -71,7 +78,8 @@ class ActorEpisodes(Phase):
         self.outcome_names = ("discounted_return", "steps", "terminal_reward", "td_abs_mean", *outcomes)
         self.rates = [name for name, v in outcomes.items() if v.dtype == torch.bool]  # e.g. correct_goal
         self.averages = [name for name, v in outcomes.items() if v.is_floating_point()]  # e.g. a return
-        self.optimum = solved_against(job.env.optimal(job.actor.gamma))
+        optimal = job.env.optimal(job.actor.gamma)
+        self.optimum, self.goal = solved_against(optimal), has_goal(optimal)
         kinds = {
             **{k: np.int64 for k in outcomes},
             **{k: bool for k in self.rates},
@@ -89,7 +97,7 @@ class ActorEpisodes(Phase):
         solved = ["solved"] if self.optimum else []
         return [
             "final_discounted_return",
-            "final_steps_to_goal",
+            *(["final_steps_to_goal"] if self.goal else []),  # an env with a goal only (ferl.stats.has_goal)
             *(f"final_{name}_rate" for name in self.rates),
             *(f"{when}_{name}" for name in self.averages for when in ("final", "best")),
             *solved,
@@ -150,11 +158,8 @@ class ActorEpisodes(Phase):
                 log_episodes(
                     job.writer, self.final_window, self.rates, records, k + 1, lr, float(torch.as_tensor(beta).mean())
                 )
-                recent, ma = slice(max(0, k + 1 - self.final_window), k + 1), f"ma{self.final_window}"
-                postfix = {f"{n}_{ma}": f"{records[n][:, recent].mean():.2f}" for n in self.rates}
-                bar.set_postfix(
-                    {f"return_{ma}": f"{records['discounted_return'][:, recent].mean():.3f}", **postfix}, refresh=False
-                )
+                postfix = progress_postfix(records, k + 1, self.final_window, self.rates, self.averages)
+                bar.set_postfix(postfix, refresh=False)
             if ((k + 1) % self.checkpoint_every == 0 or job.stop.requested or clock.due()) and k + 1 < self.N:
                 state["probes"] = probes = [concat_records(probes)] if probes else []
                 state["episode"] = k + 1
@@ -372,7 +377,9 @@ class ActorEpisodes(Phase):
         )
         job.run.save_records("probe", job.R, **probes)
         log_probes(job, probes, records, self.rates, self.N)
-        job.metrics.update(final_metrics(records, self.optimum, self.final_window, self.rates, self.averages))
+        job.metrics.update(
+            final_metrics(records, self.optimum, self.final_window, self.rates, self.averages, goal=self.goal)
+        )
         random_steps = job.outputs.random_steps  # None: no random collection before
         if random_steps is None:
             random_steps = np.zeros(job.R, np.int64)

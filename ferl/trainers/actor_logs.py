@@ -56,6 +56,18 @@ def log_episodes(writer, window: int, rates: list, records: dict, done: int, lr:
     writer.add_scalar("schedule/beta", beta, done)
 
 
+def progress_postfix(records: dict, done: int, window: int, rates: list, averages: list) -> dict[str, str]:
+    """The progress bar's moving averages over the last ``window`` episodes, mean over runs, each
+    named for what it averages: ``disc_return_ma200`` the discounted return the actor learns
+    (Σ γ^t r), then every float outcome (a Gymnasium task's undiscounted ``return_ma200``, the
+    number its summary reports as ``final_return``) and every rate. A bare ``return`` label for the
+    discounted one read as the undiscounted return, about half of it on a CartPole."""
+    recent = slice(max(0, done - window), done)
+    shown = {f"disc_return_ma{window}": f"{records['discounted_return'][:, recent].mean():.3f}"}
+    shown |= {f"{n}_ma{window}": f"{records[n][:, recent].mean():.3f}" for n in averages}
+    return shown | {f"{n}_ma{window}": f"{records[n][:, recent].mean():.2f}" for n in rates}
+
+
 def probe_visits(job, k: int, ep: dict) -> dict | None:
     """Activations at every probe visit of episode k after the action there was selected
     (Figs. 4.14–4.19): memories, the observation's id (from which and the memories the phase

@@ -56,6 +56,14 @@ def build(node, prefix: str = "", **runtime):
         raise
 
 
+def beta_facts(actor) -> dict:
+    """The actor's inverse temperature at the start and the end of its schedule (monotone:
+    ``ferl.schedules``), for records/run.json: β = 0 throughout is a uniformly random policy, an
+    agent that analysis must not name like the one it would be with β > 0 (docs/records.md)."""
+    start, end = actor.inverse_temperature(0.0), actor.inverse_temperature(1.0)  # every Actor has it
+    return {"beta": {"start": float(start), "end": float(end)}}
+
+
 class Job:
     """The components of one batch of runs and the run it writes (see the module docstring)."""
 
@@ -146,13 +154,20 @@ class Job:
         node = self.cfg.get("preprocessor")
         if node is None:
             return None
+        if self.env.discovers_observations:  # before the sizes: they agree by construction (n_visible = O)
+            raise ConfigError(
+                f"preprocessor: it fits on the data's images and processes the table of every observation once, "
+                f"and {self.env.task} environments discover their observations as they run: use ~preprocessor"
+            )
         part = self.make_part(node, "preprocessor", Preprocessor, seed=seed)
         assert self.data is not None  # loaded whenever the config has a preprocessor
-        pixels = self.data.train_images.shape[-1]
-        if part.input_size != self.env.observation_size or pixels != self.env.observation_size:
+        pixels, size = self.data.train_images.shape[-1], self.env.observation_size
+        if part.input_size != size or pixels != size:  # name the size that differs from the observations'
+            differs = [f"takes {part.input_size} inputs"] * (part.input_size != size) + [
+                f"fits on the data's images of {pixels} pixels"
+            ] * (pixels != size)
             raise ConfigError(
-                f"preprocessor takes {part.input_size} inputs and fits on images of {pixels} pixels, "
-                f"but the environment's observations have {self.env.observation_size} values"
+                f"preprocessor: it {' and '.join(differs)}, but the environment's observations have {size} values"
             )
         return part
 
@@ -199,7 +214,7 @@ class Job:
             "env": entry(self.env),
             "preprocessor": entry(self.preprocessor) if self.preprocessor else None,
             "predictors": {name: entry(p) for name, p in self.predictors.items()},
-            "actor": entry(self.actor),
+            "actor": {**entry(self.actor), **beta_facts(self.actor)},
             **({"exploration": entry(self.exploration)} if self.exploration.active else {}),
         }
 
