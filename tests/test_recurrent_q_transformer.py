@@ -60,7 +60,7 @@ def torch_reference(agent: RecurrentQActor, p: dict, run: int, x: torch.Tensor) 
     z = x[run] @ P["W_in"].T + P["b_in"] + torch.stack([angle.sin(), angle.cos()], -1).flatten(-2)
     for layer in range(agent.core.layers):
         block = torch.nn.TransformerEncoderLayer(
-            H, agent.core.heads, 4 * H, dropout=0.0, activation="gelu", norm_first=True, batch_first=True
+            H, agent.core.attention.heads, 4 * H, dropout=0.0, activation="gelu", norm_first=True, batch_first=True
         ).double()
         with torch.no_grad():
             for target, name in [

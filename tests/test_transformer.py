@@ -276,3 +276,43 @@ def test_the_job_hands_t_max_to_the_transformer_alone():
         rf"has episodes of at most {env.max_steps} steps; leave it out",
     ):
         facts_for({**node, "max_steps": 99}, "predictor.joint", env)
+
+
+def test_qk_normalised_attention_equals_numpy_and_bounds_every_logit():
+    """softmax(g q̂ k̂ᵀ + mask) v per head (``Attention.qk_norm`` g) against NumPy, with queries and
+    keys scaled 1000× so that plain attention would be one-hot: QK-normalised logits stay in [−g, g]."""
+    from ferl.predictors.transformer import Attention, attend
+
+    g, heads, n, d = 3.0, 2, 5, 6
+    gen = torch.Generator().manual_seed(3)
+    q, k, v = (torch.randn(n, d, generator=gen, dtype=torch.float64) for _ in range(3))
+    causal = torch.ones(n, n, dtype=torch.bool).tril()
+    got = attend(q * 1000, k * 1000, v, causal, Attention(heads, g)).numpy()
+    expected = np.zeros((n, d))
+    for h in range(heads):
+        part = slice(h * d // heads, (h + 1) * d // heads)
+        qh, kh = q[:, part].numpy(), k[:, part].numpy()
+        qh = qh / np.linalg.norm(qh, axis=1, keepdims=True)
+        kh = kh / np.linalg.norm(kh, axis=1, keepdims=True)
+        logits = g * qh @ kh.T
+        assert np.abs(logits).max() <= g + 1e-12
+        logits = np.where(np.tril(np.ones((n, n))) > 0, logits, -np.inf)
+        weights = np.exp(logits - logits.max(1, keepdims=True))
+        expected[:, part] = (weights / weights.sum(1, keepdims=True)) @ v[:, part].numpy()
+    np.testing.assert_allclose(got, expected, rtol=1e-10, atol=1e-12)
+    plain = attend(q * 1000, k * 1000, v, causal, Attention(heads)).numpy()
+    assert not np.allclose(plain, expected, atol=1e-3)  # the option changes what is computed
+
+
+def test_the_qk_normalised_step_with_its_cache_equals_the_unroll():
+    p = perturbed_weights(make(M=6, layers=2, heads=2, context=9, qk_norm=4.0))
+    y, a = data(3, 1, 9)
+    with torch.no_grad():
+        m = p.unroll(y, a)[:, 0]
+        state, got = p.initial_state(), []
+        got.append(p.memory(state))
+        for t in range(9):
+            state = p.step(state, y[:, 0, t], a[:, 0, t])
+            got.append(p.memory(state))
+    torch.testing.assert_close(torch.stack(got, 1), m)
+    assert p.describe()["qk_norm"] == 4.0

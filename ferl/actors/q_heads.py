@@ -33,8 +33,9 @@ class Head:
         """Q (R, B, nA) from h (R, B, H)."""
         raise NotImplementedError
 
-    def adjust(self, params: dict) -> None:
-        """Changes to the drawn initial parameters (in place)."""
+    def adjust(self, params: dict, exact: bool = False) -> None:
+        """Changes to the drawn initial parameters (in place); ``exact``: Q(0, a) = 0 for every
+        action exactly, where the head has an offset per action."""
 
     def describe(self) -> dict:
         return {"head": self.name}
@@ -71,12 +72,19 @@ class EnergyHead(Head):
         visible = torch.bmm(h, p["b_s"].unsqueeze(-1)) + p["b_a"].unsqueeze(1)
         return -self.form.energy(visible, x)
 
-    def adjust(self, params: dict) -> None:
+    def adjust(self, params: dict, exact: bool = False) -> None:
         """The action biases start lowered by Σ_k φ(0) (K ln 2 for the free energies, 0 for the
         expected energy), so that Q starts near 0 as the linear head's does: otherwise every
         action's Q starts near K ln 2 ≈ 14, far above the returns, and the bootstrapped targets
-        of unfinished episodes keep that optimism long after a goal's true value is learnt."""
-        params["b_a"] -= self.form.hidden_term(torch.zeros(self.head_hidden)).sum()
+        of unfinished episodes keep that optimism long after a goal's true value is learnt.
+
+        ``exact`` (the wide initialisation, ``head_init_std``): each action's own offset,
+        b_a,a = −Σ_k φ(W_ah,a,k + b_k), so that Q(h = 0, a) = 0 for every action however wide
+        W_ah is drawn: the contrast between actions then comes from h alone."""
+        if exact:
+            params["b_a"] = -self.form.hidden_term(params["W_ah"] + params["b_k"].unsqueeze(-2)).sum(-1)
+        else:
+            params["b_a"] -= self.form.hidden_term(torch.zeros(self.head_hidden)).sum()
 
     def describe(self) -> dict:
         return {"head": self.name, "head_hidden": self.head_hidden, "q_scale": 1.0 / self.form.scale}

@@ -32,6 +32,7 @@ from ferl.predictors.echo_state import leaky_step
 from ferl.predictors.elman import recur
 from ferl.predictors.gated import gru_cell, lstm_cell
 from ferl.predictors.transformer import (
+    Attention,
     Weights,
     affine,
     cached_token,
@@ -193,9 +194,11 @@ class TransformerCore(Core):
 
     name, parallel = "transformer", True
 
-    def __init__(self, n_in: int, n_hidden: int, context: int, layers: int = 1, heads: int = 1):
+    def __init__(
+        self, n_in: int, n_hidden: int, context: int, layers: int = 1, heads: int = 1, qk_norm: float | None = None
+    ):
         super().__init__(n_in, n_hidden)
-        self.context, self.layers, self.heads = context, layers, heads
+        self.context, self.layers, self.attention = context, layers, Attention(heads, qk_norm)
 
     def shapes(self) -> dict[str, tuple]:
         return weight_shapes(self.n_in, self.n_hidden, self.layers)
@@ -220,7 +223,7 @@ class TransformerCore(Core):
     def step(self, p: dict, x: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
         """Token n of the episode: x (R, B, X) attends to the cached tokens 0 … n − 1 and itself."""
         W = self.weights(p)
-        return cached_token(W, self.heads, self.context, state, affine(x, W.W_in, W.b_in))
+        return cached_token(W, self.attention, self.context, state, affine(x, W.W_in, W.b_in))
 
     def unroll(self, p: dict, x: torch.Tensor, readout: Callable = lambda h: h) -> torch.Tensor:
         """The parallel form of stepping: every token of x (R, B, T+1, X) at once, token t
@@ -231,14 +234,14 @@ class TransformerCore(Core):
             raise ValueError(f"context={self.context} is shorter than the episodes' {N} steps")
         W = self.weights(p)
         embedded = affine(x, W.W_in, W.b_in) + positions(torch.arange(N, device=x.device), self.n_hidden).to(x.dtype)
-        out = readout(causal_stack(W, embedded, self.heads).reshape(R, B * N, self.n_hidden))
+        out = readout(causal_stack(W, embedded, self.attention).reshape(R, B * N, self.n_hidden))
         return out.view(R, B, N, *out.shape[2:])
 
     def input_weights(self, p: dict) -> torch.Tensor:
         return p["W_in"].transpose(1, 2)
 
     def describe(self) -> dict:
-        return {"context": self.context, "layers": self.layers, "heads": self.heads}
+        return {"context": self.context, "layers": self.layers, **self.attention._asdict()}
 
 
 CORES: dict[str, type[Core]] = {

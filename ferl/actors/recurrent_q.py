@@ -13,9 +13,10 @@ every ``act``. It learns from replayed whole episodes (the "bootstrapped sequent
 ``batch_episodes`` episodes per run drawn from its last ``replay_episodes``, each unrolled from
 the zero state by back-propagation through time (autograd, through head and core) on
 
-    L = mean_t Huber(Q(h_t, a_t) − y_t),   y_t = r_{t+1} + γ (1 − terminal) max_a Q⁻(h_{t+1}, a)
+    L = mean_t ℓ(Q(h_t, a_t) − y_t),   y_t = r_{t+1} + γ (1 − terminal) max_a Q⁻(h_{t+1}, a)
 
-with Q⁻ a target network copied every ``target_every`` episodes (Mnih et al. 2015); the mean runs
+with ℓ the Huber loss (δ = 1, DRQN's) or, with ``td_loss: squared``, ℓ(e) = e²/2, the two equal
+for |e| ≤ 1 (``TD_LOSSES``); Q⁻ a target network copied every ``target_every`` episodes (Mnih et al. 2015); the mean runs
 over each run's valid steps, so padding after an episode's end changes nothing. Runs are
 independent: the loss is summed over runs, Adam is elementwise, and each run replays its own
 episodes, drawn for every run at once from the actor's generator, never from the trainer's (so
@@ -42,13 +43,26 @@ from ferl.replay import draw_episodes, filled, new_replay, refilled, store_episo
 
 HeadName = Literal["linear", "free_energy", "scaled_free_energy", "expected_energy"]  # q_heads.head's names
 MemoryName = Literal["gru", "lstm", "elman", "esn", "transformer"]  # recurrent_cores.CORES' names
-ATTENTION_KEYS = {"context": None, "layers": 1, "heads": 1}  # the transformer's keys and their defaults
+ATTENTION_KEYS = {
+    "context": None,
+    "layers": 1,
+    "heads": 1,
+    "qk_norm": None,
+}  # the transformer's keys and their defaults
+TDLoss = Literal["huber", "squared"]
+# ℓ(Q(h_t, a_t), y_t) elementwise. Huber's gradient is clipped at |e| = 1: with goal rewards of ±5
+# its loss cannot tell Q = 4 from Q = −4 in the goal's direction, and action biases shared with
+# the wall bumps' −1 drag Q(goal) down (docs/beyond.md, "The TD loss"); the squared loss's is e.
+TD_LOSSES = {
+    "huber": lambda q, y: nnf.huber_loss(q, y, reduction="none"),
+    "squared": lambda q, y: 0.5 * (q - y).square(),
+}
 
 
 class RecurrentQActor(SoftmaxActor):
     """The recurrent Q-learner: a core over (observation, previous action) and a value head,
     acting by the FERL actor's softmax (Eq. 3.11) and learning from replayed whole episodes by
-    BPTT on the Huber TD loss with a target network (module docstring)."""
+    BPTT on the TD loss (Huber or squared) with a target network (module docstring)."""
 
     learns_from_episodes = True  # nothing per step; its memory steps in place with every act
     # the core's trained weights (R, ·), then the head's (``names``); their Adam moments and target
@@ -73,46 +87,53 @@ class RecurrentQActor(SoftmaxActor):
         target_every: PositiveInt = 100,
         td_rule: TDRule = "q",
         init_std: NonNegative | None = None,
+        head_init_std: NonNegative | None = None,
+        td_loss: TDLoss = "huber",
         context: PositiveInt | None = None,
         layers: Layers = 1,
         heads: PositiveInt = 1,
+        qk_norm: Positive | None = None,
         max_steps: PositiveInt | None = None,
         **softmax,
     ):
         """``softmax``: the sizes, γ, schedules and seed every softmax actor takes (``SoftmaxActor``);
-        the TD rule is Q-learning's unless given. ``context``, ``layers``, ``heads``: the transformer
+        the TD rule is Q-learning's unless given. ``head_init_std``: the head's weights drawn
+        N(0, std²) of their own, the RBM head's action offsets then exact (``EnergyHead.adjust``);
+        ``td_loss``: ℓ of the module docstring. ``context``, ``layers``, ``heads``, ``qk_norm``: the transformer
         core's (``check_config``); ``max_steps``: the environment's T_max, which the job passes."""
         super().__init__(td_rule=td_rule, **softmax)
         n_runs, n_state, n_actions = self.sizes
         self.n_hidden, self.n_actions = n_hidden, n_actions
         self.replay_episodes, self.batch_episodes = replay_episodes, batch_episodes
         self.updates_per_episode, self.target_every = updates_per_episode, target_every
+        self.td_loss = td_loss
         attention = {}
         if memory == "transformer":
             if context is None:
                 if max_steps is None:
                     raise ValueError("context is needed where no environment gives T_max (max_steps)")
                 context = max_steps + 1
-            attention = {"context": context, "layers": layers, "heads": heads}
+            attention = {"context": context, "layers": layers, "heads": heads, "qk_norm": qk_norm}
         self.core = CORES[memory](n_state + n_actions, n_hidden, **attention)
         self.head = make_head(head, n_hidden, n_actions, head_hidden, q_scale)
         shapes = {**self.core.shapes(), **self.head.shapes()}
         self.names = tuple(shapes)
-        # U(−1/√H, 1/√H) (PyTorch's recurrent-cell initialisation) unless init_std is given, per
-        # run from seed + r, parameter by parameter in the order of ``shapes``
+        # U(−1/√H, 1/√H) (PyTorch's recurrent-cell initialisation) unless init_std (the head's:
+        # head_init_std) is given, per run from seed + r, parameter by parameter in the order of ``shapes``
         generators = self.run_generators()
         bound = 1 / math.sqrt(n_hidden)
         drawn = {}
         for name, shape in shapes.items():
+            std = head_init_std if head_init_std is not None and name in self.head.shapes() else init_std
             draws = [
                 torch.rand(shape, generator=g) * 2 * bound - bound
-                if init_std is None
-                else torch.randn(shape, generator=g) * init_std
+                if std is None
+                else torch.randn(shape, generator=g) * std
                 for g in generators
             ]
             drawn[name] = torch.stack(draws)
         self.core.adjust(drawn)
-        self.head.adjust(drawn)
+        self.head.adjust(drawn, exact=head_init_std is not None)
         fixed = self.core.fixed(generators)
         self.fixed_names = tuple(fixed)
         for name, value in {**drawn, **fixed}.items():
@@ -194,6 +215,7 @@ class RecurrentQActor(SoftmaxActor):
             "batch_episodes": self.batch_episodes,
             "updates_per_episode": self.updates_per_episode,
             "target_every": self.target_every,
+            "td_loss": self.td_loss,
         }
 
     def state_weights(self) -> torch.Tensor:
@@ -301,7 +323,7 @@ class RecurrentQActor(SoftmaxActor):
         return stored_episodes(self.replay, self.draw())
 
     def loss(self, p: dict, batch: dict) -> torch.Tensor:
-        """Σ over runs of the mean Huber TD loss of the module docstring over the batch's steps."""
+        """Σ over runs of the mean TD loss ℓ of the module docstring over the batch's steps."""
         states, actions, rewards = batch["states"], batch["actions"], batch["rewards"]
         T = actions.shape[-1]
         onehot = nnf.one_hot(actions, self.n_actions).to(states.dtype)  # (R, B, T, nA)
@@ -315,7 +337,7 @@ class RecurrentQActor(SoftmaxActor):
             bootstrap = ~(last & batch["terminated"].unsqueeze(-1))
             target = rewards + self.gamma * q_next * bootstrap
         q_sa = (q[:, :, :T] * onehot).sum(-1)
-        errors = nnf.huber_loss(q_sa, target, reduction="none") * valid
+        errors = TD_LOSSES[self.td_loss](q_sa, target) * valid
         return (errors.sum((1, 2)) / valid.sum((1, 2)).clamp(min=1)).sum()
 
     def adam_step(self, batch: dict, lr: float) -> None:

@@ -43,13 +43,13 @@ outgrows the cache: the environment ends it after T_max ≤ context steps.
 
 import math
 from collections import namedtuple
-from typing import Annotated
+from typing import Annotated, NamedTuple
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ferl.config.params import Allowed, ArgumentError, PositiveInt, checked
+from ferl.config.params import Allowed, ArgumentError, Positive, PositiveInt, checked
 from ferl.predictors.heads import linear, scaled
 from ferl.predictors.recurrent import RecurrentPredictor, autograd_bptt
 
@@ -83,21 +83,40 @@ def positions(s: torch.Tensor, d: int) -> torch.Tensor:
     return torch.stack([angle.sin(), angle.cos()], -1).flatten(-2)[..., :d]
 
 
+class Attention(NamedTuple):
+    """How a memory attends: ``heads`` heads, and their logits. ``qk_norm`` None: softmax(q kᵀ/√d_h)
+    (Vaswani et al. 2017, Eq. 1). ``qk_norm`` g: QK-normalisation (Henry et al. 2020, "Query-key
+    normalization for transformers"), softmax(g q̂ k̂ᵀ) with q̂, k̂ each head's query and key scaled
+    to unit length, so that no logit passes ±g. Plain SGD on the summed replay losses grew W_qkv
+    to norms of 23–237 and the logits to 10⁴–10⁷: attention froze one-hot on one token and the
+    cue was never read again (docs/beyond.md, "The transformer memory"); g bounds that."""
+
+    heads: int = 1
+    qk_norm: float | None = None
+
+
 def split_heads(x: torch.Tensor, heads: int) -> torch.Tensor:
     """(…, N, d) → (…, heads, N, d/heads)."""
     return x.unflatten(-1, (heads, -1)).transpose(-2, -3)
 
 
-def attend(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, allowed: torch.Tensor, heads: int) -> torch.Tensor:
-    """softmax(q kᵀ/√d_h + mask) v per head: q (…, Nq, d), k, v (…, Nk, d), ``allowed`` broadcast to
-    (…, heads, Nq, Nk), True where a query may see a key (Vaswani et al. 2017, Eq. 1) → (…, Nq, d)."""
-    q, k, v = (split_heads(z, heads) for z in (q, k, v))
-    scores = (q @ k.transpose(-1, -2)) / math.sqrt(q.shape[-1])
+def attend(
+    q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, allowed: torch.Tensor, attention: Attention
+) -> torch.Tensor:
+    """softmax(q kᵀ/√d_h + mask) v per head (or QK-normalised, ``Attention``): q (…, Nq, d), k, v
+    (…, Nk, d), ``allowed`` broadcast to (…, heads, Nq, Nk), True where a query may see a key
+    (Vaswani et al. 2017, Eq. 1) → (…, Nq, d)."""
+    q, k, v = (split_heads(z, attention.heads) for z in (q, k, v))
+    if attention.qk_norm is None:
+        scores = (q @ k.transpose(-1, -2)) / math.sqrt(q.shape[-1])
+    else:  # ε keeps the all-zero query of an empty cache slot finite; masked keys are never seen
+        q, k = (z / z.norm(dim=-1, keepdim=True).clamp(min=1e-6) for z in (q, k))
+        scores = (q @ k.transpose(-1, -2)) * attention.qk_norm
     out = torch.softmax(scores.masked_fill(~allowed, float("-inf")), -1) @ v
     return out.transpose(-2, -3).flatten(-2)
 
 
-def block(W: Weights, layer: int, x: torch.Tensor, heads: int, self_attention) -> torch.Tensor:
+def block(W: Weights, layer: int, x: torch.Tensor, self_attention) -> torch.Tensor:
     """One pre-LN block on x (R, …, d): ``self_attention(q, k, v)`` attends the queries to the keys
     the caller allows (all earlier tokens of a sequence, or the online step's cache)."""
     q, k, v = affine(layer_norm(x, W.ln1_g[:, layer], W.ln1_b[:, layer]), W.W_qkv[:, layer], W.b_qkv[:, layer]).chunk(
@@ -128,16 +147,16 @@ def weight_shapes(n_in: int, d_model: int, layers: int) -> dict[str, tuple]:
     )
 
 
-def causal_stack(W: Weights, x: torch.Tensor, heads: int) -> torch.Tensor:
+def causal_stack(W: Weights, x: torch.Tensor, attention: Attention) -> torch.Tensor:
     """m = tanh(LN_f(x)) after every block of W on token embeddings x (R, …, N, d) (positions
     added), each token attending to itself and the earlier ones: (R, …, N, d)."""
     causal = torch.ones(x.shape[-2], x.shape[-2], dtype=torch.bool, device=x.device).tril()
     for layer in range(W.W_qkv.shape[1]):
-        x = block(W, layer, x, heads, lambda q, k, v: attend(q, k, v, causal, heads))
+        x = block(W, layer, x, lambda q, k, v: attend(q, k, v, causal, attention))
     return torch.tanh(layer_norm(x, W.lnf_g, W.lnf_b))
 
 
-def cached_token(W: Weights, heads: int, tokens: int, state: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+def cached_token(W: Weights, attention: Attention, tokens: int, state: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     """The state after a token whose embedding (without position) is x (R, …, d), from ``state``
     (R, …, d + 1 + layers · 2 · tokens · d) = [m, n, cache]: the last output m (…, d), the tokens n
     seen so far and every layer's keys and values of tokens 0 … tokens − 1, (…, layers, 2,
@@ -155,18 +174,19 @@ def cached_token(W: Weights, heads: int, tokens: int, state: torch.Tensor, x: to
     def cached_attention(q, k, v):
         kv = torch.where(slot, torch.stack([k, v], -3), cache[..., layer, :, :, :])  # (R, …, 2, tokens, d)
         kept.append(kv)
-        return attend(q, kv[..., 0, :, :], kv[..., 1, :, :], seen, heads)
+        return attend(q, kv[..., 0, :, :], kv[..., 1, :, :], seen, attention)
 
     for layer in range(L):
-        x = block(W, layer, x, heads, cached_attention)
+        x = block(W, layer, x, cached_attention)
     m = torch.tanh(layer_norm(x.squeeze(-2), W.lnf_g, W.lnf_b))
     return torch.cat([m, (n + 1).unsqueeze(-1).to(m.dtype), torch.stack(kept, -4).flatten(-4)], -1)
 
 
 class TransformerPredictor(RecurrentPredictor):
     """``memory: transformer`` (see the module docstring): ``context`` past steps (null: the
-    environment's T_max, ``max_steps``), ``layers`` blocks of ``heads`` heads, d_model = n_memory;
-    the other arguments are ``RecurrentPredictor``'s."""
+    environment's T_max, ``max_steps``), ``layers`` blocks of ``heads`` heads, d_model = n_memory,
+    ``qk_norm`` the logits' bound g (``Attention``; null: none); the other arguments are
+    ``RecurrentPredictor``'s."""
 
     kind = "transformer"
     W_in: torch.Tensor  # the memory's parameters (R, …), set by ``init_memory`` as ``weight_shapes`` names them
@@ -178,6 +198,7 @@ class TransformerPredictor(RecurrentPredictor):
         context: PositiveInt | None = None,
         layers: Layers = 1,
         heads: PositiveInt = 1,
+        qk_norm: Positive | None = None,
         max_steps: PositiveInt | None = None,
         **kwargs,
     ):
@@ -187,6 +208,7 @@ class TransformerPredictor(RecurrentPredictor):
             context = max_steps
         self.context: int = context
         self.layers, self.heads = layers, heads
+        self.attention = Attention(heads, qk_norm)
         super().__init__(**kwargs)
 
     @classmethod
@@ -215,11 +237,11 @@ class TransformerPredictor(RecurrentPredictor):
 
     @property
     def gains(self) -> tuple:
-        """(c_y, c_a, heads): what the memory takes besides its parameters (heads: not in their shapes)."""
-        return self.c_y, self.c_a, self.heads
+        """(c_y, c_a, attention): what the memory takes besides its parameters (the attention: not in their shapes)."""
+        return self.c_y, self.c_a, self.attention
 
     def describe(self) -> dict:
-        return {**super().describe(), "context": self.context, "layers": self.layers, "heads": self.heads}
+        return {**super().describe(), "context": self.context, "layers": self.layers, **self.attention._asdict()}
 
     def inputs(self, y: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
         return torch.cat([scaled(y, self.c_y), scaled(a, self.c_a)], -1)
@@ -235,7 +257,7 @@ class TransformerPredictor(RecurrentPredictor):
         W = Weights(*params)
         u = F.pad(self.inputs(y[:, :, :-1], a), (0, 0, 1, 0))  # (R, B, T+1, Y+A): token 0 = the zero input
         x = affine(u, W.W_in, W.b_in) + positions(torch.arange(T + 1, device=y.device), self.memory_size).to(y.dtype)
-        return causal_stack(W, x, self.heads)
+        return causal_stack(W, x, self.attention)
 
     def unroll(self, y: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
         return self.unroll_with(self.memory_parameters(), y, a)
@@ -249,7 +271,7 @@ class TransformerPredictor(RecurrentPredictor):
         [m_t, n, cache] holds m_t (R, M), the tokens n seen so far (R, 1) and every layer's keys
         and values of tokens 0 … context, (R, layers, 2, context + 1, M), zero beyond n
         (``cached_token``)."""
-        return cached_token(Weights(*self.memory_parameters()), self.heads, self.context + 1, state, x)
+        return cached_token(Weights(*self.memory_parameters()), self.attention, self.context + 1, state, x)
 
     @torch.no_grad()
     def initial_state(self) -> torch.Tensor:
