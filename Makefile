@@ -29,7 +29,7 @@ run: $(STAMP)
 	echo "  checkpoints: $$dir/checkpoints/ (python train.py resume=true hydra.run.dir=$$dir)" && \
 	echo "  records:     $$dir/records/ (what analysis reads)"
 
-# Lint and layout (pyproject.toml's [tool.ruff]) and types ([tool.mypy]: ferl/) first: seconds, where the tests take minutes.
+# Lint and layout (pyproject.toml's [tool.ruff]) and types ([tool.mypy]: ferl/ and hydra_plugins/) first: seconds, where the tests take minutes.
 test: $(STAMP)
 	$(PY) -m ruff check .     # lint rules: pyproject.toml [tool.ruff]
 	$(PY) -m ruff format --check .  # one layout (ruff format, at the same line length)
