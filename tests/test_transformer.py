@@ -60,7 +60,7 @@ def reference(p, run: int, y: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
     """m_0 … m_T (T+1, M) of one unpadded sequence y (T+1, Y), a (T, A), run ``run``'s weights alone:
     the equations of the module docstring with torch's own layer norm and causal attention."""
     P = {name: q[run] for name, q in p.named_parameters()}
-    M, H, T = p.memory_size, p.heads, a.shape[0]
+    M, H, T = p.memory_size, p.attention.heads, a.shape[0]
     u = torch.cat([torch.zeros(1, Y + A, dtype=y.dtype), torch.cat([p.c_y * y[:-1], p.c_a * a], 1)])
     x = u @ P["W_in"].T + P["b_in"] + sinusoids(T + 1, M)
     for layer in range(p.layers):

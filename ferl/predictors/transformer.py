@@ -207,8 +207,7 @@ class TransformerPredictor(RecurrentPredictor):
                 raise ValueError("context is needed where no environment gives T_max (max_steps)")
             context = max_steps
         self.context: int = context
-        self.layers, self.heads = layers, heads
-        self.attention = Attention(heads, qk_norm)
+        self.layers, self.attention = layers, Attention(heads, qk_norm)
         super().__init__(**kwargs)
 
     @classmethod

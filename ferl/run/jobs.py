@@ -11,6 +11,7 @@ nothing is run into it.
 
 from __future__ import annotations
 
+import functools
 import json
 import subprocess
 import time
@@ -42,7 +43,9 @@ def sweep_jobs(overrides: list[str] | tuple[str, ...]) -> list[list[str]]:
     return [[o for o in job if not o.startswith(("hydra.", "hydra/"))] for job in jobs]
 
 
+@functools.cache
 def _config_yaml() -> DictConfig:
+    """conf/config.yaml, read once per process (every job's folder name reads it)."""
     config = OmegaConf.load(ROOT / "conf" / "config.yaml")
     assert isinstance(config, DictConfig)
     return config
