@@ -11,6 +11,7 @@ rounding of the generated kernels.
 
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -91,6 +92,19 @@ def episodes(tmp_path, name: str, *overrides, tiny=BIT_TINY) -> tuple[dict, dict
     summary = train_job(compose_config([*tiny, *overrides]), tmp_path / name)
     with np.load(tmp_path / name / "records" / "episodes.npz") as ep:
         return summary, dict(ep)
+
+
+def eager_then_compiled(tmp_path, tiny) -> tuple[dict, dict, int]:
+    """Runs of ``tiny`` with compile=false, then compile=true from a fresh compiler (which must
+    compile something): both runs' episodes and the number of graphs the compiled one traced."""
+    from torch._dynamo.utils import counters
+
+    _, eager = episodes(tmp_path, "eager", "compile=false", tiny=tiny)
+    torch._dynamo.reset()
+    counters.clear()
+    summary, fused = episodes(tmp_path, "fused", "compile=true", tiny=tiny)
+    assert summary["compile_time_s"] > 0
+    return eager, fused, counters["stats"]["unique_graphs"]
 
 
 def test_compiled_phases_equal_eager_ones(tmp_path):
@@ -197,8 +211,6 @@ def test_online_episodes_compiled_equal_eager_in_one_graph(tmp_path, monkeypatch
     curiosity η_k annealed from episode to episode, against compile=false: the same actions in
     every episode, returns and TD errors within float32 rounding, and one graph of steps for every
     episode (β_k and η_k are tensors, the predictor's weights read as the replay leaves them)."""
-    from torch._dynamo.utils import counters
-
     from ferl.trainers import online_episodes
 
     monkeypatch.setattr(online_episodes, "EPISODES_FUSED_FROM", 30)
@@ -211,14 +223,10 @@ def test_online_episodes_compiled_equal_eager_in_one_graph(tmp_path, monkeypatch
         "trainer.td_sample_every=10",
         "trainer.final_window=10",
     )
-    _, eager = episodes(tmp_path, "eager", "compile=false", tiny=tiny)
-    torch._dynamo.reset()
-    counters.clear()
-    summary, fused = episodes(tmp_path, "fused", "compile=true", tiny=tiny)
-    assert summary["compile_time_s"] > 0
+    eager, fused, graphs = eager_then_compiled(tmp_path, tiny)
     # the chunk of steps (max_steps 6: 2 calls of 3 steps) and the FERL actor's update graphs
     # (``compile_updates``), each traced once, whatever β_k, η_k and the weights were
-    assert counters["stats"]["unique_graphs"] <= 3, dict(counters["stats"])
+    assert graphs <= 3
     for key in ("steps", "correct_goal", "condition"):
         np.testing.assert_array_equal(fused[key], eager[key], err_msg=key)
     for key in ("discounted_return", "td_abs_mean", "td_sampled"):
@@ -249,4 +257,36 @@ def test_online_replay_compiled_equals_eager(tmp_path, monkeypatch):
     for key in ("steps", "correct_goal", "condition"):
         np.testing.assert_array_equal(fused[key], eager[key], err_msg=key)
     for key in ("discounted_return", "td_abs_mean", "td_sampled"):
+        np.testing.assert_allclose(fused[key], eager[key], rtol=1e-4, atol=1e-5, err_msg=key)
+
+
+def test_a_python_environments_agent_step_compiled_equals_eager(tmp_path, monkeypatch):
+    """``env=gymnasium`` (tests/outside_env.py's cue task, stepped in Python): the agent's half of
+    each step (an LSTM predictor's memory, the FERL actor's choice and TD update) as one compiled
+    graph between the environment's eager steps (EPISODES_FUSED_FROM patched down to this run's 30
+    episodes), against compile=false: the same actions in every episode, returns and TD errors
+    within float32 rounding, and one graph of the step for every step and episode."""
+    from ferl.trainers import online_episodes
+
+    monkeypatch.syspath_prepend(str(Path(__file__).parent))  # where gymnasium imports outside_env from
+    monkeypatch.setattr(online_episodes, "EPISODES_FUSED_FROM", 30)
+    tiny = (
+        "experiment=popgym_repeat_previous_easy",
+        "env.id=outside_env:CueRecall-v0",
+        "+env.kwargs.delay=2",
+        "env.optimal_return=0.8",
+        "predictor.joint.memory=lstm",
+        "n_runs=2",
+        "trainer.n_episodes=30",
+        "trainer.replay_sample=4",
+        "trainer.log_every=10",
+        "trainer.td_sample_every=10",
+        "trainer.final_window=10",
+        "trainer.checkpoint_every=10",
+    )
+    eager, fused, graphs = eager_then_compiled(tmp_path, tiny)
+    # the agent's step (and any of the actor's update graphs, ``compile_updates``), each traced once
+    assert 1 <= graphs <= 3
+    np.testing.assert_array_equal(fused["steps"], eager["steps"])
+    for key in ("discounted_return", "return", "td_abs_mean", "td_sampled"):
         np.testing.assert_allclose(fused[key], eager[key], rtol=1e-4, atol=1e-5, err_msg=key)

@@ -110,16 +110,19 @@ def test_typed_keys_are_never_dropped(overrides, message):
 
 @pytest.mark.parametrize("trainer", ["online", "online_long"])
 def test_a_refusal_names_the_trainer_the_user_chose(trainer):
-    """The online trainer's refusal of ``predictor=none`` names the option chosen, not the stock one."""
+    """The online trainer's refusal of TD into a memory it lacks names the option chosen, not the stock one."""
     import torch
     from hydra.utils import instantiate
 
-    cfg = compose_config(["experiment=table4_1_matching", f"trainer={trainer}", "predictor=none", "n_runs=2"])
+    cfg = compose_config(
+        ["experiment=table4_1_matching", f"trainer={trainer}", "predictor=none", "trainer.td_to_memory=1", "n_runs=2"]
+    )
     HydraConfig.instance().set_config(cfg)
     validate(cfg)
     with pytest.raises(ConfigError) as e:
         instantiate(cfg.trainer).setup(cfg, torch.device("cpu"))
-    assert str(e.value).startswith(f"predictor=none is not allowed with trainer={trainer}: "), str(e.value)
+    line = f"trainer.td_to_memory=1 is not allowed with predictor=none: trainer={trainer} has no memory"
+    assert str(e.value).startswith(line), str(e.value)
 
 
 @pytest.mark.parametrize(

@@ -104,6 +104,27 @@ def test_beta_follows_the_predictors_held_out_error():
     torch.testing.assert_close(beta, torch.tensor([scheduled * 0.1 / 0.4, scheduled]))
 
 
+def test_a_memoryless_agent_online_is_algorithm1s_actor_phase(tmp_path):
+    """``predictor=none`` under ``trainer=online``: nothing to wait for, so β is the actor's
+    schedule and the episodes are, one for one, those of Algorithm 1's actor phase (which a
+    memoryless agent enters at once); the pair of commands differs only in the memory."""
+    tiny = ["predictor=none", "n_runs=2", "trainer.n_episodes=120", "trainer.final_window=40", "trainer.log_every=40"]
+    tiny += ["trainer.checkpoint_every=40", "trainer.td_sample_every=40"]
+    results = {}
+    for trainer in ("online", "algorithm1"):
+        cfg = compose_config(eager([*ONLINE[:1], f"trainer={trainer}", *tiny]))
+        results[trainer] = train_job(cfg, tmp_path / trainer)
+    episodes = {t: np.load(tmp_path / t / "records" / "episodes.npz") for t in results}
+    assert set(episodes["online"].files) == set(episodes["algorithm1"].files)
+    for key in episodes["online"].files:
+        np.testing.assert_array_equal(episodes["online"][key], episodes["algorithm1"][key], err_msg=key)
+    online = np.load(tmp_path / "online" / "records" / "online.npz")
+    assert np.isnan(online["prediction_error"]).all()
+    job, _ = online_phase("predictor=none")
+    scheduled = [job.actor.inverse_temperature(k / 120) for k in range(120)]
+    np.testing.assert_allclose(online["beta"], np.broadcast_to(scheduled, (2, 120)), rtol=1e-6)
+
+
 def test_curiosity_bonus_is_eta_times_the_observation_prediction_error():
     """η_k ρ_y Σ_i |y_i − ŷ_i| at a step, against the predictor's sequence outputs of the same
     history; η anneals linearly to 0 at curiosity_anneal × N."""

@@ -87,8 +87,8 @@ def test_same_seed_same_numbers(tmp_path, tiny_run):
         "experiment=large_action actor.action_selection=clamp",
         "experiment=large_action actor.action_code=onehot",
         "experiment=table4_1_matching actor.action_selection=gibbs actor.q=expected_energy",
-        # issue 4/8: a memoryless agent has nothing to train online
-        "experiment=table4_1_matching trainer=online predictor=none",
+        # TD into the memory of a memoryless agent
+        "experiment=table4_1_matching trainer=online predictor=none trainer.td_to_memory=1",
         # the recurrent Q-learner's value head: one of its four
         "experiment=table4_1_matching actor=recurrent_q predictor=none actor.head=rbm",
         # an unknown exploration method, a zeta exponent ≤ 1, a continuing trainer (no episodes),
@@ -162,16 +162,17 @@ def interrupt_and_resume(tmp_path, args: list, steps: int, sig: int, expected_co
     assert_same_tb_log(cut, whole)
 
 
-@pytest.mark.parametrize("runs", [2, PREFETCH_MIN_RUNS])  # the second draws random numbers ahead
-def test_sigterm_then_resume_equals_uninterrupted(tmp_path, runs):
+# the second draws random numbers ahead; its steps, 15 × slower, need fewer to be stopped mid-run
+@pytest.mark.parametrize("runs,steps", [(2, 20000), (PREFETCH_MIN_RUNS, 6000)])
+def test_sigterm_then_resume_equals_uninterrupted(tmp_path, runs, steps):
     args = [
         *(a for a in TINY if not a.startswith("n_runs=")),
         f"n_runs={runs}",
-        "trainer.steps=20000",
+        f"trainer.steps={steps}",
         "trainer.checkpoint_every=500",
         "trainer.log_every=500",
     ]
-    interrupt_and_resume(tmp_path, args, 20000, signal.SIGTERM, 128 + signal.SIGTERM)
+    interrupt_and_resume(tmp_path, args, steps, signal.SIGTERM, 128 + signal.SIGTERM)
 
 
 def test_large_action_task_resumes_equal_to_uninterrupted(tmp_path):

@@ -14,6 +14,7 @@ from __future__ import annotations
 import functools
 import json
 import subprocess
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from contextlib import ExitStack
@@ -120,23 +121,33 @@ def states_line(states: list[str]) -> str:
     return f"{done} jobs done (kept), {todo} to do, {states.count(RESUMED)} of them resumed from their checkpoints"
 
 
+# Set by a launcher that a signal stopped (``ferl.run.together``): no queued job starts after it
+STOPPING = threading.Event()
+
+
+def _started(cmd: list[str], **kwargs) -> subprocess.CompletedProcess | None:
+    """``subprocess.run(cmd)``, or None where the launcher was stopped before the job's turn came."""
+    return None if STOPPING.is_set() else subprocess.run(cmd, **kwargs)
+
+
 def run_commands(
     todo: dict[str, list[str]], logs: Path, jobs: int, what: str = "jobs", label: str = "", cwd: Path = ROOT
 ) -> list[str]:
     """Run every named command, ``jobs`` at a time, each one's output in ``logs/<name>.log`` (``/``
     as ``_``); one progress line as each ends (``label`` before it). Returns the names of those
-    that failed."""
+    that failed. Once ``STOPPING`` is set, the jobs not yet started are skipped."""
     logs.mkdir(parents=True, exist_ok=True)
     started, failed = time.monotonic(), []
     with ExitStack() as logs_open, ThreadPoolExecutor(jobs) as pool:  # the jobs end before their logs close
         files = {n: logs_open.enter_context(open(logs / f"{n.replace('/', '_')}.log", "w")) for n in todo}
         futures = {
-            pool.submit(subprocess.run, cmd, cwd=cwd, stdout=files[n], stderr=subprocess.STDOUT): n
-            for n, cmd in todo.items()
+            pool.submit(_started, cmd, cwd=cwd, stdout=files[n], stderr=subprocess.STDOUT): n for n, cmd in todo.items()
         }
         for count, future in enumerate(as_completed(futures), 1):
-            name, elapsed = futures[future], time.monotonic() - started
-            if future.result().returncode != 0:
+            name, elapsed, done = futures[future], time.monotonic() - started, future.result()
+            if done is None:  # stopped before it started: the launcher's line says how to go on
+                continue
+            if done.returncode != 0:
                 failed.append(name)
             left = elapsed / count * (len(todo) - count)  # the jobs so far, `jobs` at a time
             n_failed = f", {len(failed)} failed" if failed else ""

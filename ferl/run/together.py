@@ -11,8 +11,10 @@ Each sweep's whole output (Hydra's lines, the jobs' progress bars) goes to
 ``SWEEP_DIR/NAME/sweep.log``; the terminal gets each sweep's ``ferl:`` lines (the jobs done and
 the time left, ``ferl.run.progress``; a job's errors), named by the sweep, and one line when a
 sweep ends. Exit 0 when every sweep succeeded; else one line per failed sweep naming its log,
-and 1. Ctrl-C reaches every job (they share the terminal's process group); the jobs stop as a
-single run does (docs/reliability.md), and this exits 130.
+and 1. Ctrl-C or a closed terminal (SIGINT, SIGHUP) reaches every job (they share its process
+group); the jobs stop as a single run does (docs/reliability.md), and this says in one line how
+to continue (``make TARGET RESUME=SWEEP_DIR`` where ``ferl.run.sweepdir`` made the folder, else
+this command with ``--resume``) and exits 128 + the signal.
 
 ``--resume`` continues the sweeps of an earlier, interrupted launch into the same SWEEP_DIR
 (docs/sweeps.md, "Resuming a sweep"): each sweep's jobs, numbered as Hydra numbers them, are kept
@@ -36,13 +38,44 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO
 
-from ferl.run.jobs import DONE, RESUMED, JobError, job_dir, job_state, run_commands, states_line, sweep_jobs
+from ferl.run.jobs import (
+    DONE,
+    RESUMED,
+    STOPPING,
+    JobError,
+    job_dir,
+    job_state,
+    run_commands,
+    states_line,
+    sweep_jobs,
+)
 from ferl.run.progress import duration
+from ferl.run.sweepdir import target_of
 
 PREFIX = "ferl: "
 LOG = "sweep.log"
 TRAIN = (sys.executable, "train.py")  # run from the repository's root, as the make targets are
 STOP_GRACE_S = 60.0  # after Ctrl-C, how long the jobs may take to write their checkpoints
+
+
+class Stopped(KeyboardInterrupt):
+    """SIGINT or SIGHUP reached the launcher (``main`` installs the handler): which one."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
+
+
+def stopped_line(signum: int, sweep_dir: Path, sweeps: list[Sweep]) -> str:
+    """The one line after a stop: what is kept and the command that continues the sweep."""
+    target = target_of(sweep_dir)
+    if target is not None:
+        again = f"make {target} RESUME={sweep_dir}"
+    else:
+        specs = " ".join(shlex.quote(f"{s.name} {s.jobs} {shlex.join(s.overrides)}") for s in sweeps)
+        again = f"python -m ferl.run.together --resume {shlex.quote(str(sweep_dir))} {specs}"
+    name = signal.Signals(signum).name
+    return f"{PREFIX}interrupted ({name}): what the jobs wrote is kept; continue with: {again}"
 
 
 @dataclass(frozen=True)
@@ -138,10 +171,11 @@ def run_together(sweep_dir: Path, sweeps: list[Sweep], train: tuple[str, ...] = 
                 with lock:
                     print(f"{PREFIX}{sweep.name}: sweep {how} after {duration(time.monotonic() - start)}", flush=True)
             time.sleep(0.2)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as e:
         _stop([proc for _, proc, _, _ in running])
-        print(f"{PREFIX}interrupted (SIGINT): every sweep stopped; what they wrote is kept", file=sys.stderr)
-        return 130
+        signum = e.signum if isinstance(e, Stopped) else signal.SIGINT
+        print(stopped_line(signum, sweep_dir, sweeps), file=sys.stderr)
+        return 128 + signum
     failed = [s for s in sweeps if codes[s.name] != 0]
     for s in failed:
         print(f"{PREFIX}error: sweep {s.name} failed; its output: {sweep_dir / s.name / LOG}", file=sys.stderr)
@@ -191,9 +225,11 @@ def resume_together(sweep_dir: Path, sweeps: list[Sweep], train: tuple[str, ...]
         for thread in threads:
             while thread.is_alive():
                 thread.join(0.2)
-    except KeyboardInterrupt:  # the jobs got the same SIGINT and stop as a run does
-        print(f"{PREFIX}interrupted (SIGINT): what the jobs wrote is kept; --resume continues", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as e:  # the jobs got the same signal and stop as a run does
+        STOPPING.set()  # and the queued ones never start
+        signum = e.signum if isinstance(e, Stopped) else signal.SIGINT
+        print(stopped_line(signum, sweep_dir, sweeps), file=sys.stderr)
+        return 128 + signum
     for name, names in failed.items():
         for job in names:
             print(
@@ -213,6 +249,10 @@ def _stop(procs: list[subprocess.Popen]) -> None:
             proc.terminate()
 
 
+def _raise_stopped(signum: int, frame) -> None:
+    raise Stopped(signum)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else argv
     resume = bool(args) and args[0] == "--resume"
@@ -229,9 +269,10 @@ def main(argv: list[str] | None = None) -> int:
     if len(set(names)) < len(names):
         print(f"{PREFIX}error: two sweeps share a NAME: {' '.join(names)}", file=sys.stderr)
         return 2
-    # Ctrl-C ends the sweeps' jobs (their own handlers) and this, also where a script that started
-    # it in the background left SIGINT ignored (the jobs install theirs either way).
-    signal.signal(signal.SIGINT, signal.default_int_handler)
+    # Ctrl-C or a closed terminal ends the sweeps' jobs (their own handlers) and this, also where a
+    # script that started it in the background left SIGINT ignored (the jobs install theirs either way)
+    for signum in (signal.SIGINT, signal.SIGHUP):
+        signal.signal(signum, _raise_stopped)
     return (resume_together if resume else run_together)(Path(args[0]), sweeps)
 
 

@@ -19,7 +19,7 @@ import torch
 from tqdm import tqdm
 
 from ferl.actors.td import first_action, td_step
-from ferl.compiled import run_clock
+from ferl.compiled import compiled, run_clock
 from ferl.config.params import Positive, PositiveInt
 from ferl.interfaces import EndedEpisode
 from ferl.predictors.heads import scaled
@@ -35,7 +35,7 @@ from ferl.trainers.actor_logs import (
     progress_postfix,
 )
 from ferl.trainers.episodes import Carry, Step, discount_factors, observation_table, played, returned, stacked
-from ferl.trainers.fused_episodes import FusedEpisodes
+from ferl.trainers.fused_episodes import FusedEpisodes, as_beta
 from ferl.trainers.observations import log_observations
 from ferl.trainers.phased import Phase
 
@@ -197,23 +197,25 @@ class ActorEpisodes(Phase):
         self.obs_offsets = torch.arange(job.R, device=job.device) * ids if table.dim() == 3 else None
         factors = discount_factors(job.actor.gamma, job.env.max_steps)
         self.discount_table = torch.tensor(factors, dtype=torch.float64, device=job.device)
-        self.fused = None
+        self.fused, self.agent = None, self.agent_step
         if job.fast:  # what the actor learns after an episode, however the episodes are played
             job.actor.compile_updates(job.device)
         if self.fuses(job):
             job.actor.prepare_for_compile()
-            self.fused = FusedEpisodes(self, job)
+            if job.env.traceable_steps:
+                self.fused = FusedEpisodes(self, job)
+            else:  # a Python environment (env=gymnasium): its step eager, the agent's half one graph
+                self.agent = compiled(self.agent_step, job.device, "the agent's half of a step")
 
     def fuses(self, job) -> bool:
-        """Whether episodes run as compiled graphs of a fixed number of steps (``ferl.compiled``):
-        on the fast path, with an environment whose steps are tensor operations
-        (``traceable_steps``) and an actor that chooses by one number a step (a Gibbs chain's
-        sweeps, unrolled in every step, would make the graph too large to compile in a run's time).
-        An actor that steps a memory in place (the recurrent Q-learner's buffers) is traced too:
-        the graph writes the buffers back when it returns."""
+        """Whether episodes run as compiled graphs of a fixed size (``ferl.compiled``): on the fast
+        path, with an actor that chooses by one number a step (a Gibbs chain's sweeps, unrolled in
+        every step, would make the graph too large to compile in a run's time). A tensor
+        environment (``traceable_steps``) is traced with the agent in chunks of a few steps; another
+        (``env=gymnasium``) steps eagerly between calls of one graph of ``agent_step``. An actor's
+        memory stepped in place (the recurrent Q-learner's buffers) is written back by the graph."""
         return (
             job.fast
-            and job.env.traceable_steps
             and job.actor.uniforms_per_action == 1
             and not job.exploration.active  # its hooks keep Python state (a step counter, counts)
         )
@@ -237,7 +239,9 @@ class ActorEpisodes(Phase):
         job.env.reset()
         (uniform,) = self.uniforms.next()  # (T_max + 1, R, 1, uniforms_per_action)
         job.exploration.begin_episode(job.generator, job.env.max_steps, k / self.N)  # its draws after the actor's
-        if self.fused is None:
+        if self.fused is None and self.agent is not self.agent_step:  # α and β as tensors: one graph
+            ep = self.episode(job, torch.tensor(lr, device=job.device), as_beta(beta, job.device), uniform, True)
+        elif self.fused is None:
             ep = self.episode(job, lr, beta, uniform, True)
         else:
             ep = self.fused.play(self, job, lr, beta, uniform)
@@ -282,8 +286,7 @@ class ActorEpisodes(Phase):
         (Eq. 2.37) accumulates in float64 step by step (``returned``). Returns the
         carry after them, the steps stacked (``Step``, (n, R, …)) and the observation ids after
         each step (n, R); with ``until_done``, fewer steps once every run has ended."""
-        env, actor, predictors = job.env, job.actor, list(job.predictors.values())
-        choose = job.exploration.choose if job.exploration.active else None
+        env = job.env
         m, memories, s, a, F_sa, x_sa, terminated_any, ret = carry
         record, obs = [], []
         for t in range(len(uniform)):
@@ -294,26 +297,9 @@ class ActorEpisodes(Phase):
             terminated_any = terminated_any | terminated
             ret = returned(ret, discounts[t], r)  # done runs got r = 0
             obs.append(env.obs_id)
-            m = [step(x, obs_prev, action) for step, x in zip(self.steps_on_ids, m)]
-            memories = [p.memory(x) for p, x in zip(predictors, m)]
-            s_next = self.state(job, env.obs_id, memories)
-            bonus = self.reward_bonus(job, m, env.obs_id, s_next, active)
-            a, F_sa, x_sa, delta = td_step(
-                actor,
-                s,
-                a,
-                F_sa,
-                x_sa,
-                r if bonus is None else r + bonus,
-                s_next,
-                lr,
-                beta,
-                job.generator,
-                uniform[t],
-                job.guard.alive,
-                (terminated | ~active).unsqueeze(1),
-                active.unsqueeze(1),
-                choose,
+            ended = terminated | ~active
+            m, memories, s_next, a, F_sa, x_sa, delta = self.agent(
+                job, m, s, a, F_sa, x_sa, obs_prev, action, env.obs_id, r, ended, active, lr, beta, uniform[t]
             )
             record.append(Step(*visit, action, r, delta.squeeze(1)))
             s = s_next
@@ -322,18 +308,42 @@ class ActorEpisodes(Phase):
         carry = Carry(m, memories, s, a, F_sa, x_sa, terminated_any, ret)
         return carry, stacked(record), torch.stack(obs)
 
+    def agent_step(self, job, m, s, a, F_sa, x_sa, obs_prev, action, obs_id, r, ended, active, lr, beta, uniform):
+        """The agent's half of a step after the environment's (``steps``): predictors' states m_(t+1)
+        from ids ``obs_prev`` and ``action`` (R,) (Eq. 4.3), s_(t+1) at ``obs_id``, a_(t+1) by Eq.
+        (3.11) with draws ``uniform`` (R, 1, ·), δ_t on ``r`` plus any bonus and the θ update (Eq.
+        3.10; ``td_step``; ``ended``: no s_(t+1) to bootstrap from). One graph where the environment
+        cannot be traced (``freeze``). Returns m, the memories, s_(t+1), a_(t+1), F, the cache, δ."""
+        predictors = list(job.predictors.values())
+        choose = job.exploration.choose if job.exploration.active else None
+        m = [step(x, obs_prev, action) for step, x in zip(self.steps_on_ids, m)]
+        memories = [p.memory(x) for p, x in zip(predictors, m)]
+        s_next = self.state(job, obs_id, memories)
+        bonus = self.reward_bonus(job, m, obs_id, s_next, active)
+        a, F_sa, x_sa, delta = td_step(
+            job.actor,
+            s,
+            a,
+            F_sa,
+            x_sa,
+            r if bonus is None else r + bonus,
+            s_next,
+            lr,
+            beta,
+            job.generator,
+            uniform,
+            job.guard.alive,
+            ended.unsqueeze(1),
+            active.unsqueeze(1),
+            choose,
+        )
+        return m, memories, s_next, a, F_sa, x_sa, delta
+
     def ended_episode(self, job, ep: dict) -> EndedEpisode:
         """The episode that ``episode`` played, as the actor's ``end_episode`` takes it (laid out
         per run only where the actor asks, ``EndedEpisode.padded``: most actors learn per step)."""
-        return EndedEpisode(
-            ep["states"],
-            ep["last_state"],
-            ep["actions"],
-            ep["rewards"],
-            ep["lengths"],
-            ep["terminated"],
-            job.env.max_steps,
-        )
+        states, last, actions, rewards = ep["states"], ep["last_state"], ep["actions"], ep["rewards"]
+        return EndedEpisode(states, last, actions, rewards, ep["lengths"], ep["terminated"], job.env.max_steps)
 
     def visit_states(self, job, visits: dict) -> dict:
         """The probe records with the actor's state at every visit (visits, S) in the place of its

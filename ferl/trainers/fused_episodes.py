@@ -42,7 +42,7 @@ class FusedEpisodes:
         one graph serves every episode; ``uniform`` (T_max + 1, R, 1, ·) padded with zeros for the
         steps past T_max (the draws of runs that have ended choose nothing that is kept)."""
         lr_t = torch.tensor(lr, device=job.device)
-        beta_t = torch.as_tensor(beta, dtype=torch.float32, device=job.device)
+        beta_t = as_beta(beta, job.device)
         draws = torch.cat([uniform[1:], uniform.new_zeros(self.pad, *uniform.shape[1:])])
         obs = [job.env.obs_id.unsqueeze(0)]
         carry = phase.first(job, beta_t, uniform[0])  # once an episode: eager (a graph would cost its compiling)
@@ -62,3 +62,8 @@ def joined(parts: list[Step], steps: int) -> Step:
         tuple(torch.cat(m)[:steps] for m in zip(*field)) if isinstance(field[0], tuple) else torch.cat(field)[:steps]
         for field in zip(*parts)
     )
+
+
+def as_beta(beta, device: torch.device) -> torch.Tensor:
+    """β (a number, or per run (R, 1, 1)) as a float32 tensor: the form in which one compiled graph serves every episode."""
+    return torch.as_tensor(beta, dtype=torch.float32, device=device)

@@ -87,11 +87,10 @@ class OnlineEpisodes(ActorEpisodes):
         self.beta_now: torch.Tensor  # β_k per run (R, 1, 1): set by begin_episode
 
     def prepare(self, job) -> None:
-        if not job.predictors:
+        if self.td_to_memory > 0 and not job.predictors:
             raise ConfigError(
-                f"predictor=none is not allowed with {chosen('trainer', 'OnlineEpisodes')}: it trains "
-                "predictors and actor together; a memoryless actor alone is the actor phase of "
-                "trainer=algorithm1"
+                f"trainer.td_to_memory={self.td_to_memory:g} is not allowed with predictor=none: "
+                f"{chosen('trainer', 'OnlineEpisodes')} has no memory to train without a predictor; 0 turns it off"
             )
         if self.td_to_memory > 0:
             check_td_to_memory(job, self.td_to_memory)
@@ -138,10 +137,14 @@ class OnlineEpisodes(ActorEpisodes):
         return lookup_step(predictor, table, n_actions)
 
     def begin_episode(self, job, k: int, state: dict):
-        """β_k per run (R, 1, 1) from the error so far, and η_k (module docstring)."""
+        """β_k per run (R, 1, 1) from the error so far, and η_k (module docstring). Without a
+        predictor (``predictor=none``) there is no error to wait for: β_k is the actor's schedule,
+        as in Algorithm 1's actor phase."""
         self.eta_now.fill_(self.eta * max(0.0, 1.0 - k / (self.anneal * self.N)) if self.anneal > 0 else self.eta)
         base = job.actor.inverse_temperature(k / self.N)
-        if state["error_first"] is None:
+        if not job.predictors:
+            self.beta_now = torch.full((job.R, 1, 1), float(base), device=job.device)
+        elif state["error_first"] is None:
             self.beta_now = torch.zeros(job.R, 1, 1, device=job.device)
         else:
             share = (1 - state["error_ema"] / state["error_first"].clamp(min=1e-12)) / (1 - self.tau)
@@ -161,7 +164,12 @@ class OnlineEpisodes(ActorEpisodes):
         return added(self.eta_now * sum(errors), explore) if errors else explore
 
     def after_episode(self, job, k: int, episode: dict, state: dict) -> None:
-        """Held-out error of episode k, then into the replay, then the predictors' BPTT steps."""
+        """Held-out error of episode k, then into the replay, then the predictors' BPTT steps.
+        Without a predictor only β is recorded (its error is NaN): nothing else learns."""
+        if not job.predictors:
+            state["online"]["prediction_error"][:, k] = np.nan
+            state["online"]["beta"][:, k] = self.beta_now.flatten().cpu().numpy()
+            return
         started = run_clock()  # compiling is left out, as from the phase's active time
         ep = self.as_episodes(job, episode)
         with torch.no_grad():

@@ -1,0 +1,185 @@
+"""Fault injection on a whole sweep (docs/sweeps.md, "Resuming a sweep"): two sweeps run at once
+by ``ferl.run.together``, as ``make reproduce`` runs its sweeps, killed by SIGKILL at random
+moments in turn (the process group: a pre-empted node, a reboot) and resumed each time with
+``--resume``, end with every job's metrics equal to those of the same sweeps left to run; no job
+is trained again once it has finished (its ``summary.json`` never rewritten), and a SIGINT or
+SIGHUP stop says in one line how to go on.
+
+FERL_SWEEP_KILLS sets the number of moments (default 3, to keep ``make test`` short) and
+FERL_SWEEP_STEPS the floor jobs' length (default 2 000; a longer sweep leaves room for more kills). The moments are drawn from a seeded generator over the uninterrupted
+sweep's wall time, so a failure can be replayed."""
+
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from conftest import ROOT, TINY, TINY_ALGORITHM1
+from ferl.run.jobs import DONE, job_dir, job_state, sweep_jobs
+from ferl.run.together import Sweep
+
+KILLS = int(os.environ.get("FERL_SWEEP_KILLS", "3"))
+STEPS = int(os.environ.get("FERL_SWEEP_STEPS", "2000"))  # each floor job's; longer sweeps take more kills
+# the moments, as shares of the uninterrupted sweep's wall time: with few kills, late enough that
+# each lands among the jobs rather than while the processes start; with many, early enough that
+# most land before the sweep ends
+SHARE = (0.3, 0.6) if KILLS <= 5 else (0.1, 0.35)
+# a floor sweep of two jobs checkpointed every 250 steps, and an episodic T-maze job checkpointed
+# after its phases, one job at a time each: short jobs, every one with a checkpoint to resume from
+FLOOR = [a for a in TINY if not a.startswith(("trainer.steps=", "trainer.checkpoint_every="))]
+FLOOR += ["experiment=ch3_floor", f"trainer.steps={STEPS}", "trainer.checkpoint_every=250", "seed=0,1"]
+TMAZE = ["experiment=table4_1_regular", "n_runs=2", *TINY_ALGORITHM1, "trainer.checkpoint_every=25"]
+SWEEPS = [f"floor 1 {' '.join(FLOOR)} compile=false device=cpu", f"tmaze 1 {' '.join(TMAZE)} compile=false device=cpu"]
+
+
+def launch(sweep_dir: Path, resume: bool) -> subprocess.Popen:
+    """``python -m ferl.run.together [--resume] SWEEP_DIR SWEEP ...`` in a session of its own, so
+    that a signal to its process group reaches every job, as a terminal's or a scheduler's does."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "ferl.run.together", *(["--resume"] if resume else []), str(sweep_dir), *SWEEPS],
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        start_new_session=True,
+    )
+
+
+def jobs(sweep_dir: Path) -> list[tuple[Path, list[str]]]:
+    """Every job's folder and overrides, as Hydra numbers and names them."""
+    out = []
+    for line in SWEEPS:
+        sweep = Sweep.parse(line)
+        out += [(job_dir(sweep_dir / sweep.name, i, job), job) for i, job in enumerate(sweep_jobs(sweep.overrides))]
+    return out
+
+
+def metrics(sweep_dir: Path) -> dict:
+    return {
+        run_dir.name: json.loads((run_dir / "summary.json").read_text())["metrics"] for run_dir, _ in jobs(sweep_dir)
+    }
+
+
+def finished_summaries(sweep_dir: Path) -> dict:
+    """The finished jobs' summary.json: bytes and modification time, to show that none is written twice."""
+    out = {}
+    for run_dir, job in jobs(sweep_dir):
+        if run_dir.exists() and job_state(run_dir, job) == DONE:
+            summary = run_dir / "summary.json"
+            out[run_dir.name] = (summary.read_bytes(), summary.stat().st_mtime_ns)
+    return out
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory) -> tuple[Path, float]:
+    sweep_dir = tmp_path_factory.mktemp("whole") / "sweep"
+    started = time.monotonic()
+    proc = launch(sweep_dir, resume=False)
+    _, err = proc.communicate(timeout=600)
+    assert proc.returncode == 0, err.decode()[-3000:]
+    return sweep_dir, time.monotonic() - started
+
+
+def test_killed_at_random_moments_and_resumed_equals_the_uninterrupted_sweep(tmp_path, uninterrupted):
+    """KILLS times: the launch (the first, then each --resume) killed at a moment drawn from
+    SHARE of the uninterrupted sweep's wall time (some while the processes start, most while jobs
+    run and write), unless the sweep ends first; then one last --resume runs to the end."""
+    whole, seconds = uninterrupted
+    sweep_dir, moments = tmp_path / "sweep", random.Random(62)
+    kept: dict = {}
+    for kill in range(KILLS):
+        proc = launch(sweep_dir, resume=kill > 0)
+        try:
+            proc.wait(timeout=moments.uniform(*SHARE) * seconds)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+            print(f"kill {kill + 1}:", [job_state(d, job) if d.exists() else "absent" for d, job in jobs(sweep_dir)])
+        else:  # the sweep ended before this moment
+            assert proc.returncode == 0, proc.stderr.read().decode()[-3000:] if proc.stderr else ""
+            break
+        for name, done in kept.items():  # a finished job is never trained again
+            assert finished_summaries(sweep_dir).get(name) == done, name
+        kept = finished_summaries(sweep_dir)
+    assert kill > 0, "the sweep ended before the first kill"
+    proc = launch(sweep_dir, resume=True)
+    _, err = proc.communicate(timeout=600)
+    assert proc.returncode == 0, err.decode()[-3000:]
+    for name, done in kept.items():
+        assert finished_summaries(sweep_dir)[name] == done, name
+    assert metrics(sweep_dir) == metrics(whole)
+
+
+def stop_after_a_checkpoint(sweep_dir: Path, resume: bool, sig: int) -> str:
+    """A launch stopped by ``sig`` to its process group, as Ctrl-C or a closed terminal sends it,
+    once a job has written a checkpoint after the launch: its one line that says how to go on."""
+    since = time.time()
+    proc = launch(sweep_dir, resume)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and not any(
+        p.stat().st_mtime > since for p in sweep_dir.glob("*/*/checkpoints/*.pt")
+    ):
+        time.sleep(0.05)
+    os.killpg(proc.pid, sig)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 128 + sig, err.decode()[-3000:]
+    lines = [line for line in err.decode().splitlines() if line.startswith("ferl: interrupted")]
+    assert len(lines) == 1, err.decode()[-3000:]
+    return lines[0]
+
+
+def test_a_stop_by_signal_says_how_to_resume_and_resumes_to_the_same_metrics(tmp_path, uninterrupted):
+    """SIGINT stops the launch, SIGHUP the --resume after it, each in one line naming the command
+    that continues (this command with --resume: the folder has no make target's sweep.json); the
+    last --resume ends with the uninterrupted sweep's metrics."""
+    whole, _ = uninterrupted
+    sweep_dir = tmp_path / "sweep"
+    for sig, resume in ((signal.SIGINT, False), (signal.SIGHUP, True)):
+        line = stop_after_a_checkpoint(sweep_dir, resume, sig)
+        name = signal.Signals(sig).name
+        assert line.startswith(f"ferl: interrupted ({name}): what the jobs wrote is kept; continue with: "), line
+        assert f"python -m ferl.run.together --resume {sweep_dir} " in line, line
+    again = launch(sweep_dir, resume=True)
+    _, err = again.communicate(timeout=600)
+    assert again.returncode == 0, err.decode()[-3000:]
+    assert metrics(sweep_dir) == metrics(whole)
+
+
+def test_analyze_a_sweep_being_written_reads_the_finished_jobs_and_names_the_others(tmp_path, uninterrupted):
+    """analyze.py on the sweeps while they run, frozen (SIGSTOP to the process group) at a moment
+    when some jobs have finished and others have not, so that whatever a job was writing stays
+    half-written while the analysis reads: it ends with exit 0, analyses the finished jobs and
+    names each unfinished one in one line; the sweeps, let go (SIGCONT), end as uninterrupted."""
+    whole, _ = uninterrupted
+    sweep_dir = tmp_path / "sweep"
+    proc = launch(sweep_dir, resume=False)
+    all_jobs = jobs(sweep_dir)
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and proc.poll() is None:
+        done = [d for d, _ in all_jobs if (d / "summary.json").exists()]
+        if done and any((d / ".hydra").is_dir() and d not in done for d, _ in all_jobs):
+            break
+        time.sleep(0.02)
+    os.killpg(proc.pid, signal.SIGSTOP)
+    try:
+        started = {d for d, _ in all_jobs if (d / ".hydra").is_dir()}
+        done = {d for d in started if (d / "summary.json").exists()}
+        analysed = subprocess.run(
+            [sys.executable, "analyze.py", str(sweep_dir)], cwd=ROOT, capture_output=True, text=True, timeout=300
+        )
+    finally:
+        os.killpg(proc.pid, signal.SIGCONT)
+    _, err = proc.communicate(timeout=600)
+    assert proc.returncode == 0, err.decode()[-3000:]
+    assert done and started - done, "the sweeps were not caught between jobs"
+    assert analysed.returncode == 0, analysed.stderr[-3000:]
+    said = analysed.stdout + analysed.stderr
+    for run_dir in started - done:
+        assert sum(str(run_dir) in line for line in said.splitlines()) == 1, (run_dir, said[-3000:])
+    assert metrics(sweep_dir) == metrics(whole)
