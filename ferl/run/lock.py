@@ -75,14 +75,24 @@ def holder(run_path) -> str | None:
     except FileNotFoundError:
         return None
     try:
-        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-    except BlockingIOError:
-        return describe(read_text(fd)) or "another process (it has not written its name yet)"
-    else:
-        fcntl.flock(fd, fcntl.LOCK_UN)
-        return None
+        return (
+            (describe(read_text(fd)) or "another process (it has not written its name yet)")
+            if flock_taken(fd)
+            else None
+        )
     finally:
         os.close(fd)
+
+
+def flock_taken(fd: int) -> bool:
+    """Whether a process holds an exclusive flock on the open file ``fd``: a shared non-blocking
+    flock fails then; where it succeeds it is dropped at once (it lasts microseconds)."""
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    fcntl.flock(fd, fcntl.LOCK_UN)
+    return False
 
 
 def names_file(path: Path, fd: int) -> bool:

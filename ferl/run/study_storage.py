@@ -39,6 +39,7 @@ from optuna.storages.journal import JournalFileBackend
 from optuna.study import StudyDirection
 
 from ferl.config.params import ConfigError
+from ferl.run.lock import flock_taken
 from ferl.run.study_space import described
 
 FILES = {"sqlite": "study.db", "journal": "study.journal"}
@@ -253,9 +254,8 @@ class Worker:
         except FileNotFoundError:
             return False
         try:
-            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-        except BlockingIOError:
-            return True
+            if flock_taken(fd):
+                return True
         finally:
             os.close(fd)
         (self.folder / name).unlink(missing_ok=True)

@@ -239,7 +239,7 @@ class ActorEpisodes(Phase):
         job.env.reset()
         (uniform,) = self.uniforms.next()  # (T_max + 1, R, 1, uniforms_per_action)
         job.exploration.begin_episode(job.generator, job.env.max_steps, k / self.N)  # its draws after the actor's
-        if self.fused is None and self.agent is not self.agent_step:  # α and β as tensors: one graph
+        if self.fused is None and self.agent != self.agent_step:  # compiled: α and β as tensors, one graph
             ep = self.episode(job, torch.tensor(lr, device=job.device), as_beta(beta, job.device), uniform, True)
         elif self.fused is None:
             ep = self.episode(job, lr, beta, uniform, True)

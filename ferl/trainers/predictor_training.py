@@ -2,16 +2,29 @@
 
 Every predictor trains on the collected episodes (``job.outputs.episodes``) for N_epoch epochs,
 each in its own shuffled order per epoch; those with one ``batch_key`` train as one
-``training_batch``. The prediction error of Eq. (4.7) — per step t and episode length T, mean
+``training_batch``. ``length_order`` chooses how the lengths meet the epochs:
+
+* ``mixed`` (the default, as §4.3.1's text: "the entire set of training data with variable
+  step-lengths is shown for 400 epochs"): every epoch is one pass over every trained length,
+  shuffled together;
+* ``by_length`` (Algorithm 1's loop read literally: "for T = T_min to T_min + L_training − 1: train
+  a predictor with D_train^T", for "the requirement of accurate prediction of a shorter sequence
+  before predicting the longer sequence", §4.3.2): the epochs go to the lengths in order, the
+  first N_epoch / L_training to T_min, and so on (a remainder to the first lengths); an epoch on
+  D_train^T is L_training shuffled passes over it, so that every epoch takes as many SGD steps as
+  a mixed one, and the whole phase the same compute.
+ The prediction error of Eq. (4.7) — per step t and episode length T, mean
 over the sequences, on the training and the test data — is measured every ``error_every``
 epochs (Figs. 4.5, 4.10, 5.2, 5.17). Only lengths T_min … T_min + L_training − 1 are trained on.
 """
+
+from typing import Literal
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
-from ferl.config.params import NonNegativeInt, PositiveInt
+from ferl.config.params import ArgumentError, NonNegativeInt, PositiveInt
 from ferl.predictors.popart import observe_rewards
 from ferl.run.directory import CheckpointTimer
 from ferl.run.tensorboard import log_weights
@@ -35,9 +48,36 @@ class TrainPredictors(Phase):
         n_epoch: NonNegativeInt,
         error_every: PositiveInt,
         checkpoint_every_epochs: PositiveInt,
+        length_order: Literal["mixed", "by_length"] = "mixed",
     ):
         self.l_training, self.n_epoch, self.error_every = l_training, n_epoch, error_every
-        self.checkpoint_every_epochs = checkpoint_every_epochs
+        self.checkpoint_every_epochs, self.length_order = checkpoint_every_epochs, length_order
+
+    @classmethod
+    def check_config(cls, args: dict) -> None:
+        if args.get("length_order") == "by_length" and 0 < args["n_epoch"] < args["l_training"]:
+            raise ArgumentError(
+                "length_order",
+                f"mixed, or n_epoch ≥ l_training for by_length (an epoch for each trained length; "
+                f"n_epoch={args['n_epoch']}, l_training={args['l_training']})",
+            )
+
+    def epoch_orders(self, job, lengths: torch.Tensor, members: int, epoch: int) -> list[torch.Tensor]:
+        """Each member's order of the training sequences in ``epoch`` (1 … N_epoch), (R, N) indices
+        of the sequences whose lengths (R, N) are ``lengths`` (module docstring): a permutation of
+        all N (``mixed``), or L_training permutations of the N / L_training of one length, that of
+        the epoch's stage (``by_length``; balancing laid the lengths out in the same places in
+        every run)."""
+        R, N = lengths.shape
+        if self.length_order == "mixed":
+            return [torch.rand(R, N, generator=job.generator, device=job.device).argsort(1) for _ in range(members)]
+        stage = (epoch - 1) * self.l_training // self.n_epoch
+        where = torch.nonzero(lengths[0] == job.env.optimal_steps + stage).squeeze(1)  # (N / L_training,)
+        passes = lambda: [  # noqa: E731
+            where[torch.rand(R, len(where), generator=job.generator, device=job.device).argsort(1)]
+            for _ in range(self.l_training)
+        ]
+        return [torch.cat(passes(), 1) for _ in range(members)]
 
     def run_bytes(self, job) -> int:
         """The peak of ``run`` (``ferl.run.footprint``'s hook): the collected episodes, each as
@@ -91,8 +131,9 @@ class TrainPredictors(Phase):
         batch = type(members[0]).training_batch(
             members, y, a, [p.reward_targets(job.env.reward_values, fit.rewards) for p in members], lengths
         )
-        if job.fast:  # a batch without a fast path stays eager (``TrainingBatchBase.fuse``)
-            batch.fuse(job.device)
+        if job.fast:  # a batch without a fast path stays eager (``TrainingBatchBase.fuse``); every
+            # step unrolled to the longest trained length: one graph whatever lengths an epoch holds
+            batch.fuse(job.device, unroll_to=int(lengths.max()))
         splits = {
             (name, s): episode_tensors(job, split, p)
             for name, p in zip(names, members)
@@ -119,8 +160,7 @@ class TrainPredictors(Phase):
                 mininterval=1.0,
             )
         ):
-            orders = [torch.rand(R, y.shape[1], generator=job.generator, device=job.device).argsort(1) for _ in members]
-            batch.train_epoch(orders)
+            batch.train_epoch(self.epoch_orders(job, lengths, len(members), epoch))
             if epoch % self.error_every == 0 or epoch == self.n_epoch:
                 epochs.append(epoch)
                 for name, p in zip(names, members):
