@@ -5,6 +5,10 @@ moments in turn (the process group: a pre-empted node, a reboot) and resumed eac
 is trained again once it has finished (its ``summary.json`` never rewritten), and a SIGINT or
 SIGHUP stop says in one line how to go on.
 
+The sweeps' analysis (``analyze.py``: every report.md and figure CSV) is compared too, each
+file with its lines of time measures (wall time, agent-steps/s, compile time), which no two runs
+share, left out and the sweep's own path written as SWEEP.
+
 FERL_SWEEP_KILLS sets the number of moments (default 3, to keep ``make test`` short) and
 FERL_SWEEP_STEPS the floor jobs' length (default 2 000; a longer sweep leaves room for more kills). The moments are drawn from a seeded generator over the uninterrupted
 sweep's wall time, so a failure can be replayed."""
@@ -76,6 +80,34 @@ def finished_summaries(sweep_dir: Path) -> dict:
     return out
 
 
+TIMES = ("wall_time", "wall time", "agent_steps_per_s", "compile_time", "phase_time")
+
+
+def analysis(sweep_dir: Path) -> dict[str, list[str]]:
+    """analyze.py's reports and figure CSVs of the sweeps: path → lines, times left out (module docstring)."""
+    done = subprocess.run([sys.executable, "analyze.py", str(sweep_dir)], cwd=ROOT, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-3000:]
+    files = [p for p in sweep_dir.rglob("*") if "analysis" in p.parts and p.suffix in (".csv", ".md")]
+    return {str(p.relative_to(sweep_dir)): timeless(p.read_text().replace(str(sweep_dir), "SWEEP")) for p in files}
+
+
+def timeless(text: str) -> list[str]:
+    """The lines of ``text`` without time measures: a line that names one is left out, and so is a
+    Markdown table's column whose header names one, in every row of that table."""
+    out, dropped = [], None  # the columns of the current table to leave out
+    for line in text.splitlines():
+        if not line.startswith("| "):
+            dropped = None
+        else:
+            cells = line.split(" | ")
+            if dropped is None:  # a table's header
+                dropped = {i for i, cell in enumerate(cells) if any(t in cell for t in TIMES)}
+            line = " | ".join(c for i, c in enumerate(cells) if i not in dropped)
+        if not any(t in line for t in TIMES):  # a line, or a table's row, of a time measure
+            out.append(line)
+    return out
+
+
 @pytest.fixture(scope="module")
 def uninterrupted(tmp_path_factory) -> tuple[Path, float]:
     sweep_dir = tmp_path_factory.mktemp("whole") / "sweep"
@@ -114,6 +146,10 @@ def test_killed_at_random_moments_and_resumed_equals_the_uninterrupted_sweep(tmp
     for name, done in kept.items():
         assert finished_summaries(sweep_dir)[name] == done, name
     assert metrics(sweep_dir) == metrics(whole)
+    resumed, ran = analysis(sweep_dir), analysis(whole)
+    assert resumed.keys() == ran.keys() and any(k.endswith(".csv") for k in ran)
+    for path, lines in ran.items():
+        assert resumed[path] == lines, path
 
 
 def stop_after_a_checkpoint(sweep_dir: Path, resume: bool, sig: int) -> str:
