@@ -66,6 +66,14 @@ class Stopped(KeyboardInterrupt):
         self.signum = signum
 
 
+def stopped(e: KeyboardInterrupt, sweep_dir: Path, sweeps: list[Sweep]) -> int:
+    """After a stop: its one line (what is kept, the command that continues the sweep) on stderr;
+    the exit status, 128 + the signal (a plain KeyboardInterrupt is SIGINT's)."""
+    signum = e.signum if isinstance(e, Stopped) else signal.SIGINT
+    print(stopped_line(signum, sweep_dir, sweeps), file=sys.stderr)
+    return 128 + signum
+
+
 def stopped_line(signum: int, sweep_dir: Path, sweeps: list[Sweep]) -> str:
     """The one line after a stop: what is kept and the command that continues the sweep."""
     target = target_of(sweep_dir)
@@ -173,9 +181,7 @@ def run_together(sweep_dir: Path, sweeps: list[Sweep], train: tuple[str, ...] = 
             time.sleep(0.2)
     except KeyboardInterrupt as e:
         _stop([proc for _, proc, _, _ in running])
-        signum = e.signum if isinstance(e, Stopped) else signal.SIGINT
-        print(stopped_line(signum, sweep_dir, sweeps), file=sys.stderr)
-        return 128 + signum
+        return stopped(e, sweep_dir, sweeps)
     failed = [s for s in sweeps if codes[s.name] != 0]
     for s in failed:
         print(f"{PREFIX}error: sweep {s.name} failed; its output: {sweep_dir / s.name / LOG}", file=sys.stderr)
@@ -227,9 +233,7 @@ def resume_together(sweep_dir: Path, sweeps: list[Sweep], train: tuple[str, ...]
                 thread.join(0.2)
     except KeyboardInterrupt as e:  # the jobs got the same signal and stop as a run does
         STOPPING.set()  # and the queued ones never start
-        signum = e.signum if isinstance(e, Stopped) else signal.SIGINT
-        print(stopped_line(signum, sweep_dir, sweeps), file=sys.stderr)
-        return 128 + signum
+        return stopped(e, sweep_dir, sweeps)
     for name, names in failed.items():
         for job in names:
             print(
