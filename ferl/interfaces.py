@@ -17,11 +17,12 @@ YAML keys are the constructor's annotations (``ferl.config.params``), checked be
 """
 
 from collections.abc import Callable, Hashable, Sequence
-from typing import NamedTuple, Protocol, runtime_checkable
+from typing import Protocol, runtime_checkable
 
 import torch
 from torch import Tensor
-from torch.nn import functional as nnf
+
+from ferl.ended_episode import EndedEpisode  # what Actor.end_episode takes
 
 State = Tensor | tuple[Tensor, ...]  # a predictor's recurrent state: (R, ·), or an LSTM's (h, c)
 
@@ -95,7 +96,8 @@ class EpisodicEnvironment(Environment, Protocol):
     boolean ones become ``final_<name>_rate`` metrics and count towards ``solved``), ``labels``
     (what the episode's probes are labelled with, e.g. the maze's condition) and ``probe`` (the
     runs whose present state is one whose activations the records keep, e.g. the T-junction).
-    Two hooks (defaults on ``EpisodicEnvironmentBase``) say how its episodes may be run."""
+    Three hooks (defaults on ``EpisodicEnvironmentBase``) say how its episodes may be run and how
+    long its ids stay valid."""
 
     max_steps: int
     optimal_steps: int
@@ -112,6 +114,13 @@ class EpisodicEnvironment(Environment, Protocol):
     # ``ferl.envs.gymnasium_vector``): rows of the table are filled in place as they are met, so
     # the phases index the table live and compute nothing from it ahead of the episodes
     discovers_observations: bool
+
+    def keep_episodes(self, episodes: int, key: str) -> None:
+        """A phase that keeps observation ids of its last ``episodes`` episodes (the one being
+        played included) says so before the first episode: the ids must stay valid that long.
+        A table of fixed or distinct observations keeps every id (the default does nothing); one
+        that reuses rows (``env.encoding=real``) is sized to them, and a ConfigError naming ``key``
+        says where it cannot be."""
 
     def advance(self, action: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """``step`` without building the observations: (rewards, terminated, truncated)."""
@@ -132,6 +141,9 @@ class EpisodicEnvironmentBase(EnvironmentBase):
 
     traceable_steps: bool = False
     discovers_observations: bool = False
+
+    def keep_episodes(self, episodes: int, key: str) -> None:
+        """Every id stays valid: nothing to size."""
 
 
 @runtime_checkable
@@ -251,33 +263,6 @@ class PredictorBase:
         return None
 
     def observe_rewards(self, rewards: Tensor, lengths: Tensor) -> None: ...
-
-
-class EndedEpisode(NamedTuple):
-    """Every run's ended episode, as ``Actor.end_episode`` takes it (valid during the call): as the
-    lockstep episode recorded it, ``steps`` ≤ T_max long, the states at every action (steps, R, S)
-    and after the last (R, 1, S), actions and raw rewards (steps, R), ``lengths`` (R,) the actions
-    of each run and ``terminated`` (R,) whether it ended in a terminal state (not at T_max)."""
-
-    states: Tensor
-    last_state: Tensor
-    actions: Tensor
-    rewards: Tensor
-    lengths: Tensor
-    terminated: Tensor
-    max_steps: int  # T_max
-
-    def padded(self) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-        """Per run, padded to T_max actions: states (R, T_max+1, S), actions and rewards
-        (R, T_max), lengths and terminated (R,) (computed here, for the actor that needs it)."""
-        pad, states = self.max_steps - len(self.actions), torch.cat([self.states.transpose(0, 1), self.last_state], 1)
-        return (
-            nnf.pad(states, (0, 0, 0, pad)),
-            nnf.pad(self.actions.T, (0, pad)),
-            nnf.pad(self.rewards.T, (0, pad)),
-            self.lengths.clone(),
-            self.terminated,
-        )
 
 
 @runtime_checkable

@@ -193,7 +193,8 @@ def test_the_table_of_observations_is_sized_to_the_codes_where_they_are_known():
     import torch
 
     from ferl.config.params import ConfigError
-    from ferl.envs.gymnasium_vector import TABLE_BYTES, UNKNOWN_ROWS, GymnasiumEnv, table_rows
+    from ferl.envs.gymnasium_vector import GymnasiumEnv
+    from ferl.envs.observation_rows import TABLE_BYTES, UNKNOWN_ROWS, table_rows
 
     env = GymnasiumEnv(
         1, torch.Generator(), 0, "CartPole-v1", thresholds=[[-1, 0, 1], [-1, 0, 1], [-0.1, 0, 0.1], [-1, 0, 1]]

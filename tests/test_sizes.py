@@ -130,8 +130,10 @@ def test_hooks_are_declared_and_the_base_gives_their_defaults():
     env = FiveArms(2, torch.Generator().manual_seed(0))
     assert "traceable_steps" not in vars(FiveArms) and "discovers_observations" not in vars(FiveArms)
     assert (env.traceable_steps, env.discovers_observations, env.on_fault) == (False, False, None)
+    assert "keep_episodes" not in vars(FiveArms) and env.keep_episodes(3, "trainer.replay_episodes") is None
     check_conforms(env, EpisodicEnvironment, "env")  # no error
-    assert {"traceable_steps", "discovers_observations", "on_fault"} <= set(required_members(EpisodicEnvironment))
+    hooks = {"traceable_steps", "discovers_observations", "keep_episodes", "on_fault"}
+    assert hooks <= set(required_members(EpisodicEnvironment))
     assert "fuse" in required_members(TrainingBatch)
     assert missing_members(Forgetful(2, torch.Generator()), EpisodicEnvironment) == [
         "max_steps",
@@ -151,11 +153,12 @@ def test_hooks_are_declared_and_the_base_gives_their_defaults():
         }
     )
     bare.probe = env.probe
-    assert missing_members(bare, EpisodicEnvironment) == ["on_fault", "traceable_steps", "discovers_observations"]
+    missing = ["on_fault", "traceable_steps", "discovers_observations", "keep_episodes"]
+    assert missing_members(bare, EpisodicEnvironment) == missing
     with pytest.raises(
         ConfigError,
-        match=r"lacks on_fault, traceable_steps, discovers_observations \(.*; "
+        match=r"lacks on_fault, traceable_steps, discovers_observations, keep_episodes \(.*; "
         r"ferl\.interfaces\.EpisodicEnvironmentBase gives the defaults of on_fault, "
-        r"traceable_steps, discovers_observations\)$",
+        r"traceable_steps, discovers_observations, keep_episodes\)$",
     ):
         check_conforms(bare, EpisodicEnvironment, "env")

@@ -274,3 +274,25 @@ def test_resume_without_a_checkpoint_starts_the_log_afresh(tmp_path):
     (run.tb / "analysis").mkdir()  # analyze.py's own log is not the run's
     assert run.resume() is None
     assert not list(run.tb.glob("events.out.tfevents.*")) and (run.tb / "analysis").is_dir()
+
+
+def test_weights_beyond_tensorboards_buckets_are_left_out_of_the_histograms(tmp_path):
+    """A run on its way to diverging (finite weights of 1e30, met on CartPole) ended its phase
+    with TensorBoard's "The histogram is empty", before the phase's records were written."""
+    import torch
+    from torch.utils.tensorboard import SummaryWriter
+
+    from ferl.run.tensorboard import log_weights
+
+    module = torch.nn.Module()
+    module.w = torch.nn.Parameter(torch.tensor([[[1e30, -1e30], [float("nan"), 2.0]]]))
+    module.huge = torch.nn.Parameter(torch.full((1, 2, 2), 1e25))
+    writer = SummaryWriter(tmp_path)
+    log_weights(writer, "actor", module, 0)  # raised ValueError before
+    writer.close()
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(tmp_path), size_guidance={"histograms": 0}).Reload()
+    assert events.Tags()["histograms"] == ["actor/weights/w"]  # "huge": nothing left, no histogram
+    (histogram,) = events.Histograms("actor/weights/w")
+    assert histogram.histogram_value.num == 1 and histogram.histogram_value.sum == 2.0

@@ -46,16 +46,25 @@ class Derived:
     mean: list[float]
     std: list[float]
 
-    def describe(self) -> dict:
-        """What records/run.json keeps, so that a run's encoding can be read and rebuilt."""
+    def describe(self, thresholds: bool = True) -> dict:
+        """What records/run.json keeps, so that a run's encoding can be read and rebuilt; without
+        ``thresholds`` (``env.encoding=real``), the sample's statistics alone."""
+        made = {"sources": self.sources, "bits_per_entry": self.bits_per_entry} if thresholds else {}
         return {  # the thresholds themselves: the environment's ``thresholds``
-            "sources": self.sources,
-            "bits_per_entry": self.bits_per_entry,
+            **made,
             "sample_steps": self.sample_steps,
             "sample_seed": SAMPLE_SEED,
             "sample_mean": self.mean,
             "sample_std": self.std,
         }
+
+    def sample_stated(self, env_id: str) -> str:
+        """One line for the run's log of ``env.encoding=real``: every entry's mean and spread."""
+        entries = "; ".join(f"entry {i}: μ {m:.4g}, σ {s:.4g}" for i, (m, s) in enumerate(zip(self.mean, self.std)))
+        return (
+            f"env.encoding=real: {len(self.mean)} real values for {env_id!r}, μ ± 3σ mapped onto [0, 1], from a "
+            f"{self.sample_steps}-step random-policy sample (seed {SAMPLE_SEED}): {entries}"
+        )
 
     def stated(self, env_id: str) -> str:
         """One line for the run's log: every entry's thresholds and their source."""

@@ -19,6 +19,13 @@ observation space needs a declared encoding into {0, 1}^O:
   state) indices per cell, as one one-hot group of each per cell (Chevalier-Boisvert et al. 2023,
   ``minigrid.core.constants``); the ``direction`` and ``mission`` entries are left out, as the
   egocentric view already turns with the agent and a task's mission is fixed.
+* ``real``: a ``Box`` value x as one real number a entry, y_i = clip((x_i − μ_i) / (6 σ_i) + ½, 0, 1):
+  the mean ± 3 standard deviations of a random-policy sample (``ferl.envs.derived``) mapped onto
+  [0, 1], as the grey levels of chapter 5's pixels are (§5.2). The actor's state nodes and the
+  predictors' inputs take the value itself; a predictor's observation head predicts it as it
+  predicts a grey pixel, a Bernoulli mean (Eq. 4.4's sigmoid and cross-entropy with soft targets).
+  An entry constant over the sample gives ½ throughout. No table of distinct codes can hold real
+  values: ``ferl.envs.gymnasium_vector`` keeps each step's vector in a row of its own.
 * ``auto``: ``minigrid`` for such a dict, ``onehot`` where every part is discrete, ``thresholds``
   for a ``Box``; anything else has no encoding and is refused naming the space.
 
@@ -40,8 +47,9 @@ import gymnasium
 import numpy as np
 from gymnasium import spaces
 
-Encoding = Literal["auto", "onehot", "thresholds", "minigrid"]
+Encoding = Literal["auto", "onehot", "thresholds", "minigrid", "real"]
 ENCODINGS = get_args(Encoding)
+REAL_SPREAD = 6.0  # real: the sample's μ ± REAL_SPREAD/2 σ spans [0, 1]
 # MiniGrid's symbolic indices (minigrid.core.constants: OBJECT_TO_IDX, COLOR_TO_IDX, STATE_TO_IDX)
 MINIGRID_SIZES = (11, 6, 3)
 
@@ -150,6 +158,8 @@ def distinct_codes(space, encoding: str, thresholds=()) -> int | None:
     """How many distinct codes ``encoding`` can give for ``space`` (None: not known in advance,
     MiniGrid's view): a bound on the distinct observations a run can meet."""
     encoding = resolved(space, encoding, thresholds)
+    if encoding == "real":
+        return None  # real values: no finite set of codes
     if encoding == "thresholds":
         return math.prod(len(theta) + 1 for theta in threshold_lists(space, thresholds))
     if encoding == "minigrid":
@@ -201,6 +211,8 @@ def encoder_for(space, encoding: str, thresholds=()) -> tuple[Encoder, int]:
     """The encoder of ``space`` that ``encoding`` names (``auto``: the module docstring's choice);
     thresholds given to an encoding that takes none are refused."""
     chosen = resolved(space, encoding, thresholds)
+    if chosen == "real":  # values, not bits: RealObservation, with the sample's statistics
+        raise NoEncoding(f"{space}: env.encoding=real gives real values, not bits (``real_encoder``)")
     if chosen == "thresholds":
         return thresholds_encoder(space, thresholds)
     if chosen == "minigrid":
@@ -221,6 +233,33 @@ def encoder_for(space, encoding: str, thresholds=()) -> tuple[Encoder, int]:
             f"thresholds encode a Box (env.encoding=thresholds or auto)"
         )
     return made
+
+
+def real_encoder(space, mean: Sequence[float], std: Sequence[float]) -> tuple[Encoder, int]:
+    """(encoder, entries) of a ``Box`` as real values in [0, 1] from the sample's per-entry ``mean``
+    and ``std`` (module docstring: ``real``); float32 values, each entry in C order."""
+    if not isinstance(space, spaces.Box):
+        raise NoEncoding(f"{space} is not a Box: env.encoding=real encodes Box observations")
+    mu, sigma = np.asarray(mean, np.float64), np.asarray(std, np.float64)
+    width = np.where(sigma > 0, REAL_SPREAD * sigma, np.inf)  # a constant entry: ½ throughout
+
+    def encode(x):
+        z = (np.asarray(x, np.float64).reshape(-1) - mu) / width + 0.5
+        return np.clip(z, 0.0, 1.0).astype(np.float32)
+
+    return encode, int(np.prod(space.shape))
+
+
+class RealObservation(gymnasium.ObservationWrapper):
+    """An environment whose ``Box`` observations are real values in [0, 1] (``real_encoder``)."""
+
+    def __init__(self, env, mean: Sequence[float], std: Sequence[float]):
+        super().__init__(env)
+        self.encode, size = real_encoder(env.observation_space, mean, std)
+        self.observation_space = spaces.Box(0.0, 1.0, (size,), np.float32)
+
+    def observation(self, observation):
+        return self.encode(observation)
 
 
 class BinaryObservation(gymnasium.ObservationWrapper):

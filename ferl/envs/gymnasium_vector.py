@@ -10,7 +10,9 @@ distinct codes is known (``distinct_codes``: one-hot and thresholds), the table 
 (``max_observations: null``) and a smaller ``max_observations`` is refused at set-up, since a run
 could outgrow it (docs/beyond.md, "Outside POMDPs"); only a count too large for a table
 (``TABLE_BYTES``), where ``max_observations`` is the user's bound, or an unknown one (MiniGrid's
-view; 4096 rows unless set) can still overflow mid-run.
+view; 4096 rows unless set) can still overflow mid-run. ``encoding: real`` (a ``Box`` as real values
+in [0, 1]) has no distinct codes: each step's observation gets a row of its own, in a table sized to
+the episodes whose ids a phase keeps (``ferl.envs.observation_rows``, ``keep_episodes``).
 
 Episodes follow ferl's lockstep (``ferl.trainers.actor_episodes``): every run starts episode k
 together, and a run whose episode has ended waits, with reward 0, until all have. The vector
@@ -56,79 +58,18 @@ from ferl.envs.encodings import (
     BinaryObservation,
     Encoding,
     NoEncoding,
+    RealObservation,
     distinct_codes,
     fixed_bits,
 )
+from ferl.envs.gymnasium_ids import action_sizes, default_max_steps, make
+from ferl.envs.observation_rows import StepRows, table_rows
 from ferl.interfaces import EpisodicEnvironmentBase
 from ferl.messages import warn
-
-TABLE_BYTES = 256 * 2**20  # the largest table of observations sized to its code count unasked
-UNKNOWN_ROWS = 4096  # max_observations: null where the count of codes is not known in advance
 
 
 class EnvironmentFault(RuntimeError):
     """An outside environment failed (``ferl.envs.boundary``) and nothing freezes its run."""
-
-
-def make(env_id: str, kwargs: dict):
-    """``gymnasium.make`` (``module:Id`` imports the module that registers the id); a failure is
-    one ConfigError line naming env.id."""
-    try:
-        return gymnasium.make(env_id, **kwargs)
-    except gymnasium.error.Error as e:
-        raise ConfigError(
-            f"env.id: {env_id!r} is not a registered Gymnasium id ({str(e).splitlines()[0]}); "
-            f"use a registered id or 'module:Id' with a module that registers it"
-        ) from None
-    except (ModuleNotFoundError, ImportError) as e:
-        raise ConfigError(f"env.id: {env_id!r}: its module cannot be imported ({e})") from None
-    except TypeError as e:
-        raise ConfigError(f"env.kwargs: {env_id!r} does not take them ({e})") from None
-
-
-def action_sizes(space, env_id: str) -> np.ndarray:
-    """The sizes of the discrete action's parts: (n,) for ``Discrete(n)``, the entries of a
-    ``MultiDiscrete`` (its actions are enumerated: action i is the mixed-radix digits of i)."""
-    if isinstance(space, spaces.Discrete):
-        return np.array([int(space.n)])
-    if isinstance(space, spaces.MultiDiscrete):
-        return space.nvec.reshape(-1).astype(np.int64)
-    raise ConfigError(
-        f"env.id: {env_id!r} has the action space {space}; ferl's agents choose among discrete "
-        f"actions (Discrete or MultiDiscrete)"
-    )
-
-
-def default_max_steps(env) -> int | None:
-    """An id's own episode limit (module docstring), or None if it states none."""
-    spec_limit = env.spec.max_episode_steps if env.spec is not None else None
-    inner = env.unwrapped
-    for limit in (spec_limit, getattr(inner, "max_episode_length", None), getattr(inner, "max_steps", None)):
-        if isinstance(limit, (int, np.integer)) and limit > 0:
-            return int(limit)
-    return None
-
-
-def table_rows(env_id: str, codes: int | None, bits: int, asked: int | None) -> int:
-    """The rows of the observation table (module docstring): ``asked`` where it holds every code
-    the encoding can give or that count is unknown or too large for a table; null: the count, or
-    ``UNKNOWN_ROWS``. ConfigError naming env.max_observations where a run could outgrow it."""
-    fits = codes is not None and codes * bits * 4 <= TABLE_BYTES
-    if codes is None:
-        return asked or UNKNOWN_ROWS
-    size = f"{codes} rows of {bits} bits ({codes * bits * 4 / 2**20:.1f} MiB)"
-    if asked is None and not fits:
-        raise ConfigError(
-            f"env.max_observations: the encoding of {env_id!r} can give {codes} distinct observations, "
-            f"more than a table sized to them holds ({TABLE_BYTES // 2**20} MiB); use fewer thresholds (or env.bits_per_entry), "
-            f"or set env.max_observations to the most a run meets (a run that meets more stops)"
-        )
-    if asked is not None and fits and asked < codes:
-        raise ConfigError(
-            f"env.max_observations={asked}: the encoding of {env_id!r} can give {codes} distinct "
-            f"observations, so a run could outgrow the table; set it to null (sized to them: {size}) or ≥ {codes}"
-        )
-    return asked if asked is not None else codes
 
 
 class GymnasiumEnv(EpisodicEnvironmentBase):
@@ -176,13 +117,14 @@ class GymnasiumEnv(EpisodicEnvironmentBase):
             if limit is None:
                 raise ConfigError(f"env.max_steps: {id!r} states no episode limit; set env.max_steps (T_max)")
             try:
-                if derives(probe.observation_space, encoding, given):
+                if encoding == "real" and not isinstance(probe.observation_space, spaces.Box):
+                    raise NoEncoding(
+                        f"{probe.observation_space} is not a Box: env.encoding=real encodes Box observations"
+                    )
+                if derives(probe.observation_space, encoding, given) or encoding == "real":
                     self.derived = derived_once(probe, [id, self.kwargs], bits_per_entry, sample_steps, limit)
-                    self.thresholds = self.derived.thresholds
-                encoded = cast(
-                    spaces.MultiBinary, BinaryObservation(probe, encoding, self.thresholds).observation_space
-                )
-                observation_size = cast(int, encoded.n)  # MultiBinary(size): an int
+                    self.thresholds = self.derived.thresholds if encoding != "real" else self.thresholds
+                observation_size = self.encoded_size(probe, max_observations)
                 codes = distinct_codes(probe.observation_space, encoding, self.thresholds)
                 box = isinstance(probe.observation_space, spaces.Box) and self.thresholds
                 fixed = fixed_bits(probe.observation_space, self.thresholds) if box else []
@@ -195,10 +137,14 @@ class GymnasiumEnv(EpisodicEnvironmentBase):
         # said at the first episode, once set-up has passed (a refusal stays one line)
         self.unused_bits = unused_bits(id, fixed, int(observation_size), self.derived)
         # derived thresholds stated at the first episode: the run's log (train.log); records/run.json has them too
-        self.stated = self.derived.stated(id) if self.derived is not None else ""
+        self.stated = ""
+        if self.derived is not None:
+            self.stated = self.derived.sample_stated(id) if encoding == "real" else self.derived.stated(id)
         self.max_steps, self.observation_size = limit, int(observation_size)
         self.distinct_codes = codes
-        max_observations = table_rows(id, codes, int(observation_size), max_observations)
+        self.rows = StepRows(n_runs, limit, observation_size, self.device) if encoding == "real" else None
+        if self.rows is None:
+            max_observations = table_rows(id, codes, int(observation_size), max_observations)
         self.n_actions = int(np.prod(self.sizes))
         self.action_names = (
             [str(i) for i in range(self.n_actions)]
@@ -216,7 +162,11 @@ class GymnasiumEnv(EpisodicEnvironmentBase):
         self.vector = vector(
             [self.env_fn() for _ in range(n_runs)], autoreset_mode=gymnasium.vector.AutoresetMode.NEXT_STEP
         )
-        self.observation_table = torch.zeros(max_observations, self.observation_size, device=self.device)
+        self.observation_table = (
+            self.rows.table
+            if self.rows is not None
+            else torch.zeros(cast(int, max_observations), self.observation_size, device=self.device)
+        )
         self.ids: dict[bytes, int] = {}
         self.observation_names: list[str] = []
         self.seeded = False
@@ -228,11 +178,45 @@ class GymnasiumEnv(EpisodicEnvironmentBase):
         self.failed = [False] * n_runs  # runs whose environment failed (module docstring)
         self.on_fault = None  # on_fault(run, episode, reason, details), set by the training job
 
+    def encoded_size(self, probe, max_observations: int | None) -> int:
+        """The size of an encoded observation; ``real`` takes no thresholds and no table bound."""
+        if self.encoding != "real":
+            encoded = cast(
+                spaces.MultiBinary, BinaryObservation(probe, self.encoding, self.thresholds).observation_space
+            )
+            return cast(int, encoded.n)  # MultiBinary(size): an int
+        if self.thresholds:
+            raise BadThresholds(f"are given, but env.encoding=real encodes {probe.observation_space} without them")
+        if max_observations is not None:
+            raise ConfigError(
+                f"env.max_observations={max_observations}: env.encoding=real keeps a row per step of the "
+                f"episodes kept, not a table of distinct observations; leave it null"
+            )
+        assert self.derived is not None  # the sample is drawn for real too
+        return len(self.derived.mean)  # one value an entry (``RealObservation``)
+
     def env_fn(self):
         env_id, kwargs, encoding, thresholds = self.id, self.kwargs, self.encoding, self.thresholds
+        if self.derived is not None and encoding == "real":
+            mean, std = self.derived.mean, self.derived.std
+            return lambda: RealObservation(Guarded(make(env_id, kwargs)), mean, std)
         return lambda: BinaryObservation(Guarded(make(env_id, kwargs)), encoding, thresholds)
 
+    def keep_episodes(self, episodes: int, key: str) -> None:
+        """Ids stay valid for the last ``episodes`` episodes (``EpisodicEnvironment``): a table of
+        distinct codes keeps every id; rows per step (``real``) are sized to them."""
+        if self.rows is not None:
+            self.rows.keep(episodes, key, self.id)
+            self.observation_table = self.rows.table
+
     # ---- observations -------------------------------------------------------------------------
+    def observed_ids(self, observations: np.ndarray, runs: torch.Tensor) -> torch.Tensor:
+        """Ids (R,) of the encoded observations (R, O) of the runs where ``runs`` is set: their rows
+        per step (``real``) or their codes' (``identify``)."""
+        if self.rows is not None:
+            return torch.where(runs, self.rows.place(observations, self.episode, self.t, runs), self.obs_id)
+        return torch.where(runs, self.identify(observations), self.obs_id)
+
     def identify(self, bits: np.ndarray) -> torch.Tensor:
         """Ids (R,) of the encoded observations (R, O), new ones added to the table."""
         ids = []
@@ -270,7 +254,7 @@ class GymnasiumEnv(EpisodicEnvironmentBase):
         self.t = torch.zeros_like(self.t)
         self.episode_return = torch.zeros_like(self.episode_return)
         self.report_faults(info, None)
-        self.obs_id = self.identify(bits)
+        self.obs_id = self.observed_ids(bits, ~self.done)
         return self.observe()
 
     def env_actions(self, action: torch.Tensor) -> np.ndarray:
@@ -292,7 +276,7 @@ class GymnasiumEnv(EpisodicEnvironmentBase):
         self.report_faults(info, active)  # before the learner sees the step (a failed run's reward is 0)
         terminated = as_tensor(terminated_np, torch.bool) & active
         truncated = (as_tensor(truncated_np, torch.bool) | (self.t >= self.max_steps)) & active & ~terminated
-        self.obs_id = torch.where(active, self.identify(bits), self.obs_id)
+        self.obs_id = self.observed_ids(bits, active)
         self.episode_return = self.episode_return + raw
         self.done = self.done | terminated | truncated
         return raw * self.reward_scale, terminated, truncated
@@ -347,12 +331,12 @@ class GymnasiumEnv(EpisodicEnvironmentBase):
             "kind": "gymnasium",
             "task": self.task,
             "episodic": True,
-            "observation": "bits",
+            "observation": "real" if self.rows is not None else "bits",
             "id": self.id,
             "kwargs": self.kwargs,
             "encoding": self.encoding,
             "thresholds": self.thresholds,
-            **({"derived": self.derived.describe()} if self.derived is not None else {}),
+            **({"derived": self.derived.describe(self.rows is None)} if self.derived is not None else {}),
             "vectorization": self.vectorization,
             "observation_size": self.observation_size,
             "distinct_codes": self.distinct_codes,  # null: not known in advance
@@ -368,7 +352,7 @@ class GymnasiumEnv(EpisodicEnvironmentBase):
         }
 
     def state_dict(self) -> dict:
-        n = len(self.ids)
+        n = len(self.ids) if self.rows is None else self.observation_table.shape[0]  # real: every row
         return {
             "envs": self.vector.get_attr("ferl_state"),
             "seeded": self.seeded,
@@ -390,7 +374,11 @@ class GymnasiumEnv(EpisodicEnvironmentBase):
         self.ids.clear()
         self.observation_names.clear()
         self.observation_table.zero_()
-        self.identify(state["table"].numpy().astype(np.uint8))
+        if self.rows is not None:  # the rows of the episodes kept, as they were
+            self.observation_table.copy_(state["table"])
+            self.rows.placed = True
+        else:
+            self.identify(state["table"].numpy().astype(np.uint8))
         for key in ("obs_id", "done", "t", "episode_return"):
             setattr(self, key, state[key].to(self.device))
 

@@ -85,13 +85,19 @@ def log_hparams(writer, cfg, summary: dict, step: int) -> None:
 
 
 # ---- weights --------------------------------------------------------------------------------
+# TensorBoard's histogram buckets end at ±1e20 (``torch.utils.tensorboard.summary.default_bins``):
+# values beyond them fall in none, and a histogram of only such values raises "The histogram is empty"
+HISTOGRAM_RANGE = 1e20
+
+
 def log_weights(writer, phase: str, module: torch.nn.Module, step: int, skip=("codes",)) -> None:
     """Histograms ``<phase>/weights/<name>`` of run 0's parameters and weight buffers; the
-    non-finite entries of a diverged run are left out (none left: no histogram)."""
+    non-finite entries of a diverged run, and finite ones beyond TensorBoard's buckets
+    (``HISTOGRAM_RANGE``, a run on its way to diverging), are left out (none left: no histogram)."""
     for name, value in module.state_dict().items():
         if name not in skip and torch.is_tensor(value) and value.is_floating_point() and value.dim() > 1:
             values = value[0].detach().float().cpu()
-            values = values[torch.isfinite(values)]
+            values = values[values.abs() < HISTOGRAM_RANGE]  # NaN compares false: left out too
             if values.numel():
                 writer.add_histogram(f"{phase}/weights/{name}", values, step)
 

@@ -94,6 +94,8 @@ class OnlineEpisodes(ActorEpisodes):
             )
         if self.td_to_memory > 0:
             check_td_to_memory(job, self.td_to_memory)
+        if job.predictors:  # the replay keeps the ids of the last K episodes, with the one being played
+            job.env.keep_episodes(self.K + 1, "trainer.replay_episodes")
         super().prepare(job)
         self.eta_now = torch.zeros((), device=job.device)
         self.fused_replay = self.fuses_replay(job)
