@@ -121,9 +121,11 @@ class GymnasiumEnv(EpisodicEnvironmentBase):
                     raise NoEncoding(
                         f"{probe.observation_space} is not a Box: env.encoding=real encodes Box observations"
                     )
-                if derives(probe.observation_space, encoding, given) or encoding == "real":
+                if derives(probe.observation_space, encoding, given):
                     self.derived = derived_once(probe, [id, self.kwargs], bits_per_entry, sample_steps, limit)
-                    self.thresholds = self.derived.thresholds if encoding != "real" else self.thresholds
+                    self.thresholds = self.derived.thresholds
+                elif encoding == "real":  # its values are standardised by the same sample's mean and s.d.
+                    self.derived = derived_once(probe, [id, self.kwargs], bits_per_entry, sample_steps, limit)
                 observation_size = self.encoded_size(probe, max_observations)
                 codes = distinct_codes(probe.observation_space, encoding, self.thresholds)
                 box = isinstance(probe.observation_space, spaces.Box) and self.thresholds
