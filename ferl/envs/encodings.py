@@ -235,11 +235,16 @@ def encoder_for(space, encoding: str, thresholds=()) -> tuple[Encoder, int]:
     return made
 
 
+def real_box(space) -> None:
+    """NoEncoding unless ``space`` is a ``Box``, the one space ``real`` encodes."""
+    if not isinstance(space, spaces.Box):
+        raise NoEncoding(f"{space} is not a Box: env.encoding=real encodes Box observations")
+
+
 def real_encoder(space, mean: Sequence[float], std: Sequence[float]) -> tuple[Encoder, int]:
     """(encoder, entries) of a ``Box`` as real values in [0, 1] from the sample's per-entry ``mean``
     and ``std`` (module docstring: ``real``); float32 values, each entry in C order."""
-    if not isinstance(space, spaces.Box):
-        raise NoEncoding(f"{space} is not a Box: env.encoding=real encodes Box observations")
+    real_box(space)
     mu, sigma = np.asarray(mean, np.float64), np.asarray(std, np.float64)
     width = np.where(sigma > 0, REAL_SPREAD * sigma, np.inf)  # a constant entry: ½ throughout
 

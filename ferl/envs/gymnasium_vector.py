@@ -61,6 +61,7 @@ from ferl.envs.encodings import (
     RealObservation,
     distinct_codes,
     fixed_bits,
+    real_box,
 )
 from ferl.envs.gymnasium_ids import action_sizes, default_max_steps, make
 from ferl.envs.observation_rows import StepRows, table_rows
@@ -117,10 +118,8 @@ class GymnasiumEnv(EpisodicEnvironmentBase):
             if limit is None:
                 raise ConfigError(f"env.max_steps: {id!r} states no episode limit; set env.max_steps (T_max)")
             try:
-                if encoding == "real" and not isinstance(probe.observation_space, spaces.Box):
-                    raise NoEncoding(
-                        f"{probe.observation_space} is not a Box: env.encoding=real encodes Box observations"
-                    )
+                if encoding == "real":
+                    real_box(probe.observation_space)  # before its sample is drawn
                 if derives(probe.observation_space, encoding, given):
                     self.derived = derived_once(probe, [id, self.kwargs], bits_per_entry, sample_steps, limit)
                     self.thresholds = self.derived.thresholds

@@ -56,6 +56,7 @@ class StepRows:
         self.episodes = 1
         self.table = torch.zeros(self.rows(1), size, device=device)
         self.placed = False  # whether a row was written: from then on the table's size is fixed
+        self.runs = torch.arange(n_runs, device=device)  # run r's row within its step: r
 
     def rows(self, episodes: int) -> int:
         return episodes * (self.T + 1) * self.R
@@ -81,7 +82,7 @@ class StepRows:
         """Writes the observations ``values`` (R, size) of the runs where ``runs`` (R,) bool is set,
         at step ``t`` (R,) of ``episode``, into their rows; returns every run's id there (R,)."""
         slot = episode % self.episodes
-        ids = (slot * (self.T + 1) + t) * self.R + torch.arange(self.R, device=self.device)
+        ids = (slot * (self.T + 1) + t) * self.R + self.runs
         rows = torch.as_tensor(np.asarray(values, np.float32), device=self.device)
         self.table[ids[runs]] = rows[runs]
         self.placed = True
