@@ -1,17 +1,22 @@
-"""Fault injection on a whole sweep (docs/sweeps.md, "Resuming a sweep"): two sweeps run at once
-by ``ferl.run.together``, as ``make reproduce`` runs its sweeps, killed by SIGKILL at random
+"""Fault injection on a whole sweep (docs/sweeps.md, "Resuming a sweep"): a reduced ``make
+reproduce``, its two stages and four sweep kinds at tiny budgets, killed by SIGKILL at random
 moments in turn (the process group: a pre-empted node, a reboot) and resumed each time with
-``--resume``, end with every job's metrics equal to those of the same sweeps left to run; no job
-is trained again once it has finished (its ``summary.json`` never rewritten), and a SIGINT or
-SIGHUP stop says in one line how to go on.
+``--resume``, ends with every job's metrics equal to those of the same recipe left to run; no job
+is started again once it has finished (every job's starts are counted, across processes, by
+``tests/job_starts/sitecustomize.py``, and its ``summary.json`` is never rewritten), and a SIGINT
+or SIGHUP stop says in one line how to go on.
 
-The sweeps' analysis (``analyze.py``: every report.md and figure CSV) is compared too, each
-file with its lines of time measures (wall time, agent-steps/s, compile time), which no two runs
-share, left out and the sweep's own path written as SWEEP.
+The recipe is ``make reproduce``'s: first the experiments (two experiments, two jobs at a time,
+Hydra's joblib workers), then the noise grid (two jobs at a time), the hidden sizes and the long
+corridor (one at a time each) at once, by ``ferl.run.together``; a launcher process stands where
+``make`` does. The sweeps' analysis (``analyze.py``: the report.md and every figure CSV) is
+compared too, each file with its lines of time measures (wall time, agent-steps/s, compile time),
+which no two runs share, left out and the sweep's own path written as SWEEP.
 
 FERL_SWEEP_KILLS sets the number of moments (default 3, to keep ``make test`` short) and
-FERL_SWEEP_STEPS the floor jobs' length (default 2 000; a longer sweep leaves room for more kills). The moments are drawn from a seeded generator over the uninterrupted
-sweep's wall time, so a failure can be replayed."""
+FERL_SWEEP_STEPS the floor jobs' length (default 1 000; a longer sweep leaves room for more kills).
+The moments are drawn from a seeded generator over the uninterrupted sweep's wall time, so a
+failure can be replayed."""
 
 import json
 import os
@@ -29,30 +34,69 @@ from ferl.run.jobs import DONE, job_dir, job_state, sweep_jobs
 from ferl.run.together import Sweep
 
 KILLS = int(os.environ.get("FERL_SWEEP_KILLS", "3"))
-STEPS = int(os.environ.get("FERL_SWEEP_STEPS", "2000"))  # each floor job's; longer sweeps take more kills
+STEPS = int(os.environ.get("FERL_SWEEP_STEPS", "1000"))  # each floor job's; longer sweeps take more kills
 # the moments, as shares of the uninterrupted sweep's wall time: with few kills, late enough that
 # each lands among the jobs rather than while the processes start; with many, early enough that
 # most land before the sweep ends
 SHARE = (0.3, 0.6) if KILLS <= 5 else (0.1, 0.35)
-# a floor sweep of two jobs checkpointed every 250 steps, and an episodic T-maze job checkpointed
-# after its phases, one job at a time each: short jobs, every one with a checkpoint to resume from
+# floor jobs checkpointed every 250 steps and T-maze jobs checkpointed after their phases: short
+# jobs, every one with a checkpoint to resume from
 FLOOR = [a for a in TINY if not a.startswith(("trainer.steps=", "trainer.checkpoint_every="))]
-FLOOR += ["experiment=ch3_floor", f"trainer.steps={STEPS}", "trainer.checkpoint_every=250", "seed=0,1"]
-TMAZE = ["experiment=table4_1_regular", "n_runs=2", *TINY_ALGORITHM1, "trainer.checkpoint_every=25"]
-SWEEPS = [f"floor 1 {' '.join(FLOOR)} compile=false device=cpu", f"tmaze 1 {' '.join(TMAZE)} compile=false device=cpu"]
+FLOOR += [f"trainer.steps={STEPS}", "trainer.checkpoint_every=250", "compile=false", "device=cpu"]
+TMAZE = ["n_runs=2", *TINY_ALGORITHM1, "trainer.checkpoint_every=25", "compile=false", "device=cpu"]
+# the long corridor, as make reproduce runs it, with enough random episodes to balance its lengths
+LONG = [a for a in TMAZE if not a.startswith("trainer.n_sample=")] + ["trainer.n_sample=100000"]
+# make reproduce's stages: the experiments, then the other three sweeps together
+STAGES = (
+    (" ".join(["experiments 2 experiment=ch3_floor,ch3_coding_cw", *FLOOR]),),
+    (
+        " ".join(["noise_grid 2 experiment=ch3_floor env.noise=0.0,0.5", *FLOOR]),
+        " ".join(["hidden_sizes 1 experiment=ch3_coding_cw actor.n_hidden=10,40", *FLOOR]),
+        " ".join(["long_corridor 1 experiment=table4_1_regular env.corridor_length=6", *LONG]),
+    ),
+)
+SWEEPS = [line for stage in STAGES for line in stage]
+# where make stands: each stage in turn, stopping at the first that fails; a stop by signal is the
+# stage's to report (its exit code, 128 + the signal, is passed on), as make passes a recipe's on
+RECIPE = """
+import json, signal, subprocess, sys
+for signum in (signal.SIGINT, signal.SIGHUP):
+    signal.signal(signum, lambda *_: None)
+for stage in json.loads(sys.argv[1]):
+    code = subprocess.call(stage)
+    if code:
+        sys.exit(code)
+"""
+STARTS = "FERL_JOB_STARTS"  # tests/job_starts/sitecustomize.py appends each job's start to this file
 
 
 def launch(sweep_dir: Path, resume: bool) -> subprocess.Popen:
-    """``python -m ferl.run.together [--resume] SWEEP_DIR SWEEP ...`` in a session of its own, so
-    that a signal to its process group reaches every job, as a terminal's or a scheduler's does."""
+    """The recipe, each stage ``python -m ferl.run.together [--resume] SWEEP_DIR SWEEP ...``, in a
+    session of its own, so that a signal to its process group reaches every job, as a terminal's or
+    a scheduler's does; every job's start is appended to ``starts_file(sweep_dir)``."""
+    stages = [
+        [sys.executable, "-m", "ferl.run.together", *(["--resume"] if resume else []), str(sweep_dir), *stage]
+        for stage in STAGES
+    ]
+    path = os.pathsep.join([str(Path(__file__).parent / "job_starts"), os.environ.get("PYTHONPATH", "")])
     return subprocess.Popen(
-        [sys.executable, "-m", "ferl.run.together", *(["--resume"] if resume else []), str(sweep_dir), *SWEEPS],
+        [sys.executable, "-c", RECIPE, json.dumps(stages)],
         cwd=ROOT,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
-        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        env={**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONPATH": path, STARTS: str(starts_file(sweep_dir))},
         start_new_session=True,
     )
+
+
+def starts_file(sweep_dir: Path) -> Path:
+    return sweep_dir.parent / f"{sweep_dir.name}.starts"
+
+
+def starts(sweep_dir: Path) -> list[str]:
+    """The job folders started so far, in order, one entry per start."""
+    path = starts_file(sweep_dir)
+    return path.read_text().splitlines() if path.exists() else []
 
 
 def jobs(sweep_dir: Path) -> list[tuple[Path, list[str]]]:
@@ -66,17 +110,19 @@ def jobs(sweep_dir: Path) -> list[tuple[Path, list[str]]]:
 
 def metrics(sweep_dir: Path) -> dict:
     return {
-        run_dir.name: json.loads((run_dir / "summary.json").read_text())["metrics"] for run_dir, _ in jobs(sweep_dir)
+        str(run_dir.relative_to(sweep_dir)): json.loads((run_dir / "summary.json").read_text())["metrics"]
+        for run_dir, _ in jobs(sweep_dir)
     }
 
 
 def finished_summaries(sweep_dir: Path) -> dict:
-    """The finished jobs' summary.json: bytes and modification time, to show that none is written twice."""
+    """The finished jobs' summary.json by job folder: bytes and modification time, to show that none
+    is written twice."""
     out = {}
     for run_dir, job in jobs(sweep_dir):
         if run_dir.exists() and job_state(run_dir, job) == DONE:
             summary = run_dir / "summary.json"
-            out[run_dir.name] = (summary.read_bytes(), summary.stat().st_mtime_ns)
+            out[str(run_dir)] = (summary.read_bytes(), summary.stat().st_mtime_ns)
     return out
 
 
@@ -115,6 +161,7 @@ def uninterrupted(tmp_path_factory) -> tuple[Path, float]:
     proc = launch(sweep_dir, resume=False)
     _, err = proc.communicate(timeout=600)
     assert proc.returncode == 0, err.decode()[-3000:]
+    assert sorted(starts(sweep_dir)) == sorted(str(d) for d, _ in jobs(sweep_dir))  # each job, once
     return sweep_dir, time.monotonic() - started
 
 
@@ -126,6 +173,7 @@ def test_killed_at_random_moments_and_resumed_equals_the_uninterrupted_sweep(tmp
     sweep_dir, moments = tmp_path / "sweep", random.Random(62)
     kept: dict = {}
     for kill in range(KILLS):
+        before = len(starts(sweep_dir))
         proc = launch(sweep_dir, resume=kill > 0)
         try:
             proc.wait(timeout=moments.uniform(*SHARE) * seconds)
@@ -136,20 +184,28 @@ def test_killed_at_random_moments_and_resumed_equals_the_uninterrupted_sweep(tmp
         else:  # the sweep ended before this moment
             assert proc.returncode == 0, proc.stderr.read().decode()[-3000:] if proc.stderr else ""
             break
-        for name, done in kept.items():  # a finished job is never trained again
-            assert finished_summaries(sweep_dir).get(name) == done, name
+        assert_kept(sweep_dir, kept, starts(sweep_dir)[before:])
         kept = finished_summaries(sweep_dir)
     assert kill > 0, "the sweep ended before the first kill"
+    before = len(starts(sweep_dir))
     proc = launch(sweep_dir, resume=True)
     _, err = proc.communicate(timeout=600)
     assert proc.returncode == 0, err.decode()[-3000:]
-    for name, done in kept.items():
-        assert finished_summaries(sweep_dir)[name] == done, name
+    assert_kept(sweep_dir, kept, starts(sweep_dir)[before:])
+    assert set(starts(sweep_dir)) == {str(d) for d, _ in jobs(sweep_dir)}  # every job started
     assert metrics(sweep_dir) == metrics(whole)
     resumed, ran = analysis(sweep_dir), analysis(whole)
     assert resumed.keys() == ran.keys() and any(k.endswith(".csv") for k in ran)
     for path, lines in ran.items():
         assert resumed[path] == lines, path
+
+
+def assert_kept(sweep_dir: Path, kept: dict, started: list[str]) -> None:
+    """The jobs finished before a launch (``kept``: their summaries) were not started by it
+    (``started``: its starts) and their summary.json is as it was."""
+    for folder, done in kept.items():
+        assert folder not in started, f"{folder} finished, then started again"
+        assert finished_summaries(sweep_dir).get(folder) == done, folder
 
 
 def stop_after_a_checkpoint(sweep_dir: Path, resume: bool, sig: int) -> str:
