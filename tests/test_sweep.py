@@ -1,6 +1,7 @@
 """Sweep analysis (issue 4/7): aggregation, the noise grid, claim thresholds, the README block,
 and a smoke sweep through `train.py -m` and `analyze.py`."""
 
+import copy
 import json
 import math
 import subprocess
@@ -186,6 +187,23 @@ def test_claims_are_judged_on_the_job_with_fewest_overrides(tmp_path):
     assert row.job.run_dir.name == "main" and row.result.verdict == HELD
     assert [(j.variant, r.verdict) for j, r in row.others] == [("actor.n_hidden=40", NOT_HELD)]
     assert across.job is None and across.result.verdict == NOT_HELD
+
+
+def test_claims_keep_the_publication_order_when_jobs_return_copies_of_them(tmp_path):
+    """A job analysed in a worker process returns copies of the registered claims (pickled back),
+    a kept analysis the registered claims themselves: either way the report lists its claims,
+    the across-jobs ones among them, in the publication's order (CLAIM_ORDER)."""
+    order = reproduction.CLAIM_ORDER
+    position = {(c.text, c.source): k for k, c in enumerate(order)}
+    first, last = copy.deepcopy(order[0]), copy.deepcopy(order[-1])
+    jobs = [fake_job(tmp_path / "a", "coding", {}), fake_job(tmp_path / "b", "coding", {})]
+    for job, claim in zip(jobs, (last, first)):  # the last claim's job first
+        job.outcome.results.append(ClaimResult(claim, Measured("m", "m"), HELD))
+    across = SWEEP_CLAIMS[0]
+    rows = sw.reproduction_rows(jobs, [ClaimResult(across, Measured("m", "m"), HELD)], order)
+    ranks = [position[(r.result.claim.text, r.result.claim.source)] for r in rows]
+    assert first is not order[0] and len(rows) == 3 and ranks == sorted(ranks)
+    assert ranks[0] == 0 and ranks[-1] == len(order) - 1
 
 
 def _rewrite_summary(run_dir: Path, **metrics) -> None:

@@ -194,6 +194,11 @@ def test_killed_at_random_moments_and_resumed_equals_the_uninterrupted_sweep(tmp
     assert_kept(sweep_dir, kept, starts(sweep_dir)[before:])
     assert set(starts(sweep_dir)) == {str(d) for d, _ in jobs(sweep_dir)}  # every job started
     assert metrics(sweep_dir) == metrics(whole)
+    assert_same_analysis(sweep_dir, whole)
+
+
+def assert_same_analysis(sweep_dir: Path, whole: Path) -> None:
+    """analyze.py's reports and figure CSVs of both sweeps, line by line (times left out)."""
     resumed, ran = analysis(sweep_dir), analysis(whole)
     assert resumed.keys() == ran.keys() and any(k.endswith(".csv") for k in ran)
     for path, lines in ran.items():
@@ -229,7 +234,7 @@ def stop_after_a_checkpoint(sweep_dir: Path, resume: bool, sig: int) -> str:
 def test_a_stop_by_signal_says_how_to_resume_and_resumes_to_the_same_metrics(tmp_path, uninterrupted):
     """SIGINT stops the launch, SIGHUP the --resume after it, each in one line naming the command
     that continues (this command with --resume: the folder has no make target's sweep.json); the
-    last --resume ends with the uninterrupted sweep's metrics."""
+    last --resume ends with the uninterrupted sweep's metrics, reports and figure CSVs."""
     whole, _ = uninterrupted
     sweep_dir = tmp_path / "sweep"
     for sig, resume in ((signal.SIGINT, False), (signal.SIGHUP, True)):
@@ -241,6 +246,7 @@ def test_a_stop_by_signal_says_how_to_resume_and_resumes_to_the_same_metrics(tmp
     _, err = again.communicate(timeout=600)
     assert again.returncode == 0, err.decode()[-3000:]
     assert metrics(sweep_dir) == metrics(whole)
+    assert_same_analysis(sweep_dir, whole)
 
 
 def test_analyze_a_sweep_being_written_reads_the_finished_jobs_and_names_the_others(tmp_path, uninterrupted):

@@ -201,8 +201,10 @@ def reproduction_rows(
         job, result = found[primary]
         rows.append(ReportRow(result, job, tuple(f for k, f in enumerate(found) if k != primary)))
     rows += [ReportRow(r, None, ()) for r in sweep_results]
-    rank = {id(c): k for k, c in enumerate(order)}
-    return sorted(rows, key=lambda row: rank.get(id(row.result.claim), len(rank)))
+    # by text and source, not identity: a job analysed in a worker process returns copies of the
+    # registered claims, a job whose analysis was kept returns the registered claims themselves
+    rank = {(c.text, c.source): k for k, c in enumerate(order)}
+    return sorted(rows, key=lambda row: rank.get((row.result.claim.text, row.result.claim.source), len(rank)))
 
 
 def _link(target: Path, start: Path) -> str:
