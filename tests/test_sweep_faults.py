@@ -208,9 +208,10 @@ def assert_same_analysis(sweep_dir: Path, whole: Path) -> None:
 def assert_kept(sweep_dir: Path, kept: dict, started: list[str]) -> None:
     """The jobs finished before a launch (``kept``: their summaries) were not started by it
     (``started``: its starts) and their summary.json is as it was."""
+    now = finished_summaries(sweep_dir)
     for folder, done in kept.items():
         assert folder not in started, f"{folder} finished, then started again"
-        assert finished_summaries(sweep_dir).get(folder) == done, folder
+        assert now.get(folder) == done, folder
 
 
 def stop_after_a_checkpoint(sweep_dir: Path, resume: bool, sig: int) -> str:

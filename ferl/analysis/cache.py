@@ -115,8 +115,8 @@ def load(
     tb_files = sorted(p.name for p in tb_dir.glob("*")) if tb_dir.is_dir() else []
     if record.get("files") != _files(out) or record.get("tb_files") != tb_files:
         return None
-    by_key = {(c.source, c.text): c for c in claims}
-    found = [by_key.get((j["source"], j["claim"])) for j in judged]
+    by_key = {c.key: c for c in claims}
+    found = [by_key.get((j["claim"], j["source"])) for j in judged]
     if any(c is None for c in found):
         return None
     # the sweep reads a run's claims by their text and verdict, never the measured value again

@@ -44,6 +44,12 @@ class Claim:
     # (summary.json): a sweep judges the claim on it where it has one ("": no preference).
     experiment: str = ""
 
+    @property
+    def key(self) -> tuple[str, str]:
+        """What names the claim: its text and source. Not its identity: a run analysed in a worker
+        process returns copies of the registered claims, a kept analysis the claims themselves."""
+        return (self.text, self.source)
+
 
 @dataclass(frozen=True)
 class ClaimResult:

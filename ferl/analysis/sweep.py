@@ -192,7 +192,7 @@ def reproduction_rows(
     answered: dict[tuple[str, str], list[tuple[Job, ClaimResult]]] = {}
     for job in jobs:
         for r in job.outcome.results:
-            answered.setdefault((r.claim.text, r.claim.source), []).append((job, r))
+            answered.setdefault(r.claim.key, []).append((job, r))
     rows = []
     for found in answered.values():
         named = found[0][1].claim.experiment
@@ -201,10 +201,8 @@ def reproduction_rows(
         job, result = found[primary]
         rows.append(ReportRow(result, job, tuple(f for k, f in enumerate(found) if k != primary)))
     rows += [ReportRow(r, None, ()) for r in sweep_results]
-    # by text and source, not identity: a job analysed in a worker process returns copies of the
-    # registered claims, a job whose analysis was kept returns the registered claims themselves
-    rank = {(c.text, c.source): k for k, c in enumerate(order)}
-    return sorted(rows, key=lambda row: rank.get((row.result.claim.text, row.result.claim.source), len(rank)))
+    rank = {c.key: k for k, c in enumerate(order)}
+    return sorted(rows, key=lambda row: rank.get(row.result.claim.key, len(rank)))
 
 
 def _link(target: Path, start: Path) -> str:
