@@ -250,9 +250,25 @@ def pixel_noise_draws(rows: int, n_pixels: int, noise: float, generator: torch.G
     algorithm instead of k, whose cost grows faster than k (at 100 % noise: none)."""
     positions, n_values = noise_draw_sizes(n_pixels, noise)
     if n_values == positions:
-        return pixel_noise(rows, n_pixels, noise, generator)
-    values = torch.rand(rows, n_values, generator=generator, device=generator.device)
-    return random_subsets(rows, n_pixels, positions, generator), values
+        idx, values = pixel_noise(rows, n_pixels, noise, generator)
+    else:
+        values = torch.rand(rows, n_values, generator=generator, device=generator.device)
+        idx = random_subsets(rows, n_pixels, positions, generator)
+    if positions == 0:  # nothing drawn for them: a compiled graph would specialise on the size 0
+        return no_size_zero(idx, values, n_pixels)
+    return idx, values
+
+
+def no_size_zero(idx: torch.Tensor, values: torch.Tensor, n_pixels: int):
+    """The draws of noise 0 or 1 (no position drawn, a size dynamo compiles a graph of its own
+    for) in the form of the levels up to half (k positions, k values), which ``with_pixel_noise``
+    treats alike: no noisy pixel as two positions (pixel 0) whose value, NaN, keeps the image's
+    own; every pixel noisy as the n positions 0 … n − 1 with the n values drawn. The same random
+    numbers, and the same images; the positions are expanded views, so they take no memory."""
+    rows = values.shape[0]
+    if values.shape[-1] == 0:  # noise 0
+        return idx.new_zeros(1, 1).expand(rows, 2), values.new_full((1, 1), float("nan")).expand(rows, 2)
+    return torch.arange(n_pixels, device=idx.device).expand(rows, n_pixels), values
 
 
 def noise_draw_sizes(n_pixels: int, noise: float) -> tuple[int, int]:
@@ -264,10 +280,11 @@ def noise_draw_sizes(n_pixels: int, noise: float) -> tuple[int, int]:
 
 def with_pixel_noise(images: torch.Tensor, idx: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
     """``images`` (rows, n) with the noise of ``pixel_noise_draws``, (rows, n): the values at the noisy
-    positions, or (where every pixel has a value) the images at the clean positions. Whether the
-    clean positions were drawn is read from the sizes, so that one compiled graph serves every
-    noise level up to half the pixels and one every level above. Up to half, ``images`` itself is
-    written and returned: pass a tensor that may change."""
+    positions (a NaN value keeps the image's pixel: ``no_size_zero``), or (where every pixel has a
+    value) the images at the clean positions. Whether the clean positions were drawn is read from
+    the sizes, so that one compiled graph serves every noise level from 0 to half the pixels and one
+    every level above, up to 1. Up to half, ``images`` itself is written and returned: pass a tensor
+    that may change."""
     if values.shape[-1] > idx.shape[-1]:
         return values.scatter(1, idx, images.gather(1, idx))
-    return images.scatter_(1, idx, values) if idx.shape[-1] else images
+    return images.scatter_(1, idx, values.where(~values.isnan(), images.gather(1, idx)))

@@ -103,10 +103,11 @@ def test_run_groups_do_not_change_a_run(compose_cfg, tmp_path, monkeypatch):
         np.testing.assert_array_equal(got, want)
 
 
-def test_one_graph_serves_every_noise_level(compose_cfg, tmp_path, monkeypatch):
+def test_one_graph_serves_every_noise_level_up_to_half_and_both_ends(compose_cfg, tmp_path, monkeypatch):
     """The floor's noisy pixels a step (round(noise · 784)) are a size of the chunk's inputs, and
-    the chunk is compiled generic in it (chunks.generic_inputs): a second noise level traces no new
-    graph, and that graph computes the second level as eagerly within the tolerance above."""
+    the chunk is compiled generic in it (chunks.generic_inputs): another level up to half, noise 0
+    (no noisy pixel, a size dynamo would specialise) and noise 1 (no clean pixel) trace no new
+    graph, and that graph computes each level as eagerly within the tolerance above."""
     from torch._dynamo.utils import counters
 
     monkeypatch.setattr(chunks, "MAX_CHUNK", 4)
@@ -114,9 +115,10 @@ def test_one_graph_serves_every_noise_level(compose_cfg, tmp_path, monkeypatch):
     run(compose_cfg, tmp_path, "first", "compile=true", "env.noise=0.125")
     graphs = counters["stats"]["unique_graphs"]
     assert graphs > before  # the first level was compiled, not run eagerly after a failed trace
-    compiled = run(compose_cfg, tmp_path, "second", "compile=true", "env.noise=0.25")
-    assert counters["stats"]["unique_graphs"] == graphs
-    eager = run(compose_cfg, tmp_path, "eager", "env.noise=0.25")
-    np.testing.assert_array_equal(compiled[1], eager[1])
-    np.testing.assert_allclose(compiled[2], eager[2], rtol=1e-4, atol=1e-4)
-    np.testing.assert_allclose(compiled[3], eager[3], rtol=1e-4, atol=1e-5)
+    for noise in (0.25, 0.0, 1.0):
+        compiled = run(compose_cfg, tmp_path, f"compiled{noise}", "compile=true", f"env.noise={noise}")
+        assert counters["stats"]["unique_graphs"] == graphs, noise
+        eager = run(compose_cfg, tmp_path, f"eager{noise}", f"env.noise={noise}")
+        np.testing.assert_array_equal(compiled[1], eager[1])
+        np.testing.assert_allclose(compiled[2], eager[2], rtol=1e-4, atol=1e-4)
+        np.testing.assert_allclose(compiled[3], eager[3], rtol=1e-4, atol=1e-5)

@@ -122,9 +122,16 @@ def test_exact_noise_pixel_count(noise):
 @pytest.mark.parametrize("noise", [0.0, 0.125, 0.5])
 def test_floor_noise_up_to_half_is_drawn_as_before(noise):
     """Up to half the pixels noisy, the floor draws the same numbers as ``pixel_noise`` (its random
-    stream, and so the reproduction's default floor, is unchanged)."""
-    got = pixel_noise_draws(30, 784, noise, torch.Generator().manual_seed(3))
-    want = pixel_noise(30, 784, noise, torch.Generator().manual_seed(3))
+    stream, and so the reproduction's default floor, is unchanged). At noise 0 nothing is drawn;
+    what is handed on has no size 0 (two positions whose NaN values keep the image)."""
+    mine, theirs = torch.Generator().manual_seed(3), torch.Generator().manual_seed(3)
+    got = pixel_noise_draws(30, 784, noise, mine)
+    want = pixel_noise(30, 784, noise, theirs)
+    assert torch.equal(mine.get_state(), theirs.get_state())
+    if noise == 0:
+        assert want[0].shape == (30, 0) and got[0].shape == got[1].shape == (30, 2)
+        assert got[1].isnan().all()
+        return
     for g, w in zip(got, want):
         assert torch.equal(g, w)
 
@@ -150,10 +157,10 @@ def test_floor_noise_replaces_a_uniform_subset_of_exactly_k_pixels(noise):
         assert abs(noisy[replaced].mean().item() - 0.5) < 0.01  # U(0, 1): s.e. of the mean ≤ 0.005
 
 
-@pytest.mark.parametrize("noise", [0.25, 0.75])
+@pytest.mark.parametrize("noise", [0.0, 0.25, 0.75, 1.0])
 def test_floor_noise_compiled_equals_eager(noise):
     """``with_pixel_noise`` compiled with generic sizes (as the floor's chunk is) gives the eager
-    result exactly, on both sides of half the pixels."""
+    result exactly, on both sides of half the pixels and at both ends."""
     images = torch.rand(6, 784, generator=torch.Generator().manual_seed(1))
     idx, values = pixel_noise_draws(6, 784, noise, torch.Generator().manual_seed(2))
     compiled = torch.compile(with_pixel_noise, dynamic=True, fullgraph=True)

@@ -168,8 +168,10 @@ class DigitFloor(EnvironmentBase):
         self._build_floor(data, position)
         if true_state:
             self.observation_size = len(layout)
-        self.noise_sizes = noise_draw_sizes(self.pixels, noise)  # positions and values a step, per run
-        self.noise_blocks = Blocks(self._draw_noise, steps_per_block(n_runs * (sum(self.noise_sizes) + 1)))
+        # a block's size from the numbers drawn a step (positions and values, per run), not from what
+        # is handed on: it sets the order of the draws, so it keeps the random stream of every level
+        drawn = sum(noise_draw_sizes(self.pixels, noise))
+        self.noise_blocks = Blocks(self._draw_noise, steps_per_block(n_runs * (drawn + 1)))
         self.tile = self._random_non_goal()
 
     @classmethod
@@ -213,8 +215,7 @@ class DigitFloor(EnvironmentBase):
         transport = self.non_goal_tiles[
             torch.randint(len(self.non_goal_tiles), (steps, self.n_runs), generator=self.generator, device=self.device)
         ]
-        positions, n_values = self.noise_sizes
-        return idx.view(steps, self.n_runs, positions), values.view(steps, self.n_runs, n_values), transport
+        return idx.view(steps, self.n_runs, -1), values.view(steps, self.n_runs, -1), transport
 
     def _build_floor(self, data: MnistSplit, position: np.ndarray) -> None:
         """Give every tile of every run its own image of its class (without replacement while the
