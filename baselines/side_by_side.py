@@ -113,12 +113,15 @@ def run_table(
     ppos: dict,
     jobs: int,
     only: str = "",
-    first: int = 2,
+    first: int = 1,
     before_analysis=None,
     analyze: bool = True,
 ) -> int:
     """Run the jobs ``jobs`` at a time (train.py ones: ``trains``, RecurrentPPO ones: ``ppos``), the
-    ``first`` longest train.py jobs, then PPO's, then the rest; one progress line per finished job;
+    ``first`` longest train.py jobs, then PPO's, then the rest; one progress line per finished job.
+    One first: the two longest (the pixel maze's FERL and MLP-Q) share their fitted RBM and their
+    predictors' graphs, which the second then loads from the caches instead of computing them at
+    the same time (docs/performance.md, "One compiler of a graph at a time");
     then ``before_analysis(out)`` where given and analyze.py on ``out`` (unless not ``analyze``). Jobs done already are kept,
     interrupted ones resume (``ferl.run.jobs``); exit status 1 if any failed, 2 if a job's folder
     holds another run."""

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import torch
 
+from ferl.compile_lock import locked_inductor
 from ferl.messages import warn
 
 CACHE_ENV = "TORCHINDUCTOR_CACHE_DIR"
@@ -192,8 +193,9 @@ def compiled(fn, device: torch.device, what: str, generic: Callable[[tuple], tup
     (``size_generic``): the graph is compiled for any value of those and for the given values of
     every other size (no automatic dynamic shapes), so configurations that differ only in them
     share one graph, compiled once (the floor's noise levels: docs/performance.md)."""
-    options = dict(CPU_INDUCTOR_OPTIONS) if device.type == "cpu" else {}
-    graph = torch.compile(fn, fullgraph=True, dynamic=None if generic else False, options=options)
+    options = tuple(sorted(CPU_INDUCTOR_OPTIONS.items())) if device.type == "cpu" else ()
+    backend = locked_inductor(options, str(cache_dir() / "ferl_graph_locks"))  # one compiler of a graph at a time
+    graph = torch.compile(fn, fullgraph=True, dynamic=None if generic else False, backend=backend)
     if generic is not None:
         static = torch._dynamo.config.patch(automatic_dynamic_shapes=False)
         graph = static(graph)
