@@ -64,3 +64,32 @@ def test_the_lock_waits_for_its_holder(tmp_path):
 def graph_lock_then(folder, name, order):
     with graph_lock(folder, name):
         order.append(name)
+
+
+def traced_name(size: int, generic: bool) -> str:
+    """The name ``graph_name`` gives the graph that dynamo traces for an input of ``size`` columns,
+    compiled afresh (as in a new process), with that size generic or not."""
+    import torch
+
+    from ferl.compile_lock import graph_name
+
+    names = []
+
+    def backend(gm, example_inputs):
+        names.append(graph_name(gm, example_inputs, {}))
+        return gm.forward
+
+    torch._dynamo.reset()
+    x = torch.ones(3, size)
+    if generic:
+        torch._dynamo.maybe_mark_dynamic(x, 1)
+    torch.compile(lambda x: (x * 2).sum(1), backend=backend, dynamic=None if generic else False)(x)
+    torch._dynamo.reset()
+    return names[0]
+
+
+def test_a_graph_generic_in_a_size_has_one_name_whatever_size_traced_it():
+    """Its compilers wait for each other when they trace it at different sizes (the floor's noise
+    levels); graphs specialised to different sizes are different graphs, with different names."""
+    assert traced_name(5, generic=True) == traced_name(7, generic=True)
+    assert traced_name(5, generic=False) != traced_name(7, generic=False)
