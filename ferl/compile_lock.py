@@ -34,14 +34,14 @@ def graph_name(gm: torch.fx.GraphModule, example_inputs: list, options: dict) ->
     traced it (the floor's 294 clean pixels a step at one noise level, 196 at another), and a name
     made of them would give one graph a name per level, so that its compilers would not wait for
     each other."""
-    placeholders = [node.meta.get("example_value") for node in gm.graph.find_nodes(op="placeholder")]
-    if len(placeholders) != len(example_inputs):
-        placeholders = [None] * len(example_inputs)
+    traced = gm.graph.find_nodes(op="placeholder")
+    if len(traced) == len(example_inputs):
+        example_inputs = [node.meta.get("example_value", x) for node, x in zip(traced, example_inputs)]
     inputs = [
         (tuple(map(str, x.shape)), tuple(map(str, x.stride())), str(x.dtype), str(x.device))
         if isinstance(x, torch.Tensor)
         else repr(x)
-        for x in (traced if traced is not None else given for traced, given in zip(placeholders, example_inputs))
+        for x in example_inputs
     ]
     chosen = sorted((k, getattr(v, "__qualname__", repr(v))) for k, v in options.items())
     text = repr((gm.code, inputs, chosen, torch.__version__))

@@ -10,7 +10,9 @@ import sys
 import threading
 from pathlib import Path
 
-from ferl.compile_lock import graph_lock
+import torch
+
+from ferl.compile_lock import graph_lock, graph_name
 
 ROOT = Path(__file__).resolve().parents[1]
 COMPILE_ONE = """
@@ -69,10 +71,6 @@ def graph_lock_then(folder, name, order):
 def traced_name(size: int, generic: bool) -> str:
     """The name ``graph_name`` gives the graph that dynamo traces for an input of ``size`` columns,
     compiled afresh (as in a new process), with that size generic or not."""
-    import torch
-
-    from ferl.compile_lock import graph_name
-
     names = []
 
     def backend(gm, example_inputs):
