@@ -85,8 +85,10 @@ reproduce: $(STAMP)
 # BEYOND_Q_BETA) at BEYOND_Q_CORRIDORS with BEYOND_Q_EPISODES episodes, compiled in graphs of a
 # few steps whose compile time does not grow with T_max (docs/performance.md, "Graphs of fixed
 # size"). Each curve job has BEYOND_RUNS runs, BEYOND_LONG_RUNS
-# from corridor BEYOND_LONG_FROM on. Every sweep runs through ferl/run/together.py (its whole output
-# in <sweep>/sweep.log). Then the sweep's report with its "beyond" section. A reduced
+# from corridor BEYOND_LONG_FROM on. Every sweep's jobs share REPRO_JOBS lanes in one queue
+# (ferl/run/together.py --lanes), the phased sweep first (its pixel job fits the RBM that the
+# online pixel jobs then load), then the longest, so that no core waits at a sweep's end; each job's output in <sweep>/<curve>/<job folder>.log. Then the sweep's report with its
+# "beyond" section. A reduced
 # version: e.g. make beyond BEYOND_PASSIVE_CORRIDORS="5 10" BEYOND_PASSIVE_MEMORIES=lstm,gru BEYOND_RUNS=2.
 # `make beyond-full`: the same recipe with the full memory curves (below), into outputs/beyond_full/.
 BEYOND_EFFICIENCY        ?= table5_1_pixel,table5_1_bit,table4_1_matching
@@ -95,21 +97,22 @@ BEYOND_ETA               ?= 0.1
 BEYOND_RUNS              ?= 10
 BEYOND_LONG_RUNS         ?= 5
 BEYOND_LONG_FROM         ?= 200
-BEYOND_CORRIDORS         ?= 50 20 10 5 3
+BEYOND_CORRIDORS         ?= 20 10 5 3
 MEMORIES                 ?= elman,lstm,gru,esn,transformer
 BEYOND_EXPLORATION       ?= ez_greedy
-# The new curves' defaults fit hours, not days, on 2 cores; `make beyond-full` runs the full lists
-# (docs/beyond.md, "Memory curves", gives their cost)
-BEYOND_EXPLORE_CORRIDORS ?= 20 10
+# The defaults end each curve at its first length where no memory solves a run (the active maze
+# at 20, the passive at L = 20; the exploration curve at 10), measured on 2026-12-07: 25 minutes
+# on 2 cores. `make beyond-full` runs the full lists (docs/beyond.md, "Memory curves", gives
+# their cost)
+BEYOND_EXPLORE_CORRIDORS ?= 10 5
 BEYOND_EXPLORE_MEMORIES  ?= lstm,gru
-BEYOND_PASSIVE_CORRIDORS ?= 50 20 10
+BEYOND_PASSIVE_CORRIDORS ?= 20 10
 BEYOND_PASSIVE_MEMORIES  ?= lstm,gru
 BEYOND_PASSIVE_EPISODES  ?= 2000
 BEYOND_Q_CORRIDORS       ?= 50
 BEYOND_Q_MEMORIES        ?= lstm,gru
 BEYOND_Q_EPISODES        ?= 10000
 BEYOND_Q_BETA            ?= 30
-BEYOND_SWEEPS = $(shell echo $$(($(if $(BEYOND_EFFICIENCY),2,0) + $(words $(BEYOND_CORRIDORS) $(BEYOND_EXPLORE_CORRIDORS) $(BEYOND_PASSIVE_CORRIDORS) $(BEYOND_Q_CORRIDORS)))))
 
 # The full memory curves: the passive maze at L = 500 … 10 and the active maze at corridors 50 … 5,
 # with and without directed exploration, each with every memory (MEMORIES), 10 000 passive episodes;
@@ -123,39 +126,35 @@ beyond-full: BEYOND_PASSIVE_MEMORIES  = $(MEMORIES)
 beyond-full: BEYOND_PASSIVE_EPISODES  = 10000
 
 beyond beyond-full: $(STAMP)
-	@$(SWEEP_DIR); start=$$(date +%s); \
-	sweep() { $(PY) -m ferl.run.together $(RESUMING) $$dir/$$1 "$$2 $(REPRO_JOBS) $$3"; }; \
+	@$(SWEEP_DIR); start=$$(date +%s); specs=""; \
+	sweep() { case $$1 in .) name=$$2;; *) name=$$1/$$2;; esac; specs="$$specs '$$name 1 $$3'"; }; \
 	runs() { if [ $$1 -ge $(BEYOND_LONG_FROM) ]; then echo $(BEYOND_LONG_RUNS); else echo $(BEYOND_RUNS); fi; }; \
-	n=0; if [ -n "$(BEYOND_EFFICIENCY)" ]; then n=2; \
-	  echo "ferl: sweep 1/$(BEYOND_SWEEPS): phased" && \
-	  sweep . phased "experiment=$(BEYOND_EFFICIENCY)" && \
-	  echo "ferl: sweep 2/$(BEYOND_SWEEPS): online" && \
-	  sweep . online "experiment=$(BEYOND_EFFICIENCY) trainer=online trainer.curiosity=0,$(BEYOND_ETA)" || exit 1; \
+	if [ -n "$(BEYOND_EFFICIENCY)" ]; then sweep . phased "experiment=$(BEYOND_EFFICIENCY)"; fi; \
+	for c in $(BEYOND_Q_CORRIDORS); do \
+	  sweep passive_q_curve corridor_$$c "experiment=passive_tmaze trainer=algorithm1 predictor=none \
+	    actor=recurrent_q actor.head=linear actor.memory=$(BEYOND_Q_MEMORIES) actor.beta.end=$(BEYOND_Q_BETA) \
+	    env.corridor_length=$$c trainer.n_episodes=$(BEYOND_Q_EPISODES) n_runs=$$(runs $$c)"; \
+	done; \
+	if [ -n "$(BEYOND_EFFICIENCY)" ]; then \
+	  sweep . online "experiment=$(BEYOND_EFFICIENCY) trainer=online trainer.curiosity=0,$(BEYOND_ETA)"; \
 	fi; \
+	for c in $(BEYOND_PASSIVE_CORRIDORS); do \
+	  sweep passive_curve corridor_$$c "experiment=passive_tmaze predictor.joint.memory=$(BEYOND_PASSIVE_MEMORIES) \
+	    env.corridor_length=$$c trainer.n_episodes=$(BEYOND_PASSIVE_EPISODES) n_runs=$$(runs $$c)"; \
+	done; \
 	for c in $(BEYOND_CORRIDORS); do \
-	  n=$$((n + 1)); echo "ferl: sweep $$n/$(BEYOND_SWEEPS): memory_length/corridor_$$c"; \
 	  sweep memory_length corridor_$$c "experiment=table4_1_regular trainer=online predictor.joint.memory=$(MEMORIES) \
 	    env.corridor_length=$$c env.max_steps=$$((2 * c + 4)) trainer.n_episodes=$(BEYOND_EPISODES) \
-	    trainer.replay_sample=16 n_runs=$$(runs $$c)" || exit 1; \
-	done && \
+	    trainer.replay_sample=16 n_runs=$$(runs $$c)"; \
+	done; \
 	for c in $(BEYOND_EXPLORE_CORRIDORS); do \
-	  n=$$((n + 1)); echo "ferl: sweep $$n/$(BEYOND_SWEEPS): exploration_curve/corridor_$$c"; \
 	  sweep exploration_curve corridor_$$c "experiment=table4_1_regular trainer=online \
 	    predictor.joint.memory=$(BEYOND_EXPLORE_MEMORIES) exploration=$(BEYOND_EXPLORATION) \
 	    env.corridor_length=$$c env.max_steps=$$((2 * c + 4)) trainer.n_episodes=$(BEYOND_EPISODES) \
-	    trainer.replay_sample=16 n_runs=$$(runs $$c)" || exit 1; \
-	done && \
-	for c in $(BEYOND_PASSIVE_CORRIDORS); do \
-	  n=$$((n + 1)); echo "ferl: sweep $$n/$(BEYOND_SWEEPS): passive_curve/corridor_$$c"; \
-	  sweep passive_curve corridor_$$c "experiment=passive_tmaze predictor.joint.memory=$(BEYOND_PASSIVE_MEMORIES) \
-	    env.corridor_length=$$c trainer.n_episodes=$(BEYOND_PASSIVE_EPISODES) n_runs=$$(runs $$c)" || exit 1; \
-	done && \
-	for c in $(BEYOND_Q_CORRIDORS); do \
-	  n=$$((n + 1)); echo "ferl: sweep $$n/$(BEYOND_SWEEPS): passive_q_curve/corridor_$$c"; \
-	  sweep passive_q_curve corridor_$$c "experiment=passive_tmaze trainer=algorithm1 predictor=none \
-	    actor=recurrent_q actor.head=linear actor.memory=$(BEYOND_Q_MEMORIES) actor.beta.end=$(BEYOND_Q_BETA) \
-	    env.corridor_length=$$c trainer.n_episodes=$(BEYOND_Q_EPISODES) n_runs=$$(runs $$c)" || exit 1; \
-	done && \
+	    trainer.replay_sample=16 n_runs=$$(runs $$c)"; \
+	done; \
+	eval "set -- $$specs"; \
+	$(PY) -m ferl.run.together $(RESUMING) --lanes $(REPRO_JOBS) $$dir "$$@" && \
 	echo $$(( $$(date +%s) - start )) > $$dir/train_wall_time_s && \
 	$(PY) analyze.py $$dir && \
 	echo "  $@ in $$(( $$(date +%s) - start )) s; report: $$dir/analysis/report.md"

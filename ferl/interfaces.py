@@ -96,8 +96,8 @@ class EpisodicEnvironment(Environment, Protocol):
     boolean ones become ``final_<name>_rate`` metrics and count towards ``solved``), ``labels``
     (what the episode's probes are labelled with, e.g. the maze's condition) and ``probe`` (the
     runs whose present state is one whose activations the records keep, e.g. the T-junction).
-    Three hooks (defaults on ``EpisodicEnvironmentBase``) say how its episodes may be run and how
-    long its ids stay valid."""
+    Four hooks (defaults on ``EpisodicEnvironmentBase``) say how its episodes may be run and
+    compiled, and how long its ids stay valid."""
 
     max_steps: int
     optimal_steps: int
@@ -122,6 +122,12 @@ class EpisodicEnvironment(Environment, Protocol):
         that reuses rows (``env.encoding=real``) is sized to them, and a ConfigError naming ``key``
         says where it cannot be."""
 
+    def tables_generic(self, generic: Callable[[Tensor], Tensor]) -> None:
+        """Before its episodes are compiled, a tensor environment (``traceable_steps``) replaces the
+        tables whose sizes follow its configuration (the maze's corridor), not the runs, by
+        ``generic(table)``: one compiled graph then serves every such size. The numbers its steps
+        read from the configuration must be tensors for the same reason. The default has none."""
+
     def advance(self, action: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """``step`` without building the observations: (rewards, terminated, truncated)."""
 
@@ -144,6 +150,9 @@ class EpisodicEnvironmentBase(EnvironmentBase):
 
     def keep_episodes(self, episodes: int, key: str) -> None:
         """Every id stays valid: nothing to size."""
+
+    def tables_generic(self, generic: Callable[[Tensor], Tensor]) -> None:
+        """No table sized by the configuration: nothing to replace."""
 
 
 @runtime_checkable

@@ -224,7 +224,7 @@ def test_online_episodes_compiled_equal_eager_in_one_graph(tmp_path, monkeypatch
         "trainer.final_window=10",
     )
     eager, fused, graphs = eager_then_compiled(tmp_path, tiny)
-    # the chunk of steps (max_steps 6: 2 calls of 3 steps) and the FERL actor's update graphs
+    # the chunk of steps (max_steps 6: 2 calls of 4 steps, the last padded) and the FERL actor's update graphs
     # (``compile_updates``), each traced once, whatever β_k, η_k and the weights were
     assert graphs <= 3
     for key in ("steps", "correct_goal", "condition"):
@@ -234,6 +234,33 @@ def test_online_episodes_compiled_equal_eager_in_one_graph(tmp_path, monkeypatch
     with np.load(tmp_path / "fused" / "records" / "online.npz") as online:
         k = np.arange(30)  # η_k = η · max(0, 1 − k / (0.5 N)) did change from episode to episode
         np.testing.assert_allclose(online["curiosity"][0], 0.5 * np.maximum(0, 1 - k / 15), rtol=1e-6)
+
+
+def test_one_episode_graph_serves_every_corridor(tmp_path, monkeypatch):
+    """The maze's tables ((L + 2)·4 rows) are generic in their sizes and T_min, T_max are tensors
+    (``TMaze.tables_generic``), and every T_max plays chunks of EPISODE_CHUNK_STEPS steps: after
+    corridor 3 (T_max 6), corridors 2, 5 and 7 (T_max 4, 9 and 17) trace no new graph, and that
+    graph plays each as eagerly: the same actions, returns and TD errors within float32 rounding."""
+    from torch._dynamo.utils import counters
+
+    from ferl.trainers import online_episodes
+
+    monkeypatch.setattr(online_episodes, "EPISODES_FUSED_FROM", 6)
+    tiny = (*ONLINE_LSTM[:-1], "trainer.n_episodes=6", "trainer.replay_sample=2", "trainer.final_window=3")
+    torch._dynamo.reset()
+    counters.clear()
+    episodes(tmp_path, "first", "compile=true", "env.corridor_length=3", "env.max_steps=6", tiny=tiny)
+    graphs = counters["stats"]["unique_graphs"]
+    assert graphs > 0
+    for corridor, T_max in ((2, 4), (5, 9), (7, 17)):
+        maze = (f"env.corridor_length={corridor}", f"env.max_steps={T_max}")
+        _, fused = episodes(tmp_path, f"fused{corridor}", "compile=true", *maze, tiny=tiny)
+        assert counters["stats"]["unique_graphs"] == graphs, corridor
+        _, eager = episodes(tmp_path, f"eager{corridor}", "compile=false", *maze, tiny=tiny)
+        for key in ("steps", "correct_goal", "condition"):
+            np.testing.assert_array_equal(fused[key], eager[key], err_msg=key)
+        for key in ("discounted_return", "td_abs_mean", "td_sampled"):
+            np.testing.assert_allclose(fused[key], eager[key], rtol=1e-4, atol=1e-5, err_msg=key)
 
 
 def test_online_replay_compiled_equals_eager(tmp_path, monkeypatch):

@@ -47,13 +47,13 @@ def test_beyond_full_sweeps_the_full_memory_curves():
     assert "exploration=" not in got["memory_length"][1]
     assert 'if [ -n "" ]' in text  # no sample-efficiency sweeps
     assert "ferl.run.sweepdir beyond-full" in text and "--resume" not in text
-    assert "sweep $n/15:" in text  # 4 + 4 + 6 curve sweeps and the recurrent Q-learner's one
+    assert "--lanes 2" in text  # every curve's jobs in one queue, REPRO_JOBS at a time
 
 
 def test_beyond_keeps_its_defaults_and_the_command_line_wins():
     got = curves(dry_run("beyond"))
-    assert got["passive_curve"][0] == [50, 20, 10] and "predictor.joint.memory=lstm,gru " in got["passive_curve"][1]
-    assert got["exploration_curve"][0] == [20, 10]
+    assert got["passive_curve"][0] == [20, 10] and "predictor.joint.memory=lstm,gru " in got["passive_curve"][1]
+    assert got["exploration_curve"][0] == [10, 5] and got["memory_length"][0] == [20, 10, 5, 3]
     text = dry_run("beyond-full", "BEYOND_PASSIVE_CORRIDORS=20 10", "RESUME=outputs/beyond_full/x")
     assert curves(text)["passive_curve"][0] == [20, 10]
     assert 'ferl.run.sweepdir beyond-full "outputs/beyond_full/x"' in text

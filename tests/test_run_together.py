@@ -52,7 +52,9 @@ def test_parse_names_what_is_wrong():
     assert together.Sweep.parse("noise 2 experiment=ch3_floor 'env.noise=0.0,0.5'") == together.Sweep(
         "noise", 2, ("experiment=ch3_floor", "env.noise=0.0,0.5")
     )
-    for text, part in [("noise 2", "expected"), ("a/b 2 x=1", "NAME"), ("noise 0 x=1", "JOBS"), ("n two x=1", "JOBS")]:
+    assert together.Sweep.parse("curve/corridor_5 1 x=1").name == "curve/corridor_5"  # a folder in a folder
+    bad = [("noise 2", "expected"), ("../b 2 x=1", "NAME"), ("a//b 2 x=1", "NAME"), ("/a 2 x=1", "NAME")]
+    for text, part in [*bad, ("noise 0 x=1", "JOBS"), ("n two x=1", "JOBS")]:
         with pytest.raises(ValueError, match=part):
             together.Sweep.parse(text)
 
@@ -83,11 +85,68 @@ def test_a_failed_sweep_is_named_with_its_log_and_the_others_finish(tmp_path: Pa
     assert captured.err.strip() == f"ferl: error: sweep bad failed; its output: {tmp_path / 'bad' / together.LOG}"
 
 
+# A stand-in for one job (``train.py OVERRIDE ... hydra.run.dir=DIR``, as --lanes runs each): notes
+# its start and end in a shared file, and exits with the code its first override names.
+FAKE_JOB = r"""
+import sys, time
+from pathlib import Path
+args = sys.argv[1:]
+run_dir = next(a.split("=", 1)[1] for a in args if a.startswith("hydra.run.dir="))
+notes = Path(sys.argv[0]).parent / "notes.txt"
+with open(notes, "a") as f: f.write(f"start {run_dir}\n")
+time.sleep(0.3)
+with open(notes, "a") as f: f.write(f"end {run_dir}\n")
+print("job", *args)
+sys.exit(int(args[0].split("=")[1]))
+"""
+
+
+def test_lanes_run_every_sweeps_jobs_in_one_queue(tmp_path: Path, capsys):
+    """``--lanes 2``: the three sweeps' six jobs each run once, in the order given, never more
+    than two at once (and two at once while jobs wait), each one's output in its sweep's folder;
+    a failed job is named with its log, and the status is 1."""
+    script = tmp_path / "job" / "train.py"
+    script.parent.mkdir()
+    script.write_text(FAKE_JOB)
+    sweeps = [
+        together.Sweep("curve/corridor_5", 9, ("code=0", "seed=0,1")),
+        together.Sweep("curve/corridor_3", 9, ("code=0", "seed=2")),
+        together.Sweep("other", 9, ("code=0,4", "seed=3")),
+    ]
+    out = tmp_path / "sweep"
+    assert together.pooled(out, sweeps, 2, False, train=(sys.executable, str(script))) == 1
+    notes = (script.parent / "notes.txt").read_text().splitlines()
+    starts = [line.split(" ", 1)[1] for line in notes if line.startswith("start")]
+    expected = [str(d) for s in sweeps for d in jobs_of(out, s)]
+    assert sorted(starts) == sorted(expected) and len(starts) == 5
+    running, most = 0, 0
+    for line in notes:
+        running += 1 if line.startswith("start") else -1
+        most = max(most, running)
+    assert most == 2
+    assert set(starts[:2]) == set(expected[:2])  # the queue's head, in the order given
+    for run_dir in expected:
+        assert Path(run_dir + ".log").read_text().startswith("job ")
+    captured = capsys.readouterr()
+    assert "3 sweeps, 5 jobs to do, 2 at a time" in captured.out
+    failed = jobs_of(out, sweeps[2])[1]
+    assert captured.err.strip() == f"ferl: error: job other/{failed.name} failed; its output: {failed}.log"
+
+
+def jobs_of(sweep_dir: Path, sweep: together.Sweep) -> list[Path]:
+    """The run directories of a sweep's jobs, as a resumed or pooled sweep names them."""
+    from ferl.run.jobs import job_dir, sweep_jobs
+
+    return [job_dir(sweep_dir / sweep.name, i, job) for i, job in enumerate(sweep_jobs(sweep.overrides))]
+
+
 def test_main_refuses_bad_arguments_in_one_line(tmp_path: Path, capsys):
     assert together.main([str(tmp_path), "a 1 x=1", "a 2 y=1"]) == 2
     assert capsys.readouterr().err.strip() == "ferl: error: two sweeps share a NAME: a a"
     assert together.main([str(tmp_path), "a x=1"]) == 2
     assert "expected 'NAME JOBS OVERRIDE ...'" in capsys.readouterr().err
+    assert together.main(["--lanes", "0", str(tmp_path), "a 1 x=1"]) == 2
+    assert capsys.readouterr().err.strip() == "ferl: error: --lanes takes a whole number ≥ 1, got 0"
     assert not any(tmp_path.iterdir())  # refused before anything was written
 
 

@@ -38,7 +38,11 @@ def passive_penalty(corridor_length: int, goal_reward: float) -> float:
 
 
 def passive_reward(
-    position: torch.Tensor, t: torch.Tensor, rewarded_goal: torch.Tensor, max_steps: int, values: torch.Tensor
+    position: torch.Tensor,
+    t: torch.Tensor,
+    rewarded_goal: torch.Tensor,
+    max_steps: int | torch.Tensor,
+    values: torch.Tensor,
 ) -> torch.Tensor:
     """Reward after the t-th action (R,) from the cell reached ``position`` (R,), the actions taken
     ``t`` (R,) and the cued goal's cell ``rewarded_goal`` (R,); ``values`` = (penalty, goal) (2,).

@@ -123,6 +123,10 @@ class TMaze(EpisodicEnvironmentBase):
             max_steps = corridor_length
         assert max_steps is not None  # null only with passive (check_config)
         self.corridor_length, self.max_steps, self.matching = corridor_length, max_steps, matching
+        # T_min and T_max as the steps read them: tensors, not constants of a compiled graph, so
+        # that one graph serves every corridor (``tables_generic``)
+        self._cells = torch.tensor(corridor_length, device=self.device)
+        self._horizon = torch.tensor(max_steps, device=self.device)
         self.optimal_steps = corridor_length
         self.rewards = (goal_reward, wall_reward, step_reward)
         self.reward_values = tuple(sorted({-goal_reward, goal_reward, wall_reward, step_reward}))
@@ -202,6 +206,12 @@ class TMaze(EpisodicEnvironmentBase):
             "outcomes": list(self.outcomes()),
         }
 
+    def tables_generic(self, generic) -> None:
+        """The (position, action) and (position, signals) tables, (L + 2)·4 rows and more, through
+        ``generic``: a compiled episode's graph then serves every corridor length."""
+        self.next_position, self.move_reward = generic(self.next_position), generic(self.move_reward)
+        self.observation_id_table = generic(self.observation_id_table)
+
     def _observation_ids(self) -> np.ndarray:
         """Observation id of every (position, s0, s1), shape (P, 2, 2)."""
         if self.true_state:  # id = position·4 + 2·s0 + s1 (``true_state_names``)
@@ -248,11 +258,11 @@ class TMaze(EpisodicEnvironmentBase):
 
     @property
     def rewarded_goal(self) -> torch.Tensor:
-        return self.corridor_length + self.rewarded_side
+        return self._cells + self.rewarded_side
 
     @property
     def at_junction(self) -> torch.Tensor:
-        return self.position == self.corridor_length - 1
+        return self.position == self._cells - 1
 
     @property
     def probe(self) -> torch.Tensor:
@@ -319,12 +329,12 @@ class TMaze(EpisodicEnvironmentBase):
         self.position = torch.where(live, self.next_position.index_select(0, move), self.position)
         self.t = self.t + live
         if self.passive:  # a finite horizon: the (L + 1)-th action ends every episode (ferl.envs.passive)
-            paid = passive_reward(self.position, self.t, self.rewarded_goal, self.max_steps, self._reward_values)
+            paid = passive_reward(self.position, self.t, self.rewarded_goal, self._horizon, self._reward_values)
             reward = torch.where(live, paid, 0.0)
-            terminated = live & (self.t >= self.max_steps)
+            terminated = live & (self.t >= self._horizon)
         else:
-            terminated = live & (self.position >= self.corridor_length)
-        truncated = live & ~terminated & (self.t >= self.max_steps)
+            terminated = live & (self.position >= self._cells)
+        truncated = live & ~terminated & (self.t >= self._horizon)
         self.done = self.done | terminated | truncated
         self._draw_observation()
         return reward, terminated, truncated

@@ -131,15 +131,25 @@ def _started(cmd: list[str], **kwargs) -> subprocess.CompletedProcess | None:
 
 
 def run_commands(
-    todo: dict[str, list[str]], logs: Path, jobs: int, what: str = "jobs", label: str = "", cwd: Path = ROOT
+    todo: dict[str, list[str]],
+    logs: Path,
+    jobs: int,
+    what: str = "jobs",
+    label: str = "",
+    cwd: Path = ROOT,
+    nested: bool = False,
 ) -> list[str]:
-    """Run every named command, ``jobs`` at a time, each one's output in ``logs/<name>.log`` (``/``
-    as ``_``); one progress line as each ends (``label`` before it). Returns the names of those
-    that failed. Once ``STOPPING`` is set, the jobs not yet started are skipped."""
+    """Run every named command, ``jobs`` at a time, in the order given, each one's output in
+    ``logs/<name>.log`` (``/`` as ``_``; ``nested``: a name's folders as folders under ``logs``);
+    one progress line as each ends (``label`` before it). Returns the names of those that failed.
+    Once ``STOPPING`` is set, the jobs not yet started are skipped."""
     logs.mkdir(parents=True, exist_ok=True)
+    paths = {n: logs / f"{n if nested else n.replace('/', '_')}.log" for n in todo}
+    for path in paths.values():
+        path.parent.mkdir(parents=True, exist_ok=True)
     started, failed = time.monotonic(), []
     with ExitStack() as logs_open, ThreadPoolExecutor(jobs) as pool:  # the jobs end before their logs close
-        files = {n: logs_open.enter_context(open(logs / f"{n.replace('/', '_')}.log", "w")) for n in todo}
+        files = {n: logs_open.enter_context(open(path, "w")) for n, path in paths.items()}
         futures = {
             pool.submit(_started, cmd, cwd=cwd, stdout=files[n], stderr=subprocess.STDOUT): n for n, cmd in todo.items()
         }

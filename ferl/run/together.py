@@ -1,6 +1,6 @@
 """Several multiruns at once, their jobs sharing the machine's cores (``make reproduce``).
 
-    python -m ferl.run.together [--resume] SWEEP_DIR "NAME JOBS OVERRIDE ..." ["NAME JOBS OVERRIDE ..." ...]
+    python -m ferl.run.together [--resume] [--lanes N] SWEEP_DIR "NAME JOBS OVERRIDE ..." ["NAME JOBS OVERRIDE ..." ...]
 
 runs ``train.py -m OVERRIDE ... hydra/launcher=joblib hydra.launcher.n_jobs=JOBS
 hydra.sweep.dir=SWEEP_DIR/NAME`` for every NAME, all at once. One sweep after another leaves cores
@@ -15,6 +15,12 @@ and 1. Ctrl-C or a closed terminal (SIGINT, SIGHUP) reaches every job (they shar
 group); the jobs stop as a single run does (docs/reliability.md), and this says in one line how
 to continue (``make TARGET RESUME=SWEEP_DIR`` where ``ferl.run.sweepdir`` made the folder, else
 this command with ``--resume``) and exits 128 + the signal.
+
+``--lanes N`` puts every sweep's jobs in one queue, in the order given (the longest sweeps first
+packs best), N at a time in all (a sweep's JOBS is not used then): no core waits while a sweep
+ends with fewer jobs left than its JOBS, where many short sweeps follow each other (``make
+beyond``'s curves). Each job runs as ``--resume`` runs it (below), its output in
+``SWEEP_DIR/NAME/<job folder>.log``, with one line as each ends.
 
 ``--resume`` continues the sweeps of an earlier, interrupted launch into the same SWEEP_DIR
 (docs/sweeps.md, "Resuming a sweep"): each sweep's jobs, numbered as Hydra numbers them, are kept
@@ -101,8 +107,8 @@ class Sweep:
         if len(words) < 3:
             raise ValueError(f"{text!r}: expected 'NAME JOBS OVERRIDE ...'")
         name, jobs, *overrides = words
-        if not name or "/" in name or name.startswith("."):
-            raise ValueError(f"{text!r}: NAME must be a plain directory name, got {name!r}")
+        if any(not part or part.startswith(".") for part in name.split("/")):
+            raise ValueError(f"{text!r}: NAME must be a relative folder (a/b) without . or .. parts, got {name!r}")
         if not jobs.isdigit() or int(jobs) < 1:
             raise ValueError(f"{text!r}: JOBS must be a whole number ≥ 1, got {jobs!r}")
         return cls(name, int(jobs), tuple(overrides))
@@ -243,6 +249,40 @@ def resume_together(sweep_dir: Path, sweeps: list[Sweep], train: tuple[str, ...]
     return 1 if any(failed.values()) else 0
 
 
+def pooled(sweep_dir: Path, sweeps: list[Sweep], lanes: int, resuming: bool, train: tuple[str, ...] = TRAIN) -> int:
+    """``--lanes``: every sweep's jobs not done yet in one queue, ``lanes`` at a time (module doc);
+    with ``resuming``, one line per sweep first says what it keeps. The exit status."""
+    try:
+        plans = [(sweep, *resume_commands(sweep_dir, sweep, train)) for sweep in sweeps]
+    except JobError as e:
+        print(f"{PREFIX}error: {e}", file=sys.stderr)
+        return 2
+    todo = {}
+    for sweep, commands, states in plans:
+        if resuming:
+            print(f"{PREFIX}{sweep.name}: resuming {sweep_dir / sweep.name}: {states_line(states)}", flush=True)
+        todo.update({f"{sweep.name}/{job}": command for job, command in commands.items()})
+    print(
+        f"{PREFIX}{len(sweeps)} sweeps, {len(todo)} jobs to do, {lanes} at a time; each job's output: "
+        f"{sweep_dir}/NAME/<job folder>.log",
+        flush=True,
+    )
+    # the queue runs in a thread: a signal reaches this one, which stops the queue at once
+    ran: list[list[str]] = []
+    queue = threading.Thread(target=lambda: ran.append(run_commands(todo, sweep_dir, lanes, nested=True)), daemon=True)
+    try:
+        queue.start()
+        while queue.is_alive():
+            queue.join(0.2)
+    except KeyboardInterrupt as e:  # the jobs got the same signal and stop as a run does
+        STOPPING.set()  # and the queued ones never start
+        return stopped(e, sweep_dir, sweeps)
+    failed = ran[0] if ran else list(todo)  # nothing returned: the queue itself failed
+    for job in failed:
+        print(f"{PREFIX}error: job {job} failed; its output: {sweep_dir / job}.log", file=sys.stderr)
+    return 1 if failed else 0
+
+
 def _stop(procs: list[subprocess.Popen]) -> None:
     """After Ctrl-C: the jobs got the same SIGINT; wait for them to stop, then terminate the rest."""
     deadline = time.monotonic() + STOP_GRACE_S
@@ -258,11 +298,21 @@ def _raise_stopped(signum: int, frame) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = sys.argv[1:] if argv is None else argv
+    args = list(sys.argv[1:] if argv is None else argv)
     resume = bool(args) and args[0] == "--resume"
     args = args[1:] if resume else args
+    lanes = None
+    if args and args[0] == "--lanes":
+        if len(args) < 2 or not args[1].isdigit() or int(args[1]) < 1:
+            print(
+                f"{PREFIX}error: --lanes takes a whole number ≥ 1, got {' '.join(args[1:2]) or 'nothing'}",
+                file=sys.stderr,
+            )
+            return 2
+        lanes, args = int(args[1]), args[2:]
     if len(args) < 2:
-        print("usage: python -m ferl.run.together [--resume] SWEEP_DIR 'NAME JOBS OVERRIDE ...' ...", file=sys.stderr)
+        usage = "usage: python -m ferl.run.together [--resume] [--lanes N] SWEEP_DIR 'NAME JOBS OVERRIDE ...' ..."
+        print(usage, file=sys.stderr)
         return 2
     try:
         sweeps = [Sweep.parse(a) for a in args[1:]]
@@ -277,6 +327,8 @@ def main(argv: list[str] | None = None) -> int:
     # script that started it in the background left SIGINT ignored (the jobs install theirs either way)
     for signum in (signal.SIGINT, signal.SIGHUP):
         signal.signal(signum, _raise_stopped)
+    if lanes is not None:
+        return pooled(Path(args[0]), sweeps, lanes, resume)
     return (resume_together if resume else run_together)(Path(args[0]), sweeps)
 
 

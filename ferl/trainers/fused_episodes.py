@@ -16,7 +16,7 @@ and 201).
 import torch
 
 from ferl import compiled as fast
-from ferl.compiled import chunk_count, compiled
+from ferl.compiled import chunk_count, compiled, size_generic
 from ferl.trainers.episodes import Step, played
 
 
@@ -26,16 +26,19 @@ class FusedEpisodes:
 
     def __init__(self, phase, job):
         T_max = job.env.max_steps
-        # as few chunks as EPISODE_CHUNK_STEPS allows, as even as can be: T_max = 9 plays 3 × 3
-        # steps, not 3 × 4 (the graph depends on T_max anyway: the environment's steps read it)
-        self.n_chunks = chunk_count(T_max, fast.EPISODE_CHUNK_STEPS)
-        self.T_max, self.chunk = T_max, chunk_count(T_max, self.n_chunks)
+        # chunks of EPISODE_CHUNK_STEPS steps whatever T_max (T_max = 9 plays 3 × 4 steps, the
+        # last 3 padded): the graph is then the same for every T_max, and with the environment's
+        # tables generic in their sizes (``tables_generic``), for every corridor of a maze
+        self.T_max, self.chunk = T_max, min(T_max, fast.EPISODE_CHUNK_STEPS)
+        self.n_chunks = chunk_count(T_max, self.chunk)
         self.pad = self.n_chunks * self.chunk - T_max
+        job.env.tables_generic(lambda table: size_generic(table, 0))
         # each chunk's discounts γ^t, the same in every episode: sliced once, each its own tensor
         # (storage offset 0, as every call's inputs are)
         discounts = torch.cat([phase.discount_table, phase.discount_table.new_zeros(self.pad)])
         self.discounts = [part.clone() for part in discounts.split(self.chunk)]
-        self.steps = compiled(phase.steps, job.device, f"a chunk of {self.chunk} steps of an episode")
+        what = f"a chunk of {self.chunk} steps of an episode"
+        self.steps = compiled(phase.steps, job.device, what, generic=as_marked)
 
     def play(self, phase, job, lr: float, beta, uniform: torch.Tensor) -> dict:
         """``phase.episode(job, lr, beta, uniform, False)`` in chunks: α and β as tensors, so that
@@ -67,3 +70,9 @@ def joined(parts: list[Step], steps: int) -> Step:
 def as_beta(beta, device: torch.device) -> torch.Tensor:
     """β (a number, or per run (R, 1, 1)) as a float32 tensor: the form in which one compiled graph serves every episode."""
     return torch.as_tensor(beta, dtype=torch.float32, device=device)
+
+
+def as_marked(args: tuple) -> tuple:
+    """The chunk's arguments as they are: what is generic in them (the environment's tables) was
+    marked once (``tables_generic``); every other size stays a constant of the graph."""
+    return args
