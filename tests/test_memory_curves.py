@@ -208,16 +208,17 @@ def test_the_solved_share_rule_is_eight_in_ten():
 
 # a stub Python: records its arguments; as ``ferl.run.sweepdir`` it names the sweep folder
 STUB = """#!/bin/sh
-echo "$@" >> "$CALLS"
+printf '%s\t' "$@" >> "$CALLS" && echo >> "$CALLS"
 if [ "$2" = ferl.run.sweepdir ]; then mkdir -p sweep && echo sweep; fi
 """
 
 
 @pytest.mark.skipif(shutil.which("make") is None, reason="no make")
 def test_make_beyond_runs_each_curve_from_its_variables(tmp_path):
-    """`make beyond` with a stub Python: the sweep folder named (``ferl.run.sweepdir``), one sweep
-    (``ferl.run.together``) per corridor of each list, with its memories, exploration, episodes and
-    runs (fewer from BEYOND_LONG_FROM on), then analyze.py."""
+    """`make beyond` with a stub Python: the sweep folder named (``ferl.run.sweepdir``), then one
+    queue (``ferl.run.together --lanes``) of one sweep per corridor of each list, the recurrent
+    Q-learner's first, with its memories, exploration, episodes and runs (fewer from
+    BEYOND_LONG_FROM on), then analyze.py."""
     stub = tmp_path / "py"
     stub.write_text(STUB)
     stub.chmod(0o755)
@@ -245,7 +246,7 @@ def test_make_beyond_runs_each_curve_from_its_variables(tmp_path):
     env = {**os.environ, "CALLS": str(tmp_path / "calls")}
     done = subprocess.run(make, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr
-    calls = [set(line.split()) for line in (tmp_path / "calls").read_text().splitlines()]
+    calls = [line.rstrip("\t").split("\t") for line in (tmp_path / "calls").read_text().splitlines()]
     active = "experiment=table4_1_regular trainer=online trainer.n_episodes=45 trainer.replay_sample=16 n_runs=3"
     want = [
         {*active.split(), "predictor.joint.memory=gru", f"env.corridor_length={c}", f"env.max_steps={2 * c + 4}"}
@@ -282,12 +283,20 @@ def test_make_beyond_runs_each_curve_from_its_variables(tmp_path):
             *["actor.memory=gru", "actor.beta.end=9", "env.corridor_length=60", "trainer.n_episodes=77", "n_runs=3"],
         }
     )
-    assert calls[0] >= {"-m", "ferl.run.sweepdir", "beyond"}
-    calls = calls[1:]
-    assert len(calls) == len(want) + 1 and calls[-1] >= {"analyze.py", "sweep"}
-    for got, expected in zip(calls, want):
-        assert expected <= got and {"-m", "ferl.run.together"} <= got
-    assert (
-        "sweep 5/6: passive_curve/corridor_300" in done.stdout
-        and "sweep 6/6: passive_q_curve/corridor_60" in done.stdout
-    )
+    assert set(calls[0]) >= {"-m", "ferl.run.sweepdir", "beyond"}
+    assert len(calls) == 3 and "analyze.py" in calls[2] and "sweep" in calls[2]
+    assert calls[1][:5] == ["-m", "ferl.run.together", "--lanes", "2", "sweep"]
+    specs = [spec.split() for spec in calls[1][5:]]
+    assert [(name, jobs) for name, jobs, *_ in specs] == [
+        (name, "1")
+        for name in (
+            "passive_q_curve/corridor_60",
+            "passive_curve/corridor_10",
+            "passive_curve/corridor_300",
+            "memory_length/corridor_5",
+            "memory_length/corridor_3",
+            "exploration_curve/corridor_7",
+        )
+    ]
+    q, *rest = [set(overrides) for _, _, *overrides in specs]
+    assert [q, *rest] == [want[-1], *want[3:5], *want[:3]]

@@ -172,3 +172,11 @@ def test_a_progress_bar_reaches_the_log_before_its_line_ends(tmp_path: Path, cap
             os.close(write_end)
             relay.join(timeout=10)
     assert capsys.readouterr().out == "ferl: s: 1/1 jobs done\n"
+
+
+def test_a_stopped_queue_says_how_to_continue_it_with_its_lanes(tmp_path: Path):
+    import signal
+
+    line = together.stopped_line(signal.SIGHUP, tmp_path, [together.Sweep("a/b", 1, ("x=1",))], lanes=2)
+    assert line.startswith("ferl: interrupted (SIGHUP): what the jobs wrote is kept")
+    assert line.endswith(f"python -m ferl.run.together --resume --lanes 2 {tmp_path} 'a/b 1 x=1'")

@@ -131,8 +131,9 @@ def test_hooks_are_declared_and_the_base_gives_their_defaults():
     assert "traceable_steps" not in vars(FiveArms) and "discovers_observations" not in vars(FiveArms)
     assert (env.traceable_steps, env.discovers_observations, env.on_fault) == (False, False, None)
     assert "keep_episodes" not in vars(FiveArms) and env.keep_episodes(3, "trainer.replay_episodes") is None
+    assert "tables_generic" not in vars(FiveArms) and env.tables_generic(lambda t: 1 / 0) is None  # nothing passed
     check_conforms(env, EpisodicEnvironment, "env")  # no error
-    hooks = {"traceable_steps", "discovers_observations", "keep_episodes", "on_fault"}
+    hooks = {"traceable_steps", "discovers_observations", "keep_episodes", "tables_generic", "on_fault"}
     assert hooks <= set(required_members(EpisodicEnvironment))
     assert "fuse" in required_members(TrainingBatch)
     assert missing_members(Forgetful(2, torch.Generator()), EpisodicEnvironment) == [
@@ -153,12 +154,12 @@ def test_hooks_are_declared_and_the_base_gives_their_defaults():
         }
     )
     bare.probe = env.probe
-    missing = ["on_fault", "traceable_steps", "discovers_observations", "keep_episodes"]
+    missing = ["on_fault", "traceable_steps", "discovers_observations", "keep_episodes", "tables_generic"]
     assert missing_members(bare, EpisodicEnvironment) == missing
     with pytest.raises(
         ConfigError,
-        match=r"lacks on_fault, traceable_steps, discovers_observations, keep_episodes \(.*; "
+        match=r"lacks on_fault, traceable_steps, discovers_observations, keep_episodes, tables_generic \(.*; "
         r"ferl\.interfaces\.EpisodicEnvironmentBase gives the defaults of on_fault, "
-        r"traceable_steps, discovers_observations, keep_episodes\)$",
+        r"traceable_steps, discovers_observations, keep_episodes, tables_generic\)$",
     ):
         check_conforms(bare, EpisodicEnvironment, "env")

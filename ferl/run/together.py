@@ -72,22 +72,23 @@ class Stopped(KeyboardInterrupt):
         self.signum = signum
 
 
-def stopped(e: KeyboardInterrupt, sweep_dir: Path, sweeps: list[Sweep]) -> int:
+def stopped(e: KeyboardInterrupt, sweep_dir: Path, sweeps: list[Sweep], lanes: int | None = None) -> int:
     """After a stop: its one line (what is kept, the command that continues the sweep) on stderr;
     the exit status, 128 + the signal (a plain KeyboardInterrupt is SIGINT's)."""
     signum = e.signum if isinstance(e, Stopped) else signal.SIGINT
-    print(stopped_line(signum, sweep_dir, sweeps), file=sys.stderr)
+    print(stopped_line(signum, sweep_dir, sweeps, lanes), file=sys.stderr)
     return 128 + signum
 
 
-def stopped_line(signum: int, sweep_dir: Path, sweeps: list[Sweep]) -> str:
+def stopped_line(signum: int, sweep_dir: Path, sweeps: list[Sweep], lanes: int | None = None) -> str:
     """The one line after a stop: what is kept and the command that continues the sweep."""
     target = target_of(sweep_dir)
     if target is not None:
         again = f"make {target} RESUME={sweep_dir}"
     else:
         specs = " ".join(shlex.quote(f"{s.name} {s.jobs} {shlex.join(s.overrides)}") for s in sweeps)
-        again = f"python -m ferl.run.together --resume {shlex.quote(str(sweep_dir))} {specs}"
+        pool = f" --lanes {lanes}" if lanes else ""
+        again = f"python -m ferl.run.together --resume{pool} {shlex.quote(str(sweep_dir))} {specs}"
     name = signal.Signals(signum).name
     return f"{PREFIX}interrupted ({name}): what the jobs wrote is kept; continue with: {again}"
 
@@ -276,7 +277,7 @@ def pooled(sweep_dir: Path, sweeps: list[Sweep], lanes: int, resuming: bool, tra
             queue.join(0.2)
     except KeyboardInterrupt as e:  # the jobs got the same signal and stop as a run does
         STOPPING.set()  # and the queued ones never start
-        return stopped(e, sweep_dir, sweeps)
+        return stopped(e, sweep_dir, sweeps, lanes)
     failed = ran[0] if ran else list(todo)  # nothing returned: the queue itself failed
     for job in failed:
         print(f"{PREFIX}error: job {job} failed; its output: {sweep_dir / job}.log", file=sys.stderr)
