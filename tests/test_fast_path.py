@@ -263,6 +263,33 @@ def test_one_episode_graph_serves_every_corridor(tmp_path, monkeypatch):
             np.testing.assert_allclose(fused[key], eager[key], rtol=1e-4, atol=1e-5, err_msg=key)
 
 
+def test_episodes_with_directed_exploration_compiled_equal_eager(tmp_path, monkeypatch, capsys):
+    """εz-greedy's hooks keep their state in tensors (``EzGreedy.traceable``: the step counter and
+    ε), so its episodes are compiled with the rest of the step: against compile=false, the same
+    actions in every episode (options started, held and taken alike), returns and TD errors within
+    float32 rounding, with ε falling from episode to episode and no warning of an eager fallback."""
+    from ferl.trainers import online_episodes
+
+    monkeypatch.setattr(online_episodes, "EPISODES_FUSED_FROM", 20)
+    tiny = (
+        *ONLINE_LSTM,
+        "exploration=ez_greedy",
+        "exploration.epsilon=0.5",
+        "exploration.epsilon_end=0.1",
+        "trainer.n_episodes=20",
+        "trainer.replay_sample=2",
+        "trainer.log_every=10",
+        "trainer.td_sample_every=5",
+        "trainer.final_window=10",
+    )
+    eager, fused, graphs = eager_then_compiled(tmp_path, tiny)
+    assert 0 < graphs <= 3 and "eagerly" not in capsys.readouterr().err
+    for key in ("steps", "correct_goal", "condition"):
+        np.testing.assert_array_equal(fused[key], eager[key], err_msg=key)
+    for key in ("discounted_return", "td_abs_mean", "td_sampled"):
+        np.testing.assert_allclose(fused[key], eager[key], rtol=1e-4, atol=1e-5, err_msg=key)
+
+
 def test_online_replay_compiled_equals_eager(tmp_path, monkeypatch):
     """The online trainer with an LSTM predictor, its replay's BPTT compiled (REPLAY_FUSED_FROM
     patched down to this run's 40 episodes) against compile=false: the same actions in every

@@ -32,6 +32,10 @@ class Exploration(Protocol):
     # False: every hook leaves the actor's choice and rewards as they are (the episode loop then
     # skips them, and the fused episode of ``ferl.compiled`` stays available)
     active: bool
+    # True when ``choose`` and ``reward_bonus`` are tensor operations on state kept in tensors (no
+    # Python counter or number that changes within a training): an episode with them can then be
+    # compiled in chunks of steps (``ferl.trainers.fused_episodes``); False: it runs eagerly
+    traceable: bool
 
     def check_actor(self, actor) -> None:
         """ConfigError when the method cannot work with this actor (checked before any work)."""
@@ -62,6 +66,7 @@ class ExplorationBase(nn.Module):
     """The hooks' defaults: no exploration beyond the actor's own. A subclass names what it changes."""
 
     active = True
+    traceable = False
 
     def __init__(self, n_runs: int):
         super().__init__()

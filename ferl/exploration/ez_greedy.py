@@ -54,7 +54,11 @@ class EzGreedy(ExplorationBase):
     left: torch.Tensor  # (R,) steps of ω still to take (0: no option running)
     cdf: torch.Tensor  # (T_max,) float64, ``zeta_cdf`` for the episode's T_max + 1 choices
     uniforms: torch.Tensor  # (T_max + 1, R, 3) the episode's draws: start, ω, n
-    step: int  # choices made in the episode
+    # choices made in the episode (1,) and the episode's ε (): tensors, so that a compiled episode
+    # reads them as inputs, not as constants of its graph (``traceable``)
+    step: torch.Tensor
+    epsilon_t: torch.Tensor
+    traceable = True
 
     @checked
     def __init__(
@@ -74,6 +78,8 @@ class EzGreedy(ExplorationBase):
         self.longest = 0  # T_max + 1, known at the first episode
         self.register_buffer("held", torch.zeros(n_runs, dtype=torch.long), persistent=False)  # ω per run
         self.register_buffer("left", torch.zeros(n_runs, dtype=torch.long), persistent=False)  # steps of ω to go
+        self.register_buffer("step", torch.zeros(1, dtype=torch.long), persistent=False)
+        self.register_buffer("epsilon_t", torch.tensor(float(epsilon)), persistent=False)
 
     def describe(self) -> dict:
         return {
@@ -91,15 +97,18 @@ class EzGreedy(ExplorationBase):
             self.longest = max_steps + 1
             self.cdf = zeta_cdf(self.mu, self.longest).to(self.held.device)
         self.uniforms = torch.rand(max_steps + 1, self.n_runs, 3, generator=generator, device=self.held.device)
-        self.step = 0
+        self.epsilon_t.fill_(self.epsilon_now)
+        self.step.zero_()
         self.left.zero_()
 
     def choose(self, actor, s: Tensor, proposal: tuple) -> tuple:
         """Algorithm 1 of Dabney et al.: continue a running option, else start one with chance ε,
         else the actor's proposal."""
-        u = self.uniforms[self.step]  # (R, 3): start, ω, n
-        self.step += 1
-        start = (self.left == 0) & (u[:, 0] < self.epsilon_now)
+        # (R, 3): start, ω, n; a compiled episode's padded steps past T_max (every run has ended,
+        # nothing they choose is kept) read the last row
+        u = self.uniforms.index_select(0, self.step.clamp(max=self.uniforms.shape[0] - 1)).squeeze(0)
+        self.step = self.step + 1
+        start = (self.left == 0) & (u[:, 0] < self.epsilon_t)
         omega = (u[:, 1] * self.n_actions).long().clamp(max=self.n_actions - 1)
         self.held = torch.where(start, omega, self.held)
         self.left = torch.where(start, zeta_durations(self.cdf, u[:, 2]), self.left)

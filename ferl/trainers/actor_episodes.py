@@ -217,7 +217,8 @@ class ActorEpisodes(Phase):
         return (
             job.fast
             and job.actor.uniforms_per_action == 1
-            and not job.exploration.active  # its hooks keep Python state (a step counter, counts)
+            # a directed exploration whose hooks keep Python state (counts) runs eagerly
+            and (not job.exploration.active or job.exploration.traceable)
         )
 
     def state(self, job, obs_id: torch.Tensor, memories: list) -> torch.Tensor:
