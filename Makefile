@@ -101,7 +101,7 @@ BEYOND_CORRIDORS         ?= 20 10 5 3
 MEMORIES                 ?= elman,lstm,gru,esn,transformer
 BEYOND_EXPLORATION       ?= ez_greedy
 # The defaults end each curve at its first length where no memory solved a run on 2026-12-07
-# (the active maze at 20, the passive at L = 20, the exploration curve at 10): 29.5 min on 2 cores
+# (the active maze at 20, the passive at L = 20, the exploration curve at 10): 27.4 min on 2 cores
 # from an empty compile cache (docs/beyond.md). `make beyond-full` runs the full lists
 # (docs/beyond.md, "Memory curves", gives their cost)
 BEYOND_EXPLORE_CORRIDORS ?= 10 5
