@@ -212,15 +212,39 @@ def resume_commands(sweep_dir: Path, sweep: Sweep, train: tuple[str, ...] = TRAI
     return todo, states
 
 
-def resume_together(sweep_dir: Path, sweeps: list[Sweep], train: tuple[str, ...] = TRAIN) -> int:
-    """``--resume``: every sweep's remaining jobs, the sweeps at once (module doc); the exit status."""
+def planned(sweep_dir: Path, sweeps: list[Sweep], resuming: bool, train: tuple[str, ...]) -> list | None:
+    """Each sweep with its jobs' commands not done yet and every job's state (``resume_commands``);
+    with ``resuming``, one line per sweep says what it keeps. None after a JobError's line."""
     try:
         plans = [(sweep, *resume_commands(sweep_dir, sweep, train)) for sweep in sweeps]
     except JobError as e:
         print(f"{PREFIX}error: {e}", file=sys.stderr)
-        return 2
-    for sweep, _, states in plans:
+        return None
+    for sweep, _, states in plans if resuming else ():
         print(f"{PREFIX}{sweep.name}: resuming {sweep_dir / sweep.name}: {states_line(states)}", flush=True)
+    return plans
+
+
+def until_done(threads: list[threading.Thread]) -> None:
+    """Start the queues' threads and wait for them in this one, which a signal reaches: then no
+    queued job starts (``STOPPING``; the running ones got the same signal and stop as a run does)
+    and the KeyboardInterrupt goes on to the caller."""
+    try:
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            while thread.is_alive():
+                thread.join(0.2)
+    except KeyboardInterrupt:
+        STOPPING.set()
+        raise
+
+
+def resume_together(sweep_dir: Path, sweeps: list[Sweep], train: tuple[str, ...] = TRAIN) -> int:
+    """``--resume``: every sweep's remaining jobs, the sweeps at once (module doc); the exit status."""
+    plans = planned(sweep_dir, sweeps, True, train)
+    if plans is None:
+        return 2
     failed: dict[str, list[str]] = {}
     threads = [
         threading.Thread(
@@ -233,13 +257,8 @@ def resume_together(sweep_dir: Path, sweeps: list[Sweep], train: tuple[str, ...]
         if todo
     ]
     try:
-        for thread in threads:
-            thread.start()
-        for thread in threads:
-            while thread.is_alive():
-                thread.join(0.2)
-    except KeyboardInterrupt as e:  # the jobs got the same signal and stop as a run does
-        STOPPING.set()  # and the queued ones never start
+        until_done(threads)
+    except KeyboardInterrupt as e:
         return stopped(e, sweep_dir, sweeps)
     for name, names in failed.items():
         for job in names:
@@ -253,30 +272,25 @@ def resume_together(sweep_dir: Path, sweeps: list[Sweep], train: tuple[str, ...]
 def pooled(sweep_dir: Path, sweeps: list[Sweep], lanes: int, resuming: bool, train: tuple[str, ...] = TRAIN) -> int:
     """``--lanes``: every sweep's jobs not done yet in one queue, ``lanes`` at a time (module doc);
     with ``resuming``, one line per sweep first says what it keeps. The exit status."""
-    try:
-        plans = [(sweep, *resume_commands(sweep_dir, sweep, train)) for sweep in sweeps]
-    except JobError as e:
-        print(f"{PREFIX}error: {e}", file=sys.stderr)
+    plans = planned(sweep_dir, sweeps, resuming, train)
+    if plans is None:
         return 2
-    todo = {}
-    for sweep, commands, states in plans:
-        if resuming:
-            print(f"{PREFIX}{sweep.name}: resuming {sweep_dir / sweep.name}: {states_line(states)}", flush=True)
-        todo.update({f"{sweep.name}/{job}": command for job, command in commands.items()})
+    todo = {f"{sweep.name}/{job}": command for sweep, commands, _ in plans for job, command in commands.items()}
     print(
         f"{PREFIX}{len(sweeps)} sweeps, {len(todo)} jobs to do, {lanes} at a time; each job's output: "
         f"{sweep_dir}/NAME/<job folder>.log",
         flush=True,
     )
-    # the queue runs in a thread: a signal reaches this one, which stops the queue at once
     ran: list[list[str]] = []
-    queue = threading.Thread(target=lambda: ran.append(run_commands(todo, sweep_dir, lanes, nested=True)), daemon=True)
     try:
-        queue.start()
-        while queue.is_alive():
-            queue.join(0.2)
-    except KeyboardInterrupt as e:  # the jobs got the same signal and stop as a run does
-        STOPPING.set()  # and the queued ones never start
+        until_done(
+            [
+                threading.Thread(
+                    target=lambda: ran.append(run_commands(todo, sweep_dir, lanes, nested=True)), daemon=True
+                )
+            ]
+        )
+    except KeyboardInterrupt as e:
         return stopped(e, sweep_dir, sweeps, lanes)
     failed = ran[0] if ran else list(todo)  # nothing returned: the queue itself failed
     for job in failed:
