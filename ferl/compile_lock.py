@@ -21,7 +21,7 @@ import hashlib
 import os
 import sys
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager, nullcontext
 from pathlib import Path
 
 import torch
@@ -74,6 +74,16 @@ def graph_lock(folder: Path, name: str) -> Iterator[None]:
         os.close(fd)  # drops the flock
 
 
+def backward_inside() -> AbstractContextManager:
+    """AOT autograd's switch that lowers a graph's backward with its forward, inside the lock (by
+    default it lowers it at the backward's first call). A torch without the switch (2.8) lowers the
+    backward outside the lock: two processes may then both compile it, and compute the same."""
+    config = torch._functorch.config
+    if hasattr(config, "force_non_lazy_backward_lowering"):
+        return config.patch(force_non_lazy_backward_lowering=True)
+    return nullcontext()
+
+
 @functools.cache
 def locked_inductor(options: tuple[tuple[str, object], ...], folder: str) -> Callable:
     """The ``torch.compile`` backend: inductor (``compile_fx``) with ``options``, behind the graph's
@@ -84,9 +94,7 @@ def locked_inductor(options: tuple[tuple[str, object], ...], folder: str) -> Cal
     def backend(gm: torch.fx.GraphModule, example_inputs: list):
         from torch._inductor.compile_fx import compile_fx
 
-        # the backward too, inside the lock (AOT autograd lowers it at its first call by default)
-        eager_backward = torch._functorch.config.patch(force_non_lazy_backward_lowering=True)
-        with graph_lock(locks, graph_name(gm, example_inputs, patches)), eager_backward:
+        with graph_lock(locks, graph_name(gm, example_inputs, patches)), backward_inside():
             return compile_fx(gm, example_inputs, config_patches=patches)
 
     return backend

@@ -351,9 +351,11 @@ def test_a_python_environments_agent_step_compiled_equals_eager(tmp_path, monkey
     np.testing.assert_array_equal(fused["steps"], eager["steps"])
     for key in ("discounted_return", "return"):
         np.testing.assert_allclose(fused[key], eager[key], rtol=1e-4, atol=1e-5, err_msg=key)
-    # CartPole's TD errors are large (|δ| ≈ 10, +1 a step), and the rounding of two kernels grows
-    # through the weights as they learn: 4e-4 apart by episode 17 of 30, the actions still equal
-    first = 11 if observations == "real" else None  # episodes 0–10: td_sampled's first two samples
-    np.testing.assert_allclose(fused["td_abs_mean"][:, :first], eager["td_abs_mean"][:, :first], rtol=1e-4, atol=1e-5)
+    # CartPole's TD errors are large (|δ| ≈ 10–40, +1 a step), and the rounding of two kernels grows
+    # through the weights as they learn: 4e-4 apart by episode 17 of 30, the actions still equal.
+    # Within the first 11 episodes, 1e-4 absolute is 2.5e-6 of a δ of 40 (torch 2.8's kernels: a δ
+    # of 0.80 among δs of 40 came 9e-5 apart). Episodes 0–10: td_sampled's first two samples
+    first, atol = (11, 1e-4) if observations == "real" else (None, 1e-5)
+    np.testing.assert_allclose(fused["td_abs_mean"][:, :first], eager["td_abs_mean"][:, :first], rtol=1e-4, atol=atol)
     sampled = fused["td_sampled_episodes"] < (first or np.inf)
-    np.testing.assert_allclose(fused["td_sampled"][:, sampled], eager["td_sampled"][:, sampled], rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(fused["td_sampled"][:, sampled], eager["td_sampled"][:, sampled], rtol=1e-4, atol=atol)

@@ -178,11 +178,13 @@ class Step(NamedTuple):
 
 
 def stacked(steps: list[Step]) -> Step:
-    """The steps of an episode as one ``Step`` whose fields are stacked over the steps (steps, R, …)."""
-    return Step._make(
+    """The steps of an episode as one ``Step`` whose fields are stacked over the steps (steps, R, …).
+    Built by ``Step(*fields)``: torch 2.8's dynamo refuses to trace ``Step._make``."""
+    fields: list = [
         tuple(torch.stack(m) for m in zip(*field)) if isinstance(field[0], tuple) else torch.stack(field)
         for field in zip(*steps)
-    )
+    ]
+    return Step(*fields)
 
 
 def played(env, carry: Carry, ep: Step, obs: torch.Tensor) -> dict:
