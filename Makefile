@@ -223,13 +223,18 @@ suites-reference: $(SUITES_STAMP)
 # numerics of the RBM, actor and predictors against their references, the compiled fast path against
 # eager, and the set-up checks. The golden numbers (tests/test_golden.py) are exact only under the torch
 # that made them, 2.13.0 (`make test`), and are left out: under another torch the learning results
-# agree in distribution, not bit for bit. COMPAT_TORCH=2.14.1 runs one leg.
+# agree in distribution, not bit for bit: tests/compat_learning.py runs a reduced-scale T-maze job of
+# 10 runs under 2.13.0 once and under each torch, and their solved counts must agree within their
+# s.e.m. COMPAT_TORCH=2.14.1 runs one leg.
 COMPAT_TORCH ?= 2.8.0 2.14.1
 COMPAT_TESTS ?= tests/test_rbm.py tests/test_actor.py tests/test_predictor.py tests/test_cpu_kernels.py \
                 tests/test_numpy_reference.py tests/test_schedules.py tests/test_compile.py tests/test_fast_path.py \
                 tests/test_env_options.py
-test-compat:
-	@for v in $(COMPAT_TORCH); do \
+test-compat: $(STAMP)
+	@ref=$$(mktemp -d -t ferl-compat-ref-XXXXXX); \
+	echo "ferl: test-compat: the reduced-scale learning job under the pinned torch, in $$ref"; \
+	$(PY) tests/compat_learning.py run $$ref/learn || exit $$?; \
+	for v in $(COMPAT_TORCH); do \
 	  tmp=$$(mktemp -d -t ferl-compat-XXXXXX); venv=$$tmp/venv; start=$$(date +%s); \
 	  echo "ferl: test-compat: torch $$v in $$venv"; \
 	  $(PYTHON) -m venv $$venv && \
@@ -237,10 +242,13 @@ test-compat:
 	  $$venv/bin/python -m pip install --quiet -e . pytest hypothesis && \
 	  $$venv/bin/python -c "import sys, torch; v = torch.__version__.split('+')[0]; \
 	    sys.exit(None if v == '$$v' else f'ferl: test-compat: pip install -e . replaced torch $$v by {v}')" && \
-	  $$venv/bin/python -m pytest -q -p no:cacheprovider $(COMPAT_TESTS); status=$$?; \
+	  $$venv/bin/python -m pytest -q -p no:cacheprovider $(COMPAT_TESTS) && \
+	  $$venv/bin/python tests/compat_learning.py run $$tmp/learn && \
+	  $(PY) tests/compat_learning.py compare $$ref/learn $$tmp/learn; status=$$?; \
 	  rm -rf $$tmp; echo "ferl: test-compat: torch $$v: exit $$status in $$(( $$(date +%s) - start )) s"; \
-	  [ $$status -eq 0 ] || exit $$status; \
-	done
+	  [ $$status -eq 0 ] || { rm -rf $$ref; exit $$status; }; \
+	done; \
+	rm -rf $$ref
 
 bench: $(STAMP)
 	$(PY) benchmarks/bench_floor.py
