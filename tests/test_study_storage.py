@@ -1,6 +1,6 @@
 """The study database of ``hparams_search=…`` (ferl's Optuna sweeper, ferl/run/study*.py; docs/sweeps.md,
-"The study database"): a study killed mid-trial resumes with its finished trials kept and ends as an
-uninterrupted one; two worker processes fill one study, no trial twice; a corrupt file, or one that
+"The study database"): a study killed mid-trial, between trials or while it writes a value resumes
+with its finished trials kept and ends as an uninterrupted one; two worker processes fill one study, no trial twice; a corrupt file, or one that
 holds another study, is refused in one line and left byte for byte as it was.
 
 Every study here is a real ``train.py -m hparams_search=matching_optuna`` at a tiny scale (one run,
@@ -114,6 +114,43 @@ def test_a_killed_study_resumes_as_an_uninterrupted_one(tmp_path):
     best, best_reference = (yaml.safe_load((d / "optimization_results.yaml").read_text()) for d in (killed, reference))
     assert best["best_value"] == best_reference["best_value"] and best["best_params"] == best_reference["best_params"]
     assert best["best_value"] == max(t.value for t in after if t.value is not None)
+
+
+KILL_POINTS = Path(__file__).parent / "kill_points"  # its sitecustomize kills a process at FERL_KILL_AT
+
+
+def killed_at(sweep: Path, moment: str) -> None:
+    """The study in ``sweep`` continued until the sweeper dies by SIGKILL at ``moment``
+    (tests/kill_points/sitecustomize.py)."""
+    paths = os.pathsep.join(filter(None, [str(KILL_POINTS), os.environ.get("PYTHONPATH")]))
+    env = {**os.environ, "PYTHONPATH": paths, "FERL_KILL_AT": moment}
+    died = run_train("-m", *STUDY, f"hydra.sweep.dir={sweep}", env=env, timeout=300)
+    assert died.returncode == -signal.SIGKILL, died.stdout[-3000:] + died.stderr[-3000:]
+
+
+def test_a_study_killed_between_trials_and_while_writing_ends_as_an_uninterrupted_one(tmp_path):
+    """The two other moments of a kill (mid-trial: the test above): after a trial's value is told and
+    before the next trial is claimed, then inside the SQLite transaction that tells a value, its rows
+    written but not committed. The study resumes each time, and ends with the uninterrupted one's
+    parameters and value in every slot and its best."""
+    reference, killed = tmp_path / "reference", tmp_path / "killed"
+    whole = start(reference)
+    killed_at(killed, "between:1")
+    assert [(t.state, t.user_attrs[SLOT]) for t in trials(killed)] == [(TrialState.COMPLETE, 0)]
+    killed_at(killed, "writing:1")  # the first value this process tells: slot 1's
+    before = trials(killed)
+    assert [t.state for t in before] == [TrialState.COMPLETE, TrialState.RUNNING]
+    assert before[1].value is None and before[1].user_attrs[SLOT] == 1  # never committed
+
+    resumed = run_train("-m", *STUDY, f"hydra.sweep.dir={killed}", timeout=300)
+    assert resumed.returncode == 0, resumed.stdout[-3000:] + resumed.stderr[-3000:]
+    assert "1/4 trials done, 1 interrupted to run again" in resumed.stdout
+    assert whole.wait(timeout=300) == 0, whole.communicate()[0][-3000:]
+    after = trials(killed)
+    assert after[1].state == TrialState.FAIL and after[2].user_attrs[RETRY_OF] == 1
+    assert by_slot(after) == by_slot(trials(reference))
+    best, best_reference = (yaml.safe_load((d / "optimization_results.yaml").read_text()) for d in (killed, reference))
+    assert (best["best_value"], best["best_params"]) == (best_reference["best_value"], best_reference["best_params"])
 
 
 @pytest.mark.parametrize("storage", ["sqlite", "journal"])
