@@ -7,6 +7,7 @@ import sys
 import numpy as np
 import pytest
 
+from compat_learning import REDUCED_REGULAR
 from conftest import ROOT, run_train
 
 SMALL = [
@@ -75,14 +76,7 @@ def test_reduced_scale_regular_tmaze_is_learnt(tmp_path):
     the junction is learnt (a memoryless agent gets 0.5 correct; random walkers take ~7 steps).
     With the β ramp compressed into 2 000 episodes an actor can commit to one side before its
     memory features are useful (seed 1 does), so two of the three runs must learn it."""
-    result = run_train(
-        "experiment=table4_1_regular",
-        "n_runs=3",
-        "trainer.n_epoch=40",
-        "predictor.joint.lr=0.2",
-        "trainer.n_episodes=2000",
-        f"hydra.run.dir={tmp_path / 'learn'}",
-    )
+    result = run_train(*REDUCED_REGULAR, "n_runs=3", f"hydra.run.dir={tmp_path / 'learn'}")
     assert result.returncode == 0, result.stderr[-2000:]
     m = json.loads((tmp_path / "learn" / "summary.json").read_text())["metrics"]
     assert sorted(m["final_correct_goal_rate"])[1] > 0.9, m
