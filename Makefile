@@ -233,7 +233,7 @@ COMPAT_TESTS ?= tests/test_rbm.py tests/test_actor.py tests/test_predictor.py te
 test-compat: $(STAMP)
 	@ref=$$(mktemp -d -t ferl-compat-ref-XXXXXX); \
 	echo "ferl: test-compat: the reduced-scale learning job under the pinned torch, in $$ref"; \
-	$(PY) tests/compat_learning.py run $$ref/learn || exit $$?; \
+	$(PY) tests/compat_learning.py run $$ref/learn || { status=$$?; rm -rf $$ref; exit $$status; }; \
 	for v in $(COMPAT_TORCH); do \
 	  tmp=$$(mktemp -d -t ferl-compat-XXXXXX); venv=$$tmp/venv; start=$$(date +%s); \
 	  echo "ferl: test-compat: torch $$v in $$venv"; \

@@ -1,7 +1,8 @@
 """The study database of ``hparams_search=…`` (ferl's Optuna sweeper, ferl/run/study*.py; docs/sweeps.md,
 "The study database"): a study killed mid-trial, between trials or while it writes a value resumes
-with its finished trials kept and ends as an uninterrupted one; two worker processes fill one study, no trial twice; a corrupt file, or one that
-holds another study, is refused in one line and left byte for byte as it was.
+with its finished trials kept and ends as an uninterrupted one; two worker processes fill one study,
+no trial twice; a corrupt file, or one that holds another study, is refused in one line and left
+byte for byte as it was.
 
 Every study here is a real ``train.py -m hparams_search=matching_optuna`` at a tiny scale (one run,
 a few hundred actor episodes: about a second a trial).
