@@ -168,16 +168,16 @@ def first_call_compiles(fn: Callable) -> Callable:
     return call
 
 
-def size_generic(x: torch.Tensor, first_dim: int) -> torch.Tensor:
-    """A copy of ``x`` whose sizes from ``first_dim`` on a compiled graph takes as symbols, not
-    constants: one graph then serves every size a configuration gives them. A copy, because a
-    graph generic in sizes is also generic in storage offsets, and a view's offset differs from
-    call to call; sizes 0 and 1 stay specialised (dynamo's rule). ``x`` itself where it has no such
-    size (no copy)."""
+def size_generic(x: torch.Tensor, first_dim: int, end_dim: int | None = None) -> torch.Tensor:
+    """A copy of ``x`` whose sizes ``first_dim`` … ``end_dim`` − 1 (to the last where None) a
+    compiled graph takes as symbols, not constants: one graph then serves every size a
+    configuration gives them. A copy, because a graph generic in sizes is also generic in storage
+    offsets, and a view's offset differs from call to call; sizes 0 and 1 stay specialised
+    (dynamo's rule). ``x`` itself where it has no such size (no copy)."""
     if x.dim() <= first_dim:
         return x
     x = x.clone()
-    for dim in range(first_dim, x.dim()):
+    for dim in range(first_dim, x.dim() if end_dim is None else end_dim):
         torch._dynamo.maybe_mark_dynamic(x, dim)
     return x
 

@@ -225,6 +225,9 @@ class Predictor(Checkpointed, Protocol):
     def memory(self, state: State) -> Tensor:
         """What the actor sees of a state: (R, memory_size)."""
 
+    def generic_state(self, state: State) -> State:
+        """The state, its sizes set by the configuration (a transformer's T_max + 1 cached tokens) generic."""
+
     def step(self, state: State, y_prev: Tensor, a_prev: Tensor) -> State:
         """One step from y_{t−1} (R, Y) and one-hot a_{t−1} (R, A) (Eq. 4.3)."""
 
@@ -266,7 +269,10 @@ class Predictor(Checkpointed, Protocol):
 
 
 class PredictorBase:
-    """The defaults of ``Predictor``'s hooks: no observation head, no reward statistics."""
+    """The defaults of ``Predictor``'s hooks: no observation head, reward statistics or generic sizes."""
+
+    def generic_state(self, state: State) -> State:
+        return state
 
     def observation_error(self, state: State, y: Tensor) -> Tensor | None:
         return None

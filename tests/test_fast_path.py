@@ -236,17 +236,28 @@ def test_online_episodes_compiled_equal_eager_in_one_graph(tmp_path, monkeypatch
         np.testing.assert_allclose(online["curiosity"][0], 0.5 * np.maximum(0, 1 - k / 15), rtol=1e-6)
 
 
-def test_one_episode_graph_serves_every_corridor(tmp_path, monkeypatch):
+@pytest.mark.parametrize("memory, more", [("lstm", ()), ("transformer", ()), ("gru", ("exploration=ez_greedy",))])
+def test_one_episode_graph_serves_every_corridor(tmp_path, monkeypatch, memory, more):
     """The maze's tables ((L + 2)·4 rows) are generic in their sizes and T_min, T_max are tensors
     (``TMaze.tables_generic``), and every T_max plays chunks of EPISODE_CHUNK_STEPS steps: after
     corridor 3 (T_max 6), corridors 2, 5 and 7 (T_max 4, 9 and 17) trace no new graph, and that
-    graph plays each as eagerly: the same actions, returns and TD errors within float32 rounding."""
+    graph plays each as eagerly: the same actions, returns and TD errors within float32 rounding.
+    Sized by T_max too, and generic: the transformer's cache of T_max + 1 tokens (its default
+    context, ``generic_state``) and εz-greedy's draws and zeta CDF."""
     from torch._dynamo.utils import counters
 
     from ferl.trainers import online_episodes
 
     monkeypatch.setattr(online_episodes, "EPISODES_FUSED_FROM", 6)
-    tiny = (*ONLINE_LSTM[:-1], "trainer.n_episodes=6", "trainer.replay_sample=2", "trainer.final_window=3")
+    tiny = (
+        *ONLINE_LSTM[:2],
+        f"predictor.joint.memory={memory}",
+        *ONLINE_LSTM[3:-1],
+        *more,
+        "trainer.n_episodes=6",
+        "trainer.replay_sample=2",
+        "trainer.final_window=3",
+    )
     torch._dynamo.reset()
     counters.clear()
     episodes(tmp_path, "first", "compile=true", "env.corridor_length=3", "env.max_steps=6", tiny=tiny)
@@ -261,6 +272,29 @@ def test_one_episode_graph_serves_every_corridor(tmp_path, monkeypatch):
             np.testing.assert_array_equal(fused[key], eager[key], err_msg=key)
         for key in ("discounted_return", "td_abs_mean", "td_sampled"):
             np.testing.assert_allclose(fused[key], eager[key], rtol=1e-4, atol=1e-5, err_msg=key)
+
+
+def test_one_episode_graph_serves_curiosity_on_and_off(tmp_path, monkeypatch):
+    """The curiosity bonus η_k e^y_t is computed with η = 0 too (exactly 0), and η_k is a tensor:
+    after a job without curiosity, one with η = 0.5 traces no new graph, and plays as eagerly."""
+    from torch._dynamo.utils import counters
+
+    from ferl.trainers import online_episodes
+
+    monkeypatch.setattr(online_episodes, "EPISODES_FUSED_FROM", 6)
+    tiny = (*ONLINE_LSTM, "trainer.n_episodes=6", "trainer.replay_sample=2", "trainer.final_window=3")
+    torch._dynamo.reset()
+    counters.clear()
+    episodes(tmp_path, "off", "compile=true", "trainer.curiosity=0", tiny=tiny)
+    graphs = counters["stats"]["unique_graphs"]
+    assert graphs > 0
+    _, fused = episodes(tmp_path, "on", "compile=true", "trainer.curiosity=0.5", tiny=tiny)
+    assert counters["stats"]["unique_graphs"] == graphs
+    _, eager = episodes(tmp_path, "on_eager", "compile=false", "trainer.curiosity=0.5", tiny=tiny)
+    for key in ("steps", "correct_goal", "condition"):
+        np.testing.assert_array_equal(fused[key], eager[key], err_msg=key)
+    for key in ("discounted_return", "td_abs_mean", "td_sampled"):
+        np.testing.assert_allclose(fused[key], eager[key], rtol=1e-4, atol=1e-5, err_msg=key)
 
 
 def test_episodes_with_directed_exploration_compiled_equal_eager(tmp_path, monkeypatch, capsys):

@@ -146,6 +146,23 @@ def test_curiosity_bonus_is_eta_times_the_observation_prediction_error():
     torch.testing.assert_close(bonus, want)
 
 
+def test_curiosity_off_adds_exactly_zero_whatever_the_error():
+    """η = 0 (and η annealed to 0): the bonus is computed, so that one compiled graph serves every η,
+    and is exactly 0, also where the observation error is not finite."""
+    job, phase = online_phase("trainer.curiosity=0.3", "trainer.curiosity_anneal=0.5")
+    phase.freeze(job)
+    phase.begin_episode(job, 750, phase.fresh_state(job))  # half of N: η annealed to 0
+    (p,) = job.predictors.values()
+    state = p.initial_state()
+    obs = torch.tensor([2, 3])
+    assert phase.reward_bonus(job, [state], obs, None, torch.ones(2, dtype=torch.bool)).tolist() == [0.0, 0.0]
+    with torch.no_grad():
+        p.b_y.fill_(float("nan"))  # the observation head's output, and so its error, NaN
+    assert phase.reward_bonus(job, [state], obs, None, torch.ones(2, dtype=torch.bool)).tolist() == [0.0, 0.0]
+    phase.begin_episode(job, 0, phase.fresh_state(job))  # η = 0.3 again: the error reaches the bonus
+    assert phase.reward_bonus(job, [state], obs, None, torch.ones(2, dtype=torch.bool)).isnan().all()
+
+
 def test_sigterm_mid_online_then_resume_equals_uninterrupted(tmp_path, online_run):
     whole, result = online_run
     cut = tmp_path / "cut"

@@ -136,7 +136,7 @@ def test_online_step_with_its_cache_equals_the_unroll(layers, heads, T):
     with torch.no_grad():
         m = p.unroll(y, a)[:, 0]
         state = p.initial_state()
-        assert state.shape == (3, 6 + 1 + layers * 2 * 10 * 6)
+        assert state[0].shape == (3, 6 + 1) and state[1].shape == (3, layers, 2, 10, 6)
         got = [p.memory(state)]
         for t in range(T):
             state = p.step(state, y[:, 0, t], a[:, 0, t])

@@ -222,8 +222,10 @@ class TransformerCore(Core):
 
     def step(self, p: dict, x: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
         """Token n of the episode: x (R, B, X) attends to the cached tokens 0 … n − 1 and itself."""
-        W = self.weights(p)
-        return cached_token(W, self.attention, self.context, state, affine(x, W.W_in, W.b_in))
+        W, d = self.weights(p), self.n_hidden
+        cache = state[..., d + 1 :].unflatten(-1, (self.layers, 2, self.context, d))
+        head, cache = cached_token(W, self.attention, (state[..., : d + 1], cache), affine(x, W.W_in, W.b_in))
+        return torch.cat([head, cache.flatten(-4)], -1)
 
     def unroll(self, p: dict, x: torch.Tensor, readout: Callable = lambda h: h) -> torch.Tensor:
         """The parallel form of stepping: every token of x (R, B, T+1, X) at once, token t

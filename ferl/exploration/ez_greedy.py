@@ -25,6 +25,7 @@ from typing import Annotated
 import torch
 from torch import Tensor
 
+from ferl.compiled import size_generic
 from ferl.config.params import Allowed, PositiveInt, Share, UnitInterval, checked
 from ferl.exploration import ExplorationBase, taken
 from ferl.schedules import Linear
@@ -93,10 +94,13 @@ class EzGreedy(ExplorationBase):
     def begin_episode(self, generator: torch.Generator, max_steps: int, progress: float) -> None:
         """No option held; ε of the episode at ``progress``; its uniforms (T_max + 1, R, 3), drawn in one call."""
         self.epsilon_now = self.schedule(progress)
+        # both sized by T_max: generic in a compiled episode (``size_generic``), whose graph then
+        # serves every corridor, as the maze's own tables do
         if self.longest != max_steps + 1:
             self.longest = max_steps + 1
-            self.cdf = zeta_cdf(self.mu, self.longest).to(self.held.device)
-        self.uniforms = torch.rand(max_steps + 1, self.n_runs, 3, generator=generator, device=self.held.device)
+            self.cdf = size_generic(zeta_cdf(self.mu, self.longest).to(self.held.device), 0)
+        draws = torch.rand(max_steps + 1, self.n_runs, 3, generator=generator, device=self.held.device)
+        self.uniforms = size_generic(draws, 0, 1)
         self.epsilon_t.fill_(self.epsilon_now)
         self.step.zero_()
         self.left.zero_()

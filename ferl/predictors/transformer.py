@@ -36,8 +36,9 @@ start token); null takes the environment's T_max (``max_steps``, which the job p
 ``ferl.trainers.facts``), so that every step of every episode sees the whole episode, as
 Memory-RL's context is its episode length. A context shorter than T_max is refused. The online
 ``step`` keeps the keys and values of every layer for the context + 1 tokens in its state (a cache
-of fixed shape, (R, N^m + 1 + 2 · layers · (context + 1) · N^m)), so each step attends over the
-cache instead of recomputing the episode and gives the same m_t as ``unroll``. An episode never
+of fixed shape, (R, layers, 2, context + 1, N^m), beside [m_t, n] (R, N^m + 1)), so each step attends
+over the cache instead of recomputing the episode and gives the same m_t as ``unroll``. A compiled
+episode takes the cache's length as a symbol (``generic_state``): one graph serves every T_max. An episode never
 outgrows the cache: the environment ends it after T_max ≤ context steps.
 """
 
@@ -49,6 +50,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ferl.compiled import size_generic
 from ferl.config.params import Allowed, ArgumentError, Positive, PositiveInt, checked
 from ferl.predictors.heads import linear, scaled
 from ferl.predictors.recurrent import RecurrentPredictor, autograd_bptt
@@ -156,16 +158,17 @@ def causal_stack(W: Weights, x: torch.Tensor, attention: Attention) -> torch.Ten
     return torch.tanh(layer_norm(x, W.lnf_g, W.lnf_b))
 
 
-def cached_token(W: Weights, attention: Attention, tokens: int, state: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-    """The state after a token whose embedding (without position) is x (R, …, d), from ``state``
-    (R, …, d + 1 + layers · 2 · tokens · d) = [m, n, cache]: the last output m (…, d), the tokens n
-    seen so far and every layer's keys and values of tokens 0 … tokens − 1, (…, layers, 2,
-    tokens, d), zero beyond n. The new token is token n: its keys and values are written at n and
-    it attends to tokens 0 … n, so a sequence stepped token by token gives ``causal_stack``'s m."""
-    d, lead, L = x.shape[-1], x.shape[:-1], W.W_qkv.shape[1]
-    n = state[..., d].long()  # (R, …)
-    cache = state[..., d + 1 :].reshape(*lead, L, 2, tokens, d)
-    index = torch.arange(tokens, device=state.device)
+def cached_token(W: Weights, attention: Attention, state: tuple, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The state after a token whose embedding (without position) is x (R, …, d), from ``state`` =
+    (head, cache): head [m, n] (R, …, d + 1), the last output m and the tokens n seen so far; cache
+    every layer's keys and values of tokens 0 … tokens − 1, (R, …, layers, 2, tokens, d), zero
+    beyond n. The new token is token n: its keys and values are written at n and it attends to
+    tokens 0 … n, so a sequence stepped token by token gives ``causal_stack``'s m. The cache's
+    length is read from its shape: a compiled step whose cache is generic in it serves every length."""
+    head, cache = state
+    d, lead, tokens = x.shape[-1], x.shape[:-1], cache.shape[-2]
+    n = head[..., d].long()  # (R, …)
+    index = torch.arange(tokens, device=head.device)
     slot = (index == n.unsqueeze(-1)).view(*lead, 1, tokens, 1)
     seen = (index <= n.unsqueeze(-1)).view(*lead, 1, 1, tokens)
     x = (x + positions(n, d).to(x.dtype)).unsqueeze(-2)  # (R, …, 1, d)
@@ -176,10 +179,10 @@ def cached_token(W: Weights, attention: Attention, tokens: int, state: torch.Ten
         kept.append(kv)
         return attend(q, kv[..., 0, :, :], kv[..., 1, :, :], seen, attention)
 
-    for layer in range(L):
+    for layer in range(W.W_qkv.shape[1]):
         x = block(W, layer, x, cached_attention)
     m = torch.tanh(layer_norm(x.squeeze(-2), W.lnf_g, W.lnf_b))
-    return torch.cat([m, (n + 1).unsqueeze(-1).to(m.dtype), torch.stack(kept, -4).flatten(-4)], -1)
+    return torch.cat([m, (n + 1).unsqueeze(-1).to(m.dtype)], -1), torch.stack(kept, -4)
 
 
 class TransformerPredictor(RecurrentPredictor):
@@ -265,25 +268,29 @@ class TransformerPredictor(RecurrentPredictor):
     bptt = staticmethod(autograd_bptt)
 
     # ---- online API: a cache of keys and values ---------------------------------------------------
-    def token(self, state: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    def token(self, state: tuple, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The state after the token whose embedding (without position) is x (R, M): the state
-        [m_t, n, cache] holds m_t (R, M), the tokens n seen so far (R, 1) and every layer's keys
+        ([m_t, n], cache) holds m_t (R, M), the tokens n seen so far (R, 1) and every layer's keys
         and values of tokens 0 … context, (R, layers, 2, context + 1, M), zero beyond n
         (``cached_token``)."""
-        return cached_token(Weights(*self.memory_parameters()), self.attention, self.context + 1, state, x)
+        return cached_token(Weights(*self.memory_parameters()), self.attention, state, x)
 
     @torch.no_grad()
-    def initial_state(self) -> torch.Tensor:
-        """After token 0 (the zero input): m_0, n = 1 and its keys and values, (R, state size)."""
+    def initial_state(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """After token 0 (the zero input): [m_0, n = 1] and its keys and values."""
         R, M = self.W_in.shape[0], self.memory_size
-        empty = self.W_in.new_zeros(R, M + 1 + self.layers * 2 * (self.context + 1) * M)
+        empty = self.W_in.new_zeros(R, M + 1), self.W_in.new_zeros(R, self.layers, 2, self.context + 1, M)
         return self.token(empty, self.b_in)
 
-    def memory(self, state: torch.Tensor) -> torch.Tensor:
+    def generic_state(self, state) -> tuple:
+        """The cache's length, context + 1 (T_max + 1 by default), generic (``size_generic``)."""
+        return state[0], size_generic(state[1], 3, 4)
+
+    def memory(self, state: tuple) -> torch.Tensor:
         """m_t, (R, M): what the heads and the actor see."""
-        return state[:, : self.memory_size]
+        return state[0][:, : self.memory_size]
 
     @torch.no_grad()
-    def step(self, state: torch.Tensor, y_prev: torch.Tensor, a_prev: torch.Tensor) -> torch.Tensor:
+    def step(self, state: tuple, y_prev: torch.Tensor, a_prev: torch.Tensor) -> tuple:
         """The state after y_{t−1} (R, Y) and one-hot a_{t−1} (R, A): token t."""
         return self.token(state, affine(self.inputs(y_prev, a_prev), self.W_in, self.b_in))

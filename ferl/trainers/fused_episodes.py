@@ -49,9 +49,13 @@ class FusedEpisodes:
         draws = torch.cat([uniform[1:], uniform.new_zeros(self.pad, *uniform.shape[1:])])
         obs = [job.env.obs_id.unsqueeze(0)]
         carry = phase.first(job, beta_t, uniform[0])  # once an episode: eager (a graph would cost its compiling)
+        predictors = list(job.predictors.values())
         parts = []
         for c, discounts in enumerate(self.discounts):
             at = slice(c * self.chunk, (c + 1) * self.chunk)
+            # states sized by the configuration (a transformer's cache), generic at every call:
+            # dynamo keys a graph on whether an input's sizes were marked
+            carry = carry._replace(m=[p.generic_state(x) for p, x in zip(predictors, carry.m)])
             carry, steps, after = self.steps(job, carry, lr_t, beta_t, draws[at].clone(), discounts, False)
             parts.append(steps)
             obs.append(after)

@@ -156,14 +156,16 @@ class OnlineEpisodes(ActorEpisodes):
     @torch.no_grad()
     def reward_bonus(self, job, states: list, obs_id: torch.Tensor, s_next: torch.Tensor, active: torch.Tensor):
         """η_k e^y_t: the observation prediction error at the new observation (module docstring),
-        plus the directed exploration's bonus (``ActorEpisodes.reward_bonus``)."""
+        plus the directed exploration's bonus (``ActorEpisodes.reward_bonus``). Computed with
+        curiosity off too (η = 0, a bonus of exactly 0, whatever e^y_t), so that a compiled
+        episode's graph serves every η."""
         explore = super().reward_bonus(job, states, obs_id, s_next, active)
-        if self.eta == 0:  # curiosity off (η_k = 0 for every k)
-            return explore
         y = self.observations.lookup(obs_id)
         errors = [p.observation_error(x, y) for p, x in zip(job.predictors.values(), states)]
         errors = [e for e in errors if e is not None]  # the predictors that predict observations
-        return added(self.eta_now * sum(errors), explore) if errors else explore
+        if not errors:
+            return explore
+        return added(torch.where(self.eta_now > 0, self.eta_now * sum(errors), 0.0), explore)
 
     def after_episode(self, job, k: int, episode: dict, state: dict) -> None:
         """Held-out error of episode k, then into the replay, then the predictors' BPTT steps.
