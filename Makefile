@@ -100,6 +100,9 @@ BEYOND_LONG_FROM         ?= 200
 BEYOND_CORRIDORS         ?= 20 10 5 3
 MEMORIES                 ?= elman,lstm,gru,esn,transformer
 BEYOND_EXPLORATION       ?= ez_greedy
+# The online sweep varies the task fastest: its two lanes then start different tasks, whose graphs
+# compile side by side, and η = 0.1 finds η = 0's graphs compiled (one graph serves every η) where
+# the task first would start η = 0 and 0.1 together, one lane waiting on the other's compiling.
 # The defaults end each curve at its first length where no memory solved a run on 2026-12-07
 # (the active maze at 20, the passive at L = 20, the exploration curve at 10): 27.4 min on 2 cores
 # from an empty compile cache (docs/beyond.md). `make beyond-full` runs the full lists
@@ -136,7 +139,7 @@ beyond beyond-full: $(STAMP)
 	    env.corridor_length=$$c trainer.n_episodes=$(BEYOND_Q_EPISODES) n_runs=$$(runs $$c)"; \
 	done; \
 	if [ -n "$(BEYOND_EFFICIENCY)" ]; then \
-	  sweep . online "experiment=$(BEYOND_EFFICIENCY) trainer=online trainer.curiosity=0,$(BEYOND_ETA)"; \
+	  sweep . online "trainer.curiosity=0,$(BEYOND_ETA) experiment=$(BEYOND_EFFICIENCY) trainer=online"; \
 	fi; \
 	for c in $(BEYOND_PASSIVE_CORRIDORS); do \
 	  sweep passive_curve corridor_$$c "experiment=passive_tmaze predictor.joint.memory=$(BEYOND_PASSIVE_MEMORIES) \

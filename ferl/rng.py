@@ -41,6 +41,9 @@ EPISODIC = SeedOffsets(actor=100_000)
 # maze built for a job (the training one, the single-run views of ferl.envs.gym) draws the same.
 # (Equal to ``SeedOffsets.env``: a digit maze takes no ``seed``, so the two never meet.)
 IMAGE_NOISE = 300_000
+# A preprocessor's sampled binary outputs (``RBMPreprocessor``, ``hidden: binary``): run r's
+# training seed + this, so that every call draws the same samples.
+BINARY_HIDDEN = 500_000
 # what a trainer's config calls them (conf/trainer/*.yaml: seed_offsets)
 OffsetsName = Literal["episodic", "continuing"]
 NAMED_OFFSETS = dict(zip(get_args(OffsetsName), (EPISODIC, CONTINUING)))

@@ -153,6 +153,35 @@ def test_transform_shape_range_and_shared_input():
     assert model.reconstruction_error(v).shape == (3,)
 
 
+def test_binary_hidden_samples_each_row_from_its_expectation():
+    """hidden="binary": h = 1 where the run's uniform (its stream, ``rng.BINARY_HIDDEN`` above its
+    training seed) falls below ĥ = σ(Wᵀv + b_h) (against NumPy's); the same samples at
+    every call, the mean of many copies of one image ĥ within 4 s.e. of the binomial, and the fit's
+    cache key and the reconstruction are those of mean-field outputs."""
+    import numpy as np
+
+    from ferl import rng
+
+    kw = dict(n_visible=10, n_hidden=5, init_std=1.0, seed=3)
+    mean_field, binary = RBMPreprocessor(2, **kw), RBMPreprocessor(2, **kw, hidden="binary")
+    v = torch.rand(4000, 10, generator=torch.Generator().manual_seed(0))
+    v[2000:] = v[0]  # 2 000 copies of one image
+    W, b = binary.W.numpy().astype(np.float64), binary.b_h.numpy().astype(np.float64)
+    p = 1 / (1 + np.exp(-(np.einsum("bv,rvh->rbh", v.numpy().astype(np.float64), W) + b[:, None])))
+    u = np.stack(
+        [torch.rand(4000, 5, generator=rng.generator(s + rng.BINARY_HIDDEN)).numpy() for s in binary.train_seeds]
+    )
+    h, expected = binary.transform(v), mean_field.transform(v)
+    np.testing.assert_allclose(expected.numpy(), p, rtol=1e-5, atol=1e-6)
+    np.testing.assert_array_equal(h.numpy(), (u < expected.numpy()).astype(np.float32))
+    torch.testing.assert_close(binary.transform(v), h)
+    p0 = p[:, 0]  # (R, H)
+    mean = h[:, 2000:].double().mean(1).numpy()
+    assert (np.abs(mean - p0) <= 4 * np.sqrt(p0 * (1 - p0) / 2000) + 1e-9).all()
+    assert binary.hparams == mean_field.hparams
+    torch.testing.assert_close(binary.reconstruct(v), mean_field.reconstruct(v))
+
+
 def test_load_or_fit_caches_by_settings(tmp_path, monkeypatch):
     images = torch.rand(60, 16, generator=torch.Generator().manual_seed(0))
     settings = dict(n_visible=16, n_hidden=4, sweeps=2, batch_size=20)

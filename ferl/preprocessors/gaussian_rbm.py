@@ -97,9 +97,9 @@ class GaussianRBMPreprocessor(RBMPreprocessor):
 
     # ---- the model -----------------------------------------------------------------------------
     @torch.no_grad()
-    def transform(self, v: torch.Tensor) -> torch.Tensor:
+    def expected_hidden(self, v: torch.Tensor) -> torch.Tensor:
         """ĥ = σ(Wᵀv_std + b_h) of raw observations v (B, V) shared or (R, B, V) → (R, B, H)."""
-        return super().transform(self.standardise(v))
+        return super().expected_hidden(self.standardise(v))
 
     def visible_given(self, h: torch.Tensor, gens: list | None = None) -> torch.Tensor:
         """E[v | h] = W h + b_v (standardised units) for h (R, B, H); sampled, v ~ N(W h + b_v, I),

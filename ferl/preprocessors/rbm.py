@@ -50,6 +50,7 @@ from ferl.interfaces import FitStopped, PreprocessorBase
 from ferl.preprocessors.cache import load_or_fit
 
 VisibleMode = Literal["mean_field", "binary"]
+HiddenMode = Literal["mean_field", "binary"]
 Generators = torch.Generator | Sequence[torch.Generator]
 
 
@@ -128,10 +129,13 @@ class RBMPreprocessor(PreprocessorBase, nn.Module):
         visible: VisibleMode = "mean_field",
         seed: NonNegativeInt = 0,
         cache_dir: str | None = None,
+        hidden: HiddenMode = "mean_field",
     ):
         super().__init__()
-        # Every constructor argument that the fit depends on: the cache key of load_or_fit.
-        self.hparams = {k: v for k, v in locals().items() if k not in ("self", "__class__", "cache_dir")}
+        # Every constructor argument that the fit depends on: the cache key of load_or_fit (what
+        # the fit hands on, ``hidden``, is not one)
+        self.hparams = {k: v for k, v in locals().items() if k not in ("self", "__class__", "cache_dir", "hidden")}
+        self.hidden = hidden
         self.cache_dir = cache_dir  # where fits are kept (None: never cached)
         self.input_size, self.output_size = n_visible, n_hidden
         self.cd_k, self.persistent, self.visible = cd_k, persistent, visible
@@ -161,6 +165,7 @@ class RBMPreprocessor(PreprocessorBase, nn.Module):
             "n_hidden": self.output_size,
             "cd_k": self.cd_k,
             "sweeps": self.sweeps,
+            "hidden": self.hidden,
         }
 
     def run_generators(self) -> list:
@@ -169,9 +174,21 @@ class RBMPreprocessor(PreprocessorBase, nn.Module):
 
     # ---- the model -----------------------------------------------------------------------------
     @torch.no_grad()
-    def transform(self, v: torch.Tensor) -> torch.Tensor:
-        """Processed observations ĥ = σ(Wᵀv + b_h) (Algorithm 2): v (B, V) shared or (R, B, V) → (R, B, H)."""
+    def expected_hidden(self, v: torch.Tensor) -> torch.Tensor:
+        """ĥ = σ(Wᵀv + b_h) = p(h = 1 | v): v (B, V) shared or (R, B, V) → (R, B, H)."""
         return rbm.hidden_expectation(v.to(self.W), self.W, self.b_h)
+
+    @torch.no_grad()
+    def transform(self, v: torch.Tensor) -> torch.Tensor:
+        """Processed observations (Algorithm 2): ĥ (``expected_hidden``), or with ``hidden="binary"``
+        binary states h ~ p(h | v) (Eq. 5.1's "binary processed observation nodes"), one sample per
+        row of v and run, from run r's stream ``rng.BINARY_HIDDEN`` (the same samples at every
+        call): v (B, V) shared or (R, B, V) → (R, B, H)."""
+        h = self.expected_hidden(v)
+        if self.hidden == "mean_field":
+            return h
+        gens = rng.generators([seed + rng.BINARY_HIDDEN for seed in self.train_seeds], h.device)
+        return bernoulli(h, uniform(h.shape[1:], gens, h))
 
     def visible_input(self, h: torch.Tensor) -> torch.Tensor:
         """Total input W h + b_v of every visible unit: h (R, B, H) → (R, B, V)."""
@@ -188,7 +205,7 @@ class RBMPreprocessor(PreprocessorBase, nn.Module):
     def reconstruct(self, v: torch.Tensor) -> torch.Tensor:
         """One-step mean-field reconstruction σ(W ĥ + b_v), ĥ = σ(Wᵀv + b_h): v (B, V) or (R, B, V)
         → (R, B, V)."""
-        return self.visible_given(self.transform(v))
+        return self.visible_given(self.expected_hidden(v))
 
     @torch.no_grad()
     def reconstruction_error(self, v: torch.Tensor) -> torch.Tensor:
