@@ -100,7 +100,8 @@ class RBMPreprocessor(PreprocessorBase, nn.Module):
     the others; their defaults are those of Hinton's practical guide (see the module docstring):
     lr 0.1, momentum 0.5 for the first ``initial_momentum_sweeps`` = 5 sweeps then 0.9, weight
     decay 2·10⁻⁴ (weights only), minibatches of 100, init_std 0.01, mean-field visible units.
-    Run r's initial weights and its training stream come from seed + r.
+    Run r's initial weights and its training stream come from seed + r. ``hidden``: what
+    ``transform`` hands on, ĥ or binary samples of h (not part of the fit).
     """
 
     stoppable_fit = True  # a stop request ends the fit between sweeps (``train``'s ``stop``)
