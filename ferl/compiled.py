@@ -14,6 +14,7 @@ first run of a configuration pays, and that run says so in one line. Without a C
 (CUDA) a run warns once and runs eagerly.
 """
 
+import contextlib
 import os
 import sys
 import time
@@ -74,9 +75,39 @@ def cache_dir() -> Path:
     shared by an AVX2 and an AVX-512 machine (a cluster's nodes), or a run with
     ``ATEN_CPU_CAPABILITY=avx2`` before one without, made the second load the other's graphs, and
     it ended in "double free or corruption" (seen here with torch 2.13, docs/reliability.md)."""
-    if CACHE_ENV not in os.environ:
+    chosen = os.environ.get(CACHE_ENV)  # read first: importing inductor sets its own default
+    remember_isa_probes()
+    if chosen is None:
         os.environ[CACHE_ENV] = str(DEFAULT_CACHE / vector_isa())
     return Path(os.environ[CACHE_ENV])
+
+
+def remember_isa_probes() -> None:
+    """Inductor accepts a vector ISA once a small library built with its flags (kept in inductor's
+    cache) loads in a fresh Python process: ten such processes, 1.3–1.8 s, in every process that
+    compiles a graph or loads one (docs/performance.md, "The vector ISA probes, once per
+    machine"). A library that loaded once loads again: a success is remembered in a file beside the
+    library (``<library>.loads``), which later processes read instead. A failure is not remembered,
+    so it is probed again, as before. Installed once, before the first probe; where inductor probes
+    differently (another torch), nothing changes."""
+    from torch._inductor.cpu_vec_isa import VecISA
+
+    probe = getattr(VecISA, "_probe_load", None)
+    if probe is None or getattr(probe, "remembered", False):
+        return
+
+    def remembered(isa, library: str) -> bool:
+        mark = Path(library + ".loads")
+        if mark.exists():
+            return True
+        loads = probe(isa, library)
+        if loads:
+            with contextlib.suppress(OSError):  # a read-only cache: probe again next time
+                mark.touch()
+        return loads
+
+    remembered.remembered = True  # type: ignore[attr-defined]
+    setattr(VecISA, "_probe_load", remembered)  # noqa: B010 — a private hook of inductor's, replaced on purpose
 
 
 def vector_isa() -> str:

@@ -110,3 +110,35 @@ def test_the_discounted_return_is_the_exact_sum_in_step_order_whatever_blas_runs
     assert np.array_equal(got.numpy(), expected.astype(np.float32))
     assert torch.equal(discounted_return(factors, torch.eye(steps) @ rewards), got)
     assert np.allclose(got.numpy(), (gamma ** np.arange(steps)) @ rewards.numpy().astype(np.float64), rtol=1e-6)
+
+
+def test_a_vector_isa_probe_that_loaded_is_remembered_and_a_failed_one_is_not(tmp_path, monkeypatch):
+    """``remember_isa_probes``: inductor's probe (a fresh process loading the library) runs once for
+    a library that loads, then a file beside it answers; a library that failed is probed every time."""
+    from torch._inductor.cpu_vec_isa import VecISA
+
+    import ferl.compiled
+
+    calls = []
+    monkeypatch.setattr(VecISA, "_probe_load", lambda isa, library: calls.append(library) or "good" in library)
+    ferl.compiled.remember_isa_probes()
+    good, bad = str(tmp_path / "good.so"), str(tmp_path / "bad.so")
+    answers = [VecISA._probe_load(None, library) for library in (good, bad, good, bad, good)]
+    assert answers == [True, False, True, False, True]
+    assert calls == [good, bad, bad]
+    assert (tmp_path / "good.so.loads").exists() and not (tmp_path / "bad.so.loads").exists()
+    ferl.compiled.remember_isa_probes()  # installed once: no probe wrapped twice
+    VecISA._probe_load(None, bad)
+    assert calls == [good, bad, bad, bad]
+
+
+def test_remembered_probes_pick_the_vector_isa_that_probing_picks():
+    """With the probes remembered, a process picks the ISA that torch picks by probing alone: the
+    first process may probe and remember, the second reads what was remembered."""
+    probed = "import ferl; from torch._inductor.cpu_vec_isa import pick_vec_isa; print(pick_vec_isa())"
+    ours = "from ferl.compiled import cache_dir, vector_isa; cache_dir(); print(vector_isa())"
+    run = lambda code: subprocess.run(  # noqa: E731
+        [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True
+    ).stdout.strip()
+    picks = [run(ours), run(ours)]
+    assert picks == ["_".join(run(probed).split())] * 2
