@@ -84,7 +84,7 @@ def cache_dir() -> Path:
 
 def remember_isa_probes() -> None:
     """Inductor accepts a vector ISA once a small library built with its flags (kept in inductor's
-    cache) loads in a fresh Python process: ten such processes, 1.3–1.8 s, in every process that
+    cache) loads in a fresh Python process: ten such processes, about 1.8 s, in every process that
     compiles a graph or loads one (docs/performance.md, "The vector ISA probes, once per
     machine"). A library that loaded once loads again: a success is remembered in a file beside the
     library (``<library>.loads``), which later processes read instead. A failure is not remembered,
