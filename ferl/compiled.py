@@ -75,9 +75,7 @@ def cache_dir() -> Path:
     shared by an AVX2 and an AVX-512 machine (a cluster's nodes), or a run with
     ``ATEN_CPU_CAPABILITY=avx2`` before one without, made the second load the other's graphs, and
     it ended in "double free or corruption" (seen here with torch 2.13, docs/reliability.md)."""
-    chosen = os.environ.get(CACHE_ENV)  # read first: importing inductor sets its own default
-    remember_isa_probes()
-    if chosen is None:
+    if CACHE_ENV not in os.environ:
         os.environ[CACHE_ENV] = str(DEFAULT_CACHE / vector_isa())
     return Path(os.environ[CACHE_ENV])
 
@@ -88,8 +86,8 @@ def remember_isa_probes() -> None:
     compiles a graph or loads one (docs/performance.md, "The vector ISA probes, once per
     machine"). A library that loaded once loads again: a success is remembered in a file beside the
     library (``<library>.loads``), which later processes read instead. A failure is not remembered,
-    so it is probed again, as before. Installed once, before the first probe; where inductor probes
-    differently (another torch), nothing changes."""
+    so it is probed again, as before. Installed by ``vector_isa`` and ``compiled``, before the first
+    probe, once; where inductor probes differently (another torch), nothing changes."""
     from torch._inductor.cpu_vec_isa import VecISA
 
     probe = getattr(VecISA, "_probe_load", None)
@@ -115,6 +113,7 @@ def vector_isa() -> str:
     ``avx512_avx512_vnni_amx_tile`` (it follows ``ATEN_CPU_CAPABILITY``); ``none`` without."""
     from torch._inductor.cpu_vec_isa import pick_vec_isa
 
+    remember_isa_probes()
     isa = pick_vec_isa()
     return "_".join(str(isa).split()) if isa else "none"
 
@@ -226,6 +225,7 @@ def compiled(fn, device: torch.device, what: str, generic: Callable[[tuple], tup
     share one graph, compiled once (the floor's noise levels: docs/performance.md)."""
     options = tuple(sorted(CPU_INDUCTOR_OPTIONS.items())) if device.type == "cpu" else ()
     backend = locked_inductor(options, str(cache_dir() / "ferl_graph_locks"))  # one compiler of a graph at a time
+    remember_isa_probes()  # after cache_dir: importing inductor sets a cache folder of its own
     graph = torch.compile(fn, fullgraph=True, dynamic=None if generic else False, backend=backend)
     if generic is not None:
         static = torch._dynamo.config.patch(automatic_dynamic_shapes=False)
